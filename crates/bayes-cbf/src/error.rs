@@ -1,0 +1,91 @@
+//! Error types, one enum per layer, joined into [`Error`] with `#[from]`.
+
+use thiserror::Error;
+
+/// Bad input from a user: wrong shapes, non-finite values, out-of-range
+/// settings. Every variant names the offending field.
+#[derive(Debug, Clone, Error, PartialEq)]
+#[non_exhaustive]
+pub enum InputError {
+    /// A value outside its allowed range.
+    #[error("invalid {field} = {value}: {reason}")]
+    Invalid {
+        /// Field name, e.g. `noise_sigma` or `x[3][1]`.
+        field: String,
+        /// The offending value, formatted.
+        value: String,
+        /// What was expected.
+        reason: String,
+    },
+    /// A vector or matrix of the wrong size.
+    #[error("wrong shape of {field}: expected {expected}, got {got}")]
+    Shape {
+        /// Field name.
+        field: String,
+        /// Expected shape.
+        expected: String,
+        /// Actual shape.
+        got: String,
+    },
+    /// A matrix that must be symmetric positive definite is not.
+    #[error("{field} is not symmetric positive definite: {reason}")]
+    NotPositiveDefinite {
+        /// Field name (`A`, `B`, ...).
+        field: String,
+        /// Details.
+        reason: String,
+    },
+}
+
+impl InputError {
+    /// `Invalid` with a numeric value.
+    pub fn invalid(field: &str, value: f64, reason: &str) -> Self {
+        Self::Invalid { field: field.to_string(), value: format!("{value}"), reason: reason.to_string() }
+    }
+
+    /// `Shape` error.
+    pub fn shape(field: &str, expected: impl ToString, got: impl ToString) -> Self {
+        Self::Shape { field: field.to_string(), expected: expected.to_string(), got: got.to_string() }
+    }
+}
+
+/// Checks that every entry of `v` is finite, naming the first bad entry.
+pub fn check_finite(field: &str, v: &[f64]) -> Result<(), InputError> {
+    match v.iter().position(|x| !x.is_finite()) {
+        None => Ok(()),
+        Some(i) => Err(InputError::invalid(&format!("{field}[{i}]"), v[i], "must be finite")),
+    }
+}
+
+/// Numerical failures of Gaussian-process computations.
+#[derive(Debug, Clone, Error, PartialEq)]
+#[non_exhaustive]
+pub enum GpError {
+    /// The Gram matrix `K + σ²I` could not be factorised even after the
+    /// bounded jitter escalation.
+    #[error("Gram matrix (k = {size}) is not positive definite even with jitter {max_jitter:e} (relative to its mean diagonal); data may contain duplicate points with zero noise")]
+    IllConditioned {
+        /// Size `k` of the Gram matrix.
+        size: usize,
+        /// Largest relative jitter tried.
+        max_jitter: f64,
+    },
+    /// Hyperparameter optimisation failed to produce a finite likelihood.
+    #[error("hyperparameter optimisation failed: {0}")]
+    Optimisation(String),
+    /// An operation that needs data was called on an empty model.
+    #[error("the model has no training data")]
+    NoData,
+}
+
+/// Any error of this library.
+#[derive(Debug, Clone, Error, PartialEq)]
+#[non_exhaustive]
+pub enum Error {
+    /// Bad user input.
+    #[error(transparent)]
+    Input(#[from] InputError),
+    /// Numerical failure in the GP layer.
+    #[error(transparent)]
+    Gp(#[from] GpError),
+}

@@ -1,0 +1,613 @@
+//! Matrix-variate Gaussian process regression of `F(x) = [f(x) g(x)]`
+//! (paper, Sec. IV, Prop. 1).
+
+use super::factor::CholFactor;
+use super::input_map::InputMap;
+use super::kernel::{Kernel, Rbf};
+use super::prior::PriorMean;
+use crate::error::{check_finite, Error, GpError, InputError};
+use faer::Mat;
+use nalgebra::DMatrix;
+use std::sync::OnceLock;
+
+/// Hyperparameters of an MVGP with `B0(x, x') = B k0(x, x')`:
+/// `vec F ~ GP(vec M0, B k0 ⊗ A)`, noise `w ~ N(0, σ² A)`.
+#[derive(Debug, Clone, PartialEq)]
+#[allow(non_snake_case)]
+pub struct MvgpHyper<K: Kernel = Rbf> {
+    /// Scalar kernel `k0`.
+    pub kernel: K,
+    /// Row covariance `A ∈ R^{n×n}` (symmetric positive definite).
+    pub A: DMatrix<f64>,
+    /// Column covariance `B ∈ R^{(1+m)×(1+m)}` (symmetric positive definite).
+    pub B: DMatrix<f64>,
+    /// Noise scale `σ > 0`: `Cov(w) = σ² A`.
+    pub sigma: f64,
+}
+
+/// Checks that `m` is square of size `dim`, finite, symmetric and positive
+/// definite, naming it `field` in the error.
+pub fn check_spd(field: &str, m: &DMatrix<f64>, dim: usize) -> Result<(), InputError> {
+    if m.nrows() != dim || m.ncols() != dim {
+        return Err(InputError::shape(field, format!("{dim}×{dim}"), format!("{}×{}", m.nrows(), m.ncols())));
+    }
+    for i in 0..dim {
+        for j in 0..dim {
+            let v = m[(i, j)];
+            if !v.is_finite() {
+                return Err(InputError::invalid(&format!("{field}[{i}][{j}]"), v, "must be finite"));
+            }
+            let w = m[(j, i)];
+            if (v - w).abs() > 1e-9 * (1.0 + v.abs().max(w.abs())) {
+                return Err(InputError::NotPositiveDefinite { field: field.into(), reason: format!("not symmetric: [{i}][{j}] = {v} but [{j}][{i}] = {w}") });
+            }
+        }
+    }
+    if m.clone().cholesky().is_none() {
+        let ev = m.clone().symmetric_eigenvalues();
+        let min = ev.iter().cloned().fold(f64::INFINITY, f64::min);
+        return Err(InputError::NotPositiveDefinite { field: field.into(), reason: format!("smallest eigenvalue {min:.3e} ≤ 0") });
+    }
+    Ok(())
+}
+
+impl<K: Kernel> MvgpHyper<K> {
+    /// Validates shapes and positivity for state dim `n`, control dim `m`,
+    /// kernel input dim `d`.
+    pub fn validate(&self, n: usize, m: usize, d: usize) -> Result<(), InputError> {
+        if self.kernel.input_dim() != d {
+            return Err(InputError::shape("kernel.lengthscales", d, self.kernel.input_dim()));
+        }
+        check_spd("A", &self.A, n)?;
+        check_spd("B", &self.B, m + 1)?;
+        if !(self.sigma.is_finite() && self.sigma > 0.0) {
+            return Err(InputError::invalid("noise_sigma", self.sigma, "must be finite and > 0"));
+        }
+        Ok(())
+    }
+}
+
+/// Posterior of `vec F(x)` at one point: `N(vec M_k(x), B_k(x, x) ⊗ A)`.
+#[derive(Debug, Clone, PartialEq)]
+#[allow(non_snake_case)]
+pub struct Posterior {
+    /// `M_k(x)`, `n × (1+m)`.
+    pub mean: DMatrix<f64>,
+    /// `B_k(x, x)`, `(1+m) × (1+m)`.
+    pub B: DMatrix<f64>,
+}
+
+/// Reusable buffers for posterior queries, so that repeated queries allocate
+/// nothing once warmed up. Create with [`Mvgp::workspace`].
+#[derive(Debug, Clone)]
+pub struct PosteriorWorkspace {
+    pub(crate) z: Vec<f64>,
+    pub(crate) kvec: Vec<f64>,
+    /// `W = (𝓑(x)U̲)ᵀ`, then `V = L⁻¹ W` in place: `k × (1+m)`.
+    pub(crate) w: Mat<f64>,
+    pub(crate) m0: Vec<f64>,
+}
+
+/// An MVGP model of `F(x)` with its training data and factorised Gram matrix.
+///
+/// Observations are `ẋ_j = F(x_j) u̲_j + w_j`, `w_j ~ N(0, σ² A)`. The Gram
+/// matrix is `G = K + σ² I` with `K_ij = u̲_iᵀ B u̲_j k0(x_i, x_j)`
+/// (the correct form of Prop. 1: σ² belongs in the Gram matrix).
+///
+/// ## Reference
+/// Paper, Prop. 1, Eq. (12):
+/// `M_k(x) = M0(x) + (Ẋ − 𝓜U̲) G⁻¹ (𝓑(x)U̲)ᵀ`,
+/// `B_k(x,x') = B0(x,x') − 𝓑(x)U̲ G⁻¹ (𝓑(x')U̲)ᵀ`,
+/// `𝓑(x)U̲ = [B0(x,x_1)u̲_1 … B0(x,x_k)u̲_k]`.
+#[derive(Debug, Clone)]
+pub struct Mvgp<K: Kernel = Rbf> {
+    n: usize,
+    m: usize,
+    hyper: MvgpHyper<K>,
+    prior: PriorMean,
+    input_map: InputMap,
+    /// Inputs `x_j`, row-major `k × n`.
+    xs: Vec<f64>,
+    /// Mapped inputs `z_j = φ(x_j)`, row-major `k × d`.
+    zs: Vec<f64>,
+    /// `u̲_j = [1, u_j]`, row-major `k × (1+m)`.
+    us: Vec<f64>,
+    /// `ẋ_j`, row-major `k × n`.
+    xdot: Vec<f64>,
+    /// Residuals `r_j = ẋ_j − M0(x_j) u̲_j`, row-major `k × n`.
+    resid: Vec<f64>,
+    /// `B u̲_j`, row-major `k × (1+m)`.
+    bu: Vec<f64>,
+    factor: CholFactor,
+    /// `β = L⁻¹ Rᵀ`, `k × n` (rows beyond `k` are capacity).
+    beta: Mat<f64>,
+    /// `α = G⁻¹ Rᵀ = L⁻ᵀ β`, computed on demand.
+    alpha: OnceLock<Mat<f64>>,
+    scratch: Vec<f64>,
+}
+
+impl<K: Kernel> Mvgp<K> {
+    /// A model with no data (the prior), validated.
+    pub fn new(n: usize, m: usize, hyper: MvgpHyper<K>, prior: PriorMean, input_map: InputMap) -> Result<Self, InputError> {
+        if n == 0 {
+            return Err(InputError::invalid("state_dim", 0.0, "must be ≥ 1"));
+        }
+        if m == 0 {
+            return Err(InputError::invalid("control_dim", 0.0, "must be ≥ 1"));
+        }
+        input_map.validate(n)?;
+        hyper.validate(n, m, input_map.output_dim(n))?;
+        if let Some((pn, pm)) = prior.dims() {
+            if (pn, pm) != (n, m) {
+                return Err(InputError::shape("prior_mean", format!("system with n = {n}, m = {m}"), format!("n = {pn}, m = {pm}")));
+            }
+        }
+        Ok(Self {
+            n,
+            m,
+            hyper,
+            prior,
+            input_map,
+            xs: Vec::new(),
+            zs: Vec::new(),
+            us: Vec::new(),
+            xdot: Vec::new(),
+            resid: Vec::new(),
+            bu: Vec::new(),
+            factor: CholFactor::default(),
+            beta: Mat::zeros(0, n),
+            alpha: OnceLock::new(),
+            scratch: Vec::new(),
+        })
+    }
+
+    /// State dimension `n`.
+    pub fn n(&self) -> usize {
+        self.n
+    }
+    /// Control dimension `m`.
+    pub fn m(&self) -> usize {
+        self.m
+    }
+    /// Number of observations `k`.
+    pub fn len(&self) -> usize {
+        self.factor.len()
+    }
+    /// No observations.
+    pub fn is_empty(&self) -> bool {
+        self.factor.is_empty()
+    }
+    /// Hyperparameters.
+    pub fn hyper(&self) -> &MvgpHyper<K> {
+        &self.hyper
+    }
+    /// Prior mean.
+    pub fn prior(&self) -> &PriorMean {
+        &self.prior
+    }
+    /// Input map.
+    pub fn input_map(&self) -> &InputMap {
+        &self.input_map
+    }
+    /// Cholesky factor of `K + σ²I`.
+    pub fn factor(&self) -> &CholFactor {
+        &self.factor
+    }
+    /// Training inputs (row-major `k × n`).
+    pub fn xs(&self) -> &[f64] {
+        &self.xs
+    }
+    /// Training controls without the leading 1 (`k × m`), freshly collected.
+    pub fn controls(&self) -> Vec<f64> {
+        let p = self.m + 1;
+        self.us.chunks(p).flat_map(|u| u[1..].to_vec()).collect()
+    }
+    /// Training targets `ẋ` (row-major `k × n`).
+    pub fn xdot(&self) -> &[f64] {
+        &self.xdot
+    }
+
+    fn validate_point(&self, x: &[f64], u: &[f64], xdot: &[f64], j: usize) -> Result<(), InputError> {
+        let (n, m) = (self.n, self.m);
+        if x.len() != n {
+            return Err(InputError::shape(&format!("x[{j}]"), n, x.len()));
+        }
+        if u.len() != m {
+            return Err(InputError::shape(&format!("u[{j}]"), m, u.len()));
+        }
+        if xdot.len() != n {
+            return Err(InputError::shape(&format!("xdot[{j}]"), n, xdot.len()));
+        }
+        check_finite(&format!("x[{j}]"), x)?;
+        check_finite(&format!("u[{j}]"), u)?;
+        check_finite(&format!("xdot[{j}]"), xdot)?;
+        Ok(())
+    }
+
+    fn push_point(&mut self, x: &[f64], u: &[f64], xdot: &[f64]) {
+        let (n, p) = (self.n, self.m + 1);
+        let d = self.input_map.output_dim(n);
+        self.xs.extend_from_slice(x);
+        let zoff = self.zs.len();
+        self.zs.resize(zoff + d, 0.0);
+        self.input_map.apply(x, &mut self.zs[zoff..]);
+        let uoff = self.us.len();
+        self.us.push(1.0);
+        self.us.extend_from_slice(u);
+        self.xdot.extend_from_slice(xdot);
+        let mut m0 = vec![0.0; n * p];
+        self.prior.eval(x, &mut m0);
+        for i in 0..n {
+            let mut r = xdot[i];
+            for c in 0..p {
+                r -= m0[i + n * c] * self.us[uoff + c];
+            }
+            self.resid.push(r);
+        }
+        for a in 0..p {
+            let mut s = 0.0;
+            for c in 0..p {
+                s += self.hyper.B[(a, c)] * self.us[uoff + c];
+            }
+            self.bu.push(s);
+        }
+    }
+
+    /// `G_ij = u̲_iᵀ B u̲_j k0(z_i, z_j) + σ² δ_ij`.
+    #[inline]
+    fn gram_entry(&self, i: usize, j: usize) -> f64 {
+        let p = self.m + 1;
+        let d = self.input_map.output_dim(self.n);
+        let kv = self.hyper.kernel.value(&self.zs[i * d..(i + 1) * d], &self.zs[j * d..(j + 1) * d]);
+        let ubu: f64 = (0..p).map(|c| self.us[i * p + c] * self.bu[j * p + c]).sum();
+        let mut g = ubu * kv;
+        if i == j {
+            g += self.hyper.sigma * self.hyper.sigma;
+        }
+        g
+    }
+
+    /// Replaces the training data and factorises `K + σ²I` from scratch.
+    ///
+    /// `xs` is `k × n`, `us` is `k × m`, `xdot` is `k × n`, all row-major.
+    pub fn set_data(&mut self, xs: &[f64], us: &[f64], xdot: &[f64]) -> Result<(), Error> {
+        let (n, m) = (self.n, self.m);
+        let k = xs.len() / n;
+        if xs.len() != k * n || us.len() != k * m || xdot.len() != k * n {
+            return Err(InputError::shape("data", format!("x: k×{n}, u: k×{m}, xdot: k×{n}"), format!("{} x, {} u, {} xdot values", xs.len(), us.len(), xdot.len())).into());
+        }
+        for j in 0..k {
+            self.validate_point(&xs[j * n..(j + 1) * n], &us[j * m..(j + 1) * m], &xdot[j * n..(j + 1) * n], j)?;
+        }
+        self.clear();
+        for j in 0..k {
+            self.push_point(&xs[j * n..(j + 1) * n], &us[j * m..(j + 1) * m], &xdot[j * n..(j + 1) * n]);
+        }
+        self.refactor()?;
+        Ok(())
+    }
+
+    fn clear(&mut self) {
+        self.xs.clear();
+        self.zs.clear();
+        self.us.clear();
+        self.xdot.clear();
+        self.resid.clear();
+        self.bu.clear();
+        self.factor = CholFactor::default();
+        self.beta = Mat::zeros(0, self.n);
+        self.alpha = OnceLock::new();
+    }
+
+    /// Recomputes the factor and `β` from the stored data (O(k³)).
+    pub fn refactor(&mut self) -> Result<(), GpError> {
+        let k = self.xs.len() / self.n;
+        let mut g = Mat::<f64>::zeros(k, k);
+        for j in 0..k {
+            for i in j..k {
+                g[(i, j)] = self.gram_entry(i, j);
+            }
+        }
+        let cap = k + k / 2 + 8;
+        self.factor = CholFactor::factor(g.as_ref(), cap)?;
+        self.beta = Mat::zeros(cap, self.n);
+        for j in 0..k {
+            for i in 0..self.n {
+                self.beta[(j, i)] = self.resid[j * self.n + i];
+            }
+        }
+        self.factor.solve_l_in_place(self.beta.as_mut().submatrix_mut(0, 0, k, self.n));
+        self.alpha = OnceLock::new();
+        self.scratch.resize(cap, 0.0);
+        Ok(())
+    }
+
+    /// Adds one observation `(x, u, ẋ)`, growing the Cholesky factor by one
+    /// row (one triangular solve, O(k²); no refactorisation).
+    pub fn add_observation(&mut self, x: &[f64], u: &[f64], xdot: &[f64]) -> Result<(), Error> {
+        let k = self.len();
+        self.validate_point(x, u, xdot, k)?;
+        self.push_point(x, u, xdot);
+        let n = self.n;
+        let mut gcol = std::mem::take(&mut self.scratch);
+        gcol.resize((2 * (k + 1)).max(gcol.len()), 0.0);
+        let (g_new, rest) = gcol.split_at_mut(k + 1);
+        for (i, gi) in g_new.iter_mut().enumerate().take(k) {
+            *gi = self.gram_entry(k, i);
+        }
+        let diag = self.gram_entry(k, k);
+        let res = self.factor.append(&g_new[..k], diag, rest);
+        if let Err(e) = res {
+            self.scratch = gcol;
+            self.pop_last_point();
+            return Err(e.into());
+        }
+        // β grows by one row: β_k = (r_k − Σ_j L_kj β_j) / L_kk
+        if self.beta.nrows() < k + 1 {
+            let cap = (2 * self.beta.nrows()).max(k + 1).max(16);
+            let mut nb = Mat::<f64>::zeros(cap, n);
+            nb.as_mut().submatrix_mut(0, 0, k, n).copy_from(self.beta.as_ref().submatrix(0, 0, k, n));
+            self.beta = nb;
+        }
+        let l = self.factor.l();
+        for i in 0..n {
+            let mut s = self.resid[k * n + i];
+            for j in 0..k {
+                s -= l[(k, j)] * self.beta[(j, i)];
+            }
+            self.beta[(k, i)] = s / l[(k, k)];
+        }
+        self.alpha = OnceLock::new();
+        self.scratch = gcol;
+        Ok(())
+    }
+
+    fn pop_last_point(&mut self) {
+        let (n, p) = (self.n, self.m + 1);
+        let d = self.input_map.output_dim(n);
+        self.xs.truncate(self.xs.len() - n);
+        self.zs.truncate(self.zs.len() - d);
+        self.us.truncate(self.us.len() - p);
+        self.xdot.truncate(self.xdot.len() - n);
+        self.resid.truncate(self.resid.len() - n);
+        self.bu.truncate(self.bu.len() - p);
+    }
+
+    /// Drops the oldest observation (sliding window): rank-one update of the
+    /// factor and one triangular solve for `β`, O(k²).
+    pub fn remove_oldest(&mut self) {
+        let k = self.len();
+        if k == 0 {
+            return;
+        }
+        let (n, p) = (self.n, self.m + 1);
+        let d = self.input_map.output_dim(n);
+        self.xs.drain(..n);
+        self.zs.drain(..d);
+        self.us.drain(..p);
+        self.xdot.drain(..n);
+        self.resid.drain(..n);
+        self.bu.drain(..p);
+        self.scratch.resize(self.scratch.len().max(k), 0.0);
+        self.factor.remove_first(&mut self.scratch);
+        let k1 = k - 1;
+        for j in 0..k1 {
+            for i in 0..n {
+                self.beta[(j, i)] = self.resid[j * n + i];
+            }
+        }
+        self.factor.solve_l_in_place(self.beta.as_mut().submatrix_mut(0, 0, k1, n));
+        self.alpha = OnceLock::new();
+    }
+
+    /// `α = G⁻¹ (Ẋ − 𝓜U̲)ᵀ`, `k × n`, cached until the data change.
+    pub fn alpha(&self) -> &Mat<f64> {
+        self.alpha.get_or_init(|| {
+            let k = self.len();
+            let mut a = self.beta.as_ref().submatrix(0, 0, k, self.n).to_owned();
+            self.factor.solve_lt_in_place(a.as_mut());
+            a
+        })
+    }
+
+    /// A workspace for allocation-free posterior queries.
+    pub fn workspace(&self) -> PosteriorWorkspace {
+        let cap = self.beta.nrows().max(self.len());
+        PosteriorWorkspace {
+            z: vec![0.0; self.input_map.output_dim(self.n)],
+            kvec: vec![0.0; cap],
+            w: Mat::zeros(cap, self.m + 1),
+            m0: vec![0.0; self.n * (self.m + 1)],
+        }
+    }
+
+    fn check_x(&self, x: &[f64]) -> Result<(), InputError> {
+        if x.len() != self.n {
+            return Err(InputError::shape("x", self.n, x.len()));
+        }
+        check_finite("x", x)
+    }
+
+    /// Fills `ws.z`, `ws.kvec[..k]` and `ws.w[..k]` with `W = (𝓑(x)U̲)ᵀ`,
+    /// row `j` = `k0(x, x_j) (B u̲_j)ᵀ`.
+    fn fill_w(&self, x: &[f64], ws: &mut PosteriorWorkspace) {
+        let k = self.len();
+        let p = self.m + 1;
+        let d = ws.z.len();
+        if ws.kvec.len() < k || ws.w.nrows() < k {
+            *ws = self.workspace();
+        }
+        self.input_map.apply(x, &mut ws.z);
+        for j in 0..k {
+            let kv = self.hyper.kernel.value(&ws.z, &self.zs[j * d..(j + 1) * d]);
+            ws.kvec[j] = kv;
+            for c in 0..p {
+                ws.w[(j, c)] = kv * self.bu[j * p + c];
+            }
+        }
+    }
+
+    /// Posterior mean `M_k(x)` only (O(k) with the cached `α`).
+    pub fn posterior_mean(&self, x: &[f64]) -> Result<DMatrix<f64>, InputError> {
+        self.check_x(x)?;
+        let mut ws = self.workspace();
+        let (n, p) = (self.n, self.m + 1);
+        let mut out = DMatrix::zeros(n, p);
+        self.prior.eval(x, &mut ws.m0);
+        for c in 0..p {
+            for i in 0..n {
+                out[(i, c)] = ws.m0[i + n * c];
+            }
+        }
+        if self.is_empty() {
+            return Ok(out);
+        }
+        self.fill_w(x, &mut ws);
+        let alpha = self.alpha();
+        for j in 0..self.len() {
+            for c in 0..p {
+                let w = ws.w[(j, c)];
+                for i in 0..n {
+                    out[(i, c)] += alpha[(j, i)] * w;
+                }
+            }
+        }
+        Ok(out)
+    }
+
+    /// Full posterior at `x`: `M_k(x)` and `B_k(x, x)` (Prop. 1), written
+    /// into `out` using `ws`; allocation-free once `ws` and `out` are sized.
+    ///
+    /// With `V = L⁻¹ W`: `M_k = M0 + βᵀ V`, `B_k = B k0(x,x) − Vᵀ V`.
+    pub fn posterior_into(&self, x: &[f64], ws: &mut PosteriorWorkspace, out: &mut Posterior) -> Result<(), InputError> {
+        self.check_x(x)?;
+        let (n, p, k) = (self.n, self.m + 1, self.len());
+        if out.mean.shape() != (n, p) {
+            out.mean = DMatrix::zeros(n, p);
+        }
+        if out.B.shape() != (p, p) {
+            out.B = DMatrix::zeros(p, p);
+        }
+        self.prior.eval(x, &mut ws.m0);
+        for c in 0..p {
+            for i in 0..n {
+                out.mean[(i, c)] = ws.m0[i + n * c];
+            }
+        }
+        self.input_map.apply(x, &mut ws.z);
+        let kxx = self.hyper.kernel.value(&ws.z, &ws.z);
+        for a in 0..p {
+            for b in 0..p {
+                out.B[(a, b)] = self.hyper.B[(a, b)] * kxx;
+            }
+        }
+        if k == 0 {
+            return Ok(());
+        }
+        self.fill_w(x, ws);
+        let mut v = ws.w.as_mut().submatrix_mut(0, 0, k, p);
+        self.factor.solve_l_in_place(v.as_mut());
+        let v = v.as_ref();
+        for c in 0..p {
+            let vc = v.col(c);
+            for i in 0..n {
+                let bc = self.beta.as_ref().col(i).subrows(0, k);
+                out.mean[(i, c)] += bc.transpose() * vc;
+            }
+            for a in 0..=c {
+                let s = v.col(a).transpose() * vc;
+                out.B[(a, c)] -= s;
+                if a != c {
+                    out.B[(c, a)] -= s;
+                }
+            }
+        }
+        Ok(())
+    }
+
+    /// Full posterior at `x` (allocating convenience wrapper).
+    pub fn posterior(&self, x: &[f64]) -> Result<Posterior, InputError> {
+        let mut ws = self.workspace();
+        let mut out = Posterior { mean: DMatrix::zeros(self.n, self.m + 1), B: DMatrix::zeros(self.m + 1, self.m + 1) };
+        self.posterior_into(x, &mut ws, &mut out)?;
+        Ok(out)
+    }
+
+    /// Posterior cross-covariance factor `B_k(x, x')`.
+    #[allow(non_snake_case)]
+    pub fn posterior_cov(&self, x: &[f64], x2: &[f64]) -> Result<DMatrix<f64>, InputError> {
+        self.check_x(x)?;
+        self.check_x(x2)?;
+        let (k, p) = (self.len(), self.m + 1);
+        let mut ws1 = self.workspace();
+        let mut ws2 = self.workspace();
+        self.input_map.apply(x, &mut ws1.z);
+        self.input_map.apply(x2, &mut ws2.z);
+        let k12 = self.hyper.kernel.value(&ws1.z, &ws2.z);
+        let mut out = &self.hyper.B * k12;
+        if k == 0 {
+            return Ok(out);
+        }
+        self.fill_w(x, &mut ws1);
+        self.fill_w(x2, &mut ws2);
+        let mut v1 = ws1.w.as_mut().submatrix_mut(0, 0, k, p);
+        self.factor.solve_l_in_place(v1.as_mut());
+        let mut v2 = ws2.w.as_mut().submatrix_mut(0, 0, k, p);
+        self.factor.solve_l_in_place(v2.as_mut());
+        for a in 0..p {
+            for b in 0..p {
+                out[(a, b)] -= v1.as_ref().col(a).transpose() * v2.as_ref().col(b);
+            }
+        }
+        Ok(out)
+    }
+
+    /// Exact log marginal likelihood of the stored data:
+    /// `vec Ẋ ~ N(vec(𝓜U̲), (K + σ²I) ⊗ A)`,
+    /// `log p = −½ [n log|G| + k log|A| + tr(A⁻¹ R G⁻¹ Rᵀ) + nk log 2π]`.
+    pub fn log_marginal_likelihood(&self) -> f64 {
+        let (n, k) = (self.n, self.len());
+        if k == 0 {
+            return 0.0;
+        }
+        // R G^{-1} R^T = βᵀ β
+        let b = self.beta.as_ref().submatrix(0, 0, k, n);
+        let q = b.transpose() * b;
+        let qn = DMatrix::from_fn(n, n, |i, j| q[(i, j)]);
+        let chol_a = match self.hyper.A.clone().cholesky() {
+            Some(c) => c,
+            None => return f64::NEG_INFINITY,
+        };
+        let logdet_a = 2.0 * chol_a.l().diagonal().iter().map(|v| v.ln()).sum::<f64>();
+        let tr = (chol_a.inverse() * qn).trace();
+        -0.5 * (n as f64 * self.factor.log_det() + k as f64 * logdet_a + tr + (n * k) as f64 * (2.0 * std::f64::consts::PI).ln())
+    }
+
+    /// Replaces the hyperparameters (validated) and refactorises.
+    pub fn set_hyper(&mut self, hyper: MvgpHyper<K>) -> Result<(), Error> {
+        hyper.validate(self.n, self.m, self.input_map.output_dim(self.n))?;
+        self.hyper = hyper;
+        let p = self.m + 1;
+        let k = self.len();
+        for j in 0..k {
+            for a in 0..p {
+                self.bu[j * p + a] = (0..p).map(|c| self.hyper.B[(a, c)] * self.us[j * p + c]).sum();
+            }
+        }
+        self.refactor()?;
+        Ok(())
+    }
+
+    /// Mapped training inputs (row-major `k × d`).
+    pub fn mapped_inputs(&self) -> &[f64] {
+        &self.zs
+    }
+    /// `u̲_j` rows (row-major `k × (1+m)`), with the leading 1.
+    pub fn augmented_controls(&self) -> &[f64] {
+        &self.us
+    }
+    /// Residuals `ẋ_j − M0(x_j) u̲_j` (row-major `k × n`).
+    pub fn residuals(&self) -> &[f64] {
+        &self.resid
+    }
+}

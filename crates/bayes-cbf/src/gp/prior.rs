@@ -1,0 +1,52 @@
+//! Prior means `M0(x)` of the MVGP.
+
+use crate::systems::DynSystem;
+use num_dual::Dual64;
+use std::sync::Arc;
+
+/// Prior mean `M0(x)` of `F(x)`: zero, or a parametric model of the system
+/// (any [`ControlAffine`](crate::systems::ControlAffine)).
+#[derive(Clone, Default)]
+pub enum PriorMean {
+    /// `M0(x) = 0`.
+    #[default]
+    Zero,
+    /// `M0(x) = F_model(x)` of a parametric system model.
+    System(Arc<dyn DynSystem>),
+}
+
+impl std::fmt::Debug for PriorMean {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            PriorMean::Zero => write!(f, "Zero"),
+            PriorMean::System(s) => write!(f, "System(n={}, m={})", s.n(), s.m()),
+        }
+    }
+}
+
+impl PriorMean {
+    /// Writes `vec M0(x)` (column-major `n × (1+m)`) into `out`.
+    #[inline]
+    pub fn eval(&self, x: &[f64], out: &mut [f64]) {
+        match self {
+            PriorMean::Zero => out.fill(0.0),
+            PriorMean::System(s) => s.eval_f64(x, out),
+        }
+    }
+
+    /// Writes `∂ vec M0/∂x` (column-major `n(1+m) × n`) into `jac`.
+    pub fn jacobian(&self, x: &[f64], jac: &mut [f64], sx: &mut [Dual64], so: &mut [Dual64]) {
+        match self {
+            PriorMean::Zero => jac.fill(0.0),
+            PriorMean::System(s) => s.jacobian_into(x, jac, sx, so),
+        }
+    }
+
+    /// Dimensions `(n, m)` of a system prior, `None` for zero.
+    pub fn dims(&self) -> Option<(usize, usize)> {
+        match self {
+            PriorMean::Zero => None,
+            PriorMean::System(s) => Some((s.n(), s.m())),
+        }
+    }
+}

@@ -1,0 +1,26 @@
+//! # bayes-cbf
+//!
+//! Learn the dynamics of a control-affine robot `ẋ = f(x) + g(x)u` online with
+//! a matrix-variate Gaussian process (MVGP) and keep it safe while it learns,
+//! following Dhiman, Khojasteh, Franceschetti and Atanasov, *Control Barriers
+//! in Bayesian Learning of System Dynamics*, IEEE TAC 2021.
+//!
+//! ## Modules
+//! - [`systems`]: the [`systems::ControlAffine`] trait and built-in systems.
+//! - [`sim`]: zero-order-hold simulation and derivative estimation.
+//! - [`gp`]: MVGP regression, kernels, hyperparameter learning.
+//!
+//! ## Error policy
+//! Programming errors (a slice of the wrong length passed between internal
+//! layers) panic with `#[track_caller]` assertions. Everything that can be
+//! caused by user input or by numerics returns `Result`: bad shapes or
+//! non-finite values in user data ([`error::InputError`]), matrices that are
+//! not positive definite, Gram matrices that cannot be factorised even after
+//! bounded jitter ([`error::GpError`]). Factorisations are never `.expect()`ed.
+
+pub mod error;
+pub mod gp;
+pub mod sim;
+pub mod systems;
+
+pub use error::{Error, GpError, InputError};
