@@ -40,12 +40,20 @@ pub enum InputError {
 impl InputError {
     /// `Invalid` with a numeric value.
     pub fn invalid(field: &str, value: f64, reason: &str) -> Self {
-        Self::Invalid { field: field.to_string(), value: format!("{value}"), reason: reason.to_string() }
+        Self::Invalid {
+            field: field.to_string(),
+            value: format!("{value}"),
+            reason: reason.to_string(),
+        }
     }
 
     /// `Shape` error.
     pub fn shape(field: &str, expected: impl ToString, got: impl ToString) -> Self {
-        Self::Shape { field: field.to_string(), expected: expected.to_string(), got: got.to_string() }
+        Self::Shape {
+            field: field.to_string(),
+            expected: expected.to_string(),
+            got: got.to_string(),
+        }
     }
 }
 
@@ -53,7 +61,11 @@ impl InputError {
 pub fn check_finite(field: &str, v: &[f64]) -> Result<(), InputError> {
     match v.iter().position(|x| !x.is_finite()) {
         None => Ok(()),
-        Some(i) => Err(InputError::invalid(&format!("{field}[{i}]"), v[i], "must be finite")),
+        Some(i) => Err(InputError::invalid(
+            &format!("{field}[{i}]"),
+            v[i],
+            "must be finite",
+        )),
     }
 }
 

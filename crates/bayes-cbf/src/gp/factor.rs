@@ -2,7 +2,9 @@
 //! observation (O(k²)) and drops its oldest row (O(k²) rank-one update).
 
 use crate::error::GpError;
-use faer::linalg::triangular_solve::{solve_lower_triangular_in_place, solve_upper_triangular_in_place};
+use faer::linalg::triangular_solve::{
+    solve_lower_triangular_in_place, solve_upper_triangular_in_place,
+};
 use faer::{Mat, MatMut, MatRef, Par};
 
 /// Relative jitter levels tried, in order, when a factorisation fails: the
@@ -20,7 +22,11 @@ pub struct CholFactor {
 
 impl Default for CholFactor {
     fn default() -> Self {
-        Self { l: Mat::zeros(0, 0), k: 0, jitter: Vec::new() }
+        Self {
+            l: Mat::zeros(0, 0),
+            k: 0,
+            jitter: Vec::new(),
+        }
     }
 }
 
@@ -30,7 +36,11 @@ impl CholFactor {
     pub fn factor(g: MatRef<'_, f64>, capacity: usize) -> Result<Self, GpError> {
         let k = g.nrows();
         let cap = capacity.max(k).max(1);
-        let mean_diag = if k == 0 { 1.0 } else { (0..k).map(|i| g[(i, i)]).sum::<f64>() / k as f64 };
+        let mean_diag = if k == 0 {
+            1.0
+        } else {
+            (0..k).map(|i| g[(i, i)]).sum::<f64>() / k as f64
+        };
         let mut l = Mat::<f64>::zeros(cap, cap);
         for &level in JITTER_LEVELS.iter() {
             let jit = level * mean_diag.abs().max(f64::MIN_POSITIVE);
@@ -53,10 +63,17 @@ impl CholFactor {
                         l[(i, j)] = 0.0;
                     }
                 }
-                return Ok(Self { l, k, jitter: vec![jit; k] });
+                return Ok(Self {
+                    l,
+                    k,
+                    jitter: vec![jit; k],
+                });
             }
         }
-        Err(GpError::IllConditioned { size: k, max_jitter: *JITTER_LEVELS.last().unwrap_or(&0.0) })
+        Err(GpError::IllConditioned {
+            size: k,
+            max_jitter: *JITTER_LEVELS.last().unwrap_or(&0.0),
+        })
     }
 
     /// Number of rows `k`.
@@ -107,7 +124,9 @@ impl CholFactor {
         }
         let cap = (2 * self.l.nrows()).max(k).max(16);
         let mut l = Mat::<f64>::zeros(cap, cap);
-        l.as_mut().submatrix_mut(0, 0, self.k, self.k).copy_from(self.l());
+        l.as_mut()
+            .submatrix_mut(0, 0, self.k, self.k)
+            .copy_from(self.l());
         self.l = l;
     }
 
@@ -133,7 +152,10 @@ impl CholFactor {
             let d2 = diag + jit - sq;
             if d2 > 0.0 && d2.is_finite() && d2 > 1e-14 * (diag + jit).abs() {
                 if level > 0.0 {
-                    log::warn!("online update (k = {}) needed jitter {jit:.3e} on the new diagonal entry", k + 1);
+                    log::warn!(
+                        "online update (k = {}) needed jitter {jit:.3e} on the new diagonal entry",
+                        k + 1
+                    );
                 }
                 for (j, v) in row.iter().enumerate() {
                     self.l[(k, j)] = *v;
@@ -147,7 +169,10 @@ impl CholFactor {
                 return Ok(());
             }
         }
-        Err(GpError::IllConditioned { size: k + 1, max_jitter: *JITTER_LEVELS.last().unwrap_or(&0.0) })
+        Err(GpError::IllConditioned {
+            size: k + 1,
+            max_jitter: *JITTER_LEVELS.last().unwrap_or(&0.0),
+        })
     }
 
     /// Removes the first row and column of `G`: with
@@ -223,7 +248,12 @@ mod tests {
         assert_eq!(a.nrows(), b.nrows());
         for j in 0..a.ncols() {
             for i in 0..a.nrows() {
-                assert!((a[(i, j)] - b[(i, j)]).abs() < tol, "({i},{j}) {} vs {}", a[(i, j)], b[(i, j)]);
+                assert!(
+                    (a[(i, j)] - b[(i, j)]).abs() < tol,
+                    "({i},{j}) {} vs {}",
+                    a[(i, j)],
+                    b[(i, j)]
+                );
             }
         }
     }
@@ -253,7 +283,14 @@ mod tests {
             let fresh = CholFactor::factor(g.as_ref().submatrix(r, r, k - r, k - r), k).unwrap();
             assert_close(f.l(), fresh.l(), 1e-10);
         }
-        assert!((f.log_det() - CholFactor::factor(g.as_ref().submatrix(4, 4, k - 4, k - 4), 0).unwrap().log_det()).abs() < 1e-9);
+        assert!(
+            (f.log_det()
+                - CholFactor::factor(g.as_ref().submatrix(4, 4, k - 4, k - 4), 0)
+                    .unwrap()
+                    .log_det())
+            .abs()
+                < 1e-9
+        );
     }
 
     #[test]
@@ -266,6 +303,9 @@ mod tests {
         // indefinite matrix: typed error
         let mut h = Mat::<f64>::identity(3, 3);
         h[(2, 2)] = -1.0;
-        assert!(matches!(CholFactor::factor(h.as_ref(), 3), Err(GpError::IllConditioned { .. })));
+        assert!(matches!(
+            CholFactor::factor(h.as_ref(), 3),
+            Err(GpError::IllConditioned { .. })
+        ));
     }
 }

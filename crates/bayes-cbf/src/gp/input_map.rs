@@ -26,10 +26,18 @@ impl InputMap {
             }
             for (j, &i) in idx.iter().enumerate() {
                 if i >= n {
-                    return Err(InputError::invalid(&format!("input_map[{j}]"), i as f64, &format!("index must be < state dimension {n}")));
+                    return Err(InputError::invalid(
+                        &format!("input_map[{j}]"),
+                        i as f64,
+                        &format!("index must be < state dimension {n}"),
+                    ));
                 }
                 if idx[..j].contains(&i) {
-                    return Err(InputError::invalid(&format!("input_map[{j}]"), i as f64, "duplicate index"));
+                    return Err(InputError::invalid(
+                        &format!("input_map[{j}]"),
+                        i as f64,
+                        "duplicate index",
+                    ));
                 }
             }
         }

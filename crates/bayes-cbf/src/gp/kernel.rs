@@ -51,18 +51,34 @@ impl Rbf {
     /// A kernel with the given lengthscales `ℓ_i > 0` and variance `s > 0`.
     pub fn new(lengthscales: Vec<f64>, variance: f64) -> Result<Self, InputError> {
         if lengthscales.is_empty() {
-            return Err(InputError::shape("kernel.lengthscales", "at least 1 entry", 0));
+            return Err(InputError::shape(
+                "kernel.lengthscales",
+                "at least 1 entry",
+                0,
+            ));
         }
         for (i, &l) in lengthscales.iter().enumerate() {
             if !(l.is_finite() && l > 0.0) {
-                return Err(InputError::invalid(&format!("kernel.lengthscales[{i}]"), l, "must be finite and > 0"));
+                return Err(InputError::invalid(
+                    &format!("kernel.lengthscales[{i}]"),
+                    l,
+                    "must be finite and > 0",
+                ));
             }
         }
         if !(variance.is_finite() && variance > 0.0) {
-            return Err(InputError::invalid("kernel.variance", variance, "must be finite and > 0"));
+            return Err(InputError::invalid(
+                "kernel.variance",
+                variance,
+                "must be finite and > 0",
+            ));
         }
         let inv_l2 = lengthscales.iter().map(|l| 1.0 / (l * l)).collect();
-        Ok(Self { lengthscales, inv_l2, variance })
+        Ok(Self {
+            lengthscales,
+            inv_l2,
+            variance,
+        })
     }
 
     /// Lengthscales `ℓ`.
@@ -152,7 +168,11 @@ impl Kernel for Rbf {
     fn set_log_hyper(&mut self, theta: &[f64]) -> Result<(), InputError> {
         let d = self.lengthscales.len();
         if theta.len() != d + 1 {
-            return Err(InputError::shape("kernel hyperparameters", d + 1, theta.len()));
+            return Err(InputError::shape(
+                "kernel hyperparameters",
+                d + 1,
+                theta.len(),
+            ));
         }
         *self = Rbf::new(theta[..d].iter().map(|t| t.exp()).collect(), theta[d].exp())?;
         Ok(())
@@ -186,7 +206,11 @@ mod tests {
             xp[i] += h;
             xm[i] -= h;
             let fd = (f(&xp) - f(&xm)) / (2.0 * h);
-            assert!((fd - g[i]).abs() < 1e-7 * (1.0 + g[i].abs()), "i={i} fd={fd} g={}", g[i]);
+            assert!(
+                (fd - g[i]).abs() < 1e-7 * (1.0 + g[i].abs()),
+                "i={i} fd={fd} g={}",
+                g[i]
+            );
         }
     }
 

@@ -29,24 +29,38 @@ pub struct MvgpHyper<K: Kernel = Rbf> {
 /// definite, naming it `field` in the error.
 pub fn check_spd(field: &str, m: &DMatrix<f64>, dim: usize) -> Result<(), InputError> {
     if m.nrows() != dim || m.ncols() != dim {
-        return Err(InputError::shape(field, format!("{dim}×{dim}"), format!("{}×{}", m.nrows(), m.ncols())));
+        return Err(InputError::shape(
+            field,
+            format!("{dim}×{dim}"),
+            format!("{}×{}", m.nrows(), m.ncols()),
+        ));
     }
     for i in 0..dim {
         for j in 0..dim {
             let v = m[(i, j)];
             if !v.is_finite() {
-                return Err(InputError::invalid(&format!("{field}[{i}][{j}]"), v, "must be finite"));
+                return Err(InputError::invalid(
+                    &format!("{field}[{i}][{j}]"),
+                    v,
+                    "must be finite",
+                ));
             }
             let w = m[(j, i)];
             if (v - w).abs() > 1e-9 * (1.0 + v.abs().max(w.abs())) {
-                return Err(InputError::NotPositiveDefinite { field: field.into(), reason: format!("not symmetric: [{i}][{j}] = {v} but [{j}][{i}] = {w}") });
+                return Err(InputError::NotPositiveDefinite {
+                    field: field.into(),
+                    reason: format!("not symmetric: [{i}][{j}] = {v} but [{j}][{i}] = {w}"),
+                });
             }
         }
     }
     if m.clone().cholesky().is_none() {
         let ev = m.clone().symmetric_eigenvalues();
         let min = ev.iter().cloned().fold(f64::INFINITY, f64::min);
-        return Err(InputError::NotPositiveDefinite { field: field.into(), reason: format!("smallest eigenvalue {min:.3e} ≤ 0") });
+        return Err(InputError::NotPositiveDefinite {
+            field: field.into(),
+            reason: format!("smallest eigenvalue {min:.3e} ≤ 0"),
+        });
     }
     Ok(())
 }
@@ -56,12 +70,20 @@ impl<K: Kernel> MvgpHyper<K> {
     /// kernel input dim `d`.
     pub fn validate(&self, n: usize, m: usize, d: usize) -> Result<(), InputError> {
         if self.kernel.input_dim() != d {
-            return Err(InputError::shape("kernel.lengthscales", d, self.kernel.input_dim()));
+            return Err(InputError::shape(
+                "kernel.lengthscales",
+                d,
+                self.kernel.input_dim(),
+            ));
         }
         check_spd("A", &self.A, n)?;
         check_spd("B", &self.B, m + 1)?;
         if !(self.sigma.is_finite() && self.sigma > 0.0) {
-            return Err(InputError::invalid("noise_sigma", self.sigma, "must be finite and > 0"));
+            return Err(InputError::invalid(
+                "noise_sigma",
+                self.sigma,
+                "must be finite and > 0",
+            ));
         }
         Ok(())
     }
@@ -128,7 +150,13 @@ pub struct Mvgp<K: Kernel = Rbf> {
 
 impl<K: Kernel> Mvgp<K> {
     /// A model with no data (the prior), validated.
-    pub fn new(n: usize, m: usize, hyper: MvgpHyper<K>, prior: PriorMean, input_map: InputMap) -> Result<Self, InputError> {
+    pub fn new(
+        n: usize,
+        m: usize,
+        hyper: MvgpHyper<K>,
+        prior: PriorMean,
+        input_map: InputMap,
+    ) -> Result<Self, InputError> {
         if n == 0 {
             return Err(InputError::invalid("state_dim", 0.0, "must be ≥ 1"));
         }
@@ -139,7 +167,11 @@ impl<K: Kernel> Mvgp<K> {
         hyper.validate(n, m, input_map.output_dim(n))?;
         if let Some((pn, pm)) = prior.dims() {
             if (pn, pm) != (n, m) {
-                return Err(InputError::shape("prior_mean", format!("system with n = {n}, m = {m}"), format!("n = {pn}, m = {pm}")));
+                return Err(InputError::shape(
+                    "prior_mean",
+                    format!("system with n = {n}, m = {m}"),
+                    format!("n = {pn}, m = {pm}"),
+                ));
             }
         }
         Ok(Self {
@@ -207,7 +239,13 @@ impl<K: Kernel> Mvgp<K> {
         &self.xdot
     }
 
-    fn validate_point(&self, x: &[f64], u: &[f64], xdot: &[f64], j: usize) -> Result<(), InputError> {
+    fn validate_point(
+        &self,
+        x: &[f64],
+        u: &[f64],
+        xdot: &[f64],
+        j: usize,
+    ) -> Result<(), InputError> {
         let (n, m) = (self.n, self.m);
         if x.len() != n {
             return Err(InputError::shape(&format!("x[{j}]"), n, x.len()));
@@ -258,8 +296,13 @@ impl<K: Kernel> Mvgp<K> {
     fn gram_entry(&self, i: usize, j: usize) -> f64 {
         let p = self.m + 1;
         let d = self.input_map.output_dim(self.n);
-        let kv = self.hyper.kernel.value(&self.zs[i * d..(i + 1) * d], &self.zs[j * d..(j + 1) * d]);
-        let ubu: f64 = (0..p).map(|c| self.us[i * p + c] * self.bu[j * p + c]).sum();
+        let kv = self
+            .hyper
+            .kernel
+            .value(&self.zs[i * d..(i + 1) * d], &self.zs[j * d..(j + 1) * d]);
+        let ubu: f64 = (0..p)
+            .map(|c| self.us[i * p + c] * self.bu[j * p + c])
+            .sum();
         let mut g = ubu * kv;
         if i == j {
             g += self.hyper.sigma * self.hyper.sigma;
@@ -274,14 +317,28 @@ impl<K: Kernel> Mvgp<K> {
         let (n, m) = (self.n, self.m);
         let k = xs.len() / n;
         if xs.len() != k * n || us.len() != k * m || xdot.len() != k * n {
-            return Err(InputError::shape("data", format!("x: k×{n}, u: k×{m}, xdot: k×{n}"), format!("{} x, {} u, {} xdot values", xs.len(), us.len(), xdot.len())).into());
+            return Err(InputError::shape(
+                "data",
+                format!("x: k×{n}, u: k×{m}, xdot: k×{n}"),
+                format!("{} x, {} u, {} xdot values", xs.len(), us.len(), xdot.len()),
+            )
+            .into());
         }
         for j in 0..k {
-            self.validate_point(&xs[j * n..(j + 1) * n], &us[j * m..(j + 1) * m], &xdot[j * n..(j + 1) * n], j)?;
+            self.validate_point(
+                &xs[j * n..(j + 1) * n],
+                &us[j * m..(j + 1) * m],
+                &xdot[j * n..(j + 1) * n],
+                j,
+            )?;
         }
         self.clear();
         for j in 0..k {
-            self.push_point(&xs[j * n..(j + 1) * n], &us[j * m..(j + 1) * m], &xdot[j * n..(j + 1) * n]);
+            self.push_point(
+                &xs[j * n..(j + 1) * n],
+                &us[j * m..(j + 1) * m],
+                &xdot[j * n..(j + 1) * n],
+            );
         }
         self.refactor()?;
         Ok(())
@@ -316,7 +373,8 @@ impl<K: Kernel> Mvgp<K> {
                 self.beta[(j, i)] = self.resid[j * self.n + i];
             }
         }
-        self.factor.solve_l_in_place(self.beta.as_mut().submatrix_mut(0, 0, k, self.n));
+        self.factor
+            .solve_l_in_place(self.beta.as_mut().submatrix_mut(0, 0, k, self.n));
         self.alpha = OnceLock::new();
         self.scratch.resize(cap, 0.0);
         Ok(())
@@ -346,7 +404,9 @@ impl<K: Kernel> Mvgp<K> {
         if self.beta.nrows() < k + 1 {
             let cap = (2 * self.beta.nrows()).max(k + 1).max(16);
             let mut nb = Mat::<f64>::zeros(cap, n);
-            nb.as_mut().submatrix_mut(0, 0, k, n).copy_from(self.beta.as_ref().submatrix(0, 0, k, n));
+            nb.as_mut()
+                .submatrix_mut(0, 0, k, n)
+                .copy_from(self.beta.as_ref().submatrix(0, 0, k, n));
             self.beta = nb;
         }
         let l = self.factor.l();
@@ -396,7 +456,8 @@ impl<K: Kernel> Mvgp<K> {
                 self.beta[(j, i)] = self.resid[j * n + i];
             }
         }
-        self.factor.solve_l_in_place(self.beta.as_mut().submatrix_mut(0, 0, k1, n));
+        self.factor
+            .solve_l_in_place(self.beta.as_mut().submatrix_mut(0, 0, k1, n));
         self.alpha = OnceLock::new();
     }
 
@@ -479,7 +540,12 @@ impl<K: Kernel> Mvgp<K> {
     /// into `out` using `ws`; allocation-free once `ws` and `out` are sized.
     ///
     /// With `V = L⁻¹ W`: `M_k = M0 + βᵀ V`, `B_k = B k0(x,x) − Vᵀ V`.
-    pub fn posterior_into(&self, x: &[f64], ws: &mut PosteriorWorkspace, out: &mut Posterior) -> Result<(), InputError> {
+    pub fn posterior_into(
+        &self,
+        x: &[f64],
+        ws: &mut PosteriorWorkspace,
+        out: &mut Posterior,
+    ) -> Result<(), InputError> {
         self.check_x(x)?;
         let (n, p, k) = (self.n, self.m + 1, self.len());
         if out.mean.shape() != (n, p) {
@@ -528,7 +594,10 @@ impl<K: Kernel> Mvgp<K> {
     /// Full posterior at `x` (allocating convenience wrapper).
     pub fn posterior(&self, x: &[f64]) -> Result<Posterior, InputError> {
         let mut ws = self.workspace();
-        let mut out = Posterior { mean: DMatrix::zeros(self.n, self.m + 1), B: DMatrix::zeros(self.m + 1, self.m + 1) };
+        let mut out = Posterior {
+            mean: DMatrix::zeros(self.n, self.m + 1),
+            B: DMatrix::zeros(self.m + 1, self.m + 1),
+        };
         self.posterior_into(x, &mut ws, &mut out)?;
         Ok(out)
     }
@@ -580,7 +649,10 @@ impl<K: Kernel> Mvgp<K> {
         };
         let logdet_a = 2.0 * chol_a.l().diagonal().iter().map(|v| v.ln()).sum::<f64>();
         let tr = (chol_a.inverse() * qn).trace();
-        -0.5 * (n as f64 * self.factor.log_det() + k as f64 * logdet_a + tr + (n * k) as f64 * (2.0 * std::f64::consts::PI).ln())
+        -0.5 * (n as f64 * self.factor.log_det()
+            + k as f64 * logdet_a
+            + tr
+            + (n * k) as f64 * (2.0 * std::f64::consts::PI).ln())
     }
 
     /// Replaces the hyperparameters (validated) and refactorises.
@@ -591,7 +663,9 @@ impl<K: Kernel> Mvgp<K> {
         let k = self.len();
         for j in 0..k {
             for a in 0..p {
-                self.bu[j * p + a] = (0..p).map(|c| self.hyper.B[(a, c)] * self.us[j * p + c]).sum();
+                self.bu[j * p + a] = (0..p)
+                    .map(|c| self.hyper.B[(a, c)] * self.us[j * p + c])
+                    .sum();
             }
         }
         self.refactor()?;

@@ -78,7 +78,15 @@ pub struct FitSettings {
 
 impl Default for FitSettings {
     fn default() -> Self {
-        Self { rank_a: Rank::Full, rank_b: Rank::Full, max_iters: 100, restarts: 0, seed: 0, learn_a: true, warm_start: false }
+        Self {
+            rank_a: Rank::Full,
+            rank_b: Rank::Full,
+            max_iters: 100,
+            restarts: 0,
+            seed: 0,
+            learn_a: true,
+            warm_start: false,
+        }
     }
 }
 
@@ -89,7 +97,11 @@ impl FitSettings {
             return Err(InputError::invalid("max_iters", 0.0, "must be ≥ 1"));
         }
         if self.restarts > 1000 {
-            return Err(InputError::invalid("restarts", self.restarts as f64, "must be ≤ 1000"));
+            return Err(InputError::invalid(
+                "restarts",
+                self.restarts as f64,
+                "must be ≤ 1000",
+            ));
         }
         Ok(())
     }
@@ -169,7 +181,11 @@ struct Objective<'a, K: Kernel> {
     k: usize,
     d: usize,
     /// (θ, −log p, −∇ log p) of the last evaluation, and the best seen.
-    cache: Mutex<(Option<(Vec<f64>, f64, Vec<f64>)>, Option<(Vec<f64>, f64)>, usize)>,
+    cache: Mutex<(
+        Option<(Vec<f64>, f64, Vec<f64>)>,
+        Option<(Vec<f64>, f64)>,
+        usize,
+    )>,
 }
 
 impl<K: Kernel> Objective<'_, K> {
@@ -187,7 +203,12 @@ impl<K: Kernel> Objective<'_, K> {
         }
         kern.set_log_hyper(&kh)?;
         let sigma = th[l.off_sigma()].exp();
-        let B = low_rank_plus_diag(&th[l.off_cb()..l.off_vb()], &th[l.off_vb()..l.off_vb() + l.p], l.p, l.rb);
+        let B = low_rank_plus_diag(
+            &th[l.off_cb()..l.off_vb()],
+            &th[l.off_vb()..l.off_vb() + l.p],
+            l.p,
+            l.rb,
+        );
         let A = if l.learn_a {
             let mut logv = vec![0.0; l.n];
             logv[1..].copy_from_slice(&th[l.off_va()..l.off_va() + l.n - 1]);
@@ -255,7 +276,11 @@ impl<K: Kernel> Objective<'_, K> {
         };
         let Ainv = chol_a.inverse();
         let logdet_a = 2.0 * chol_a.l().diagonal().iter().map(|v| v.ln()).sum::<f64>();
-        let ll = -0.5 * (n as f64 * factor.log_det() + k as f64 * logdet_a + (&Ainv * &Q).trace() + (n * k) as f64 * (2.0 * std::f64::consts::PI).ln());
+        let ll = -0.5
+            * (n as f64 * factor.log_det()
+                + k as f64 * logdet_a
+                + (&Ainv * &Q).trace()
+                + (n * k) as f64 * (2.0 * std::f64::consts::PI).ln());
         if !ll.is_finite() {
             return (PENALTY, vec![0.0; th.len()]);
         }
@@ -312,7 +337,14 @@ impl<K: Kernel> Objective<'_, K> {
             }
         }
         let bbar = 0.5 * (&bbar + bbar.transpose());
-        chain_low_rank(&bbar, &th[l.off_cb()..l.off_vb()], &th[l.off_vb()..l.off_vb() + p], p, l.rb, &mut grad[l.off_cb()..l.off_vb() + p]);
+        chain_low_rank(
+            &bbar,
+            &th[l.off_cb()..l.off_vb()],
+            &th[l.off_vb()..l.off_vb() + p],
+            p,
+            l.rb,
+            &mut grad[l.off_cb()..l.off_vb() + p],
+        );
         if l.learn_a {
             let abar = -0.5 * (k as f64 * &Ainv - &Ainv * &Q * &Ainv);
             let mut logv = vec![0.0; n];
@@ -347,7 +379,14 @@ impl<K: Kernel> Objective<'_, K> {
 
 /// Chain rule through `M = C Cᵀ + diag(exp(logv))`: writes
 /// `[vec C̄ (row-major), v̄ ∘ v]` into `out`, with `C̄ = 2 M̄ C`.
-fn chain_low_rank(mbar: &DMatrix<f64>, c: &[f64], logv: &[f64], dim: usize, r: usize, out: &mut [f64]) {
+fn chain_low_rank(
+    mbar: &DMatrix<f64>,
+    c: &[f64],
+    logv: &[f64],
+    dim: usize,
+    r: usize,
+    out: &mut [f64],
+) {
     for i in 0..dim {
         for q in 0..r {
             let mut s = 0.0;
@@ -382,7 +421,13 @@ impl<K: Kernel> Gradient for ObjRef<'_, '_, K> {
 
 /// Matches `M ≈ C Cᵀ + diag(v)` for initialisation: `C` small random, `v` the
 /// diagonal of `M` (minus the `C` part, floored).
-fn init_low_rank(m: &DMatrix<f64>, r: usize, rng: &mut ChaCha8Rng, out_c: &mut [f64], out_logv: &mut [f64]) {
+fn init_low_rank(
+    m: &DMatrix<f64>,
+    r: usize,
+    rng: &mut ChaCha8Rng,
+    out_c: &mut [f64],
+    out_logv: &mut [f64],
+) {
     let dim = m.nrows();
     for i in 0..dim {
         let scale = 0.1 * m[(i, i)].abs().sqrt();
@@ -431,7 +476,11 @@ pub fn fit<K: Kernel>(model: &mut Mvgp<K>, settings: &FitSettings) -> Result<Fit
     let us = model.augmented_controls();
     let zs = model.mapped_inputs();
     let mean_r2 = (resid.iter().map(|r| r * r).sum::<f64>() / resid.len() as f64).max(1e-12);
-    let mean_u2 = us.chunks(p).map(|u| u.iter().map(|v| v * v).sum::<f64>()).sum::<f64>() / k as f64;
+    let mean_u2 = us
+        .chunks(p)
+        .map(|u| u.iter().map(|v| v * v).sum::<f64>())
+        .sum::<f64>()
+        / k as f64;
     let mut th0 = vec![0.0; layout.len()];
     let mut kh = kernel.log_hyper();
     if !settings.warm_start {
@@ -459,12 +508,23 @@ pub fn fit<K: Kernel>(model: &mut Mvgp<K>, settings: &FitSettings) -> Result<Fit
     };
     let (a0, b0, sigma0) = if settings.warm_start {
         let h = model.hyper();
-        let s = kernel_start.scale_index().map(|i| kh[i].exp()).unwrap_or(1.0);
+        let s = kernel_start
+            .scale_index()
+            .map(|i| kh[i].exp())
+            .unwrap_or(1.0);
         let c = h.A[(0, 0)];
-        (h.A.clone() / c, &h.B * (c * s / s.max(1e-300)), h.sigma * c.sqrt())
+        (
+            h.A.clone() / c,
+            &h.B * (c * s / s.max(1e-300)),
+            h.sigma * c.sqrt(),
+        )
     } else {
         let b_scale = mean_r2 / mean_u2.max(1e-12);
-        (DMatrix::identity(n, n), DMatrix::identity(p, p) * b_scale, (0.01 * mean_r2).sqrt())
+        (
+            DMatrix::identity(n, n),
+            DMatrix::identity(p, p) * b_scale,
+            (0.01 * mean_r2).sqrt(),
+        )
     };
     th0[layout.off_sigma()] = sigma0.ln();
     {
@@ -506,8 +566,15 @@ pub fn fit<K: Kernel>(model: &mut Mvgp<K>, settings: &FitSettings) -> Result<Fit
         let max_iters = settings.max_iters;
         // A line-search failure near the optimum ends the run; the best point
         // seen is kept in the cache either way.
-        let _ = Executor::new(ObjRef(&obj), solver).configure(|st| st.param(th).max_iters(max_iters)).run();
-        let run_best = obj.cache.lock().unwrap_or_else(|e| e.into_inner()).1.clone();
+        let _ = Executor::new(ObjRef(&obj), solver)
+            .configure(|st| st.param(th).max_iters(max_iters))
+            .run();
+        let run_best = obj
+            .cache
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .1
+            .clone();
         if let Some((bt, bf)) = run_best {
             if best.as_ref().is_none_or(|(_, f)| bf < *f) {
                 best = Some((bt, bf));
@@ -515,18 +582,36 @@ pub fn fit<K: Kernel>(model: &mut Mvgp<K>, settings: &FitSettings) -> Result<Fit
         }
     }
     let evaluations = obj.cache.lock().unwrap_or_else(|e| e.into_inner()).2;
-    let (bt, bf) = best.ok_or_else(|| GpError::Optimisation("no finite likelihood evaluated".into()))?;
+    let (bt, bf) =
+        best.ok_or_else(|| GpError::Optimisation("no finite likelihood evaluated".into()))?;
     if bf >= 1e29 {
-        return Err(GpError::Optimisation("no hyperparameters gave a positive-definite Gram matrix".into()).into());
+        return Err(GpError::Optimisation(
+            "no hyperparameters gave a positive-definite Gram matrix".into(),
+        )
+        .into());
     }
     let (kern, A, B, sigma) = obj.unpack(&bt)?;
     drop(obj);
     // report the equivalent model with tr A = n
     let c = A.trace() / n as f64;
-    let hyper = MvgpHyper { kernel: kern, A: A / c, B: B * c, sigma: sigma * c.sqrt() };
-    let hyper = MvgpHyper { A: symmetrise(&hyper.A), B: symmetrise(&hyper.B), ..hyper };
+    let hyper = MvgpHyper {
+        kernel: kern,
+        A: A / c,
+        B: B * c,
+        sigma: sigma * c.sqrt(),
+    };
+    let hyper = MvgpHyper {
+        A: symmetrise(&hyper.A),
+        B: symmetrise(&hyper.B),
+        ..hyper
+    };
     model.set_hyper(hyper)?;
-    Ok(FitReport { initial_log_likelihood: initial_ll, log_likelihood: model.log_marginal_likelihood(), evaluations, starts })
+    Ok(FitReport {
+        initial_log_likelihood: initial_ll,
+        log_likelihood: model.log_marginal_likelihood(),
+        evaluations,
+        starts,
+    })
 }
 
 fn symmetrise(m: &DMatrix<f64>) -> DMatrix<f64> {
@@ -543,18 +628,32 @@ pub(crate) mod tests {
     fn likelihood_gradient_matches_finite_differences() {
         use rand::RngExt;
         let mut rng = ChaCha8Rng::seed_from_u64(3);
-        for (n, m, ra, rb) in [(2, 1, Rank::Full, Rank::Full), (3, 2, Rank::Low(1), Rank::Diagonal), (1, 1, Rank::Diagonal, Rank::Full)] {
+        for (n, m, ra, rb) in [
+            (2, 1, Rank::Full, Rank::Full),
+            (3, 2, Rank::Low(1), Rank::Diagonal),
+            (1, 1, Rank::Diagonal, Rank::Full),
+        ] {
             let k = 15;
             let p = m + 1;
             let zs: Vec<f64> = (0..k * n).map(|_| rng.random_range(-1.0..1.0)).collect();
-            let us: Vec<f64> = (0..k).flat_map(|_| {
-                let mut v = vec![1.0];
-                v.extend((0..m).map(|_| rng.random_range(-1.0..1.0)));
-                v
-            }).collect();
+            let us: Vec<f64> = (0..k)
+                .flat_map(|_| {
+                    let mut v = vec![1.0];
+                    v.extend((0..m).map(|_| rng.random_range(-1.0..1.0)));
+                    v
+                })
+                .collect();
             let resid: Vec<f64> = (0..k * n).map(|_| rng.random_range(-1.0..1.0)).collect();
             let kernel = Rbf::new(vec![0.8; n], 1.0).unwrap();
-            let layout = Layout { n, p, n_kern: n + 1, scale_idx: Some(n), rb: rb.cols(p), ra: ra.cols(n), learn_a: true };
+            let layout = Layout {
+                n,
+                p,
+                n_kern: n + 1,
+                scale_idx: Some(n),
+                rb: rb.cols(p),
+                ra: ra.cols(n),
+                learn_a: true,
+            };
             let obj = Objective {
                 layout: layout.clone(),
                 kernel,
@@ -566,7 +665,9 @@ pub(crate) mod tests {
                 d: n,
                 cache: Mutex::new((None, None, 0)),
             };
-            let th: Vec<f64> = (0..layout.len()).map(|_| rng.random_range(-0.5..0.5)).collect();
+            let th: Vec<f64> = (0..layout.len())
+                .map(|_| rng.random_range(-0.5..0.5))
+                .collect();
             let (_, g) = obj.eval(&th);
             let h = 1e-6;
             for i in 0..th.len() {
@@ -575,11 +676,27 @@ pub(crate) mod tests {
                 tp[i] += h;
                 tm[i] -= h;
                 let fd = (obj.eval(&tp).0 - obj.eval(&tm).0) / (2.0 * h);
-                assert!((fd - g[i]).abs() < 1e-5 * (1.0 + fd.abs()), "n={n} m={m} param {i}: fd {fd} analytic {}", g[i]);
+                assert!(
+                    (fd - g[i]).abs() < 1e-5 * (1.0 + fd.abs()),
+                    "n={n} m={m} param {i}: fd {fd} analytic {}",
+                    g[i]
+                );
             }
             // and the value agrees with the model's own likelihood
             let (kern, a, b, sigma) = obj.unpack(&th).unwrap();
-            let mut model = Mvgp::new(n, m, MvgpHyper { kernel: kern, A: a, B: b, sigma }, PriorMean::Zero, InputMap::Identity).unwrap();
+            let mut model = Mvgp::new(
+                n,
+                m,
+                MvgpHyper {
+                    kernel: kern,
+                    A: a,
+                    B: b,
+                    sigma,
+                },
+                PriorMean::Zero,
+                InputMap::Identity,
+            )
+            .unwrap();
             let u_only: Vec<f64> = us.chunks(p).flat_map(|u| u[1..].to_vec()).collect();
             model.set_data(&zs, &u_only, &resid).unwrap();
             assert!((model.log_marginal_likelihood() + obj.eval(&th).0).abs() < 1e-8);

@@ -60,7 +60,12 @@ pub fn sample_uniform<R: Rng + ?Sized>(
     rng: &mut R,
 ) -> Result<Dataset, InputError> {
     let (n, m) = (system.n(), system.m());
-    for (name, v, d) in [("x_lo", x_lo, n), ("x_hi", x_hi, n), ("u_lo", u_lo, m), ("u_hi", u_hi, m)] {
+    for (name, v, d) in [
+        ("x_lo", x_lo, n),
+        ("x_hi", x_hi, n),
+        ("u_lo", u_lo, m),
+        ("u_hi", u_hi, m),
+    ] {
         if v.len() != d {
             return Err(InputError::shape(name, d, v.len()));
         }
@@ -68,23 +73,45 @@ pub fn sample_uniform<R: Rng + ?Sized>(
     }
     for i in 0..n {
         if x_lo[i] > x_hi[i] {
-            return Err(InputError::invalid(&format!("x_lo[{i}]"), x_lo[i], "must be ≤ x_hi"));
+            return Err(InputError::invalid(
+                &format!("x_lo[{i}]"),
+                x_lo[i],
+                "must be ≤ x_hi",
+            ));
         }
     }
     for i in 0..m {
         if u_lo[i] > u_hi[i] {
-            return Err(InputError::invalid(&format!("u_lo[{i}]"), u_lo[i], "must be ≤ u_hi"));
+            return Err(InputError::invalid(
+                &format!("u_lo[{i}]"),
+                u_lo[i],
+                "must be ≤ u_hi",
+            ));
         }
     }
     if !(noise.is_finite() && noise >= 0.0) {
-        return Err(InputError::invalid("noise", noise, "must be finite and ≥ 0"));
+        return Err(InputError::invalid(
+            "noise",
+            noise,
+            "must be finite and ≥ 0",
+        ));
     }
-    let mut ds = Dataset { n, m, ..Default::default() };
+    let mut ds = Dataset {
+        n,
+        m,
+        ..Default::default()
+    };
     let mut fbuf = vec![0.0; n * (1 + m)];
     let mut x = vec![0.0; n];
     let mut u = vec![0.0; m];
     let mut xd = vec![0.0; n];
-    let uni = |rng: &mut R, lo: f64, hi: f64| if hi > lo { rng.random_range(lo..hi) } else { lo };
+    let uni = |rng: &mut R, lo: f64, hi: f64| {
+        if hi > lo {
+            rng.random_range(lo..hi)
+        } else {
+            lo
+        }
+    };
     for _ in 0..k {
         for i in 0..n {
             x[i] = uni(rng, x_lo[i], x_hi[i]);
@@ -124,12 +151,20 @@ pub fn simulate_trajectory<R: Rng + ?Sized>(
         return Err(InputError::invalid("dt", dt, "must be finite and > 0"));
     }
     if k < 2 {
-        return Err(InputError::invalid("k", k as f64, "need at least 2 samples"));
+        return Err(InputError::invalid(
+            "k",
+            k as f64,
+            "need at least 2 samples",
+        ));
     }
     let mut sim = Simulator::new(system, settings);
-    let mut ds = Dataset { n, m, ..Default::default() };
+    let mut ds = Dataset {
+        n,
+        m,
+        ..Default::default()
+    };
     let mut x = x0.to_vec();
-    for j in 0..k {
+    for _ in 0..k {
         let u = policy(&x, rng);
         if u.len() != m {
             return Err(InputError::shape("policy output", m, u.len()));
@@ -143,10 +178,18 @@ pub fn simulate_trajectory<R: Rng + ?Sized>(
     let angles = system.angles();
     let mut xd = Vec::with_capacity(k * n);
     for j in 0..k {
-        let next = if j + 1 < k { &ds.xs[(j + 1) * n..(j + 2) * n] } else { &x[..] };
+        let next = if j + 1 < k {
+            &ds.xs[(j + 1) * n..(j + 2) * n]
+        } else {
+            &x[..]
+        };
         for i in 0..n {
             let dx = next[i] - ds.xs[j * n + i];
-            let dx = if angles.contains(&i) { crate::systems::wrap_angle(dx) } else { dx };
+            let dx = if angles.contains(&i) {
+                crate::systems::wrap_angle(dx)
+            } else {
+                dx
+            };
             xd.push(dx / dt);
         }
     }

@@ -15,14 +15,26 @@ pub fn finite_difference_xdot(
 ) -> Result<Vec<f64>, InputError> {
     let k = t.len();
     if n == 0 || xs.len() != k * n {
-        return Err(InputError::Shape { field: "x".into(), expected: format!("{k} rows of {n}"), got: xs.len().to_string() });
+        return Err(InputError::Shape {
+            field: "x".into(),
+            expected: format!("{k} rows of {n}"),
+            got: xs.len().to_string(),
+        });
     }
     if k < 2 {
-        return Err(InputError::invalid("t", k as f64, "time series needs at least 2 samples"));
+        return Err(InputError::invalid(
+            "t",
+            k as f64,
+            "time series needs at least 2 samples",
+        ));
     }
     for i in 1..k {
         if !(t[i] > t[i - 1]) {
-            return Err(InputError::invalid(&format!("t[{i}]"), t[i], "times must be strictly increasing"));
+            return Err(InputError::invalid(
+                &format!("t[{i}]"),
+                t[i],
+                "times must be strictly increasing",
+            ));
         }
     }
     let diff = |a: usize, b: usize, j: usize| -> f64 {
@@ -59,7 +71,10 @@ mod tests {
     fn derivative_across_wrap() {
         // θ(t) = π - 0.5 + t, crosses π at t = 0.5, ω = 1
         let t: Vec<f64> = (0..100).map(|i| i as f64 * 0.01).collect();
-        let xs: Vec<f64> = t.iter().flat_map(|&ti| [wrap_angle(std::f64::consts::PI - 0.5 + ti), ti * ti]).collect();
+        let xs: Vec<f64> = t
+            .iter()
+            .flat_map(|&ti| [wrap_angle(std::f64::consts::PI - 0.5 + ti), ti * ti])
+            .collect();
         let d = finite_difference_xdot(&t, &xs, 2, &[0]).unwrap();
         for i in 0..100 {
             assert!((d[2 * i] - 1.0).abs() < 1e-9, "i={i} d={}", d[2 * i]);

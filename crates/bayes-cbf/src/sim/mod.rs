@@ -28,7 +28,11 @@ pub struct SimSettings {
 
 impl Default for SimSettings {
     fn default() -> Self {
-        Self { internal_step: 1e-3, process_noise: 0.0, wrap_angles: true }
+        Self {
+            internal_step: 1e-3,
+            process_noise: 0.0,
+            wrap_angles: true,
+        }
     }
 }
 
@@ -36,12 +40,24 @@ impl SimSettings {
     /// Validated constructor.
     pub fn new(internal_step: f64, process_noise: f64) -> Result<Self, InputError> {
         if !(internal_step.is_finite() && internal_step > 0.0) {
-            return Err(InputError::invalid("internal_step", internal_step, "must be finite and > 0"));
+            return Err(InputError::invalid(
+                "internal_step",
+                internal_step,
+                "must be finite and > 0",
+            ));
         }
         if !(process_noise.is_finite() && process_noise >= 0.0) {
-            return Err(InputError::invalid("process_noise", process_noise, "must be finite and >= 0"));
+            return Err(InputError::invalid(
+                "process_noise",
+                process_noise,
+                "must be finite and >= 0",
+            ));
         }
-        Ok(Self { internal_step, process_noise, wrap_angles: true })
+        Ok(Self {
+            internal_step,
+            process_noise,
+            wrap_angles: true,
+        })
     }
 }
 
@@ -158,7 +174,10 @@ mod tests {
         let mut x = [0.0, 0.0, 0.0];
         sim.step(&mut x, &[1.0, 1.0], 1.0, &mut rng);
         let (ex, ey) = (2.0 * (0.5f64).sin(), 2.0 * (1.0 - (0.5f64).cos()));
-        assert!((x[0] - ex).abs() < 1e-10 && (x[1] - ey).abs() < 1e-10, "{x:?}");
+        assert!(
+            (x[0] - ex).abs() < 1e-10 && (x[1] - ey).abs() < 1e-10,
+            "{x:?}"
+        );
         assert!((x[2] - 0.5).abs() < 1e-12);
     }
 

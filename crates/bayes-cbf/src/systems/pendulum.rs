@@ -19,7 +19,11 @@ pub struct Pendulum {
 impl Default for Pendulum {
     /// The paper's pendulum: `m = l = 1`, `g = 10`.
     fn default() -> Self {
-        Self { mass: 1.0, length: 1.0, gravity: 10.0 }
+        Self {
+            mass: 1.0,
+            length: 1.0,
+            gravity: 10.0,
+        }
     }
 }
 

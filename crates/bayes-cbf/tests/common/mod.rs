@@ -1,0 +1,66 @@
+//! Shared helpers of the integration tests.
+#![allow(dead_code)]
+
+use bayes_cbf::systems::ControlAffine;
+use nalgebra::DMatrix;
+use num_dual::DualNum;
+use rand::{RngExt, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+
+/// A smooth random control-affine system: `F_ic(x) = a_ic sin(w_icᵀ x + b_ic)`.
+#[derive(Debug, Clone)]
+pub struct RandomSystem {
+    pub n: usize,
+    pub m: usize,
+    pub a: Vec<f64>,
+    pub w: Vec<f64>,
+    pub b: Vec<f64>,
+}
+
+impl RandomSystem {
+    pub fn new(n: usize, m: usize, seed: u64) -> Self {
+        let mut rng = ChaCha8Rng::seed_from_u64(seed);
+        let cnt = n * (1 + m);
+        Self {
+            n,
+            m,
+            a: (0..cnt).map(|_| rng.random_range(-1.0..1.0)).collect(),
+            w: (0..cnt * n).map(|_| rng.random_range(-1.0..1.0)).collect(),
+            b: (0..cnt).map(|_| rng.random_range(-1.0..1.0)).collect(),
+        }
+    }
+}
+
+impl ControlAffine for RandomSystem {
+    fn state_dim(&self) -> usize {
+        self.n
+    }
+    fn control_dim(&self) -> usize {
+        self.m
+    }
+    fn dynamics<D: DualNum<Primitive = f64> + Copy>(&self, x: &[D], out: &mut [D]) {
+        for (r, o) in out.iter_mut().enumerate() {
+            let mut s = D::from(self.b[r]);
+            for j in 0..self.n {
+                s += x[j] * self.w[r * self.n + j];
+            }
+            *o = s.sin() * self.a[r];
+        }
+    }
+}
+
+/// A random symmetric positive-definite matrix.
+pub fn random_spd(dim: usize, rng: &mut ChaCha8Rng) -> DMatrix<f64> {
+    let c = DMatrix::from_fn(dim, dim, |_, _| rng.random_range(-1.0..1.0));
+    &c * c.transpose() + DMatrix::identity(dim, dim) * 0.3
+}
+
+/// Max relative difference `|a − b| / max(1, |b|)`, entrywise, scaled by the
+/// largest magnitude of `b`.
+pub fn rel_diff(a: &DMatrix<f64>, b: &DMatrix<f64>) -> f64 {
+    assert_eq!(a.shape(), b.shape());
+    let scale = b.iter().fold(1e-300f64, |s, v| s.max(v.abs()));
+    a.iter()
+        .zip(b.iter())
+        .fold(0.0f64, |m, (x, y)| m.max((x - y).abs() / scale))
+}

@@ -1,0 +1,220 @@
+//! The Kronecker-structured MVGP posterior (Prop. 1) against a brute-force
+//! construction of the full joint Gaussian of `[vec Ẋ; vec F(x*); vec F(x**)]`,
+//! conditioned directly.
+
+mod common;
+
+use bayes_cbf::gp::{InputMap, Kernel, Mvgp, MvgpHyper, PriorMean, Rbf};
+use bayes_cbf::systems::DynSystem;
+use common::{random_spd, rel_diff, RandomSystem};
+use nalgebra::{DMatrix, DVector};
+use rand::{RngExt, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use std::sync::Arc;
+
+struct Case {
+    n: usize,
+    m: usize,
+    k: usize,
+    prior: PriorMean,
+    input_map: InputMap,
+}
+
+/// Selection matrix `S_i = u̲_iᵀ ⊗ I_n` so that `F(x_i) u̲_i = S_i vec F(x_i)`.
+fn selection(u: &[f64], n: usize) -> DMatrix<f64> {
+    let p = u.len();
+    let mut s = DMatrix::zeros(n, n * p);
+    for c in 0..p {
+        for i in 0..n {
+            s[(i, i + n * c)] = u[c];
+        }
+    }
+    s
+}
+
+fn check_case(case: Case, seed: u64) {
+    let Case {
+        n,
+        m,
+        k,
+        prior,
+        input_map,
+    } = case;
+    let p = m + 1;
+    let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    let d = input_map.output_dim(n);
+    let kernel = Rbf::new(
+        (0..d).map(|_| rng.random_range(0.5..1.5)).collect(),
+        rng.random_range(0.5..2.0),
+    )
+    .unwrap();
+    #[allow(non_snake_case)]
+    let (A, B) = (random_spd(n, &mut rng), random_spd(p, &mut rng));
+    let sigma = rng.random_range(0.05..0.5);
+    let xs: Vec<f64> = (0..k * n).map(|_| rng.random_range(-1.5..1.5)).collect();
+    let us: Vec<f64> = (0..k * m).map(|_| rng.random_range(-2.0..2.0)).collect();
+    let xdot: Vec<f64> = (0..k * n).map(|_| rng.random_range(-2.0..2.0)).collect();
+    let tests: Vec<Vec<f64>> = (0..2)
+        .map(|_| (0..n).map(|_| rng.random_range(-1.5..1.5)).collect())
+        .collect();
+
+    let hyper = MvgpHyper {
+        kernel: kernel.clone(),
+        A: A.clone(),
+        B: B.clone(),
+        sigma,
+    };
+    let mut model = Mvgp::new(n, m, hyper, prior.clone(), input_map.clone()).unwrap();
+    model.set_data(&xs, &us, &xdot).unwrap();
+
+    // brute force: all k + 2 points
+    let pts: Vec<Vec<f64>> = (0..k)
+        .map(|j| xs[j * n..(j + 1) * n].to_vec())
+        .chain(tests.iter().cloned())
+        .collect();
+    let z = |x: &[f64]| {
+        let mut zz = vec![0.0; d];
+        input_map.apply(x, &mut zz);
+        zz
+    };
+    let np = n * p;
+    let ba = B.kronecker(&A);
+    let tot = k + 2;
+    let mut cov_f = DMatrix::zeros(tot * np, tot * np);
+    for i in 0..tot {
+        for j in 0..tot {
+            let kv = kernel.value(&z(&pts[i]), &z(&pts[j]));
+            cov_f
+                .view_mut((i * np, j * np), (np, np))
+                .copy_from(&(&ba * kv));
+        }
+    }
+    let mut mean_f = DVector::zeros(tot * np);
+    let mut m0 = vec![0.0; np];
+    for (i, x) in pts.iter().enumerate() {
+        prior.eval(x, &mut m0);
+        mean_f.rows_mut(i * np, np).copy_from_slice(&m0);
+    }
+    // observation map: y = H vec F(all) + w, only the first k points observed
+    let mut h = DMatrix::zeros(k * n, tot * np);
+    for j in 0..k {
+        let mut ub = vec![1.0];
+        ub.extend_from_slice(&us[j * m..(j + 1) * m]);
+        h.view_mut((j * n, j * np), (n, np))
+            .copy_from(&selection(&ub, n));
+    }
+    let mut cov_y = &h * &cov_f * h.transpose();
+    for j in 0..k {
+        let mut blk = cov_y.view_mut((j * n, j * n), (n, n));
+        blk += &A * (sigma * sigma);
+    }
+    let cov_fy = &cov_f * h.transpose();
+    let y = DVector::from_column_slice(&xdot);
+    let mu_y = &h * &mean_f;
+    let chol = cov_y.cholesky().expect("joint covariance is PD");
+    let post_mean = &mean_f + &cov_fy * chol.solve(&(y - mu_y));
+    let post_cov = &cov_f - &cov_fy * chol.solve(&cov_fy.transpose());
+
+    for (t, x) in tests.iter().enumerate() {
+        let off = (k + t) * np;
+        let post = model.posterior(x).unwrap();
+        let mean_bf = DMatrix::from_column_slice(n, p, post_mean.rows(off, np).as_slice());
+        let cov_bf = post_cov.view((off, off), (np, np)).into_owned();
+        let cov_mvgp = post.B.kronecker(&A);
+        assert!(
+            rel_diff(&post.mean, &mean_bf) < 1e-9,
+            "mean: n={n} m={m} {:?}",
+            prior
+        );
+        assert!(rel_diff(&cov_mvgp, &cov_bf) < 1e-9, "cov: n={n} m={m}");
+        let mean_only = model.posterior_mean(x).unwrap();
+        assert!(rel_diff(&mean_only, &mean_bf) < 1e-9, "posterior_mean");
+    }
+    // cross-covariance B_k(x*, x**) ⊗ A
+    let cross = model
+        .posterior_cov(&tests[0], &tests[1])
+        .unwrap()
+        .kronecker(&A);
+    let cross_bf = post_cov.view((k * np, (k + 1) * np), (np, np)).into_owned();
+    assert!(rel_diff(&cross, &cross_bf) < 1e-9, "cross cov n={n} m={m}");
+}
+
+#[test]
+fn posterior_matches_brute_force_joint_gaussian() {
+    let mut seed = 0;
+    for n in 1..=3 {
+        for m in 1..=2 {
+            for nonzero_prior in [false, true] {
+                let prior = if nonzero_prior {
+                    let sys: Arc<dyn DynSystem> = Arc::new(RandomSystem::new(n, m, seed + 100));
+                    PriorMean::System(sys)
+                } else {
+                    PriorMean::Zero
+                };
+                check_case(
+                    Case {
+                        n,
+                        m,
+                        k: 7,
+                        prior,
+                        input_map: InputMap::Identity,
+                    },
+                    seed,
+                );
+                seed += 1;
+            }
+        }
+    }
+}
+
+#[test]
+fn posterior_with_input_map_matches_brute_force() {
+    let sys: Arc<dyn DynSystem> = Arc::new(bayes_cbf::systems::Ackermann { wheelbase: 2.0 });
+    check_case(
+        Case {
+            n: 3,
+            m: 2,
+            k: 9,
+            prior: PriorMean::System(sys),
+            input_map: InputMap::Select(vec![2]),
+        },
+        42,
+    );
+    check_case(
+        Case {
+            n: 3,
+            m: 1,
+            k: 6,
+            prior: PriorMean::Zero,
+            input_map: InputMap::Select(vec![0, 2]),
+        },
+        43,
+    );
+}
+
+#[test]
+fn posterior_variance_is_positive_semidefinite() {
+    let mut rng = ChaCha8Rng::seed_from_u64(9);
+    let (n, m, k) = (2, 1, 40);
+    let hyper = MvgpHyper {
+        kernel: Rbf::new(vec![0.3, 0.3], 1.0).unwrap(),
+        A: random_spd(n, &mut rng),
+        B: random_spd(m + 1, &mut rng),
+        sigma: 1e-3,
+    };
+    let mut model = Mvgp::new(n, m, hyper, PriorMean::Zero, InputMap::Identity).unwrap();
+    let xs: Vec<f64> = (0..k * n).map(|_| rng.random_range(-1.0..1.0)).collect();
+    let us: Vec<f64> = (0..k * m).map(|_| rng.random_range(-1.0..1.0)).collect();
+    let xd: Vec<f64> = (0..k * n).map(|_| rng.random_range(-1.0..1.0)).collect();
+    model.set_data(&xs, &us, &xd).unwrap();
+    for j in 0..k + 20 {
+        let x: Vec<f64> = if j < k {
+            xs[j * n..(j + 1) * n].to_vec()
+        } else {
+            (0..n).map(|_| rng.random_range(-3.0..3.0)).collect()
+        };
+        let b = model.posterior(&x).unwrap().B;
+        let ev = b.symmetric_eigenvalues();
+        assert!(ev.iter().all(|&e| e > -1e-9), "eigenvalues {ev:?}");
+    }
+}
