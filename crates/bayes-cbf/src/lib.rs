@@ -9,6 +9,7 @@
 //! - [`systems`]: the [`systems::ControlAffine`] trait and built-in systems.
 //! - [`sim`]: zero-order-hold simulation and derivative estimation.
 //! - [`gp`]: MVGP regression, kernels, hyperparameter learning.
+//! - [`barrier`]: barrier and Lyapunov functions and their moments.
 //!
 //! ## Error policy
 //! Programming errors (a slice of the wrong length passed between internal
@@ -18,6 +19,7 @@
 //! not positive definite, Gram matrices that cannot be factorised even after
 //! bounded jitter ([`error::GpError`]). Factorisations are never `.expect()`ed.
 
+pub mod barrier;
 pub mod error;
 pub mod gp;
 pub mod sim;

@@ -3,6 +3,7 @@
 
 mod factor;
 mod input_map;
+mod joint;
 mod kernel;
 mod mvgp;
 mod prior;
@@ -10,6 +11,7 @@ mod training;
 
 pub use factor::{CholFactor, JITTER_LEVELS};
 pub use input_map::InputMap;
+pub use joint::{JointPosterior, JointWorkspace};
 pub use kernel::{Kernel, Rbf};
 pub use mvgp::{check_spd, Mvgp, MvgpHyper, Posterior, PosteriorWorkspace};
 pub use prior::PriorMean;

@@ -672,6 +672,18 @@ impl<K: Kernel> Mvgp<K> {
         Ok(())
     }
 
+    /// Rows reserved in the factor and `β` (grows geometrically).
+    pub fn capacity(&self) -> usize {
+        self.beta.nrows().max(self.len())
+    }
+    /// `B u̲_j` rows (row-major `k × (1+m)`).
+    pub fn bu(&self) -> &[f64] {
+        &self.bu
+    }
+    /// `β = L⁻¹ Rᵀ` (rows beyond [`len`](Self::len) are spare capacity).
+    pub fn beta(&self) -> faer::MatRef<'_, f64> {
+        self.beta.as_ref()
+    }
     /// Mapped training inputs (row-major `k × d`).
     pub fn mapped_inputs(&self) -> &[f64] {
         &self.zs

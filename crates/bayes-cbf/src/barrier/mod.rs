@@ -1,0 +1,157 @@
+//! Control barrier functions `h(x)` and control Lyapunov functions `V(x)`,
+//! and the moments of their conditions under the GP posterior
+//! (paper, Sec. V–VI).
+//!
+//! Users write `h` (or `V`) once, generic over dual numbers; gradients and
+//! Hessians come from forward-mode automatic differentiation (num-dual):
+//! `n` passes of [`Dual64`] for `∇h`, `n(n+1)/2` passes of [`HyperDual64`]
+//! for `∇²h`.
+
+mod builtins;
+mod clf;
+mod moments;
+
+pub use builtins::{CircleHeading, Disc, HalfSpace, PendulumSector};
+pub use clf::{AckermannClf, DynLyapunov, Lyapunov};
+pub use moments::{cbc_moments, clc_moments, quantile_factor, ConditionMoments, MomentWorkspace};
+
+use crate::error::InputError;
+use num_dual::{Dual64, DualNum, HyperDual64};
+
+/// A control barrier function: the safe set is `{x : h(x) ≥ 0}`.
+///
+/// ## Reference
+/// Paper, Def. 2 (relative degree 1, `CBC = ∇hᵀ F u̲ + α h`) and Def. 4
+/// (relative degree `r`, `CBC⁽ʳ⁾ = ∇(L_f^{r−1}h)ᵀ F u̲ + k_αᵀ η(x)`).
+pub trait Barrier: Send + Sync {
+    /// State dimension the barrier expects.
+    fn state_dim(&self) -> usize;
+    /// `h(x)`.
+    fn h<D: DualNum<Primitive = f64> + Copy>(&self, x: &[D]) -> D;
+    /// Declared relative degree `r` (1 or 2 have exact moments).
+    fn relative_degree(&self) -> usize;
+    /// Class-K gains: `[α]` for `r = 1`; `[k_α0, …, k_α(r−1)]` for `r ≥ 2`,
+    /// multiplying `[h, L_f h, …, L_f^{r−1} h]`.
+    fn gains(&self) -> &[f64];
+    /// Short name for reports.
+    fn name(&self) -> &str {
+        "barrier"
+    }
+}
+
+/// Object-safe view of a [`Barrier`], implemented for all of them.
+pub trait DynBarrier: Send + Sync {
+    /// State dimension.
+    fn dim(&self) -> usize;
+    /// `h(x)`.
+    fn value(&self, x: &[f64]) -> f64;
+    /// `h` on dual numbers.
+    fn value_dual(&self, x: &[Dual64]) -> Dual64;
+    /// `h` on hyper-dual numbers.
+    fn value_hyper(&self, x: &[HyperDual64]) -> HyperDual64;
+    /// Relative degree.
+    fn degree(&self) -> usize;
+    /// Class-K gains.
+    fn class_k(&self) -> &[f64];
+    /// Name.
+    fn label(&self) -> &str;
+
+    /// `∇h(x)` into `grad` (length n); returns `h(x)`. `scratch` length `n`.
+    fn gradient(&self, x: &[f64], grad: &mut [f64], scratch: &mut [Dual64]) -> f64 {
+        let n = x.len();
+        let mut h = 0.0;
+        for j in 0..n {
+            for (i, s) in scratch.iter_mut().enumerate().take(n) {
+                *s = Dual64::new(x[i], if i == j { 1.0 } else { 0.0 });
+            }
+            let v = self.value_dual(&scratch[..n]);
+            grad[j] = v.eps;
+            h = v.re;
+        }
+        if n == 0 {
+            h = self.value(x);
+        }
+        h
+    }
+
+    /// `∇²h(x)` into `hess` (row-major `n × n`) and `∇h` into `grad`;
+    /// returns `h(x)`. `scratch` length `n`.
+    fn hessian(
+        &self,
+        x: &[f64],
+        grad: &mut [f64],
+        hess: &mut [f64],
+        scratch: &mut [HyperDual64],
+    ) -> f64 {
+        let n = x.len();
+        let mut h = self.value(x);
+        for a in 0..n {
+            for b in a..n {
+                for (i, s) in scratch.iter_mut().enumerate().take(n) {
+                    *s = HyperDual64::new(
+                        x[i],
+                        if i == a { 1.0 } else { 0.0 },
+                        if i == b { 1.0 } else { 0.0 },
+                        0.0,
+                    );
+                }
+                let v = self.value_hyper(&scratch[..n]);
+                hess[a * n + b] = v.eps1eps2;
+                hess[b * n + a] = v.eps1eps2;
+                if a == b {
+                    grad[a] = v.eps1;
+                }
+                h = v.re;
+            }
+        }
+        h
+    }
+}
+
+impl<T: Barrier> DynBarrier for T {
+    fn dim(&self) -> usize {
+        self.state_dim()
+    }
+    fn value(&self, x: &[f64]) -> f64 {
+        self.h(x)
+    }
+    fn value_dual(&self, x: &[Dual64]) -> Dual64 {
+        self.h(x)
+    }
+    fn value_hyper(&self, x: &[HyperDual64]) -> HyperDual64 {
+        self.h(x)
+    }
+    fn degree(&self) -> usize {
+        self.relative_degree()
+    }
+    fn class_k(&self) -> &[f64] {
+        self.gains()
+    }
+    fn label(&self) -> &str {
+        self.name()
+    }
+}
+
+/// Checks a relative degree and its gains: `r ≥ 1`, `r` gains for `r ≥ 2`
+/// (one for `r = 1`), all finite and `≥ 0`.
+pub fn validate_gains(r: usize, gains: &[f64]) -> Result<(), InputError> {
+    if r == 0 {
+        return Err(InputError::invalid("relative_degree", 0.0, "must be ≥ 1"));
+    }
+    let want = r.max(1);
+    if gains.len() != want {
+        let field = if r == 1 { "alpha" } else { "k_alpha" };
+        return Err(InputError::shape(field, want, gains.len()));
+    }
+    for (i, g) in gains.iter().enumerate() {
+        if !(g.is_finite() && *g >= 0.0) {
+            let field = if r == 1 {
+                "alpha".to_string()
+            } else {
+                format!("k_alpha[{i}]")
+            };
+            return Err(InputError::invalid(&field, *g, "must be finite and ≥ 0"));
+        }
+    }
+    Ok(())
+}

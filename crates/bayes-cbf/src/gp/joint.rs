@@ -1,0 +1,204 @@
+//! Joint posterior of `F(x)` and its Jacobian at one point.
+//!
+//! Derivatives of a GP are jointly Gaussian with it. Stack
+//! `𝔽(x) = [F(x) ∂_1F(x) … ∂_nF(x)] ∈ R^{n × P}`, `P = (1+m)(1+n)`. Under the
+//! MVGP posterior `vec 𝔽 ~ N(vec 𝕄, Ĉ ⊗ A)` — the Kronecker structure
+//! survives differentiation because `A` does not depend on `x` — with
+//! `𝕄 = [M_k ∂_1M_k … ∂_nM_k]` and, for blocks `a, b ∈ {0, 1, …, n}`
+//! (0 = `F`, `i` = `∂_iF`),
+//!
+//! `Ĉ_ab = B ∂_a∂'_b k0(x, x') − Ω_aᵀ G⁻¹ Ω_b` at `x' = x`,
+//!
+//! where `Ω_0 = W = (𝓑(x)U̲)ᵀ` (rows `k0(x,x_j)(Bu̲_j)ᵀ`), `Ω_i = ∂W/∂x_i`,
+//! `∂_0` is the identity and `∂'_b` differentiates the second argument.
+//! This is what the relative-degree-2 moments (paper, Sec. VI, Lemma 5) and
+//! the Lipschitz bound (Lemma 3) need.
+
+use super::kernel::Kernel;
+use super::mvgp::Mvgp;
+use crate::error::InputError;
+use faer::Mat;
+use nalgebra::DMatrix;
+use num_dual::Dual64;
+
+/// `vec 𝔽(x) ~ N(vec mean, c ⊗ A)` with `𝔽 = [F ∂_1F … ∂_nF]`.
+#[derive(Debug, Clone, PartialEq)]
+pub struct JointPosterior {
+    /// `𝕄`, `n × (1+m)(1+n)`; column `a(1+m) + c` is column `c` of block `a`.
+    pub mean: DMatrix<f64>,
+    /// `Ĉ`, `(1+m)(1+n)` square.
+    pub c: DMatrix<f64>,
+}
+
+impl JointPosterior {
+    /// Empty shell for dimensions `n`, `m`.
+    pub fn zeros(n: usize, m: usize) -> Self {
+        let pp = (1 + m) * (1 + n);
+        Self {
+            mean: DMatrix::zeros(n, pp),
+            c: DMatrix::zeros(pp, pp),
+        }
+    }
+}
+
+/// Buffers for [`Mvgp::joint_posterior_into`].
+#[derive(Debug, Clone)]
+pub struct JointWorkspace {
+    z: Vec<f64>,
+    gk: Vec<f64>,
+    hk: Vec<f64>,
+    gx: Vec<f64>,
+    omega: Mat<f64>,
+    m0: Vec<f64>,
+    jac0: Vec<f64>,
+    sx: Vec<Dual64>,
+    so: Vec<Dual64>,
+}
+
+impl<K: Kernel> Mvgp<K> {
+    /// A workspace for [`joint_posterior_into`](Self::joint_posterior_into).
+    pub fn joint_workspace(&self) -> JointWorkspace {
+        let (n, p) = (self.n(), self.m() + 1);
+        let d = self.input_map().output_dim(n);
+        JointWorkspace {
+            z: vec![0.0; d],
+            gk: vec![0.0; d],
+            hk: vec![0.0; d * d],
+            gx: vec![0.0; n],
+            omega: Mat::zeros(self.capacity(), p * (1 + n)),
+            m0: vec![0.0; n * p],
+            jac0: vec![0.0; n * p * n],
+            sx: vec![Dual64::from(0.0); n],
+            so: vec![Dual64::from(0.0); n * p],
+        }
+    }
+
+    /// Joint posterior of `F(x)` and `∂F/∂x_i` (module docs), written into
+    /// `out`; no allocation once `ws` is sized for the data.
+    pub fn joint_posterior_into(
+        &self,
+        x: &[f64],
+        ws: &mut JointWorkspace,
+        out: &mut JointPosterior,
+    ) -> Result<(), InputError> {
+        let (n, m) = (self.n(), self.m());
+        let p = m + 1;
+        let pp = p * (1 + n);
+        if x.len() != n {
+            return Err(InputError::shape("x", n, x.len()));
+        }
+        crate::error::check_finite("x", x)?;
+        if out.mean.shape() != (n, pp) || out.c.shape() != (pp, pp) {
+            *out = JointPosterior::zeros(n, m);
+        }
+        let k = self.len();
+        if ws.omega.nrows() < k {
+            *ws = self.joint_workspace();
+        }
+        let map = self.input_map();
+        let d = ws.z.len();
+        let kern = &self.hyper().kernel;
+        let b = &self.hyper().B;
+        map.apply(x, &mut ws.z);
+        // prior part: K̂_ab ⊗ B
+        kern.grad_x(&ws.z, &ws.z, &mut ws.gk);
+        let k00 = kern.hess_xy(&ws.z, &ws.z, &mut ws.hk);
+        let kk = |a: usize, bb: usize, ws: &JointWorkspace| -> f64 {
+            // ∂_a ∂'_b k0(φ(x), φ(x')) at x' = x, in state coordinates
+            match (a, bb) {
+                (0, 0) => k00,
+                (i, 0) => (0..d)
+                    .filter(|&j| map.source(j) == i - 1)
+                    .map(|j| ws.gk[j])
+                    .sum(),
+                (0, i) => -(0..d)
+                    .filter(|&j| map.source(j) == i - 1)
+                    .map(|j| ws.gk[j])
+                    .sum::<f64>(),
+                (i, l) => {
+                    let mut s = 0.0;
+                    for r in 0..d {
+                        if map.source(r) != i - 1 {
+                            continue;
+                        }
+                        for c in 0..d {
+                            if map.source(c) == l - 1 {
+                                s += ws.hk[r * d + c];
+                            }
+                        }
+                    }
+                    s
+                }
+            }
+        };
+        for a in 0..=n {
+            for bb in 0..=n {
+                let kab = kk(a, bb, ws);
+                for c in 0..p {
+                    for c2 in 0..p {
+                        out.c[(a * p + c, bb * p + c2)] = kab * b[(c, c2)];
+                    }
+                }
+            }
+        }
+        // prior mean and its Jacobian
+        self.prior().eval(x, &mut ws.m0);
+        self.prior()
+            .jacobian(x, &mut ws.jac0, &mut ws.sx, &mut ws.so);
+        let rows = n * p;
+        for c in 0..p {
+            for i in 0..n {
+                out.mean[(i, c)] = ws.m0[i + n * c];
+                for a in 1..=n {
+                    out.mean[(i, a * p + c)] = ws.jac0[(i + n * c) + rows * (a - 1)];
+                }
+            }
+        }
+        if k == 0 {
+            return Ok(());
+        }
+        // Ω = [W ∂_1W … ∂_nW]
+        let zs = self.mapped_inputs();
+        let bu = self.bu();
+        for j in 0..k {
+            let kv = kern.grad_x(&ws.z, &zs[j * d..(j + 1) * d], &mut ws.gk);
+            ws.gx.fill(0.0);
+            for (r, g) in ws.gk.iter().enumerate() {
+                ws.gx[map.source(r)] += g;
+            }
+            for c in 0..p {
+                let buc = bu[j * p + c];
+                ws.omega[(j, c)] = kv * buc;
+                for i in 0..n {
+                    ws.omega[(j, (i + 1) * p + c)] = ws.gx[i] * buc;
+                }
+            }
+        }
+        let mut v = ws.omega.as_mut().submatrix_mut(0, 0, k, pp);
+        self.factor().solve_l_in_place(v.as_mut());
+        let v = v.as_ref();
+        let beta = self.beta();
+        for q in 0..pp {
+            let vq = v.col(q);
+            for i in 0..n {
+                out.mean[(i, q)] += beta.col(i).subrows(0, k).transpose() * vq;
+            }
+            for q2 in 0..=q {
+                let s = v.col(q2).transpose() * vq;
+                out.c[(q2, q)] -= s;
+                if q2 != q {
+                    out.c[(q, q2)] -= s;
+                }
+            }
+        }
+        Ok(())
+    }
+
+    /// Allocating wrapper of [`joint_posterior_into`](Self::joint_posterior_into).
+    pub fn joint_posterior(&self, x: &[f64]) -> Result<JointPosterior, InputError> {
+        let mut ws = self.joint_workspace();
+        let mut out = JointPosterior::zeros(self.n(), self.m());
+        self.joint_posterior_into(x, &mut ws, &mut out)?;
+        Ok(out)
+    }
+}

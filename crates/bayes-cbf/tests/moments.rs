@@ -1,0 +1,378 @@
+//! Barrier-condition moments against Monte Carlo over joint posterior
+//! samples, and the joint posterior of `F` and its Jacobian against finite
+//! differences of the (brute-force-validated) posterior.
+
+mod common;
+
+use bayes_cbf::barrier::{
+    cbc_moments, clc_moments, AckermannClf, Barrier, ConditionMoments, DynBarrier, DynLyapunov,
+    Lyapunov, MomentWorkspace, PendulumSector,
+};
+use bayes_cbf::gp::{InputMap, Mvgp, MvgpHyper, PriorMean, Rbf};
+use bayes_cbf::systems::{Ackermann, DynSystem, Pendulum};
+use common::random_spd;
+use nalgebra::{DMatrix, DVector};
+use num_dual::DualNum;
+use rand::{RngExt, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use rand_distr::{Distribution, StandardNormal};
+use std::sync::Arc;
+
+/// `h(x) = xᵀQx + bᵀx + c`.
+struct Quadratic {
+    q: DMatrix<f64>,
+    b: Vec<f64>,
+    c: f64,
+    r: usize,
+    gains: Vec<f64>,
+}
+
+impl Barrier for Quadratic {
+    fn state_dim(&self) -> usize {
+        self.b.len()
+    }
+    fn h<D: DualNum<Primitive = f64> + Copy>(&self, x: &[D]) -> D {
+        let n = self.b.len();
+        let mut s = D::from(self.c);
+        for i in 0..n {
+            s += x[i] * self.b[i];
+            for j in 0..n {
+                s += x[i] * x[j] * self.q[(i, j)];
+            }
+        }
+        s
+    }
+    fn relative_degree(&self) -> usize {
+        self.r
+    }
+    fn gains(&self) -> &[f64] {
+        &self.gains
+    }
+}
+
+fn model(n: usize, m: usize, prior: PriorMean, k: usize, seed: u64) -> Mvgp {
+    let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    let hyper = MvgpHyper {
+        kernel: Rbf::new(vec![1.2; n], 1.0).unwrap(),
+        A: random_spd(n, &mut rng) * 0.5,
+        B: random_spd(m + 1, &mut rng),
+        sigma: 0.3,
+    };
+    let mut model = Mvgp::new(n, m, hyper, prior, InputMap::Identity).unwrap();
+    let xs: Vec<f64> = (0..k * n).map(|_| rng.random_range(-1.5..1.5)).collect();
+    let us: Vec<f64> = (0..k * m).map(|_| rng.random_range(-1.0..1.0)).collect();
+    let xd: Vec<f64> = (0..k * n).map(|_| rng.random_range(-1.0..1.0)).collect();
+    model.set_data(&xs, &us, &xd).unwrap();
+    model
+}
+
+/// Samples `vec 𝔽 ~ N(vec 𝕄, Ĉ ⊗ A)`; calls `f(𝔽)` per sample and
+/// returns the sample mean, variance and the standard errors of both.
+fn monte_carlo(
+    model: &Mvgp,
+    x: &[f64],
+    samples: usize,
+    seed: u64,
+    mut f: impl FnMut(&DMatrix<f64>) -> f64,
+) -> (f64, f64, f64, f64) {
+    let joint = model.joint_posterior(x).unwrap();
+    let n = model.n();
+    let pp = joint.c.ncols();
+    let cov = joint.c.kronecker(&model.hyper().A);
+    let dim = cov.nrows();
+    let l = (cov + DMatrix::identity(dim, dim) * 1e-12)
+        .cholesky()
+        .expect("joint covariance PSD")
+        .l();
+    let mu = DVector::from_column_slice(joint.mean.as_slice());
+    let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    let vals: Vec<f64> = (0..samples)
+        .map(|_| {
+            let z = DVector::from_fn(dim, |_, _| StandardNormal.sample(&mut rng));
+            let v = &mu + &l * z;
+            f(&DMatrix::from_column_slice(n, pp, v.as_slice()))
+        })
+        .collect();
+    let nn = samples as f64;
+    let mean = vals.iter().sum::<f64>() / nn;
+    let var = vals.iter().map(|v| (v - mean).powi(2)).sum::<f64>() / (nn - 1.0);
+    let m4 = vals.iter().map(|v| (v - mean).powi(4)).sum::<f64>() / nn;
+    (
+        mean,
+        var,
+        (var / nn).sqrt(),
+        ((m4 - var * var).max(0.0) / nn).sqrt(),
+    )
+}
+
+fn grad_hess(b: &dyn DynBarrier, x: &[f64]) -> (f64, Vec<f64>, DMatrix<f64>) {
+    let n = x.len();
+    let mut g = vec![0.0; n];
+    let mut h = vec![0.0; n * n];
+    let mut s = vec![num_dual::HyperDual64::from(0.0); n];
+    let v = b.hessian(x, &mut g, &mut h, &mut s);
+    (v, g, DMatrix::from_row_slice(n, n, &h))
+}
+
+/// CBC of relative degree `r` evaluated directly from one sample of 𝔽.
+fn cbc_direct(
+    big_f: &DMatrix<f64>,
+    n: usize,
+    p: usize,
+    h: f64,
+    g: &[f64],
+    hess: &DMatrix<f64>,
+    gains: &[f64],
+    r: usize,
+    u: &[f64],
+) -> f64 {
+    let ub: Vec<f64> = std::iter::once(1.0).chain(u.iter().cloned()).collect();
+    let fu: Vec<f64> = (0..n)
+        .map(|i| (0..p).map(|c| big_f[(i, c)] * ub[c]).sum())
+        .collect();
+    let gv = DVector::from_column_slice(g);
+    if r == 1 {
+        return gv.dot(&DVector::from_vec(fu)) + gains[0] * h;
+    }
+    let f = DVector::from_fn(n, |i, _| big_f[(i, 0)]);
+    let jf = DMatrix::from_fn(n, n, |l, i| big_f[(l, (i + 1) * p)]); // ∂f_l/∂x_i
+    let grad_lfh = hess * &f + jf.transpose() * &gv;
+    grad_lfh.dot(&DVector::from_vec(fu)) + gains[0] * h + gains[1] * gv.dot(&f)
+}
+
+fn check_against_mc(model: &Mvgp, barrier: &dyn DynBarrier, x: &[f64], u: &[f64], seed: u64) {
+    let (n, p) = (model.n(), model.m() + 1);
+    let r = barrier.degree();
+    let mut ws = MomentWorkspace::new(model);
+    ws.update(model, x, r).unwrap();
+    let mut out = ConditionMoments::zeros(model.m());
+    cbc_moments(&mut ws, barrier, &mut out).unwrap();
+    let (h, g, hess) = grad_hess(barrier, x);
+    assert!((out.value - h).abs() < 1e-12);
+    let gains = barrier.class_k().to_vec();
+    let (mc_mean, mc_var, se_mean, se_var) = monte_carlo(model, x, 100_000, seed, |bf| {
+        cbc_direct(bf, n, p, h, &g, &hess, &gains, r, u)
+    });
+    let (em, ev) = (out.mean(u), out.variance(u));
+    assert!(
+        (em - mc_mean).abs() < 4.0 * se_mean,
+        "r={r} mean exact {em} MC {mc_mean} ± {se_mean}"
+    );
+    assert!(
+        (ev - mc_var).abs() < 4.0 * se_var,
+        "r={r} variance exact {ev} MC {mc_var} ± {se_var}"
+    );
+    // the factor reproduces the covariance
+    let vtv = out.v.transpose() * &out.v;
+    assert!((vtv - &out.cov).abs().max() < 1e-9 * out.cov.abs().max().max(1.0));
+}
+
+#[test]
+fn pendulum_sector_moments_match_monte_carlo() {
+    let truth: Arc<dyn DynSystem> = Arc::new(Pendulum {
+        mass: 1.3,
+        length: 0.9,
+        gravity: 10.0,
+    });
+    for (i, prior) in [PriorMean::Zero, PriorMean::System(truth)]
+        .into_iter()
+        .enumerate()
+    {
+        let m = model(2, 1, prior, 12, 10 + i as u64);
+        let rd2 = PendulumSector::new(0.7854, 0.3927, 2, vec![1.0, 3.0]).unwrap();
+        let rd1 = PendulumSector::new(0.7854, 0.3927, 1, vec![2.0]).unwrap();
+        for (j, x) in [[1.2, -0.4], [0.1, 0.8]].iter().enumerate() {
+            check_against_mc(&m, &rd2, x, &[0.7], 100 + j as u64);
+            check_against_mc(&m, &rd1, x, &[-1.1], 200 + j as u64);
+        }
+    }
+}
+
+#[test]
+fn random_quadratic_barrier_moments_match_monte_carlo() {
+    let mut rng = ChaCha8Rng::seed_from_u64(4);
+    for (n, m) in [(2, 1), (3, 2)] {
+        for nonzero in [false, true] {
+            let prior = if nonzero {
+                PriorMean::System(Arc::new(common::RandomSystem::new(n, m, 7)) as Arc<dyn DynSystem>)
+            } else {
+                PriorMean::Zero
+            };
+            let model = model(n, m, prior, 10, 20 + n as u64);
+            let qa = DMatrix::from_fn(n, n, |_, _| rng.random_range(-1.0..1.0));
+            let b = Quadratic {
+                q: &qa + qa.transpose(),
+                b: (0..n).map(|_| rng.random_range(-1.0..1.0)).collect(),
+                c: 0.3,
+                r: 2,
+                gains: vec![0.5, 1.5],
+            };
+            let x: Vec<f64> = (0..n).map(|_| rng.random_range(-1.0..1.0)).collect();
+            let u: Vec<f64> = (0..m).map(|_| rng.random_range(-1.0..1.0)).collect();
+            check_against_mc(&model, &b, &x, &u, 300 + n as u64);
+            let b1 = Quadratic {
+                r: 1,
+                gains: vec![2.0],
+                ..b
+            };
+            check_against_mc(&model, &b1, &x, &u, 400 + n as u64);
+        }
+    }
+}
+
+#[test]
+fn joint_posterior_matches_finite_differences_of_posterior() {
+    let prior: Arc<dyn DynSystem> = Arc::new(common::RandomSystem::new(3, 2, 3));
+    for map in [InputMap::Identity, InputMap::Select(vec![2, 0])] {
+        let mut rng = ChaCha8Rng::seed_from_u64(8);
+        let hyper = MvgpHyper {
+            kernel: Rbf::new(vec![1.1; map.output_dim(3)], 1.4).unwrap(),
+            A: random_spd(3, &mut rng),
+            B: random_spd(3, &mut rng),
+            sigma: 0.2,
+        };
+        let mut model = Mvgp::new(3, 2, hyper, PriorMean::System(prior.clone()), map).unwrap();
+        let xs: Vec<f64> = (0..30).map(|_| rng.random_range(-1.0..1.0)).collect();
+        let us: Vec<f64> = (0..20).map(|_| rng.random_range(-1.0..1.0)).collect();
+        let xd: Vec<f64> = (0..30).map(|_| rng.random_range(-1.0..1.0)).collect();
+        model.set_data(&xs, &us, &xd).unwrap();
+        let x = [0.2, -0.3, 0.5];
+        let joint = model.joint_posterior(&x).unwrap();
+        let p = 3;
+        let h = 1e-4;
+        let shift = |i: usize, s: f64| {
+            let mut y = x;
+            if i > 0 {
+                y[i - 1] += s;
+            }
+            y
+        };
+        for a in 0..=3 {
+            // mean blocks: ∂_a M_k
+            let mean_fd = if a == 0 {
+                model.posterior_mean(&x).unwrap()
+            } else {
+                (model.posterior_mean(&shift(a, h)).unwrap()
+                    - model.posterior_mean(&shift(a, -h)).unwrap())
+                    / (2.0 * h)
+            };
+            let blk = joint.mean.columns(a * p, p).into_owned();
+            assert!(
+                (&blk - &mean_fd).abs().max() < 1e-6,
+                "mean block {a}: {blk} vs {mean_fd}"
+            );
+            for b in 0..=3 {
+                let cov =
+                    |sa: f64, sb: f64| model.posterior_cov(&shift(a, sa), &shift(b, sb)).unwrap();
+                let fd = match (a, b) {
+                    (0, 0) => cov(0.0, 0.0),
+                    (_, 0) => (cov(h, 0.0) - cov(-h, 0.0)) / (2.0 * h),
+                    (0, _) => (cov(0.0, h) - cov(0.0, -h)) / (2.0 * h),
+                    _ => (cov(h, h) - cov(h, -h) - cov(-h, h) + cov(-h, -h)) / (4.0 * h * h),
+                };
+                let blk = joint.c.view((a * p, b * p), (p, p)).into_owned();
+                assert!(
+                    (&blk - &fd).abs().max() < 1e-5,
+                    "cov block ({a},{b}): {blk} vs {fd}"
+                );
+            }
+        }
+    }
+}
+
+#[test]
+fn clf_moments_match_monte_carlo_and_time_derivative() {
+    let prior: Arc<dyn DynSystem> = Arc::new(Ackermann { wheelbase: 1.0 });
+    let model = model(3, 2, PriorMean::System(prior), 8, 31);
+    let clf = AckermannClf::new(0.9, 1.5, 10.0).unwrap();
+    let (x, xd, xd_dot) = ([-1.0, -0.5, 0.3], [0.0, 0.2, 0.7], [0.4, -0.2, 0.0]);
+    let mut ws = MomentWorkspace::new(&model);
+    ws.update(&model, &x, 1).unwrap();
+    let mut out = ConditionMoments::zeros(2);
+    clc_moments(&mut ws, &clf, &xd, &xd_dot, &mut out).unwrap();
+    // V and its derivatives by finite differences
+    let v = |x: &[f64], xd: &[f64]| clf.v(x, xd);
+    let hh = 1e-6;
+    let g: Vec<f64> = (0..3)
+        .map(|i| {
+            let (mut a, mut b) = (x, x);
+            a[i] += hh;
+            b[i] -= hh;
+            (v(&a, &xd) - v(&b, &xd)) / (2.0 * hh)
+        })
+        .collect();
+    let xdp: Vec<f64> = (0..3).map(|i| xd[i] + hh * xd_dot[i]).collect();
+    let xdm: Vec<f64> = (0..3).map(|i| xd[i] - hh * xd_dot[i]).collect();
+    let dvdt = (v(&x, &xdp) - v(&x, &xdm)) / (2.0 * hh);
+    let u = [0.5, -0.3];
+    let (mc_mean, mc_var, se_m, se_v) = monte_carlo(&model, &x, 100_000, 5, |bf| {
+        let fu: Vec<f64> = (0..3)
+            .map(|i| bf[(i, 0)] + bf[(i, 1)] * u[0] + bf[(i, 2)] * u[1])
+            .collect();
+        (0..3).map(|i| g[i] * fu[i]).sum::<f64>() + dvdt + 10.0 * v(&x, &xd)
+    });
+    assert!(
+        (out.mean(&u) - mc_mean).abs() < 4.0 * se_m + 1e-6,
+        "{} vs {mc_mean}",
+        out.mean(&u)
+    );
+    assert!(
+        (out.variance(&u) - mc_var).abs() < 4.0 * se_v,
+        "{} vs {mc_var}",
+        out.variance(&u)
+    );
+}
+
+#[test]
+fn autodiff_derivatives_match_finite_differences() {
+    let b = bayes_cbf::barrier::CircleHeading::new([-1.1667, -1.5], 0.7906, 0.7, 0.3, 1, vec![5.0])
+        .unwrap();
+    let x = [-2.4, -0.7, 0.4];
+    let (h, g, hess) = grad_hess(&b, &x);
+    let f = |y: &[f64]| DynBarrier::value(&b, y);
+    assert!((h - f(&x)).abs() < 1e-14);
+    let e = 1e-5;
+    for i in 0..3 {
+        let (mut a, mut c) = (x, x);
+        a[i] += e;
+        c[i] -= e;
+        assert!(
+            ((f(&a) - f(&c)) / (2.0 * e) - g[i]).abs() < 1e-7,
+            "grad {i}"
+        );
+        for j in 0..3 {
+            let fd = {
+                let mut pp = x;
+                pp[i] += e;
+                pp[j] += e;
+                let mut pm = x;
+                pm[i] += e;
+                pm[j] -= e;
+                let mut mp = x;
+                mp[i] -= e;
+                mp[j] += e;
+                let mut mm = x;
+                mm[i] -= e;
+                mm[j] -= e;
+                (f(&pp) - f(&pm) - f(&mp) + f(&mm)) / (4.0 * e * e)
+            };
+            assert!(
+                (fd - hess[(i, j)]).abs() < 1e-4,
+                "hess {i}{j}: {fd} vs {}",
+                hess[(i, j)]
+            );
+        }
+    }
+    // Lyapunov gradient
+    let clf = AckermannClf::new(0.9, 1.5, 10.0).unwrap();
+    let xd = [0.0, 0.0, 0.7];
+    let mut gv = [0.0; 3];
+    let mut scratch = vec![num_dual::Dual64::from(0.0); 6];
+    clf.gradient(&x, &xd, &[0.0; 3], &mut gv, &mut scratch);
+    for i in 0..3 {
+        let (mut a, mut c) = (x, x);
+        a[i] += e;
+        c[i] -= e;
+        assert!(((clf.v(&a, &xd) - clf.v(&c, &xd)) / (2.0 * e) - gv[i]).abs() < 1e-7);
+    }
+}
