@@ -20,6 +20,7 @@
 //! bounded jitter ([`error::GpError`]). Factorisations are never `.expect()`ed.
 
 pub mod barrier;
+pub mod control;
 pub mod error;
 pub mod gp;
 pub mod sim;

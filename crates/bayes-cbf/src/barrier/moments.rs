@@ -56,6 +56,50 @@ impl ConditionMoments {
             relative_degree: 1,
         }
     }
+    /// Moments from `e` and a symmetric positive-semidefinite `cov`
+    /// (validated), e.g. computed elsewhere.
+    pub fn from_parts(
+        e: Vec<f64>,
+        cov: DMatrix<f64>,
+        relative_degree: usize,
+    ) -> Result<Self, InputError> {
+        let p = e.len();
+        if p < 2 {
+            return Err(InputError::shape("e", "≥ 2 entries (1 + m)", p));
+        }
+        if cov.shape() != (p, p) {
+            return Err(InputError::shape(
+                "cov",
+                format!("{p}×{p}"),
+                format!("{}×{}", cov.nrows(), cov.ncols()),
+            ));
+        }
+        crate::error::check_finite("e", &e)?;
+        crate::error::check_finite("cov", cov.as_slice())?;
+        let ev = cov.clone().symmetric_eigenvalues();
+        let scale = ev.iter().fold(0.0f64, |a, b| a.max(b.abs()));
+        if ev.iter().any(|&l| l < -1e-9 * scale.max(1e-300))
+            || (&cov - cov.transpose()).abs().max() > 1e-9 * scale.max(1.0)
+        {
+            return Err(InputError::NotPositiveDefinite {
+                field: "cov".into(),
+                reason: "must be symmetric positive semidefinite".into(),
+            });
+        }
+        if relative_degree == 0 {
+            return Err(InputError::invalid("relative_degree", 0.0, "must be ≥ 1"));
+        }
+        let mut v = DMatrix::zeros(p, p);
+        psd_factor(&cov, &mut v);
+        Ok(Self {
+            e,
+            cov,
+            v,
+            value: 0.0,
+            relative_degree,
+        })
+    }
+
     /// `E[C]` at control `u` (without the leading 1).
     pub fn mean(&self, u: &[f64]) -> f64 {
         self.e[0] + u.iter().zip(&self.e[1..]).map(|(a, b)| a * b).sum::<f64>()

@@ -1,0 +1,644 @@
+//! The safety filter around a reference control `û`.
+
+use super::socp::{ConeProgram, SocpShape, SolveStatus};
+use crate::barrier::{
+    cbc_moments, clc_moments, quantile_factor, ConditionMoments, DynBarrier, DynLyapunov,
+    MomentWorkspace,
+};
+use crate::error::{check_finite, Error, InputError};
+use crate::gp::{Kernel, Mvgp};
+use nalgebra::DMatrix;
+use std::sync::Arc;
+
+/// What to apply when the SOCP is infeasible (paper, Remark 2).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum Fallback {
+    /// Maximise the worst stochastic CBC within the bounds (itself an SOCP).
+    #[default]
+    MaxMargin,
+    /// Apply `u = 0` (clamped into the bounds).
+    Brake,
+    /// Hold the previous control.
+    Hold,
+}
+
+impl Fallback {
+    /// Name used in files and reports.
+    pub fn name(self) -> &'static str {
+        match self {
+            Fallback::MaxMargin => "max_margin",
+            Fallback::Brake => "brake",
+            Fallback::Hold => "hold",
+        }
+    }
+    /// Parses [`name`](Self::name).
+    pub fn parse(s: &str) -> Result<Self, InputError> {
+        match s {
+            "max_margin" => Ok(Fallback::MaxMargin),
+            "brake" => Ok(Fallback::Brake),
+            "hold" => Ok(Fallback::Hold),
+            _ => Err(InputError::Invalid {
+                field: "fallback".into(),
+                value: s.into(),
+                reason: "expected max_margin, brake or hold".into(),
+            }),
+        }
+    }
+}
+
+/// Settings of the safety SOCP, validated by [`SafetySettings::validate`].
+#[derive(Debug, Clone, PartialEq)]
+pub struct SafetySettings {
+    /// Required probability `p̃` of each stochastic condition.
+    pub probability: f64,
+    /// Margin `ζ ≥ 0` on every barrier condition.
+    pub zeta: f64,
+    /// Weight `λ > 0` of the CLF slack.
+    pub lambda: f64,
+    /// Objective weight `R` (`m × m`); identity by default.
+    pub r: DMatrix<f64>,
+    /// Lower control bounds.
+    pub u_min: Option<Vec<f64>>,
+    /// Upper control bounds.
+    pub u_max: Option<Vec<f64>>,
+    /// Fallback on infeasibility.
+    pub fallback: Fallback,
+    /// Absolute tolerance of the bisection for `p*`.
+    pub p_star_tol: f64,
+}
+
+impl SafetySettings {
+    /// Defaults for control dimension `m`: `p = 0.99`, `ζ = 0`, `λ = 1`,
+    /// `R = I`, no bounds, max-margin fallback.
+    pub fn new(m: usize) -> Self {
+        Self {
+            probability: 0.99,
+            zeta: 0.0,
+            lambda: 1.0,
+            r: DMatrix::identity(m, m),
+            u_min: None,
+            u_max: None,
+            fallback: Fallback::MaxMargin,
+            p_star_tol: 1e-5,
+        }
+    }
+
+    /// Checks ranges and shapes for control dimension `m`.
+    pub fn validate(&self, m: usize) -> Result<(), InputError> {
+        quantile_factor(self.probability, 1)?;
+        if !(self.zeta.is_finite() && self.zeta >= 0.0) {
+            return Err(InputError::invalid(
+                "zeta",
+                self.zeta,
+                "must be finite and ≥ 0",
+            ));
+        }
+        if !(self.lambda.is_finite() && self.lambda > 0.0) {
+            return Err(InputError::invalid(
+                "lambda",
+                self.lambda,
+                "must be finite and > 0",
+            ));
+        }
+        if self.r.shape() != (m, m) {
+            return Err(InputError::shape(
+                "R",
+                format!("{m}×{m}"),
+                format!("{}×{}", self.r.nrows(), self.r.ncols()),
+            ));
+        }
+        check_finite("R", self.r.as_slice())?;
+        if self.r.clone().cholesky().is_none()
+            && (self.r.transpose() * &self.r).cholesky().is_none()
+        {
+            return Err(InputError::NotPositiveDefinite {
+                field: "R".into(),
+                reason: "RᵀR must be positive definite".into(),
+            });
+        }
+        if self.u_min.is_some() != self.u_max.is_some() {
+            return Err(InputError::invalid(
+                "u_min/u_max",
+                f64::NAN,
+                "give both bounds or neither",
+            ));
+        }
+        if let (Some(lo), Some(hi)) = (&self.u_min, &self.u_max) {
+            if lo.len() != m {
+                return Err(InputError::shape("u_min", m, lo.len()));
+            }
+            if hi.len() != m {
+                return Err(InputError::shape("u_max", m, hi.len()));
+            }
+            check_finite("u_min", lo)?;
+            check_finite("u_max", hi)?;
+            for j in 0..m {
+                if lo[j] > hi[j] {
+                    return Err(InputError::invalid(
+                        &format!("u_min[{j}]"),
+                        lo[j],
+                        &format!("must be ≤ u_max[{j}] = {}", hi[j]),
+                    ));
+                }
+            }
+        }
+        if !(self.p_star_tol > 0.0 && self.p_star_tol < 0.1) {
+            return Err(InputError::invalid(
+                "p_star_tol",
+                self.p_star_tol,
+                "must be in (0, 0.1)",
+            ));
+        }
+        Ok(())
+    }
+}
+
+/// Mean, standard deviation, safety factor and slack of one condition at the
+/// returned control: `slack = mean − ζ − c·std` (≥ 0 when met) for barriers,
+/// `δ − mean − c·std` for the CLF.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct ConstraintReport {
+    /// `E[C]`.
+    pub mean: f64,
+    /// `√Var[C]`.
+    pub std: f64,
+    /// Safety factor `c(p)`.
+    pub c: f64,
+    /// Constraint slack.
+    pub slack: f64,
+}
+
+/// Details of an infeasible step (paper, Remark 2).
+#[derive(Debug, Clone, PartialEq)]
+pub struct InfeasibleInfo {
+    /// Barriers whose stochastic condition is violated at the fallback control.
+    pub violated: Vec<usize>,
+    /// Largest probability for which the barrier constraints are jointly
+    /// feasible within the bounds (bisection over `[0.5, p]` when a
+    /// relative-degree-1 barrier is present, else `(0, p]`); `None` if not
+    /// feasible even at the lower end.
+    pub p_star: Option<f64>,
+    /// The fallback that produced `u`.
+    pub fallback: Fallback,
+    /// Raw solver status of the control SOCP.
+    pub solver: SolveStatus,
+}
+
+/// Outcome of one control step.
+#[derive(Debug, Clone, PartialEq)]
+pub enum ControlStatus {
+    /// The SOCP was solved.
+    Optimal,
+    /// Solved to reduced accuracy.
+    AlmostOptimal,
+    /// No control meets every constraint; `u` is the declared fallback.
+    Infeasible(InfeasibleInfo),
+}
+
+/// The control and a report of every constraint; reused across steps.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ControlOutput {
+    /// Applied control.
+    pub u: Vec<f64>,
+    /// Outcome.
+    pub status: ControlStatus,
+    /// CLF slack δ (0 without a CLF).
+    pub delta: f64,
+    /// One report per barrier.
+    pub constraints: Vec<ConstraintReport>,
+    /// The CLF report, if any.
+    pub clf: Option<ConstraintReport>,
+}
+
+impl ControlOutput {
+    /// Empty output for `m` controls and `nb` barriers.
+    pub fn new(m: usize, nb: usize) -> Self {
+        Self {
+            u: vec![0.0; m],
+            status: ControlStatus::Optimal,
+            delta: 0.0,
+            constraints: vec![ConstraintReport::default(); nb],
+            clf: None,
+        }
+    }
+    /// True if the step was infeasible.
+    pub fn is_infeasible(&self) -> bool {
+        matches!(self.status, ControlStatus::Infeasible(_))
+    }
+}
+
+/// The SOCP safety filter given condition moments (no GP inside): useful on
+/// its own, and the engine of [`SafetyController`].
+pub struct SafetyFilter {
+    shape: SocpShape,
+    settings: SafetySettings,
+    program: ConeProgram,
+    margin: Option<ConeProgram>,
+    last_u: Vec<f64>,
+    ub: Vec<f64>,
+}
+
+impl std::fmt::Debug for SafetyFilter {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("SafetyFilter")
+            .field("shape", &self.shape)
+            .field("settings", &self.settings)
+            .finish()
+    }
+}
+
+impl SafetyFilter {
+    /// Builds the filter for `barriers` barrier constraints and an optional CLF.
+    pub fn new(
+        m: usize,
+        barriers: usize,
+        clf: bool,
+        settings: SafetySettings,
+    ) -> Result<Self, InputError> {
+        if m == 0 {
+            return Err(InputError::invalid("control_dim", 0.0, "must be ≥ 1"));
+        }
+        settings.validate(m)?;
+        let shape = SocpShape {
+            m,
+            barriers,
+            clf,
+            bounds: settings.u_min.is_some(),
+        };
+        let mut program = ConeProgram::new(shape, false);
+        if let (Some(lo), Some(hi)) = (&settings.u_min, &settings.u_max) {
+            program.set_bounds(lo, hi);
+        }
+        Ok(Self {
+            shape,
+            settings,
+            program,
+            margin: None,
+            last_u: vec![0.0; m],
+            ub: vec![0.0; m + 1],
+        })
+    }
+
+    /// The settings.
+    pub fn settings(&self) -> &SafetySettings {
+        &self.settings
+    }
+
+    /// Changes the required probability (validated).
+    pub fn set_probability(&mut self, p: f64) -> Result<(), InputError> {
+        quantile_factor(p, 1)?;
+        self.settings.probability = p;
+        Ok(())
+    }
+
+    fn report(&mut self, mom: &ConditionMoments, c: f64, u: &[f64]) -> ConstraintReport {
+        let mean = mom.mean(u);
+        let std = mom.variance(u).sqrt();
+        ConstraintReport {
+            mean,
+            std,
+            c,
+            slack: mean - self.settings.zeta - c * std,
+        }
+    }
+
+    /// Solves the SOCP for reference `u_ref` and writes the outcome.
+    ///
+    /// `cbcs` has one entry per barrier (each with its relative degree),
+    /// `clc` is required iff the filter was built with a CLF.
+    pub fn solve(
+        &mut self,
+        cbcs: &[ConditionMoments],
+        clc: Option<&ConditionMoments>,
+        u_ref: &[f64],
+        out: &mut ControlOutput,
+    ) -> Result<(), Error> {
+        let m = self.shape.m;
+        if cbcs.len() != self.shape.barriers {
+            return Err(
+                InputError::shape("barrier moments", self.shape.barriers, cbcs.len()).into(),
+            );
+        }
+        if clc.is_some() != self.shape.clf {
+            return Err(InputError::invalid(
+                "clf",
+                f64::NAN,
+                "CLF moments must be given iff the filter has a CLF",
+            )
+            .into());
+        }
+        if u_ref.len() != m {
+            return Err(InputError::shape("u_ref", m, u_ref.len()).into());
+        }
+        check_finite("u_ref", u_ref)?;
+        for (i, mom) in cbcs.iter().chain(clc).enumerate() {
+            if mom.e.len() != m + 1 {
+                return Err(
+                    InputError::shape(&format!("moments[{i}].e"), m + 1, mom.e.len()).into(),
+                );
+            }
+            check_finite(&format!("moments[{i}].e"), &mom.e)?;
+            check_finite(&format!("moments[{i}].cov"), mom.cov.as_slice())?;
+        }
+        if out.u.len() != m || out.constraints.len() != cbcs.len() {
+            *out = ControlOutput::new(m, cbcs.len());
+        }
+        let p = self.settings.probability;
+        let zeta = self.settings.zeta;
+        if p < 0.5 && (clc.is_some() || cbcs.iter().any(|c| c.relative_degree <= 1)) {
+            return Err(InputError::invalid("probability", p, "must be ≥ 0.5 with relative-degree-1 conditions (c(p) < 0 would make the constraint non-convex)").into());
+        }
+        for (k, mom) in cbcs.iter().enumerate() {
+            let c = quantile_factor(p, mom.relative_degree)?;
+            self.program.set_barrier(k, mom, c, zeta);
+        }
+        let c1 = quantile_factor(p, 1)?;
+        if let Some(mom) = clc {
+            self.program.set_clf(mom, c1);
+        }
+        self.program
+            .set_objective(&self.settings.r, u_ref, self.settings.lambda);
+        let status = self.program.solve();
+        if status.is_solved() {
+            let x = self.program.x();
+            out.u.copy_from_slice(&x[..m]);
+            out.delta = if self.shape.clf { x[m] } else { 0.0 };
+            out.status = if status == SolveStatus::Optimal {
+                ControlStatus::Optimal
+            } else {
+                ControlStatus::AlmostOptimal
+            };
+        } else {
+            let info = self.infeasible(cbcs, status, out)?;
+            out.status = ControlStatus::Infeasible(info);
+            out.delta = 0.0;
+        }
+        let u = out.u.clone();
+        for (k, mom) in cbcs.iter().enumerate() {
+            let c = quantile_factor(p, mom.relative_degree)?;
+            out.constraints[k] = self.report(mom, c, &u);
+        }
+        out.clf = clc.map(|mom| {
+            let mean = mom.mean(&u);
+            let std = mom.variance(&u).sqrt();
+            ConstraintReport {
+                mean,
+                std,
+                c: c1,
+                slack: out.delta - mean - c1 * std,
+            }
+        });
+        self.last_u.copy_from_slice(&out.u);
+        let _ = &self.ub;
+        Ok(())
+    }
+
+    /// Worst barrier margin `max_u min_i SCBC_i(u)` at probability `p`,
+    /// and the maximiser written into `u`. `None` when unbounded (no bounds).
+    fn max_margin(
+        &mut self,
+        cbcs: &[ConditionMoments],
+        p: f64,
+        u: &mut [f64],
+    ) -> Result<Option<f64>, Error> {
+        let shape = self.shape;
+        let prog = self.margin.get_or_insert_with(|| {
+            let mut pr = ConeProgram::new(shape, true);
+            if let (Some(lo), Some(hi)) = (&self.settings.u_min, &self.settings.u_max) {
+                pr.set_bounds(lo, hi);
+            }
+            pr
+        });
+        for (k, mom) in cbcs.iter().enumerate() {
+            let c = quantile_factor(p, mom.relative_degree)?;
+            prog.set_barrier(k, mom, c, self.settings.zeta);
+        }
+        let st = prog.solve();
+        if st.is_solved() {
+            let x = prog.x();
+            u.copy_from_slice(&x[..shape.m]);
+            Ok(Some(x[shape.m]))
+        } else {
+            Ok(None)
+        }
+    }
+
+    fn infeasible(
+        &mut self,
+        cbcs: &[ConditionMoments],
+        status: SolveStatus,
+        out: &mut ControlOutput,
+    ) -> Result<InfeasibleInfo, Error> {
+        let m = self.shape.m;
+        let p = self.settings.probability;
+        let mut u_mm = vec![0.0; m];
+        let margin = self.max_margin(cbcs, p, &mut u_mm)?;
+        // p*: largest p with a non-negative worst margin
+        let tol = self.settings.p_star_tol;
+        let mut tmp = vec![0.0; m];
+        let feasible = |s: &mut Self, q: f64, tmp: &mut [f64]| -> Result<bool, Error> {
+            Ok(s.max_margin(cbcs, q, tmp)?.is_none_or(|t| t >= -1e-9))
+        };
+        let p_star = if status == SolveStatus::Infeasible {
+            // c(p) ≥ 0 is needed for a convex cone: p ≥ 0.5 at relative degree 1
+            let mut lo = if cbcs.iter().any(|c| c.relative_degree <= 1) {
+                0.5
+            } else {
+                1e-9
+            };
+            let mut hi = p;
+            if !feasible(self, lo, &mut tmp)? {
+                None
+            } else {
+                while hi - lo > tol {
+                    let mid = 0.5 * (lo + hi);
+                    if feasible(self, mid, &mut tmp)? {
+                        lo = mid;
+                    } else {
+                        hi = mid;
+                    }
+                }
+                Some(lo)
+            }
+        } else {
+            None
+        };
+        let fallback = self.settings.fallback;
+        match fallback {
+            Fallback::MaxMargin if margin.is_some() => out.u.copy_from_slice(&u_mm),
+            Fallback::MaxMargin | Fallback::Brake => {
+                for j in 0..m {
+                    let (lo, hi) = match (&self.settings.u_min, &self.settings.u_max) {
+                        (Some(l), Some(h)) => (l[j], h[j]),
+                        _ => (f64::NEG_INFINITY, f64::INFINITY),
+                    };
+                    out.u[j] = 0.0f64.clamp(lo, hi);
+                }
+            }
+            Fallback::Hold => out.u.copy_from_slice(&self.last_u),
+        }
+        let violated = cbcs
+            .iter()
+            .enumerate()
+            .filter(|(_, mom)| {
+                let c = quantile_factor(p, mom.relative_degree).unwrap_or(0.0);
+                mom.mean(&out.u) - self.settings.zeta - c * mom.variance(&out.u).sqrt() < 0.0
+            })
+            .map(|(i, _)| i)
+            .collect();
+        Ok(InfeasibleInfo {
+            violated,
+            p_star,
+            fallback,
+            solver: status,
+        })
+    }
+
+    /// Dense `(A, b, P, q)`, cones, primal slack `s` and dual `z` of the
+    /// last control SOCP, for KKT verification.
+    #[doc(hidden)]
+    pub fn kkt_data(
+        &self,
+    ) -> (
+        DMatrix<f64>,
+        Vec<f64>,
+        DMatrix<f64>,
+        Vec<f64>,
+        Vec<clarabel::solver::SupportedConeT<f64>>,
+        Vec<f64>,
+        Vec<f64>,
+        Vec<f64>,
+    ) {
+        let (a, b, p, q) = self.program.dense();
+        let (s, z) = self.program.duals();
+        (
+            a,
+            b,
+            p,
+            q,
+            self.program.cones().to_vec(),
+            self.program.x().to_vec(),
+            s.to_vec(),
+            z.to_vec(),
+        )
+    }
+}
+
+/// A complete safety controller: posterior at `x`, moments of every barrier
+/// (and the CLF), and the SOCP.
+pub struct SafetyController {
+    barriers: Vec<Arc<dyn DynBarrier>>,
+    clf: Option<Arc<dyn DynLyapunov>>,
+    filter: SafetyFilter,
+    ws: Option<MomentWorkspace>,
+    cbcs: Vec<ConditionMoments>,
+    clc: ConditionMoments,
+    max_degree: usize,
+}
+
+impl std::fmt::Debug for SafetyController {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("SafetyController")
+            .field("barriers", &self.barriers.len())
+            .field("clf", &self.clf.is_some())
+            .field("filter", &self.filter)
+            .finish()
+    }
+}
+
+impl SafetyController {
+    /// A controller for state dim `n`, control dim `m`.
+    pub fn new(
+        n: usize,
+        m: usize,
+        barriers: Vec<Arc<dyn DynBarrier>>,
+        clf: Option<Arc<dyn DynLyapunov>>,
+        settings: SafetySettings,
+    ) -> Result<Self, InputError> {
+        for (i, b) in barriers.iter().enumerate() {
+            if b.dim() != n {
+                return Err(InputError::shape(
+                    &format!("barrier[{i}] state dimension"),
+                    n,
+                    b.dim(),
+                ));
+            }
+            super::super::barrier::validate_gains(b.degree(), b.class_k())?;
+            if b.degree() > 2 {
+                return Err(InputError::invalid(
+                    &format!("barrier[{i}].relative_degree"),
+                    b.degree() as f64,
+                    "exact moments exist for relative degree 1 and 2",
+                ));
+            }
+        }
+        if let Some(c) = &clf {
+            if c.dim() != n {
+                return Err(InputError::shape("clf state dimension", n, c.dim()));
+            }
+        }
+        let max_degree = barriers.iter().map(|b| b.degree()).max().unwrap_or(1);
+        let filter = SafetyFilter::new(m, barriers.len(), clf.is_some(), settings)?;
+        let nb = barriers.len();
+        Ok(Self {
+            barriers,
+            clf,
+            filter,
+            ws: None,
+            cbcs: vec![ConditionMoments::zeros(m); nb],
+            clc: ConditionMoments::zeros(m),
+            max_degree,
+        })
+    }
+
+    /// The filter (settings, probability).
+    pub fn filter_mut(&mut self) -> &mut SafetyFilter {
+        &mut self.filter
+    }
+
+    /// Moments of the last step, one per barrier.
+    pub fn barrier_moments(&self) -> &[ConditionMoments] {
+        &self.cbcs
+    }
+
+    /// The moment workspace of the last step (posterior at `x`).
+    pub fn workspace(&self) -> Option<&MomentWorkspace> {
+        self.ws.as_ref()
+    }
+
+    /// One control step at state `x` around reference `u_ref`. `reference`
+    /// gives `(x_d, ẋ_d)` for a time-varying CLF (zeros if absent).
+    pub fn step<K: Kernel>(
+        &mut self,
+        model: &Mvgp<K>,
+        x: &[f64],
+        u_ref: &[f64],
+        reference: Option<(&[f64], &[f64])>,
+        out: &mut ControlOutput,
+    ) -> Result<(), Error> {
+        if model.m() != self.filter.shape.m {
+            return Err(InputError::shape(
+                "model control dimension",
+                self.filter.shape.m,
+                model.m(),
+            )
+            .into());
+        }
+        let ws = self.ws.get_or_insert_with(|| MomentWorkspace::new(model));
+        ws.update(model, x, self.max_degree)?;
+        for (b, mom) in self.barriers.iter().zip(self.cbcs.iter_mut()) {
+            cbc_moments(ws, b.as_ref(), mom)?;
+        }
+        let clc = match &self.clf {
+            Some(c) => {
+                let n = x.len();
+                let zeros = [0.0; 16];
+                let (xd, xdd) = reference.unwrap_or((&zeros[..n.min(16)], &zeros[..n.min(16)]));
+                clc_moments(ws, c.as_ref(), xd, xdd, &mut self.clc)?;
+                Some(&self.clc)
+            }
+            None => None,
+        };
+        self.filter.solve(&self.cbcs, clc, u_ref, out)
+    }
+}

@@ -1,0 +1,355 @@
+//! The safety SOCP (paper, Prop. 2 and Prop. 4) on Clarabel, built once and
+//! updated in place each step.
+//!
+//! Variables `x = [u; δ]` (δ only with a CLF). With `u̲ = [1; u]`:
+//!
+//! ```text
+//! min  ‖R(u − û)‖² + λ δ²
+//! s.t. ‖c_i V_i u̲‖ ≤ e_iᵀu̲ − ζ             for every barrier i   (SCBC_i ≥ 0)
+//!      ‖c_V P u̲‖ ≤ δ − qᵀu̲                  (CLF, optional)        (SCLC ≤ δ)
+//!      u_min ≤ u ≤ u_max                    (optional)
+//! ```
+//!
+//! Prop. 2 writes the objective through an epigraph variable,
+//! `min y s.t. ‖[R(u − û); √λ δ]‖ ≤ y`; the quadratic objective used here has
+//! the same minimiser and is handled natively by Clarabel.
+
+use crate::barrier::ConditionMoments;
+use clarabel::algebra::CscMatrix;
+use clarabel::solver::{DefaultSettings, DefaultSolver, IPSolver, SolverStatus, SupportedConeT};
+
+/// Shape of a safety SOCP.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct SocpShape {
+    /// Control dimension `m`.
+    pub m: usize,
+    /// Number of barrier constraints.
+    pub barriers: usize,
+    /// Whether a CLF constraint (with slack δ) is present.
+    pub clf: bool,
+    /// Whether box bounds are present.
+    pub bounds: bool,
+}
+
+/// What the solver reported.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum SolveStatus {
+    /// Solved to full accuracy.
+    Optimal,
+    /// Solved to reduced accuracy.
+    AlmostOptimal,
+    /// Certified (or nearly certified) infeasible.
+    Infeasible,
+    /// Unbounded or dual infeasible (cannot happen with a PD objective).
+    Unbounded,
+    /// Iteration/time limit, numerical error or lack of progress.
+    Failed,
+}
+
+impl SolveStatus {
+    fn from_clarabel(s: SolverStatus) -> Self {
+        match s {
+            SolverStatus::Solved => Self::Optimal,
+            SolverStatus::AlmostSolved => Self::AlmostOptimal,
+            SolverStatus::PrimalInfeasible | SolverStatus::AlmostPrimalInfeasible => {
+                Self::Infeasible
+            }
+            SolverStatus::DualInfeasible | SolverStatus::AlmostDualInfeasible => Self::Unbounded,
+            _ => Self::Failed,
+        }
+    }
+    /// A usable primal solution.
+    pub fn is_solved(self) -> bool {
+        matches!(self, Self::Optimal | Self::AlmostOptimal)
+    }
+}
+
+/// A conic program of fixed sparsity whose values are updated in place.
+pub(crate) struct ConeProgram {
+    shape: SocpShape,
+    /// Extra variable: δ (CLF) in the control problem, t in the max-margin problem.
+    extra: bool,
+    /// The max-margin variant (min −t, t in every barrier row 0).
+    max_margin: bool,
+    pub(crate) a_nz: Vec<f64>,
+    pub(crate) b: Vec<f64>,
+    pub(crate) q: Vec<f64>,
+    pub(crate) p_nz: Vec<f64>,
+    per_col: usize,
+    solver: Option<DefaultSolver<f64>>,
+    a_pattern: (Vec<usize>, Vec<usize>),
+    p_pattern: (Vec<usize>, Vec<usize>),
+    cones: Vec<SupportedConeT<f64>>,
+}
+
+impl ConeProgram {
+    pub(crate) fn new(shape: SocpShape, max_margin: bool) -> Self {
+        let (m, p) = (shape.m, shape.m + 1);
+        let blocks = shape.barriers + usize::from(shape.clf && !max_margin);
+        let extra = if max_margin { true } else { shape.clf };
+        let nv = m + usize::from(extra);
+        let per_col = blocks * (1 + p) + if shape.bounds { 2 } else { 0 };
+        let rows = blocks * (1 + p) + if shape.bounds { 2 * m } else { 0 };
+        // A pattern
+        let mut colptr = vec![0usize];
+        let mut rowval = Vec::new();
+        for j in 0..m {
+            for r in 0..blocks * (1 + p) {
+                rowval.push(r);
+            }
+            if shape.bounds {
+                rowval.push(blocks * (1 + p) + 2 * j);
+                rowval.push(blocks * (1 + p) + 2 * j + 1);
+            }
+            colptr.push(rowval.len());
+        }
+        if extra {
+            if max_margin {
+                for k in 0..shape.barriers {
+                    rowval.push(k * (1 + p));
+                }
+            } else {
+                rowval.push(shape.barriers * (1 + p));
+            }
+            colptr.push(rowval.len());
+        }
+        let a_nz = vec![0.0; rowval.len()];
+        // P pattern: upper triangle of the u block, plus the δ diagonal
+        let mut pcol = vec![0usize];
+        let mut prow = Vec::new();
+        for j in 0..m {
+            for i in 0..=j {
+                prow.push(i);
+            }
+            pcol.push(prow.len());
+        }
+        if extra {
+            if !max_margin {
+                prow.push(m);
+            }
+            pcol.push(prow.len());
+        }
+        let mut cones = Vec::new();
+        for _ in 0..blocks {
+            cones.push(SupportedConeT::SecondOrderConeT(1 + p));
+        }
+        if shape.bounds {
+            cones.push(SupportedConeT::NonnegativeConeT(2 * m));
+        }
+        let mut prog = Self {
+            shape,
+            extra,
+            max_margin,
+            a_nz,
+            b: vec![0.0; rows],
+            q: vec![0.0; nv],
+            p_nz: vec![0.0; prow.len()],
+            per_col,
+            solver: None,
+            a_pattern: (colptr, rowval),
+            p_pattern: (pcol, prow),
+            cones,
+        };
+        // constant entries
+        if shape.bounds {
+            for j in 0..m {
+                let base = j * per_col + blocks * (1 + p);
+                prog.a_nz[base] = 1.0;
+                prog.a_nz[base + 1] = -1.0;
+            }
+        }
+        if extra {
+            let base = m * per_col;
+            if max_margin {
+                for k in 0..shape.barriers {
+                    prog.a_nz[base + k] = 1.0;
+                }
+                prog.q[m] = -1.0;
+            } else {
+                prog.a_nz[base] = -1.0;
+            }
+        }
+        prog
+    }
+
+    /// Writes the SOC block `k`: `s0 = b0 + offset + g·u (+ …)`, `s_t = c(V u̲)_t`.
+    /// For a barrier `g = e_u`, `b0 = e_0 − ζ`; for the CLF `g = −q_u`, `b0 = −q_0`.
+    fn set_block(&mut self, k: usize, g: &[f64], b0: f64, c: f64, v: &nalgebra::DMatrix<f64>) {
+        let (m, p) = (self.shape.m, self.shape.m + 1);
+        let row0 = k * (1 + p);
+        for j in 0..m {
+            let base = j * self.per_col + row0;
+            self.a_nz[base] = -g[j];
+            for t in 0..p {
+                self.a_nz[base + 1 + t] = -c * v[(t, j + 1)];
+            }
+        }
+        self.b[row0] = b0;
+        for t in 0..p {
+            self.b[row0 + 1 + t] = c * v[(t, 0)];
+        }
+    }
+
+    pub(crate) fn set_barrier(&mut self, k: usize, mom: &ConditionMoments, c: f64, zeta: f64) {
+        let e0 = mom.e[0] - zeta;
+        let g: &[f64] = &mom.e[1..];
+        // borrow dance: copy g into a small stack buffer
+        let mut buf = [0.0; 16];
+        let gl = g.len();
+        if gl <= 16 {
+            buf[..gl].copy_from_slice(g);
+            self.set_block(k, &buf[..gl], e0, c, &mom.v);
+        } else {
+            let gv = g.to_vec();
+            self.set_block(k, &gv, e0, c, &mom.v);
+        }
+    }
+
+    pub(crate) fn set_clf(&mut self, mom: &ConditionMoments, c: f64) {
+        let k = self.shape.barriers;
+        let mut buf = [0.0; 16];
+        let gl = mom.e.len() - 1;
+        for j in 0..gl.min(16) {
+            buf[j] = -mom.e[j + 1];
+        }
+        self.set_block(k, &buf[..gl.min(16)], -mom.e[0], c, &mom.v);
+    }
+
+    pub(crate) fn set_bounds(&mut self, lo: &[f64], hi: &[f64]) {
+        let m = self.shape.m;
+        let blocks = self.shape.barriers + usize::from(self.shape.clf && !self.max_margin);
+        let base = blocks * (1 + m + 1);
+        for j in 0..m {
+            self.b[base + 2 * j] = hi[j];
+            self.b[base + 2 * j + 1] = -lo[j];
+        }
+    }
+
+    /// Objective `‖R(u − û)‖² + λδ²` as `½xᵀPx + qᵀx`.
+    pub(crate) fn set_objective(&mut self, r: &nalgebra::DMatrix<f64>, u_ref: &[f64], lambda: f64) {
+        let m = self.shape.m;
+        let mut t = 0;
+        for j in 0..m {
+            for i in 0..=j {
+                let rtr: f64 = (0..r.nrows()).map(|k| r[(k, i)] * r[(k, j)]).sum();
+                self.p_nz[t] = 2.0 * rtr;
+                t += 1;
+            }
+        }
+        if self.extra && !self.max_margin {
+            self.p_nz[t] = 2.0 * lambda;
+        }
+        for i in 0..m {
+            let mut s = 0.0;
+            for j in 0..m {
+                let rtr: f64 = (0..r.nrows()).map(|k| r[(k, i)] * r[(k, j)]).sum();
+                s += rtr * u_ref[j];
+            }
+            self.q[i] = -2.0 * s;
+        }
+    }
+
+    fn settings() -> DefaultSettings<f64> {
+        DefaultSettings {
+            verbose: false,
+            presolve_enable: false,
+            input_sparse_dropzeros: false,
+            max_threads: 1,
+            max_iter: 100,
+            ..DefaultSettings::default()
+        }
+    }
+
+    /// Solves with the current data: the first call builds the solver, later
+    /// calls update it in place.
+    pub(crate) fn solve(&mut self) -> SolveStatus {
+        let nv = self.q.len();
+        let rows = self.b.len();
+        let rebuild = match self.solver.as_mut() {
+            None => true,
+            Some(s) => {
+                s.update_A(&self.a_nz).is_err()
+                    || s.update_b(&self.b).is_err()
+                    || s.update_q(&self.q).is_err()
+                    || s.update_P(&self.p_nz).is_err()
+            }
+        };
+        if rebuild {
+            let a = CscMatrix::new(
+                rows,
+                nv,
+                self.a_pattern.0.clone(),
+                self.a_pattern.1.clone(),
+                self.a_nz.clone(),
+            );
+            let p = CscMatrix::new(
+                nv,
+                nv,
+                self.p_pattern.0.clone(),
+                self.p_pattern.1.clone(),
+                self.p_nz.clone(),
+            );
+            match DefaultSolver::new(&p, &self.q, &a, &self.b, &self.cones, Self::settings()) {
+                Ok(s) => self.solver = Some(s),
+                Err(e) => {
+                    log::warn!("SOCP setup failed: {e}");
+                    self.solver = None;
+                    return SolveStatus::Failed;
+                }
+            }
+        }
+        match self.solver.as_mut() {
+            Some(s) => {
+                s.solve();
+                SolveStatus::from_clarabel(s.solution.status)
+            }
+            None => SolveStatus::Failed,
+        }
+    }
+
+    pub(crate) fn x(&self) -> &[f64] {
+        self.solver
+            .as_ref()
+            .map(|s| s.solution.x.as_slice())
+            .unwrap_or(&[])
+    }
+
+    /// Primal slack `s` and dual `z` of the last solve (for KKT checks).
+    pub(crate) fn duals(&self) -> (&[f64], &[f64]) {
+        match self.solver.as_ref() {
+            Some(s) => (s.solution.s.as_slice(), s.solution.z.as_slice()),
+            None => (&[], &[]),
+        }
+    }
+
+    /// `(A, b, P, q)` in dense form (tests and diagnostics).
+    pub(crate) fn dense(
+        &self,
+    ) -> (
+        nalgebra::DMatrix<f64>,
+        Vec<f64>,
+        nalgebra::DMatrix<f64>,
+        Vec<f64>,
+    ) {
+        let nv = self.q.len();
+        let mut a = nalgebra::DMatrix::zeros(self.b.len(), nv);
+        for j in 0..nv {
+            for t in self.a_pattern.0[j]..self.a_pattern.0[j + 1] {
+                a[(self.a_pattern.1[t], j)] = self.a_nz[t];
+            }
+        }
+        let mut p = nalgebra::DMatrix::zeros(nv, nv);
+        for j in 0..nv {
+            for t in self.p_pattern.0[j]..self.p_pattern.0[j + 1] {
+                let i = self.p_pattern.1[t];
+                p[(i, j)] = self.p_nz[t];
+                p[(j, i)] = self.p_nz[t];
+            }
+        }
+        (a, self.b.clone(), p, self.q.clone())
+    }
+
+    pub(crate) fn cones(&self) -> &[SupportedConeT<f64>] {
+        &self.cones
+    }
+}

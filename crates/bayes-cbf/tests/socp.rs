@@ -1,0 +1,299 @@
+//! The safety SOCP: constraints and KKT conditions at the solution, an
+//! independent one-dimensional solution, the deterministic limit, and typed
+//! infeasibility with the largest feasible probability `p*`.
+
+use bayes_cbf::barrier::{quantile_factor, ConditionMoments};
+use bayes_cbf::control::{ControlOutput, ControlStatus, Fallback, SafetyFilter, SafetySettings};
+use clarabel::solver::SupportedConeT;
+use nalgebra::{DMatrix, DVector};
+use rand::{RngExt, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+
+fn random_moments(m: usize, rng: &mut ChaCha8Rng, r: usize, scale: f64) -> ConditionMoments {
+    let p = m + 1;
+    let e: Vec<f64> = (0..p).map(|_| rng.random_range(-1.0..1.0)).collect();
+    let c = DMatrix::from_fn(p, p, |_, _| rng.random_range(-1.0..1.0)) * scale;
+    ConditionMoments::from_parts(e, &c * c.transpose(), r).unwrap()
+}
+
+/// Checks `s = b − Ax ∈ K`, `z ∈ K*`, `Px + q + Aᵀz = 0`, `sᵀz = 0`.
+fn check_kkt(filter: &SafetyFilter, tol: f64) {
+    let (a, b, p, q, cones, x, s, z) = filter.kkt_data();
+    let (xv, sv, zv) = (
+        DVector::from_vec(x),
+        DVector::from_vec(s),
+        DVector::from_vec(z),
+    );
+    let resid = DVector::from_vec(b) - &a * &xv;
+    assert!(
+        (&resid - &sv).amax() < tol,
+        "primal residual {}",
+        (&resid - &sv).amax()
+    );
+    let stat = &p * &xv + DVector::from_vec(q) + a.transpose() * &zv;
+    assert!(stat.amax() < tol, "stationarity {}", stat.amax());
+    assert!(sv.dot(&zv).abs() < tol, "complementarity {}", sv.dot(&zv));
+    let mut row = 0;
+    for cone in cones {
+        match cone {
+            SupportedConeT::SecondOrderConeT(d) => {
+                for v in [&sv, &zv] {
+                    let t = v[row];
+                    let nrm = v.rows(row + 1, d - 1).norm();
+                    assert!(t >= nrm - tol, "SOC membership {t} < {nrm}");
+                }
+                row += d;
+            }
+            SupportedConeT::NonnegativeConeT(d) => {
+                for i in row..row + d {
+                    assert!(sv[i] >= -tol && zv[i] >= -tol);
+                }
+                row += d;
+            }
+            _ => unreachable!(),
+        }
+    }
+}
+
+#[test]
+fn solution_satisfies_constraints_and_kkt() {
+    let mut rng = ChaCha8Rng::seed_from_u64(1);
+    for trial in 0..20 {
+        let m = 1 + trial % 3;
+        let nb = 1 + trial % 2;
+        let mut cbcs: Vec<ConditionMoments> = (0..nb)
+            .map(|i| random_moments(m, &mut rng, 1 + (i + trial) % 2, 0.3))
+            .collect();
+        for c in cbcs.iter_mut() {
+            // u = 0 strictly feasible
+            let cp = quantile_factor(0.9, c.relative_degree).unwrap();
+            c.e[0] = 0.05 + cp * c.cov[(0, 0)].sqrt() + 0.5;
+        }
+        let clc = random_moments(m, &mut rng, 1, 0.3);
+        let mut settings = SafetySettings::new(m);
+        settings.probability = 0.9;
+        settings.zeta = 0.05;
+        settings.u_min = Some(vec![-3.0; m]);
+        settings.u_max = Some(vec![3.0; m]);
+        let mut filter = SafetyFilter::new(m, nb, true, settings).unwrap();
+        let u_ref: Vec<f64> = (0..m).map(|_| rng.random_range(-5.0..5.0)).collect();
+        let mut out = ControlOutput::new(m, nb);
+        filter.solve(&cbcs, Some(&clc), &u_ref, &mut out).unwrap();
+        assert_eq!(out.status, ControlStatus::Optimal, "trial {trial}");
+        for (k, rep) in out.constraints.iter().enumerate() {
+            assert!(
+                rep.slack >= -1e-6,
+                "trial {trial} barrier {k} slack {}",
+                rep.slack
+            );
+            assert!((rep.c - quantile_factor(0.9, cbcs[k].relative_degree).unwrap()).abs() < 1e-12);
+        }
+        assert!(out.clf.unwrap().slack >= -1e-6);
+        assert!(out.u.iter().all(|u| (-3.0 - 1e-7..=3.0 + 1e-7).contains(u)));
+        check_kkt(&filter, 1e-6);
+    }
+}
+
+/// One control, one barrier: the feasible set is an interval (the SCBC is
+/// concave in u); the solution is the projection of û onto it, found here by
+/// bisection on the scalar constraint function.
+#[test]
+fn one_dimensional_problem_matches_independent_solution() {
+    let mut rng = ChaCha8Rng::seed_from_u64(2);
+    for _ in 0..30 {
+        let mut mom = random_moments(1, &mut rng, 1, 0.5);
+        let p = rng.random_range(0.6..0.99);
+        let c = quantile_factor(p, 1).unwrap();
+        mom.e[0] = c * mom.cov[(0, 0)].sqrt() + 0.3; // u = 0 feasible
+        let scbc = |u: f64| mom.mean(&[u]) - c * mom.variance(&[u]).sqrt();
+        let u_ref = rng.random_range(-20.0..20.0);
+        let mut settings = SafetySettings::new(1);
+        settings.probability = p;
+        let mut filter = SafetyFilter::new(1, 1, false, settings).unwrap();
+        let mut out = ControlOutput::new(1, 1);
+        filter
+            .solve(std::slice::from_ref(&mom), None, &[u_ref], &mut out)
+            .unwrap();
+        let expected = if scbc(u_ref) >= 0.0 {
+            u_ref
+        } else {
+            // bisection between the feasible 0 and û
+            let (mut a, mut b) = (0.0, u_ref);
+            for _ in 0..200 {
+                let mid = 0.5 * (a + b);
+                if scbc(mid) >= 0.0 {
+                    a = mid;
+                } else {
+                    b = mid;
+                }
+            }
+            a
+        };
+        assert!(
+            (out.u[0] - expected).abs() < 1e-6 * (1.0 + expected.abs()),
+            "u {} expected {expected}",
+            out.u[0]
+        );
+    }
+}
+
+/// With zero variance, or with p = 0.5 at relative degree 1, the SOCP is the
+/// deterministic CBF-QP: the projection of û onto the half-space
+/// `{u : e_0 + e_uᵀu ≥ ζ}`.
+#[test]
+fn deterministic_limit_is_the_cbf_qp() {
+    let mut rng = ChaCha8Rng::seed_from_u64(3);
+    for trial in 0..20 {
+        let m = 1 + trial % 3;
+        let mut mom = random_moments(m, &mut rng, 1, if trial % 2 == 0 { 0.0 } else { 0.7 });
+        let p = if trial % 2 == 0 { 0.999 } else { 0.5 };
+        let zeta = 0.1;
+        mom.e[0] = rng.random_range(-2.0..2.0);
+        let u_ref: Vec<f64> = (0..m).map(|_| rng.random_range(-3.0..3.0)).collect();
+        let eu = DVector::from_column_slice(&mom.e[1..]);
+        let ur = DVector::from_column_slice(&u_ref);
+        let viol = zeta - (mom.e[0] + eu.dot(&ur));
+        let expected = if viol > 0.0 {
+            &ur + &eu * (viol / eu.norm_squared())
+        } else {
+            ur.clone()
+        };
+        let mut settings = SafetySettings::new(m);
+        settings.probability = p;
+        settings.zeta = zeta;
+        let mut filter = SafetyFilter::new(m, 1, false, settings).unwrap();
+        let mut out = ControlOutput::new(m, 1);
+        filter
+            .solve(std::slice::from_ref(&mom), None, &u_ref, &mut out)
+            .unwrap();
+        let got = DVector::from_column_slice(&out.u);
+        assert!(
+            (&got - &expected).amax() < 1e-6,
+            "trial {trial}: {got} vs {expected}"
+        );
+    }
+}
+
+/// Independent p*: for one control in a box, the best margin at probability
+/// p is `max_u e·u̲ − ζ − c(p)‖V u̲‖` on a fine grid, and p* is where it
+/// crosses zero (bisection on p).
+#[test]
+fn infeasible_step_reports_fallback_and_p_star() {
+    let mut rng = ChaCha8Rng::seed_from_u64(4);
+    let mut checked = 0;
+    for trial in 0..40 {
+        let mut mom = random_moments(1, &mut rng, 1 + trial % 2, 0.8);
+        mom.e[0] = rng.random_range(-0.3..0.3);
+        let (lo, hi) = (-1.0, 1.0);
+        let zeta = 0.05;
+        let best_margin = |p: f64| {
+            let c = quantile_factor(p, mom.relative_degree).unwrap();
+            (0..=20000)
+                .map(|i| lo + (hi - lo) * i as f64 / 20000.0)
+                .map(|u| mom.mean(&[u]) - zeta - c * mom.variance(&[u]).sqrt())
+                .fold(f64::NEG_INFINITY, f64::max)
+        };
+        let p = 0.999;
+        let p_lo = if mom.relative_degree == 1 { 0.5 } else { 1e-9 };
+        if best_margin(p) >= 0.0 || best_margin(p_lo) < 0.0 {
+            continue;
+        }
+        let (mut a, mut b) = (p_lo, p);
+        while b - a > 1e-7 {
+            let mid = 0.5 * (a + b);
+            if best_margin(mid) >= 0.0 {
+                a = mid;
+            } else {
+                b = mid;
+            }
+        }
+        for fallback in [Fallback::MaxMargin, Fallback::Brake, Fallback::Hold] {
+            let mut settings = SafetySettings::new(1);
+            settings.probability = p;
+            settings.zeta = zeta;
+            settings.u_min = Some(vec![lo]);
+            settings.u_max = Some(vec![hi]);
+            settings.fallback = fallback;
+            let mut filter = SafetyFilter::new(1, 1, false, settings).unwrap();
+            let mut out = ControlOutput::new(1, 1);
+            filter
+                .solve(std::slice::from_ref(&mom), None, &[0.5], &mut out)
+                .unwrap();
+            match &out.status {
+                ControlStatus::Infeasible(info) => {
+                    assert_eq!(info.fallback, fallback);
+                    assert_eq!(info.violated, vec![0]);
+                    let ps = info.p_star.expect("feasible for small p");
+                    assert!((ps - a).abs() < 1e-3, "p* {ps} expected {a}");
+                }
+                s => panic!("expected infeasible, got {s:?}"),
+            }
+            match fallback {
+                Fallback::MaxMargin => {
+                    let c = quantile_factor(p, mom.relative_degree).unwrap();
+                    let got = mom.mean(&out.u) - zeta - c * mom.variance(&out.u).sqrt();
+                    assert!(
+                        (got - best_margin(p)).abs() < 1e-4,
+                        "max margin {got} vs {}",
+                        best_margin(p)
+                    );
+                }
+                Fallback::Brake => assert_eq!(out.u, vec![0.0]),
+                Fallback::Hold => assert_eq!(out.u, vec![0.0]), // nothing applied before
+            }
+        }
+        checked += 1;
+    }
+    assert!(
+        checked >= 5,
+        "only {checked} infeasible instances generated"
+    );
+}
+
+#[test]
+fn bad_settings_are_rejected() {
+    let mut s = SafetySettings::new(2);
+    s.probability = 1.0;
+    assert!(SafetyFilter::new(2, 1, false, s.clone())
+        .unwrap_err()
+        .to_string()
+        .contains("probability"));
+    s.probability = 0.3;
+    let mut f = SafetyFilter::new(2, 1, false, s.clone()).unwrap();
+    let mom =
+        ConditionMoments::from_parts(vec![1.0, 0.0, 1.0], DMatrix::identity(3, 3), 1).unwrap();
+    let err = f
+        .solve(
+            std::slice::from_ref(&mom),
+            None,
+            &[0.0, 0.0],
+            &mut ControlOutput::new(2, 1),
+        )
+        .unwrap_err();
+    assert!(err.to_string().contains("probability"), "{err}");
+    s.probability = 0.9;
+    s.u_min = Some(vec![1.0, 0.0]);
+    s.u_max = Some(vec![0.0, 1.0]);
+    assert!(SafetyFilter::new(2, 1, false, s.clone())
+        .unwrap_err()
+        .to_string()
+        .contains("u_min[0]"));
+    s.u_min = Some(vec![0.0]);
+    assert!(SafetyFilter::new(2, 1, false, s.clone())
+        .unwrap_err()
+        .to_string()
+        .contains("u_min"));
+    s.u_min = None;
+    s.u_max = None;
+    s.zeta = -1.0;
+    assert!(SafetyFilter::new(2, 1, false, s)
+        .unwrap_err()
+        .to_string()
+        .contains("zeta"));
+    assert!(ConditionMoments::from_parts(
+        vec![1.0, 2.0],
+        DMatrix::from_row_slice(2, 2, &[1.0, 0.0, 0.0, -1.0]),
+        1
+    )
+    .is_err());
+}
