@@ -25,5 +25,6 @@ pub mod error;
 pub mod gp;
 pub mod sim;
 pub mod systems;
+pub mod workloads;
 
 pub use error::{Error, GpError, InputError};
