@@ -70,7 +70,8 @@ impl<T: Lyapunov> DynLyapunov for T {
 }
 
 /// The Ackermann CLF of Sec. VII-B: `V = w1/2 ρ² + w2 (1 − cos α)`, with
-/// `ρ = ‖x_d[0:2] − x[0:2]‖` and `α = θ − atan2(y_d − y, x_d − x)`.
+/// `ρ = ‖x_d[0:2] − x[0:2]‖` and `α = θ − atan2(y_d − y, x_d − x)`
+/// (`α = θ − θ_d` when `ρ < 10⁻⁶`, where the bearing is undefined).
 #[derive(Debug, Clone, PartialEq)]
 pub struct AckermannClf {
     /// Weight of the distance term.
@@ -101,7 +102,15 @@ impl Lyapunov for AckermannClf {
         let dx = xd[0] - x[0];
         let dy = xd[1] - x[1];
         let rho2 = dx * dx + dy * dy;
-        let alpha = x[2] - dy.atan2(dx);
+        // On top of the reference point the bearing atan2(dy, dx) is
+        // undefined (its derivative is 0/0); the reference heading x_d[2]
+        // takes its place there.
+        let bearing = if rho2.re() < 1e-12 {
+            xd[2]
+        } else {
+            dy.atan2(dx)
+        };
+        let alpha = x[2] - bearing;
         rho2 * (0.5 * self.w1) + (D::from(1.0) - alpha.cos()) * self.w2
     }
     fn gamma(&self) -> f64 {

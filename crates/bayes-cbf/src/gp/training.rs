@@ -74,6 +74,10 @@ pub struct FitSettings {
     /// Initialise from the model's current hyperparameters instead of the
     /// data-driven heuristic.
     pub warm_start: bool,
+    /// Floor of the noise scale: `σ = σ_min + exp(θ_σ)`. Zero gives the
+    /// plain maximum-likelihood σ; a floor keeps the Gram matrix well
+    /// conditioned on near-duplicate, nearly noise-free data.
+    pub sigma_min: f64,
 }
 
 impl Default for FitSettings {
@@ -86,6 +90,7 @@ impl Default for FitSettings {
             seed: 0,
             learn_a: true,
             warm_start: false,
+            sigma_min: 0.0,
         }
     }
 }
@@ -95,6 +100,13 @@ impl FitSettings {
     pub fn validate(&self) -> Result<(), InputError> {
         if self.max_iters == 0 {
             return Err(InputError::invalid("max_iters", 0.0, "must be ≥ 1"));
+        }
+        if !(self.sigma_min.is_finite() && self.sigma_min >= 0.0) {
+            return Err(InputError::invalid(
+                "sigma_min",
+                self.sigma_min,
+                "must be finite and ≥ 0",
+            ));
         }
         if self.restarts > 1000 {
             return Err(InputError::invalid(
@@ -130,6 +142,7 @@ struct Layout {
     rb: usize,
     ra: usize,
     learn_a: bool,
+    sigma_min: f64,
 }
 
 impl Layout {
@@ -202,7 +215,7 @@ impl<K: Kernel> Objective<'_, K> {
             }
         }
         kern.set_log_hyper(&kh)?;
-        let sigma = th[l.off_sigma()].exp();
+        let sigma = l.sigma_min + th[l.off_sigma()].exp();
         let B = low_rank_plus_diag(
             &th[l.off_cb()..l.off_vb()],
             &th[l.off_vb()..l.off_vb() + l.p],
@@ -316,9 +329,9 @@ impl<K: Kernel> Objective<'_, K> {
                 t += 1;
             }
         }
-        // σ: ∂G/∂log σ = 2σ² I
+        // σ = σ_min + e^θ: ∂G/∂θ = 2σ (σ − σ_min) I
         let tr_gbar: f64 = (0..k).map(|i| gbar[(i, i)]).sum();
-        grad[l.off_sigma()] = 2.0 * sigma * sigma * tr_gbar;
+        grad[l.off_sigma()] = 2.0 * sigma * (sigma - l.sigma_min) * tr_gbar;
         // B̄ = U̲ᵀ (Ḡ ∘ K0) U̲
         let mut bbar = DMatrix::<f64>::zeros(p, p);
         let mut tmp = vec![0.0; p];
@@ -469,6 +482,7 @@ pub fn fit<K: Kernel>(model: &mut Mvgp<K>, settings: &FitSettings) -> Result<Fit
         rb: settings.rank_b.cols(p),
         ra: settings.rank_a.cols(n),
         learn_a: settings.learn_a && n > 0,
+        sigma_min: settings.sigma_min,
     };
     let mut rng = ChaCha8Rng::seed_from_u64(settings.seed);
     // data-driven initial point
@@ -526,7 +540,9 @@ pub fn fit<K: Kernel>(model: &mut Mvgp<K>, settings: &FitSettings) -> Result<Fit
             (0.01 * mean_r2).sqrt(),
         )
     };
-    th0[layout.off_sigma()] = sigma0.ln();
+    th0[layout.off_sigma()] = (sigma0 - settings.sigma_min)
+        .max(1e-3 * sigma0.max(1e-12))
+        .ln();
     {
         let (cb, rest) = th0[layout.off_cb()..].split_at_mut(p * layout.rb);
         init_low_rank(&b0, layout.rb, &mut rng, cb, &mut rest[..p]);

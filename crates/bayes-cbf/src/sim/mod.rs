@@ -1,11 +1,17 @@
 //! Simulation of control-affine systems (paper, Sec. III) and derivative
 //! estimation from sampled trajectories (paper, footnote 1).
 
+mod closed_loop;
 mod dataset;
 mod derivative;
+mod reference;
 
+pub use closed_loop::{run_closed_loop, LoopResult, LoopSettings, Monitor, StepRecord};
 pub use dataset::{sample_uniform, simulate_trajectory, Dataset};
 pub use derivative::finite_difference_xdot;
+pub use reference::{
+    ConstantReference, EpsilonGreedy, Reference, ReferenceOut, StraightLinePlanner,
+};
 
 use crate::error::InputError;
 use crate::systems::{wrap_angle, DynSystem};
