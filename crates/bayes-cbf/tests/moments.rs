@@ -223,7 +223,11 @@ fn random_quadratic_barrier_moments_match_monte_carlo() {
 #[test]
 fn joint_posterior_matches_finite_differences_of_posterior() {
     let prior: Arc<dyn DynSystem> = Arc::new(common::RandomSystem::new(3, 2, 3));
-    for map in [InputMap::Identity, InputMap::Select(vec![2, 0])] {
+    for map in [
+        InputMap::Identity,
+        InputMap::Select(vec![2, 0]),
+        InputMap::periodic(3, &[2]),
+    ] {
         let mut rng = ChaCha8Rng::seed_from_u64(8);
         let hyper = MvgpHyper {
             kernel: Rbf::new(vec![1.1; map.output_dim(3)], 1.4).unwrap(),

@@ -207,7 +207,12 @@ fn infeasible_step_reports_fallback_and_p_star() {
                 b = mid;
             }
         }
-        for fallback in [Fallback::MaxMargin, Fallback::Brake, Fallback::Hold] {
+        for fallback in [
+            Fallback::MaxMargin,
+            Fallback::Brake,
+            Fallback::Hold,
+            Fallback::Relax,
+        ] {
             let mut settings = SafetySettings::new(1);
             settings.probability = p;
             settings.zeta = zeta;
@@ -239,6 +244,17 @@ fn infeasible_step_reports_fallback_and_p_star() {
                     );
                 }
                 Fallback::Brake => assert_eq!(out.u, vec![0.0]),
+                Fallback::Relax => {
+                    // the SOCP at p* is feasible: the condition holds there
+                    let ps = match &out.status {
+                        ControlStatus::Infeasible(info) => info.p_star.unwrap(),
+                        _ => unreachable!(),
+                    };
+                    let c = quantile_factor(ps, mom.relative_degree).unwrap();
+                    let slack = mom.mean(&out.u) - zeta - c * mom.variance(&out.u).sqrt();
+                    assert!(slack >= -1e-5, "relaxed slack {slack}");
+                    assert!(out.u[0] >= lo - 1e-7 && out.u[0] <= hi + 1e-7);
+                }
                 Fallback::Hold => assert_eq!(out.u, vec![0.0]), // nothing applied before
             }
         }

@@ -20,6 +20,9 @@ pub enum Fallback {
     Brake,
     /// Hold the previous control.
     Hold,
+    /// Solve the same SOCP at the largest feasible probability `p*`
+    /// (graceful degradation; the maximal-margin control if no `p*` exists).
+    Relax,
 }
 
 impl Fallback {
@@ -29,6 +32,7 @@ impl Fallback {
             Fallback::MaxMargin => "max_margin",
             Fallback::Brake => "brake",
             Fallback::Hold => "hold",
+            Fallback::Relax => "relax",
         }
     }
     /// Parses [`name`](Self::name).
@@ -37,10 +41,11 @@ impl Fallback {
             "max_margin" => Ok(Fallback::MaxMargin),
             "brake" => Ok(Fallback::Brake),
             "hold" => Ok(Fallback::Hold),
+            "relax" => Ok(Fallback::Relax),
             _ => Err(InputError::Invalid {
                 field: "fallback".into(),
                 value: s.into(),
-                reason: "expected max_margin, brake or hold".into(),
+                reason: "expected max_margin, brake, hold or relax".into(),
             }),
         }
     }
@@ -369,9 +374,9 @@ impl SafetyFilter {
                 ControlStatus::AlmostOptimal
             };
         } else {
-            let info = self.infeasible(cbcs, status, out)?;
-            out.status = ControlStatus::Infeasible(info);
             out.delta = 0.0;
+            let info = self.infeasible(cbcs, clc, status, out)?;
+            out.status = ControlStatus::Infeasible(info);
         }
         let u = out.u.clone();
         for (k, mom) in cbcs.iter().enumerate() {
@@ -426,6 +431,7 @@ impl SafetyFilter {
     fn infeasible(
         &mut self,
         cbcs: &[ConditionMoments],
+        clc: Option<&ConditionMoments>,
         status: SolveStatus,
         out: &mut ControlOutput,
     ) -> Result<InfeasibleInfo, Error> {
@@ -464,9 +470,29 @@ impl SafetyFilter {
             None
         };
         let fallback = self.settings.fallback;
+        let mut relaxed = false;
+        if let (Fallback::Relax, Some(ps)) = (fallback, p_star) {
+            // the constraints at p* are feasible: re-solve the control SOCP there
+            for (k, mom) in cbcs.iter().enumerate() {
+                let c = quantile_factor(ps, mom.relative_degree)?;
+                self.program.set_barrier(k, mom, c, self.settings.zeta);
+            }
+            if let Some(mom) = clc {
+                self.program.set_clf(mom, quantile_factor(ps.max(0.5), 1)?);
+            }
+            if self.program.solve().is_solved() {
+                let x = self.program.x();
+                out.u.copy_from_slice(&x[..m]);
+                out.delta = if self.shape.clf { x[m] } else { 0.0 };
+                relaxed = true;
+            }
+        }
         match fallback {
-            Fallback::MaxMargin if margin.is_some() => out.u.copy_from_slice(&u_mm),
-            Fallback::MaxMargin | Fallback::Brake => {
+            _ if relaxed => {}
+            Fallback::MaxMargin | Fallback::Relax if margin.is_some() => {
+                out.u.copy_from_slice(&u_mm)
+            }
+            Fallback::MaxMargin | Fallback::Relax | Fallback::Brake => {
                 for j in 0..m {
                     let (lo, hi) = match (&self.settings.u_min, &self.settings.u_max) {
                         (Some(l), Some(h)) => (l[j], h[j]),

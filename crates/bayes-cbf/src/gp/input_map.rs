@@ -2,12 +2,32 @@
 
 use crate::error::InputError;
 
+/// One kernel input computed from one state coordinate.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Feature {
+    /// `x_i`.
+    Coord(usize),
+    /// `cos x_i` (with [`Feature::Sin`]: a periodic embedding of an angle).
+    Cos(usize),
+    /// `sin x_i`.
+    Sin(usize),
+}
+
+impl Feature {
+    fn index(self) -> usize {
+        match self {
+            Feature::Coord(i) | Feature::Cos(i) | Feature::Sin(i) => i,
+        }
+    }
+}
+
 /// A map from the state `x ∈ R^n` to the kernel input `z ∈ R^d`, applied
 /// identically in training, prediction and control.
 ///
 /// `Select(vec![2])` for the Ackermann vehicle makes the kernel depend on the
 /// heading θ only: the dynamics are invariant to translations (paper,
-/// Sec. VII-B).
+/// Sec. VII-B). [`InputMap::periodic`] embeds angles as `(cos θ, sin θ)` so
+/// the kernel is continuous across the `±π` wrap.
 #[derive(Debug, Clone, PartialEq, Eq, Default)]
 pub enum InputMap {
     /// `z = x`.
@@ -15,11 +35,49 @@ pub enum InputMap {
     Identity,
     /// `z = (x_{i_1}, …, x_{i_d})`.
     Select(Vec<usize>),
+    /// Each `z_j` is a [`Feature`] of one coordinate.
+    Features(Vec<Feature>),
 }
 
 impl InputMap {
+    /// The map seeing every coordinate of an `n`-dimensional state, with the
+    /// coordinates in `angles` embedded as `(cos, sin)`.
+    pub fn periodic(n: usize, angles: &[usize]) -> Self {
+        let mut f = Vec::new();
+        for i in 0..n {
+            if angles.contains(&i) {
+                f.push(Feature::Cos(i));
+                f.push(Feature::Sin(i));
+            } else {
+                f.push(Feature::Coord(i));
+            }
+        }
+        InputMap::Features(f)
+    }
+
     /// Checks the map against the state dimension `n`.
     pub fn validate(&self, n: usize) -> Result<(), InputError> {
+        if let InputMap::Features(f) = self {
+            if f.is_empty() {
+                return Err(InputError::shape("input_map", "at least one feature", 0));
+            }
+            for (j, feat) in f.iter().enumerate() {
+                if feat.index() >= n {
+                    return Err(InputError::invalid(
+                        &format!("input_map[{j}]"),
+                        feat.index() as f64,
+                        &format!("index must be < state dimension {n}"),
+                    ));
+                }
+                if f[..j].contains(feat) {
+                    return Err(InputError::invalid(
+                        &format!("input_map[{j}]"),
+                        feat.index() as f64,
+                        "duplicate feature",
+                    ));
+                }
+            }
+        }
         if let InputMap::Select(idx) = self {
             if idx.is_empty() {
                 return Err(InputError::shape("input_map", "at least one index", 0));
@@ -49,6 +107,7 @@ impl InputMap {
         match self {
             InputMap::Identity => n,
             InputMap::Select(i) => i.len(),
+            InputMap::Features(f) => f.len(),
         }
     }
 
@@ -62,16 +121,39 @@ impl InputMap {
                     *zj = x[i];
                 }
             }
+            InputMap::Features(f) => {
+                for (zj, feat) in z.iter_mut().zip(f) {
+                    *zj = match *feat {
+                        Feature::Coord(i) => x[i],
+                        Feature::Cos(i) => x[i].cos(),
+                        Feature::Sin(i) => x[i].sin(),
+                    };
+                }
+            }
         }
     }
 
-    /// State index feeding kernel input `j`: the map is a coordinate
-    /// selection, so its Jacobian is `∂z_j/∂x_i = [i == source(j)]`.
+    /// State index feeding kernel input `j`: each `z_j` depends on one
+    /// coordinate only, so `∂z_j/∂x_i = [i == source(j)] · derivative(j, x)`.
     #[inline]
     pub fn source(&self, j: usize) -> usize {
         match self {
             InputMap::Identity => j,
             InputMap::Select(idx) => idx[j],
+            InputMap::Features(f) => f[j].index(),
+        }
+    }
+
+    /// `∂z_j/∂x_{source(j)}` at `x`.
+    #[inline]
+    pub fn derivative(&self, j: usize, x: &[f64]) -> f64 {
+        match self {
+            InputMap::Identity | InputMap::Select(_) => 1.0,
+            InputMap::Features(f) => match f[j] {
+                Feature::Coord(_) => 1.0,
+                Feature::Cos(i) => -x[i].sin(),
+                Feature::Sin(i) => x[i].cos(),
+            },
         }
     }
 }

@@ -45,6 +45,7 @@ impl JointPosterior {
 #[derive(Debug, Clone)]
 pub struct JointWorkspace {
     z: Vec<f64>,
+    dz: Vec<f64>,
     gk: Vec<f64>,
     hk: Vec<f64>,
     gx: Vec<f64>,
@@ -62,6 +63,7 @@ impl<K: Kernel> Mvgp<K> {
         let d = self.input_map().output_dim(n);
         JointWorkspace {
             z: vec![0.0; d],
+            dz: vec![0.0; d],
             gk: vec![0.0; d],
             hk: vec![0.0; d * d],
             gx: vec![0.0; n],
@@ -103,17 +105,21 @@ impl<K: Kernel> Mvgp<K> {
         // prior part: K̂_ab ⊗ B
         kern.grad_x(&ws.z, &ws.z, &mut ws.gk);
         let k00 = kern.hess_xy(&ws.z, &ws.z, &mut ws.hk);
+        // ∂z_j/∂x_i = [i = src(j)] dz_j (the map acts coordinate-wise)
+        for j in 0..d {
+            ws.dz[j] = map.derivative(j, x);
+        }
         let kk = |a: usize, bb: usize, ws: &JointWorkspace| -> f64 {
             // ∂_a ∂'_b k0(φ(x), φ(x')) at x' = x, in state coordinates
             match (a, bb) {
                 (0, 0) => k00,
                 (i, 0) => (0..d)
                     .filter(|&j| map.source(j) == i - 1)
-                    .map(|j| ws.gk[j])
+                    .map(|j| ws.gk[j] * ws.dz[j])
                     .sum(),
                 (0, i) => -(0..d)
                     .filter(|&j| map.source(j) == i - 1)
-                    .map(|j| ws.gk[j])
+                    .map(|j| ws.gk[j] * ws.dz[j])
                     .sum::<f64>(),
                 (i, l) => {
                     let mut s = 0.0;
@@ -123,7 +129,7 @@ impl<K: Kernel> Mvgp<K> {
                         }
                         for c in 0..d {
                             if map.source(c) == l - 1 {
-                                s += ws.hk[r * d + c];
+                                s += ws.hk[r * d + c] * ws.dz[r] * ws.dz[c];
                             }
                         }
                     }
@@ -164,7 +170,7 @@ impl<K: Kernel> Mvgp<K> {
             let kv = kern.grad_x(&ws.z, &zs[j * d..(j + 1) * d], &mut ws.gk);
             ws.gx.fill(0.0);
             for (r, g) in ws.gk.iter().enumerate() {
-                ws.gx[map.source(r)] += g;
+                ws.gx[map.source(r)] += g * ws.dz[r];
             }
             for c in 0..p {
                 let buc = bu[j * p + c];

@@ -29,6 +29,10 @@ pub struct LoopSettings {
     pub update_every: usize,
     /// Refit the hyperparameters every this many steps (0: never).
     pub refit_every: usize,
+    /// Also refit when the data size first reaches 4, 8, 16, … (below
+    /// `refit_every`): early refits calibrate the model while data is scarce,
+    /// at an amortised O(k³) total cost.
+    pub refit_geometric: bool,
     /// Sliding window: keep at most this many observations.
     pub window: Option<usize>,
     /// Hyperparameter-fit settings of the refits.
@@ -166,6 +170,7 @@ pub fn run_closed_loop(
     let mut min_monitor = monitors.iter().map(|f| f(&x)).collect::<Vec<_>>();
     let mut buffer: Vec<(Vec<f64>, Vec<f64>, Vec<f64>)> = Vec::new();
     let mut infeasible_steps = 0;
+    let mut last_refit_len = 0;
     for k in 0..settings.steps {
         let t = k as f64 * settings.dt;
         reference.at(k, t, &x, &mut rng, &mut r);
@@ -231,9 +236,17 @@ pub fn run_closed_loop(
                 }
             }
         }
-        let refit =
-            settings.refit_every > 0 && (k + 1) % settings.refit_every == 0 && !model.is_empty();
+        let len = model.len();
+        let geometric = settings.refit_geometric
+            && len >= 4
+            && len.is_power_of_two()
+            && len < settings.refit_every
+            && len != last_refit_len;
+        let refit = settings.refit_every > 0
+            && ((k + 1) % settings.refit_every == 0 || geometric)
+            && !model.is_empty();
         if refit {
+            last_refit_len = len;
             let fs = FitSettings {
                 warm_start: true,
                 seed: settings.fit.seed.wrapping_add(k as u64),
