@@ -19,6 +19,9 @@
 //! not positive definite, Gram matrices that cannot be factorised even after
 //! bounded jitter ([`error::GpError`]). Factorisations are never `.expect()`ed.
 
+// Index loops mirror the subscripts of the maths in the docs.
+#![allow(clippy::needless_range_loop)]
+
 pub mod barrier;
 pub mod control;
 pub mod error;

@@ -1,3 +1,4 @@
+#![allow(clippy::too_many_arguments, clippy::approx_constant)]
 //! Barrier-condition moments against Monte Carlo over joint posterior
 //! samples, and the joint posterior of `F` and its Jacobian against finite
 //! differences of the (brute-force-validated) posterior.

@@ -523,6 +523,7 @@ impl SafetyFilter {
     /// Dense `(A, b, P, q)`, cones, primal slack `s` and dual `z` of the
     /// last control SOCP, for KKT verification.
     #[doc(hidden)]
+    #[allow(clippy::type_complexity)]
     pub fn kkt_data(
         &self,
     ) -> (

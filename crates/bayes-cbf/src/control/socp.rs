@@ -80,6 +80,8 @@ pub(crate) struct ConeProgram {
     a_pattern: (Vec<usize>, Vec<usize>),
     p_pattern: (Vec<usize>, Vec<usize>),
     cones: Vec<SupportedConeT<f64>>,
+    /// Scratch for one row of `A` (capacity `m`, reused).
+    g_buf: Vec<f64>,
 }
 
 impl ConeProgram {
@@ -149,6 +151,7 @@ impl ConeProgram {
             a_pattern: (colptr, rowval),
             p_pattern: (pcol, prow),
             cones,
+            g_buf: Vec::with_capacity(m),
         };
         // constant entries
         if shape.bounds {
@@ -191,28 +194,20 @@ impl ConeProgram {
     }
 
     pub(crate) fn set_barrier(&mut self, k: usize, mom: &ConditionMoments, c: f64, zeta: f64) {
-        let e0 = mom.e[0] - zeta;
-        let g: &[f64] = &mom.e[1..];
-        // borrow dance: copy g into a small stack buffer
-        let mut buf = [0.0; 16];
-        let gl = g.len();
-        if gl <= 16 {
-            buf[..gl].copy_from_slice(g);
-            self.set_block(k, &buf[..gl], e0, c, &mom.v);
-        } else {
-            let gv = g.to_vec();
-            self.set_block(k, &gv, e0, c, &mom.v);
-        }
+        let mut g = std::mem::take(&mut self.g_buf);
+        g.clear();
+        g.extend_from_slice(&mom.e[1..]);
+        self.set_block(k, &g, mom.e[0] - zeta, c, &mom.v);
+        self.g_buf = g;
     }
 
     pub(crate) fn set_clf(&mut self, mom: &ConditionMoments, c: f64) {
         let k = self.shape.barriers;
-        let mut buf = [0.0; 16];
-        let gl = mom.e.len() - 1;
-        for j in 0..gl.min(16) {
-            buf[j] = -mom.e[j + 1];
-        }
-        self.set_block(k, &buf[..gl.min(16)], -mom.e[0], c, &mom.v);
+        let mut g = std::mem::take(&mut self.g_buf);
+        g.clear();
+        g.extend(mom.e[1..].iter().map(|v| -v));
+        self.set_block(k, &g, -mom.e[0], c, &mom.v);
+        self.g_buf = g;
     }
 
     pub(crate) fn set_bounds(&mut self, lo: &[f64], hi: &[f64]) {

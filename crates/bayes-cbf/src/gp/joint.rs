@@ -197,6 +197,7 @@ impl<K: Kernel> Mvgp<K> {
                 }
             }
         }
+        super::factor::clear_simd_state();
         Ok(())
     }
 

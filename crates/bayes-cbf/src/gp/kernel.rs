@@ -100,7 +100,19 @@ impl Rbf {
             q += d * d * self.inv_l2[i];
             r[i] = d * self.inv_l2[i];
         }
-        self.variance * (-0.5 * q).exp()
+        self.variance * exp_neg_half(q)
+    }
+}
+
+/// `exp(−q/2)`, flushed to zero below `e^{−700}`: libm's slow path for
+/// results in the subnormal range otherwise dominates the cost of Gram
+/// matrices with small lengthscales.
+#[inline]
+fn exp_neg_half(q: f64) -> f64 {
+    if q > 1400.0 {
+        0.0
+    } else {
+        (-0.5 * q).exp()
     }
 }
 
@@ -116,7 +128,7 @@ impl Kernel for Rbf {
             let d = x[i] - y[i];
             q += d * d * self.inv_l2[i];
         }
-        self.variance * (-0.5 * q).exp()
+        self.variance * exp_neg_half(q)
     }
 
     fn grad_x(&self, x: &[f64], y: &[f64], out: &mut [f64]) -> f64 {

@@ -588,6 +588,7 @@ impl<K: Kernel> Mvgp<K> {
                 }
             }
         }
+        super::factor::clear_simd_state();
         Ok(())
     }
 
@@ -642,6 +643,7 @@ impl<K: Kernel> Mvgp<K> {
         // R G^{-1} R^T = βᵀ β
         let b = self.beta.as_ref().submatrix(0, 0, k, n);
         let q = b.transpose() * b;
+        super::factor::clear_simd_state();
         let qn = DMatrix::from_fn(n, n, |i, j| q[(i, j)]);
         let chol_a = match self.hyper.A.clone().cholesky() {
             Some(c) => c,

@@ -184,6 +184,14 @@ fn low_rank_plus_diag(c: &[f64], logv: &[f64], dim: usize, r: usize) -> DMatrix<
     m
 }
 
+/// `(θ, −log p, −∇ log p)` of the last evaluation, `(θ, −log p)` of the
+/// best point seen, and the number of evaluations.
+type EvalCache = (
+    Option<(Vec<f64>, f64, Vec<f64>)>,
+    Option<(Vec<f64>, f64)>,
+    usize,
+);
+
 struct Objective<'a, K: Kernel> {
     layout: Layout,
     kernel: K,
@@ -193,12 +201,8 @@ struct Objective<'a, K: Kernel> {
     resid: &'a [f64],
     k: usize,
     d: usize,
-    /// (θ, −log p, −∇ log p) of the last evaluation, and the best seen.
-    cache: Mutex<(
-        Option<(Vec<f64>, f64, Vec<f64>)>,
-        Option<(Vec<f64>, f64)>,
-        usize,
-    )>,
+    /// Last evaluation, best point seen, evaluation count.
+    cache: Mutex<EvalCache>,
 }
 
 impl<K: Kernel> Objective<'_, K> {
@@ -269,7 +273,7 @@ impl<K: Kernel> Objective<'_, K> {
             }
             g[(j, j)] += sigma * sigma;
         }
-        let factor = match CholFactor::factor(g.as_ref(), k) {
+        let factor = match CholFactor::factor_quiet(g.as_ref(), k) {
             Ok(f) => f,
             Err(_) => return (PENALTY, vec![0.0; th.len()]),
         };
@@ -278,9 +282,7 @@ impl<K: Kernel> Objective<'_, K> {
         factor.solve_l_in_place(alpha.as_mut());
         let beta = alpha.clone();
         factor.solve_lt_in_place(alpha.as_mut());
-        let mut s = Mat::<f64>::identity(k, k);
-        factor.solve_l_in_place(s.as_mut());
-        factor.solve_lt_in_place(s.as_mut());
+        let s = factor.inverse();
         let qf = beta.transpose() * &beta;
         let Q = DMatrix::from_fn(n, n, |i, j| qf[(i, j)]);
         let chol_a = match A.clone().cholesky() {
@@ -301,6 +303,7 @@ impl<K: Kernel> Objective<'_, K> {
         let ainv_f = Mat::<f64>::from_fn(n, n, |i, j| Ainv[(i, j)]);
         let aa = &alpha * &ainv_f;
         let mut gbar = &aa * alpha.transpose();
+        super::factor::clear_simd_state();
         for j in 0..k {
             for i in 0..k {
                 gbar[(i, j)] = -0.5 * (n as f64 * s[(i, j)] - gbar[(i, j)]);
@@ -578,7 +581,11 @@ pub fn fit<K: Kernel>(model: &mut Mvgp<K>, settings: &FitSettings) -> Result<Fit
             }
         }
         obj.cache.lock().unwrap_or_else(|e| e.into_inner()).1 = None;
-        let solver = LBFGS::new(MoreThuenteLineSearch::new(), 10);
+        // stop when an iteration improves −log p by less than 1e-9 relative
+        let f0 = obj.cached(&th).0.abs().max(1.0);
+        let solver = LBFGS::new(MoreThuenteLineSearch::new(), 10)
+            .with_tolerance_cost(1e-9 * f0)
+            .map_err(|e| GpError::Optimisation(e.to_string()))?;
         let max_iters = settings.max_iters;
         // A line-search failure near the optimum ends the run; the best point
         // seen is kept in the cache either way.
@@ -669,6 +676,8 @@ pub(crate) mod tests {
                 rb: rb.cols(p),
                 ra: ra.cols(n),
                 learn_a: true,
+                // exercise the noise floor's chain rule in one case
+                sigma_min: if n == 2 { 0.05 } else { 0.0 },
             };
             let obj = Objective {
                 layout: layout.clone(),

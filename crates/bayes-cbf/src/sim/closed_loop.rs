@@ -238,7 +238,7 @@ pub fn run_closed_loop(
         }
         let len = model.len();
         let geometric = settings.refit_geometric
-            && len >= 4
+            && len >= 16
             && len.is_power_of_two()
             && len < settings.refit_every
             && len != last_refit_len;

@@ -24,11 +24,7 @@ pub struct Dataset {
 impl Dataset {
     /// Number of observations.
     pub fn len(&self) -> usize {
-        if self.n == 0 {
-            0
-        } else {
-            self.xs.len() / self.n
-        }
+        self.xs.len().checked_div(self.n).unwrap_or(0)
     }
     /// No observations.
     pub fn is_empty(&self) -> bool {
@@ -49,6 +45,7 @@ impl Dataset {
 
 /// Samples `k` states uniformly in the box `[x_lo, x_hi]` and controls
 /// uniformly in `[u_lo, u_hi]`, with `ẋ = F(x)u̲ + ε`, `ε ~ N(0, noise² I)`.
+#[allow(clippy::too_many_arguments)]
 pub fn sample_uniform<R: Rng + ?Sized>(
     system: &dyn DynSystem,
     x_lo: &[f64],

@@ -29,7 +29,7 @@ pub fn finite_difference_xdot(
         ));
     }
     for i in 1..k {
-        if !(t[i] > t[i - 1]) {
+        if t[i].partial_cmp(&t[i - 1]) != Some(std::cmp::Ordering::Greater) {
             return Err(InputError::invalid(
                 &format!("t[{i}]"),
                 t[i],

@@ -1,5 +1,5 @@
 //! Shared helpers of the integration tests.
-#![allow(dead_code)]
+#![allow(dead_code, clippy::needless_range_loop)]
 
 use bayes_cbf::systems::ControlAffine;
 use nalgebra::DMatrix;
