@@ -1,1 +1,105 @@
-fn main(){}
+//! `bayes-cbf`: learn control-affine dynamics `ẋ = F(x)u̲` with a
+//! matrix-variate Gaussian process and query the learned model.
+//!
+//! Without a subcommand it runs the pendulum learning demo. Every error
+//! exits non-zero with a one-line `error: ...` message on stderr naming the
+//! bad field or value; JSON results go to stdout unless `--out` is given.
+
+mod barrier_file;
+mod commands;
+mod csv_data;
+mod demo;
+mod input_map_spec;
+mod logger;
+mod model_file;
+mod prior_spec;
+mod safety_cmds;
+mod util;
+
+use clap::{Parser, Subcommand};
+use std::process::ExitCode;
+
+/// Matrix-variate Gaussian-process learning of control-affine dynamics with
+/// probabilistic control barrier functions (Dhiman et al., IEEE TAC 2021).
+///
+/// Without a subcommand, runs the pendulum learning demo (`bayes-cbf demo`).
+#[derive(Debug, Parser)]
+#[command(name = "bayes-cbf", version, about, long_about = None)]
+struct Cli {
+    /// More diagnostics on stderr (-v info, -vv debug).
+    #[arg(short, long, action = clap::ArgAction::Count, global = true)]
+    verbose: u8,
+    #[command(subcommand)]
+    command: Option<Command>,
+}
+
+#[derive(Debug, Subcommand)]
+enum Command {
+    /// Learn kernel lengthscales, A, B and noise_sigma from data by
+    /// maximising the marginal likelihood, and write a model file.
+    Fit(commands::FitArgs),
+    /// Posterior mean M_k(x) and column covariance B_k(x, x) of F(x) at states.
+    Predict(commands::PredictArgs),
+    /// Exact mean and variance of a barrier condition under the posterior.
+    Moments(safety_cmds::MomentsArgs),
+    /// Safe control: the chance-constrained SOCP for one state.
+    Control(safety_cmds::ControlArgs),
+    /// Pendulum learning demo: simulate, fit, evaluate on a grid.
+    Demo(demo::DemoArgs),
+}
+
+/// Collapses clap's multi-line message into one line, without the usage part.
+fn one_line_clap_error(e: &clap::Error) -> String {
+    let rendered = e.render().to_string();
+    let mut parts: Vec<&str> = Vec::new();
+    for line in rendered.lines() {
+        let t = line.trim();
+        if t.is_empty() {
+            if !parts.is_empty() {
+                break;
+            }
+            continue;
+        }
+        parts.push(t);
+    }
+    let msg = parts.join(" ");
+    let msg = msg.strip_prefix("error: ").unwrap_or(&msg).to_string();
+    format!("error: {msg} (see --help)")
+}
+
+fn main() -> ExitCode {
+    let cli = match Cli::try_parse() {
+        Ok(c) => c,
+        Err(e) => {
+            use clap::error::ErrorKind;
+            return match e.kind() {
+                ErrorKind::DisplayHelp | ErrorKind::DisplayVersion => {
+                    let _ = e.print();
+                    ExitCode::SUCCESS
+                }
+                _ => {
+                    eprintln!("{}", one_line_clap_error(&e));
+                    ExitCode::from(2)
+                }
+            };
+        }
+    };
+    logger::init_logger(cli.verbose);
+    let result = match &cli.command {
+        Some(Command::Fit(a)) => commands::run_fit(a),
+        Some(Command::Predict(a)) => commands::run_predict(a),
+        Some(Command::Demo(a)) => demo::run_demo(a),
+        Some(Command::Moments(a)) => safety_cmds::run_moments(a),
+        Some(Command::Control(a)) => safety_cmds::run_control(a),
+        None => demo::run_demo(&demo::DemoArgs::default()),
+    };
+    match result {
+        Ok(()) => ExitCode::SUCCESS,
+        Err(e) => {
+            // `{:#}` joins the context chain with ": " on one line.
+            let msg = format!("{e:#}").replace('\n', " ");
+            eprintln!("error: {msg}");
+            ExitCode::FAILURE
+        }
+    }
+}

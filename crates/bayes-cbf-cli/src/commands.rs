@@ -1,0 +1,236 @@
+//! `bayes-cbf fit` and `bayes-cbf predict` (formats in `interfaces.md`).
+
+use crate::csv_data::{read_dataset, Layout};
+use crate::input_map_spec::{parse_input_map, to_input_map};
+use crate::logger::hold_warnings;
+use crate::model_file::ModelFile;
+use crate::prior_spec::PriorSpec;
+use crate::util::{parse_indices, parse_rank, parse_vector, rank_name, write_atomic};
+use anyhow::{bail, Context, Result};
+use bayes_cbf::gp::{fit, FitReport, FitSettings, InputMap, Mvgp, MvgpHyper, Rbf};
+use clap::Args;
+use nalgebra::DMatrix;
+use serde::Serialize;
+use std::io::Write;
+use std::path::PathBuf;
+use std::time::Instant;
+
+/// Options of `bayes-cbf fit`.
+#[derive(Debug, Args)]
+pub struct FitArgs {
+    /// CSV with header x1..xN,u1..uM,xdot1..xdotN (or t,x1..xN,u1..uM with --time-series).
+    #[arg(long, value_name = "DATA.csv")]
+    pub data: PathBuf,
+    /// State dimension n.
+    #[arg(long, value_name = "N")]
+    pub state_dim: usize,
+    /// Control dimension m.
+    #[arg(long, value_name = "M")]
+    pub control_dim: usize,
+    /// Prior mean: "zero", a JSON object such as
+    /// '{"type":"pendulum","mass":1,"length":1,"gravity":10}' or
+    /// '{"type":"ackermann","wheelbase":1}', or a file holding that JSON.
+    #[arg(long, value_name = "JSON", default_value = "zero")]
+    pub prior_mean: String,
+    /// Output model file (written completely or not at all).
+    #[arg(long, value_name = "MODEL.json")]
+    pub out: PathBuf,
+    /// Columns are t,x1..xN,u1..uM; ẋ is estimated by finite differences.
+    #[arg(long)]
+    pub time_series: bool,
+    /// Angle components (comma-separated state indices, or "none") whose
+    /// differences are wrapped to [-π, π) with --time-series. Default: the
+    /// angles of the prior mean's system (pendulum 0, ackermann 2).
+    #[arg(long, value_name = "I,J", allow_hyphen_values = true)]
+    pub angle_index: Option<String>,
+    /// Structure of A: full, diag or an integer rank.
+    #[arg(long, value_name = "RANK", default_value = "full")]
+    pub rank_a: String,
+    /// Structure of B: full, diag or an integer rank.
+    #[arg(long, value_name = "RANK", default_value = "full")]
+    pub rank_b: String,
+    /// Random restarts of the optimiser besides the data-driven start.
+    #[arg(long, default_value_t = 0)]
+    pub restarts: usize,
+    /// Seed of the random initialisation.
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
+    /// L-BFGS iterations per start.
+    #[arg(long, default_value_t = 100)]
+    pub max_iters: u64,
+    /// Floor of the noise scale σ (keeps the Gram matrix well conditioned on
+    /// nearly noise-free data).
+    #[arg(long, default_value_t = 0.0, allow_hyphen_values = true)]
+    pub sigma_min: f64,
+    /// What the kernel sees, comma-separated: state indices i, or cos:i and
+    /// sin:i for a periodic angle embedding; e.g. 2 for a translation-
+    /// invariant Ackermann model, cos:0,sin:0,1 for the pendulum. Default:
+    /// the whole state.
+    #[arg(long, value_name = "I,J", allow_hyphen_values = true)]
+    pub input_map: Option<String>,
+}
+
+/// Options of `bayes-cbf predict`.
+#[derive(Debug, Args)]
+pub struct PredictArgs {
+    /// Model file written by `bayes-cbf fit`.
+    #[arg(long, value_name = "MODEL.json")]
+    pub model: PathBuf,
+    /// Query state, comma-separated (repeat for several states).
+    #[arg(
+        long = "x",
+        value_name = "X",
+        required = true,
+        allow_hyphen_values = true
+    )]
+    pub xs: Vec<String>,
+    /// Write the JSON here instead of stdout.
+    #[arg(long, value_name = "FILE")]
+    pub out: Option<PathBuf>,
+}
+
+/// Builds the initial MVGP of `fit`: unit lengthscales and variance, `A = I`,
+/// `B = I`, `σ = 0.1`.
+pub fn initial_model(n: usize, m: usize, prior: &PriorSpec, input_map: InputMap) -> Result<Mvgp> {
+    let d = input_map.output_dim(n);
+    let hyper = MvgpHyper {
+        kernel: Rbf::new(vec![1.0; d], 1.0)?,
+        A: DMatrix::identity(n, n),
+        B: DMatrix::identity(m + 1, m + 1),
+        sigma: 0.1,
+    };
+    Ok(Mvgp::new(n, m, hyper, prior.to_prior(), input_map)?)
+}
+
+/// Runs `bayes-cbf fit`.
+pub fn run_fit(a: &FitArgs) -> Result<()> {
+    let (n, m) = (a.state_dim, a.control_dim);
+    if n == 0 {
+        bail!("--state-dim must be ≥ 1");
+    }
+    if m == 0 {
+        bail!("--control-dim must be ≥ 1");
+    }
+    let prior = PriorSpec::from_arg(&a.prior_mean)?;
+    let input_map = match &a.input_map {
+        None => InputMap::Identity,
+        Some(s) => {
+            let spec = parse_input_map(s, n)?;
+            to_input_map(Some(&spec))
+        }
+    };
+    let settings = FitSettings {
+        rank_a: parse_rank("--rank-a", &a.rank_a)?,
+        rank_b: parse_rank("--rank-b", &a.rank_b)?,
+        max_iters: a.max_iters,
+        restarts: a.restarts,
+        seed: a.seed,
+        sigma_min: a.sigma_min,
+        ..FitSettings::default()
+    };
+    settings.validate().context("fit settings")?;
+    let (layout, angles) = if a.time_series {
+        let angles = match &a.angle_index {
+            Some(s) => parse_indices("--angle-index", s, n)?,
+            None => prior
+                .angle_indices()
+                .into_iter()
+                .filter(|&i| i < n)
+                .collect(),
+        };
+        (Layout::TimeSeries, angles)
+    } else {
+        if a.angle_index.is_some() {
+            bail!("--angle-index only applies with --time-series");
+        }
+        (Layout::Derivatives, Vec::new())
+    };
+    let ds = read_dataset(&a.data, layout, n, m, &angles)?;
+    let mut model = initial_model(n, m, &prior, input_map)?;
+    model
+        .set_data(&ds.xs, &ds.us, &ds.xdot)
+        .context("training data")?;
+    let start = Instant::now();
+    let report: FitReport = hold_warnings("hyperparameter fitting", || fit(&mut model, &settings))
+        .context("fitting hyperparameters")?;
+    let secs = start.elapsed().as_secs_f64();
+    let file = ModelFile::from_model(&model, &prior);
+    write_atomic(&a.out, file.to_json()?.as_bytes())?;
+    eprintln!(
+        "fit: k = {}, log-likelihood {:.3} -> {:.3}, {} start(s), {} evaluations, rank A {} / B {}, {:.2} s, wrote {}",
+        model.len(),
+        report.initial_log_likelihood,
+        report.log_likelihood,
+        report.starts,
+        report.evaluations,
+        rank_name(settings.rank_a),
+        rank_name(settings.rank_b),
+        secs,
+        a.out.display()
+    );
+    Ok(())
+}
+
+/// One prediction: `M_k(x)` and `B_k(x, x)`, with `Cov(vec F(x)) = B ⊗ A`.
+#[derive(Debug, Serialize)]
+#[allow(non_snake_case)]
+struct Prediction {
+    x: Vec<f64>,
+    mean: Vec<Vec<f64>>,
+    B: Vec<Vec<f64>>,
+    A: Vec<Vec<f64>>,
+}
+
+#[derive(Debug, Serialize)]
+struct Predictions {
+    predictions: Vec<Prediction>,
+}
+
+fn rows(m: &DMatrix<f64>) -> Vec<Vec<f64>> {
+    (0..m.nrows())
+        .map(|i| m.row(i).iter().copied().collect())
+        .collect()
+}
+
+/// Runs `bayes-cbf predict`.
+pub fn run_predict(a: &PredictArgs) -> Result<()> {
+    let file = ModelFile::load(&a.model)?;
+    let model = file
+        .to_model()
+        .with_context(|| format!("model file '{}'", a.model.display()))?;
+    let n = model.n();
+    let mut predictions = Vec::with_capacity(a.xs.len());
+    for (q, s) in a.xs.iter().enumerate() {
+        let name = if a.xs.len() == 1 {
+            "--x".to_string()
+        } else {
+            format!("--x (#{})", q + 1)
+        };
+        let x = parse_vector(&name, s)?;
+        if x.len() != n {
+            bail!(
+                "{name} '{s}' has {} values, but the model's state_dim is {n}",
+                x.len()
+            );
+        }
+        let post = model.posterior(&x).with_context(|| name.clone())?;
+        predictions.push(Prediction {
+            x,
+            mean: rows(&post.mean),
+            B: rows(&post.B),
+            A: rows(&model.hyper().A),
+        });
+    }
+    let mut json = serde_json::to_string(&Predictions { predictions })
+        .context("cannot serialise predictions")?;
+    json.push('\n');
+    match &a.out {
+        Some(p) => write_atomic(p, json.as_bytes()),
+        None => {
+            let mut out = std::io::stdout().lock();
+            out.write_all(json.as_bytes())
+                .and_then(|()| out.flush())
+                .context("cannot write to stdout")
+        }
+    }
+}

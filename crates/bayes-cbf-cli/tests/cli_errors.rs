@@ -1,0 +1,420 @@
+//! The `bayes-cbf` binary on bad input: every case must exit non-zero with
+//! one `error: ...` line on stderr that names the bad field or value, never
+//! panic, and never leave a partial output file behind.
+
+mod common;
+
+use common::{run, scratch_dir};
+use std::path::Path;
+
+/// The model file of `interfaces.md`, valid; bad cases edit one thing.
+const GOOD_MODEL: &str = r#"{
+  "state_dim": 2,
+  "control_dim": 1,
+  "kernel": {"type": "rbf", "lengthscales": [0.7, 1.3], "variance": 1.5},
+  "A": [[1.0, 0.1], [0.1, 0.8]],
+  "B": [[1.0, 0.2], [0.2, 0.5]],
+  "noise_sigma": 0.1,
+  "prior_mean": "zero",
+  "data": {"x": [[0.1, 0.2]], "u": [[0.5]], "xdot": [[0.2, -0.4]]}
+}"#;
+
+const GOOD_CSV: &str = "x1,x2,u1,xdot1,xdot2\n0.1,0.2,0.5,0.2,-0.4\n0.3,-0.1,1.0,-0.1,-1.9\n";
+
+const A: &str = "[[1.0, 0.1], [0.1, 0.8]]";
+const B: &str = "[[1.0, 0.2], [0.2, 0.5]]";
+const SIGMA: &str = "\"noise_sigma\": 0.1";
+const PRIOR: &str = "\"prior_mean\": \"zero\"";
+
+/// `(replace, with, stderr must contain)` applied to `GOOD_MODEL`.
+const MODEL_EDITS: &[(&str, &str, &[&str])] = &[
+    (
+        A,
+        "[[1.0, 0.1, 0], [0.1, 0.8, 0], [0, 0, 1]]",
+        &["A has 3 rows"],
+    ),
+    (A, "[[1.0, 0.1], [0.1]]", &["A[1] has 1 entries"]),
+    (
+        A,
+        "[[1.0, 2.0], [2.0, 1.0]]",
+        &["A is not symmetric positive definite"],
+    ),
+    (
+        B,
+        "[[1.0, 0.2], [0.3, 0.5]]",
+        &["B is not symmetric positive definite", "not symmetric"],
+    ),
+    (
+        B,
+        "[[1.0, 0.2, 0.0], [0.2, 0.5, 0.0]]",
+        &["B[0] has 3 entries"],
+    ),
+    (B, "[[1.0, 0.2], [0.2, 0.5], [0.0, 0.0]]", &["B has 3 rows"]),
+    (
+        B,
+        "[[-1.0, 0.0], [0.0, 0.5]]",
+        &["B is not symmetric positive definite", "eigenvalue"],
+    ),
+    (SIGMA, "\"noise_sigma\": -0.1", &["noise_sigma", "-0.1"]),
+    (SIGMA, "\"noise_sigma\": 0", &["noise_sigma"]),
+    (
+        SIGMA,
+        "\"noise_sigma\": \"small\"",
+        &["noise_sigma", "invalid type"],
+    ),
+    (SIGMA, "\"noise_sigma\": 1e999", &["number out of range"]),
+    (
+        SIGMA,
+        "\"noise_sigma\": 0.1, \"noise\": 2",
+        &["unknown key \"noise\""],
+    ),
+    ("[0.7, 1.3]", "[0.0, 1.3]", &["kernel.lengthscales[0]"]),
+    (
+        "[0.7, 1.3]",
+        "[0.7, 1.3, 2.0]",
+        &["kernel.lengthscales has 3 entries"],
+    ),
+    (
+        "\"variance\": 1.5",
+        "\"variance\": -1.5",
+        &["kernel.variance"],
+    ),
+    (
+        "\"variance\": 1.5",
+        "\"variance\": 1.5, \"period\": 2",
+        &["kernel", "unknown field `period`"],
+    ),
+    ("\"rbf\"", "\"matern\"", &["kernel", "matern"]),
+    (
+        PRIOR,
+        "\"prior_mean\": {\"type\": \"cartpole\"}",
+        &["prior_mean", "cartpole"],
+    ),
+    (
+        PRIOR,
+        "\"prior_mean\": {\"type\": \"pendulum\", \"mass\": -1}",
+        &["prior_mean.mass"],
+    ),
+    (
+        PRIOR,
+        "\"prior_mean\": {\"type\": \"pendulum\", \"mas\": 1}",
+        &["prior_mean", "`mas`"],
+    ),
+    (
+        PRIOR,
+        "\"prior_mean\": {\"type\": \"ackermann\", \"wheelbase\": 2}",
+        &["prior_mean", "n = 3"],
+    ),
+    (PRIOR, "\"input_map\": [4]", &["input_map[0]"]),
+    (
+        PRIOR,
+        "\"input_map\": [{\"tan\": 0}]",
+        &["input_map", "tan"],
+    ),
+    (
+        "\"u\": [[0.5]]",
+        "\"u\": [[0.5, 1.0]]",
+        &["data.u[0] has 2 entries"],
+    ),
+    (
+        "\"x\": [[0.1, 0.2]]",
+        "\"x\": [[0.1, 0.2, 0.3]]",
+        &["data.x[0] has 3 entries"],
+    ),
+    (
+        "\"xdot\": [[0.2, -0.4]]",
+        "\"xdot\": []",
+        &["data.xdot has 0 rows"],
+    ),
+    (
+        "\"data\": {",
+        "\"data\": {\"t\": [], ",
+        &["data", "unknown field `t`"],
+    ),
+    ("\"state_dim\": 2,", "", &["missing field `state_dim`"]),
+    (
+        "\"control_dim\": 1,",
+        "\"control_dim\": 0,",
+        &["control_dim"],
+    ),
+];
+
+/// Whole model files that are not models at all.
+const MODEL_TEXTS: &[(&str, &[&str])] = &[
+    ("", &["is empty"]),
+    (
+        "{\"state_dim\": 2, \"control_dim\": 1, \"kernel\": {\"type\"",
+        &["truncated"],
+    ),
+    ("{\"state_dim\": 2,, }", &["not valid JSON"]),
+    ("[1, 2]", &["JSON object"]),
+];
+
+/// Asserts a failed run with one `error:` line containing every `expect`.
+fn check(args: &[&str], expect: &[&str], case: &str) {
+    let out = run(args);
+    assert!(!out.status.success(), "{case}: accepted");
+    assert!(!out.stderr.contains("panicked"), "{case}: {}", out.stderr);
+    let lines: Vec<&str> = out.stderr.lines().collect();
+    assert_eq!(lines.len(), 1, "{case}: one line expected: {}", out.stderr);
+    assert!(lines[0].starts_with("error: "), "{case}: {}", out.stderr);
+    for e in expect {
+        assert!(
+            out.stderr.contains(e),
+            "{case}: expected '{e}' in: {}",
+            out.stderr
+        );
+    }
+}
+
+fn path_str(dir: &Path, name: &str) -> String {
+    dir.join(name).to_str().unwrap().to_string()
+}
+
+#[test]
+fn bad_model_files_are_rejected_naming_the_field() {
+    let dir = scratch_dir("bad_models");
+    let good = path_str(&dir, "good.json");
+    std::fs::write(&good, GOOD_MODEL).unwrap();
+    let out = run(&["predict", "--model", &good, "--x", "0.1,0.2"]);
+    assert!(
+        out.status.success(),
+        "the base model is valid: {}",
+        out.stderr
+    );
+
+    let mut texts: Vec<(String, &[&str])> = MODEL_EDITS
+        .iter()
+        .map(|(from, to, expect)| {
+            assert!(GOOD_MODEL.contains(from), "{from}");
+            (GOOD_MODEL.replacen(from, to, 1), *expect)
+        })
+        .collect();
+    texts.extend(MODEL_TEXTS.iter().map(|(t, e)| (t.to_string(), *e)));
+    for (i, (text, expect)) in texts.iter().enumerate() {
+        let path = path_str(&dir, &format!("model{i}.json"));
+        std::fs::write(&path, text).unwrap();
+        check(
+            &["predict", "--model", &path, "--x", "0.1,0.2"],
+            expect,
+            &format!("model {i}: {text}"),
+        );
+    }
+    let missing = path_str(&dir, "missing.json");
+    check(
+        &["predict", "--model", &missing, "--x", "0.1,0.2"],
+        &["cannot read model file", "missing.json"],
+        "missing",
+    );
+    assert!(texts.len() >= 30);
+}
+
+#[test]
+fn bad_query_vectors_are_rejected() {
+    let dir = scratch_dir("bad_queries");
+    let good = path_str(&dir, "good.json");
+    std::fs::write(&good, GOOD_MODEL).unwrap();
+    let cases: &[(&[&str], &[&str])] = &[
+        (&["--x", "0.1,abc"], &["--x[1]", "abc", "not a number"]),
+        (
+            &["--x", "0.1,0.2,0.3"],
+            &["--x", "3 values", "state_dim is 2"],
+        ),
+        (&["--x=-0.1"], &["--x", "1 values"]),
+        (&["--x", "0.1,nan"], &["--x[1]", "not finite"]),
+        (&["--x", "0.1,-inf"], &["--x[1]", "not finite"]),
+        (&["--x", ""], &["--x", "empty"]),
+        (&["--x", "0.1;0.2"], &["--x[0]", "not a number"]),
+        (&["--x", "0.1,0.2", "--x", "1"], &["--x (#2)", "1 values"]),
+        (&[], &["--x"]),
+    ];
+    for (extra, expect) in cases {
+        let mut args = vec!["predict", "--model", good.as_str()];
+        args.extend_from_slice(extra);
+        check(&args, expect, &format!("{extra:?}"));
+    }
+}
+
+#[test]
+fn bad_data_files_are_rejected_with_line_and_column() {
+    let dir = scratch_dir("bad_csv");
+    let edit = |from: &str, to: &str| {
+        assert!(GOOD_CSV.contains(from), "{from}");
+        GOOD_CSV.replacen(from, to, 1)
+    };
+    let cases: Vec<(String, &[&str])> = vec![
+        (
+            edit("0.2,-0.4\n", "nan,-0.4\n"),
+            &["line 2", "column xdot1", "not finite"],
+        ),
+        (
+            edit("0.3,-0.1", "0.3,inf"),
+            &["line 3", "column x2", "not finite"],
+        ),
+        (edit("u1", "u"), &["header column 3", "\"u\"", "\"u1\""]),
+        (
+            edit(",xdot2\n", "\n"),
+            &["header has 4 columns", "x1,x2,u1,xdot1,xdot2"],
+        ),
+        (
+            edit("1.0,-0.1,-1.9", "1.0,-0.1"),
+            &["line 3: expected 5 columns, got 4"],
+        ),
+        (
+            edit("-1.9\n", "-1.9,7\n"),
+            &["line 3: expected 5 columns, got 6"],
+        ),
+        (
+            edit("0.5,0.2", "0.5,zero"),
+            &["line 2", "column xdot1", "\"zero\" is not a number"],
+        ),
+        (String::new(), &["is empty"]),
+        ("x1,x2,u1,xdot1,xdot2\n".to_string(), &["no data rows"]),
+    ];
+    for (i, (text, expect)) in cases.iter().enumerate() {
+        let (data, out) = (
+            path_str(&dir, &format!("data{i}.csv")),
+            path_str(&dir, &format!("out{i}.json")),
+        );
+        std::fs::write(&data, text).unwrap();
+        let args = [
+            "fit",
+            "--data",
+            &data,
+            "--state-dim",
+            "2",
+            "--control-dim",
+            "1",
+            "--out",
+            &out,
+        ];
+        check(&args, expect, &format!("csv {i}: {text}"));
+        assert!(!Path::new(&out).exists(), "csv {i}: no output on failure");
+    }
+}
+
+#[test]
+fn bad_fit_options_are_rejected() {
+    let dir = scratch_dir("bad_fit_options");
+    let (data, out) = (path_str(&dir, "good.csv"), path_str(&dir, "never.json"));
+    std::fs::write(&data, GOOD_CSV).unwrap();
+    let series = path_str(&dir, "series.csv");
+    std::fs::write(
+        &series,
+        "t,x1,x2,u1\n0.0,0.1,0.2,0.5\n0.01,0.1,0.2,0.5\n0.01,0.1,0.2,0.5\n",
+    )
+    .unwrap();
+    let missing = path_str(&dir, "missing.csv");
+    const D: [&str; 4] = ["--state-dim", "2", "--control-dim", "1"];
+    let cases: &[(&[&str], &[&str])] = &[
+        (
+            &["--state-dim", "1", "--control-dim", "1"],
+            &["header has 5 columns", "need 3", "x1,u1,xdot1"],
+        ),
+        (
+            &["--state-dim", "0", "--control-dim", "1"],
+            &["--state-dim"],
+        ),
+        (
+            &["--state-dim", "two", "--control-dim", "1"],
+            &["--state-dim", "two"],
+        ),
+        (&["--control-dim", "1"], &["--state-dim"]),
+        (
+            &[
+                D[0],
+                D[1],
+                D[2],
+                D[3],
+                "--prior-mean",
+                "{\"type\": \"quadrotor\"}",
+            ],
+            &["--prior-mean", "quadrotor"],
+        ),
+        (
+            &[
+                D[0],
+                D[1],
+                D[2],
+                D[3],
+                "--prior-mean",
+                "{\"type\": \"pendulum\"",
+            ],
+            &["--prior-mean", "not valid JSON"],
+        ),
+        (
+            &[D[0], D[1], D[2], D[3], "--prior-mean", "nope.json"],
+            &["--prior-mean", "nope.json"],
+        ),
+        (&[D[0], D[1], D[2], D[3], "--rank-a", "0"], &["--rank-a"]),
+        (
+            &[D[0], D[1], D[2], D[3], "--rank-b", "lots"],
+            &["--rank-b", "lots"],
+        ),
+        (
+            &[D[0], D[1], D[2], D[3], "--input-map", "5"],
+            &["--input-map[0]", "out of range"],
+        ),
+        (
+            &[D[0], D[1], D[2], D[3], "--input-map", "tan:0"],
+            &["--input-map[0]", "tan"],
+        ),
+        (
+            &[D[0], D[1], D[2], D[3], "--angle-index", "0"],
+            &["--angle-index", "--time-series"],
+        ),
+        (
+            &[D[0], D[1], D[2], D[3], "--max-iters", "0"],
+            &["max_iters"],
+        ),
+        (
+            &[D[0], D[1], D[2], D[3], "--sigma-min", "-1"],
+            &["sigma_min"],
+        ),
+        (&[D[0], D[1], D[2], D[3], "--colour", "red"], &["--colour"]),
+    ];
+    for (extra, expect) in cases {
+        let mut args = vec!["fit", "--data", data.as_str(), "--out", out.as_str()];
+        args.extend_from_slice(extra);
+        check(&args, expect, &format!("{extra:?}"));
+        assert!(!Path::new(&out).exists(), "{extra:?}: no output on failure");
+    }
+    let ts = [
+        "fit",
+        "--data",
+        &series,
+        D[0],
+        D[1],
+        D[2],
+        D[3],
+        "--time-series",
+        "--out",
+        &out,
+    ];
+    check(&ts, &["t[2]", "strictly increasing"], "time series");
+    let ts = [
+        "fit",
+        "--data",
+        &series,
+        D[0],
+        D[1],
+        D[2],
+        D[3],
+        "--time-series",
+        "--angle-index",
+        "2",
+        "--out",
+        &out,
+    ];
+    check(&ts, &["--angle-index[0]", "out of range"], "angle index");
+    check(
+        &[
+            "fit", "--data", &missing, D[0], D[1], D[2], D[3], "--out", &out,
+        ],
+        &["cannot read data file"],
+        "missing",
+    );
+    check(&["frobnicate"], &["frobnicate"], "unknown subcommand");
+    check(&["demo", "--grid", "1"], &["--grid"], "demo grid");
+    assert!(!Path::new(&out).exists());
+}

@@ -1,0 +1,348 @@
+#![allow(clippy::approx_constant)] // the literal values of interfaces.md
+//! `bayes-cbf moments` and `bayes-cbf control` through the real binary:
+//! the JSON of interfaces.md, agreement with the library, and bad input.
+
+mod common;
+
+use bayes_cbf::barrier::{cbc_moments, ConditionMoments, MomentWorkspace, PendulumSector};
+use bayes_cbf::gp::{InputMap, Mvgp, MvgpHyper, PriorMean, Rbf};
+use common::{run_in, scratch_dir};
+use nalgebra::DMatrix;
+use serde_json::Value;
+use std::path::Path;
+
+const MODEL: &str = r#"{
+  "state_dim": 2, "control_dim": 1,
+  "kernel": {"type": "rbf", "lengthscales": [0.7, 1.3], "variance": 1.5},
+  "A": [[1.0, 0.1], [0.1, 0.8]], "B": [[1.0, 0.2], [0.2, 0.5]],
+  "noise_sigma": 0.1, "prior_mean": "zero",
+  "data": {"x": [[0.1, 0.2], [1.0, -0.5], [0.9, 0.3]], "u": [[0.5], [-1.0], [2.0]], "xdot": [[0.2, -0.4], [-0.5, -9.0], [0.3, -5.0]]}
+}"#;
+
+const SECTOR: &str = r#"{"type": "pendulum_sector", "theta_c": 0.7854, "delta": 0.3927, "relative_degree": 2, "k_alpha": [1.0, 3.0]}"#;
+const SECTOR_RD1: &str = r#"{"type": "pendulum_sector", "theta_c": 0.7854, "delta": 0.3927, "relative_degree": 1, "alpha": 2.0}"#;
+
+fn write(dir: &Path, name: &str, text: &str) {
+    std::fs::write(dir.join(name), text).unwrap();
+}
+
+fn library_model() -> Mvgp {
+    let hyper = MvgpHyper {
+        kernel: Rbf::new(vec![0.7, 1.3], 1.5).unwrap(),
+        A: DMatrix::from_row_slice(2, 2, &[1.0, 0.1, 0.1, 0.8]),
+        B: DMatrix::from_row_slice(2, 2, &[1.0, 0.2, 0.2, 0.5]),
+        sigma: 0.1,
+    };
+    let mut m = Mvgp::new(2, 1, hyper, PriorMean::Zero, InputMap::Identity).unwrap();
+    m.set_data(
+        &[0.1, 0.2, 1.0, -0.5, 0.9, 0.3],
+        &[0.5, -1.0, 2.0],
+        &[0.2, -0.4, -0.5, -9.0, 0.3, -5.0],
+    )
+    .unwrap();
+    m
+}
+
+#[test]
+fn moments_match_the_library() {
+    let dir = scratch_dir("moments");
+    write(&dir, "model.json", MODEL);
+    write(&dir, "barrier.json", SECTOR);
+    let r = run_in(
+        &dir,
+        &[
+            "moments",
+            "--model",
+            "model.json",
+            "--barrier",
+            "barrier.json",
+            "--x",
+            "1.2,-0.4",
+            "--u=-0.7",
+        ],
+    );
+    assert!(r.status.success(), "{}", r.stderr);
+    let v: Value = serde_json::from_str(&r.stdout).unwrap();
+    assert_eq!(v["relative_degree"], 2);
+    let model = library_model();
+    let b = PendulumSector::new(0.7854, 0.3927, 2, vec![1.0, 3.0]).unwrap();
+    let mut ws = MomentWorkspace::new(&model);
+    ws.update(&model, &[1.2, -0.4], 2).unwrap();
+    let mut mom = ConditionMoments::zeros(1);
+    cbc_moments(&mut ws, &b, &mut mom).unwrap();
+    assert!((v["mean"].as_f64().unwrap() - mom.mean(&[-0.7])).abs() < 1e-12);
+    assert!((v["variance"].as_f64().unwrap() - mom.variance(&[-0.7])).abs() < 1e-12);
+    assert!(v["variance"].as_f64().unwrap() > 0.0);
+}
+
+#[test]
+fn control_returns_a_safe_optimal_input() {
+    let dir = scratch_dir("control");
+    write(&dir, "model.json", MODEL);
+    write(&dir, "b1.json", SECTOR_RD1);
+    // ω ≥ −10
+    write(
+        &dir,
+        "b2.json",
+        r#"{"type": "half_space", "normal": [0.0, 1.0], "offset": -10.0, "relative_degree": 1, "alpha": 1.0}"#,
+    );
+    let r = run_in(
+        &dir,
+        &[
+            "control",
+            "--model",
+            "model.json",
+            "--barrier",
+            "b1.json",
+            "--barrier",
+            "b2.json",
+            "--x",
+            "2.5,0.0",
+            "--probability",
+            "0.9",
+            "--u-ref=-3",
+            "--zeta",
+            "0.01",
+        ],
+    );
+    assert!(r.status.success(), "{}", r.stderr);
+    let v: Value = serde_json::from_str(&r.stdout).unwrap();
+    assert_eq!(v["status"], "optimal");
+    assert_eq!(v["u"].as_array().unwrap().len(), 1);
+    let cons = v["constraints"].as_array().unwrap();
+    assert_eq!(cons.len(), 2);
+    let c_gauss = 1.2815515655446004; // √2 erf⁻¹(0.8)
+    assert!((cons[0]["c"].as_f64().unwrap() - c_gauss).abs() < 1e-9);
+    assert!((cons[1]["c"].as_f64().unwrap() - c_gauss).abs() < 1e-9);
+    // the reference −3 is unsafe for the sector barrier: u moved up from it
+    assert!(v["u"][0].as_f64().unwrap() > -3.0);
+    for c in cons {
+        let (mean, std, cc) = (
+            c["mean"].as_f64().unwrap(),
+            c["std"].as_f64().unwrap(),
+            c["c"].as_f64().unwrap(),
+        );
+        assert!(mean - 0.01 - cc * std >= -1e-6, "{c}");
+        assert!((c["slack"].as_f64().unwrap() - (mean - 0.01 - cc * std)).abs() < 1e-9);
+    }
+}
+
+#[test]
+fn control_reports_infeasibility_and_fallback() {
+    let dir = scratch_dir("control_infeasible");
+    write(&dir, "model.json", MODEL);
+    write(&dir, "b.json", SECTOR);
+    // deep inside the unsafe sector with tight bounds: no input satisfies the condition
+    let r = run_in(
+        &dir,
+        &[
+            "control",
+            "--model",
+            "model.json",
+            "--barrier",
+            "b.json",
+            "--x",
+            "0.7854,-3.0",
+            "--probability",
+            "0.999",
+            "--u-min=-0.1",
+            "--u-max",
+            "0.1",
+            "--fallback",
+            "brake",
+        ],
+    );
+    assert!(r.status.success(), "{}", r.stderr);
+    let v: Value = serde_json::from_str(&r.stdout).unwrap();
+    assert_eq!(v["status"], "infeasible");
+    assert_eq!(v["fallback"], "brake");
+    assert_eq!(v["u"][0].as_f64().unwrap(), 0.0);
+    assert_eq!(v["violated"][0], 0);
+    // Cantelli factor for relative degree 2: √(p/(1−p))
+    let c = v["constraints"][0]["c"].as_f64().unwrap();
+    assert!((c - (0.999f64 / 0.001).sqrt()).abs() < 1e-6, "{c}");
+}
+
+#[test]
+fn bad_safety_input_names_the_field() {
+    let dir = scratch_dir("safety_errors");
+    write(&dir, "model.json", MODEL);
+    write(&dir, "b.json", SECTOR);
+    write(
+        &dir,
+        "bad_k.json",
+        r#"{"type": "pendulum_sector", "theta_c": 0.7854, "delta": 0.3927, "relative_degree": 2, "k_alpha": [1.0]}"#,
+    );
+    write(
+        &dir,
+        "ackermann.json",
+        r#"{"type": "circle_heading", "center": [0, 0], "radius": 1, "q1": 0.7, "q2": 0.3, "relative_degree": 1, "alpha": 5}"#,
+    );
+    write(
+        &dir,
+        "unknown.json",
+        r#"{"type": "pendulum_sector", "theta_c": 0.7854, "delta": 0.3927, "relative_degree": 1, "alpha": 1, "gamma": 2}"#,
+    );
+    write(&dir, "empty.json", "");
+    let base = ["control", "--model", "model.json", "--x", "1.4,0.0"];
+    let cases: Vec<(Vec<&str>, &str)> = vec![
+        (
+            [&base[..], &["--barrier", "b.json", "--probability", "1.5"]].concat(),
+            "probability",
+        ),
+        (
+            [
+                &base[..],
+                &["--barrier", "b.json", "--probability", "0.9", "--zeta=-1"],
+            ]
+            .concat(),
+            "zeta",
+        ),
+        (
+            [
+                &base[..],
+                &[
+                    "--barrier",
+                    "b.json",
+                    "--probability",
+                    "0.9",
+                    "--u-min",
+                    "1",
+                    "--u-max",
+                    "0",
+                ],
+            ]
+            .concat(),
+            "u-min",
+        ),
+        (
+            [
+                &base[..],
+                &[
+                    "--barrier",
+                    "b.json",
+                    "--probability",
+                    "0.9",
+                    "--u-min",
+                    "1",
+                ],
+            ]
+            .concat(),
+            "u_min",
+        ),
+        (
+            [
+                &base[..],
+                &[
+                    "--barrier",
+                    "b.json",
+                    "--probability",
+                    "0.9",
+                    "--u-ref",
+                    "1,2",
+                ],
+            ]
+            .concat(),
+            "--u-ref",
+        ),
+        (
+            [
+                &base[..],
+                &[
+                    "--barrier",
+                    "b.json",
+                    "--probability",
+                    "0.9",
+                    "--fallback",
+                    "panic",
+                ],
+            ]
+            .concat(),
+            "fallback",
+        ),
+        (
+            [
+                &base[..],
+                &["--barrier", "bad_k.json", "--probability", "0.9"],
+            ]
+            .concat(),
+            "k_alpha",
+        ),
+        (
+            [
+                &base[..],
+                &["--barrier", "ackermann.json", "--probability", "0.9"],
+            ]
+            .concat(),
+            "state dimension",
+        ),
+        (
+            [
+                &base[..],
+                &["--barrier", "unknown.json", "--probability", "0.9"],
+            ]
+            .concat(),
+            "gamma",
+        ),
+        (
+            [
+                &base[..],
+                &["--barrier", "empty.json", "--probability", "0.9"],
+            ]
+            .concat(),
+            "empty",
+        ),
+        (
+            [
+                &base[..],
+                &["--barrier", "missing.json", "--probability", "0.9"],
+            ]
+            .concat(),
+            "missing.json",
+        ),
+        (
+            vec![
+                "moments",
+                "--model",
+                "model.json",
+                "--barrier",
+                "b.json",
+                "--x",
+                "1,nan",
+                "--u",
+                "0",
+            ],
+            "--x",
+        ),
+        (
+            vec![
+                "moments",
+                "--model",
+                "model.json",
+                "--barrier",
+                "b.json",
+                "--x",
+                "1,0",
+                "--u",
+                "0,1",
+            ],
+            "--u",
+        ),
+    ];
+    for (args, field) in cases {
+        let r = run_in(&dir, &args);
+        assert!(!r.status.success(), "{args:?} should fail");
+        assert!(!r.stderr.contains("panicked"), "{args:?}: {}", r.stderr);
+        assert!(
+            r.stderr.contains(field),
+            "{args:?}: '{}' should name {field}",
+            r.stderr.trim()
+        );
+        assert_eq!(
+            r.stderr.trim().lines().count(),
+            1,
+            "{args:?}: one line: {}",
+            r.stderr
+        );
+    }
+}
