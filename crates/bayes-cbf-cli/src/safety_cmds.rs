@@ -4,7 +4,9 @@ use crate::barrier_file::BarrierSpec;
 use crate::model_file::ModelFile;
 use crate::util::{parse_vector, write_atomic};
 use anyhow::{bail, Context, Result};
-use bayes_cbf::barrier::{cbc_moments, ConditionMoments, MomentWorkspace};
+use bayes_cbf::barrier::{
+    cbc_moments, mc_cbc_moments, ConditionMoments, McSettings, MomentWorkspace,
+};
 use bayes_cbf::control::{
     ControlOutput, ControlStatus, Fallback, SafetyController, SafetySettings,
 };
@@ -28,6 +30,15 @@ pub struct MomentsArgs {
     /// Control, comma separated.
     #[arg(long, allow_hyphen_values = true)]
     pub u: String,
+    /// Monte Carlo draws for relative degree > 2 (no closed form exists).
+    #[arg(long, default_value_t = 20_000)]
+    pub samples: usize,
+    /// Finite-difference step of the Monte Carlo Lie derivatives.
+    #[arg(long, default_value_t = 1e-2)]
+    pub step: f64,
+    /// Seed of the Monte Carlo draws.
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
     /// Write the JSON here instead of stdout.
     #[arg(long)]
     pub out: Option<PathBuf>,
@@ -101,6 +112,14 @@ struct MomentsOut {
     h: f64,
     e: Vec<f64>,
     cov: Vec<Vec<f64>>,
+    /// "exact" (relative degree 1 and 2) or "monte_carlo".
+    method: &'static str,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    samples: Option<usize>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    mean_se: Option<f64>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    variance_se: Option<f64>,
 }
 
 /// Runs `bayes-cbf moments`.
@@ -119,11 +138,38 @@ pub fn run_moments(a: &MomentsArgs) -> Result<()> {
     }
     let x = vector_of_len("--x", &a.x, n, "state_dim")?;
     let u = vector_of_len("--u", &a.u, m, "control_dim")?;
-    let mut ws = MomentWorkspace::new(&model);
-    ws.update(&model, &x, barrier.degree()).context("--x")?;
-    let mut mom = ConditionMoments::zeros(m);
-    cbc_moments(&mut ws, barrier.as_ref(), &mut mom)
-        .with_context(|| format!("barrier '{}'", a.barrier.display()))?;
+    let label = format!("barrier '{}'", a.barrier.display());
+    let (mom, method, samples, mean_se, variance_se) = if barrier.degree() <= 2 {
+        let mut ws = MomentWorkspace::new(&model);
+        ws.update(&model, &x, barrier.degree()).context("--x")?;
+        let mut mom = ConditionMoments::zeros(m);
+        cbc_moments(&mut ws, barrier.as_ref(), &mut mom).with_context(|| label.clone())?;
+        (mom, "exact", None, None, None)
+    } else {
+        let settings = McSettings {
+            samples: a.samples,
+            step: a.step,
+            seed: a.seed,
+        };
+        let mc = mc_cbc_moments(&model, barrier.as_ref(), &x, &settings)
+            .map_err(|e| {
+                anyhow::anyhow!(
+                    "{}",
+                    e.to_string()
+                        .replace("invalid samples", "invalid --samples")
+                        .replace("invalid step", "invalid --step")
+                )
+            })
+            .with_context(|| label.clone())?;
+        let (se_m, se_v) = mc.standard_errors(&u);
+        (
+            mc.moments,
+            "monte_carlo",
+            Some(mc.samples),
+            Some(se_m),
+            Some(se_v),
+        )
+    };
     let cov = (0..m + 1)
         .map(|i| mom.cov.row(i).iter().copied().collect())
         .collect();
@@ -135,6 +181,10 @@ pub fn run_moments(a: &MomentsArgs) -> Result<()> {
             h: mom.value,
             e: mom.e.clone(),
             cov,
+            method,
+            samples,
+            mean_se,
+            variance_se,
         },
         &a.out,
     )
@@ -177,13 +227,6 @@ pub fn run_control(a: &ControlArgs) -> Result<()> {
                 "barrier '{}' is for state dimension {}, but the model's state_dim is {n}",
                 path.display(),
                 b.dim()
-            );
-        }
-        if b.degree() > 2 {
-            bail!(
-                "barrier '{}': relative_degree = {} (exact moments exist for 1 and 2)",
-                path.display(),
-                b.degree()
             );
         }
         barriers.push(b);

@@ -346,3 +346,58 @@ fn bad_safety_input_names_the_field() {
         );
     }
 }
+
+#[test]
+fn moments_beyond_relative_degree_two_use_monte_carlo() {
+    let dir = scratch_dir("moments_mc");
+    write(&dir, "model.json", MODEL);
+    write(
+        &dir,
+        "b3.json",
+        r#"{"type": "half_space", "normal": [1.0, 0.0], "offset": -2.0, "relative_degree": 3, "k_alpha": [1.0, 3.0, 3.0]}"#,
+    );
+    let args = [
+        "moments",
+        "--model",
+        "model.json",
+        "--barrier",
+        "b3.json",
+        "--x",
+        "0.5,0.1",
+        "--u",
+        "0.3",
+        "--samples",
+        "3000",
+        "--seed",
+        "4",
+    ];
+    let r = run_in(&dir, &args);
+    assert!(r.status.success(), "{}", r.stderr);
+    let v: Value = serde_json::from_str(&r.stdout).unwrap();
+    assert_eq!(v["method"], "monte_carlo");
+    assert_eq!(v["samples"], 3000);
+    assert!(v["mean_se"].as_f64().unwrap() > 0.0 && v["variance_se"].as_f64().unwrap() > 0.0);
+    // deterministic given the seed
+    assert_eq!(run_in(&dir, &args).stdout, r.stdout);
+    let exact = run_in(
+        &dir,
+        &[
+            "moments",
+            "--model",
+            "model.json",
+            "--barrier",
+            "b3.json",
+            "--x",
+            "0.5,0.1",
+            "--u",
+            "0.3",
+            "--samples",
+            "1",
+        ],
+    );
+    assert!(
+        !exact.status.success() && exact.stderr.contains("--samples"),
+        "{}",
+        exact.stderr
+    );
+}

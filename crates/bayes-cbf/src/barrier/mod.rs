@@ -10,10 +10,12 @@
 mod builtins;
 mod clf;
 mod moments;
+mod monte_carlo;
 
 pub use builtins::{CircleHeading, Disc, HalfSpace, PendulumSector};
 pub use clf::{AckermannClf, DynLyapunov, Lyapunov};
 pub use moments::{cbc_moments, clc_moments, quantile_factor, ConditionMoments, MomentWorkspace};
+pub use monte_carlo::{mc_cbc_moments, McMoments, McSettings};
 
 use crate::error::InputError;
 use num_dual::{Dual64, DualNum, HyperDual64};

@@ -2,8 +2,8 @@
 
 use super::socp::{ConeProgram, SocpShape, SolveStatus};
 use crate::barrier::{
-    cbc_moments, clc_moments, quantile_factor, ConditionMoments, DynBarrier, DynLyapunov,
-    MomentWorkspace,
+    cbc_moments, clc_moments, mc_cbc_moments, quantile_factor, ConditionMoments, DynBarrier,
+    DynLyapunov, McSettings, MomentWorkspace,
 };
 use crate::error::{check_finite, Error, InputError};
 use crate::gp::{Kernel, Mvgp};
@@ -561,6 +561,8 @@ pub struct SafetyController {
     cbcs: Vec<ConditionMoments>,
     clc: ConditionMoments,
     max_degree: usize,
+    mc: McSettings,
+    steps: u64,
 }
 
 impl std::fmt::Debug for SafetyController {
@@ -591,20 +593,18 @@ impl SafetyController {
                 ));
             }
             super::super::barrier::validate_gains(b.degree(), b.class_k())?;
-            if b.degree() > 2 {
-                return Err(InputError::invalid(
-                    &format!("barrier[{i}].relative_degree"),
-                    b.degree() as f64,
-                    "exact moments exist for relative degree 1 and 2",
-                ));
-            }
         }
         if let Some(c) = &clf {
             if c.dim() != n {
                 return Err(InputError::shape("clf state dimension", n, c.dim()));
             }
         }
-        let max_degree = barriers.iter().map(|b| b.degree()).max().unwrap_or(1);
+        let max_degree = barriers
+            .iter()
+            .map(|b| b.degree())
+            .max()
+            .unwrap_or(1)
+            .min(2);
         let filter = SafetyFilter::new(m, barriers.len(), clf.is_some(), settings)?;
         let nb = barriers.len();
         Ok(Self {
@@ -615,7 +615,19 @@ impl SafetyController {
             cbcs: vec![ConditionMoments::zeros(m); nb],
             clc: ConditionMoments::zeros(m),
             max_degree,
+            mc: McSettings {
+                samples: 2_000,
+                ..McSettings::default()
+            },
+            steps: 0,
         })
+    }
+
+    /// Monte Carlo settings used for barriers of relative degree > 2
+    /// (default 2 000 draws, step 10⁻², seed 0; the seed advances by one
+    /// each step).
+    pub fn set_monte_carlo(&mut self, mc: McSettings) {
+        self.mc = mc;
     }
 
     /// The filter (settings, probability).
@@ -654,8 +666,19 @@ impl SafetyController {
         let ws = self.ws.get_or_insert_with(|| MomentWorkspace::new(model));
         ws.update(model, x, self.max_degree)?;
         for (b, mom) in self.barriers.iter().zip(self.cbcs.iter_mut()) {
-            cbc_moments(ws, b.as_ref(), mom)?;
+            if b.degree() <= 2 {
+                cbc_moments(ws, b.as_ref(), mom)?;
+            } else {
+                // no closed form: Monte Carlo over joint posterior draws,
+                // a fresh deterministic seed each step
+                let mc = McSettings {
+                    seed: self.mc.seed.wrapping_add(self.steps),
+                    ..self.mc
+                };
+                *mom = mc_cbc_moments(model, b.as_ref(), x, &mc)?.moments;
+            }
         }
+        self.steps += 1;
         let clc = match &self.clf {
             Some(c) => {
                 let n = x.len();

@@ -1,0 +1,165 @@
+//! Monte Carlo moments for any relative degree: agreement with the exact
+//! relative-degree-2 moments, and with the closed form of a relative-degree-3
+//! triple integrator when the posterior is nearly deterministic.
+
+mod common;
+
+use bayes_cbf::barrier::{
+    cbc_moments, mc_cbc_moments, ConditionMoments, HalfSpace, McSettings, MomentWorkspace,
+    PendulumSector,
+};
+use bayes_cbf::gp::{InputMap, Mvgp, MvgpHyper, PriorMean, Rbf};
+use bayes_cbf::systems::{ControlAffine, DynSystem};
+use common::random_spd;
+use nalgebra::DMatrix;
+use num_dual::DualNum;
+use rand::{RngExt, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use std::sync::Arc;
+
+/// `ẋ1 = x2`, `ẋ2 = x3`, `ẋ3 = u`.
+struct TripleIntegrator;
+
+impl ControlAffine for TripleIntegrator {
+    fn state_dim(&self) -> usize {
+        3
+    }
+    fn control_dim(&self) -> usize {
+        1
+    }
+    fn dynamics<D: DualNum<Primitive = f64> + Copy>(&self, x: &[D], out: &mut [D]) {
+        let z = D::from(0.0);
+        out[0] = x[1];
+        out[1] = x[2];
+        out[2] = z;
+        out[3] = z;
+        out[4] = z;
+        out[5] = D::from(1.0);
+    }
+}
+
+#[test]
+fn relative_degree_two_matches_exact_moments() {
+    let mut rng = ChaCha8Rng::seed_from_u64(12);
+    let hyper = MvgpHyper {
+        kernel: Rbf::new(vec![1.2, 1.2], 1.0).unwrap(),
+        A: random_spd(2, &mut rng) * 0.5,
+        B: random_spd(2, &mut rng),
+        sigma: 0.3,
+    };
+    let mut model = Mvgp::new(2, 1, hyper, PriorMean::Zero, InputMap::Identity).unwrap();
+    let xs: Vec<f64> = (0..20).map(|_| rng.random_range(-1.5..1.5)).collect();
+    let us: Vec<f64> = (0..10).map(|_| rng.random_range(-1.0..1.0)).collect();
+    let xd: Vec<f64> = (0..20).map(|_| rng.random_range(-1.0..1.0)).collect();
+    model.set_data(&xs, &us, &xd).unwrap();
+    let b = PendulumSector::new(0.7854, 0.3927, 2, vec![1.0, 3.0]).unwrap();
+    let x = [1.2, -0.4];
+    let mut ws = MomentWorkspace::new(&model);
+    ws.update(&model, &x, 2).unwrap();
+    let mut exact = ConditionMoments::zeros(1);
+    cbc_moments(&mut ws, &b, &mut exact).unwrap();
+    let mc = mc_cbc_moments(
+        &model,
+        &b,
+        &x,
+        &McSettings {
+            samples: 40_000,
+            step: 1e-3,
+            seed: 1,
+        },
+    )
+    .unwrap();
+    assert_eq!(mc.samples, 40_000);
+    for u in [[-1.0], [0.0], [0.7]] {
+        let (se_m, se_v) = mc.standard_errors(&u);
+        let (em, ev) = (exact.mean(&u), exact.variance(&u));
+        let (mm, mv) = (mc.moments.mean(&u), mc.moments.variance(&u));
+        assert!(
+            (em - mm).abs() < 4.0 * se_m + 1e-3 * em.abs(),
+            "mean exact {em} MC {mm} ± {se_m}"
+        );
+        assert!(
+            (ev - mv).abs() < 4.0 * se_v + 1e-3 * ev,
+            "variance exact {ev} MC {mv} ± {se_v}"
+        );
+    }
+}
+
+#[test]
+fn relative_degree_three_triple_integrator() {
+    let prior: Arc<dyn DynSystem> = Arc::new(TripleIntegrator);
+    let hyper = MvgpHyper {
+        kernel: Rbf::new(vec![1.0; 3], 1.0).unwrap(),
+        A: DMatrix::identity(3, 3),
+        B: DMatrix::identity(2, 2) * 1e-16,
+        sigma: 0.1,
+    };
+    let model = Mvgp::new(3, 1, hyper, PriorMean::System(prior), InputMap::Identity).unwrap();
+    let c = 0.5;
+    let gains = vec![1.0, 3.0, 3.0];
+    let b = HalfSpace::new(vec![1.0, 0.0, 0.0], c, 3, gains.clone()).unwrap();
+    let x = [1.3, -0.4, 0.25];
+    let mc = mc_cbc_moments(
+        &model,
+        &b,
+        &x,
+        &McSettings {
+            samples: 200,
+            step: 1e-2,
+            seed: 2,
+        },
+    )
+    .unwrap();
+    // CBC⁽³⁾ = u + k0 (x1 − c) + k1 x2 + k2 x3: e = [k·η, 1]
+    let e0 = gains[0] * (x[0] - c) + gains[1] * x[1] + gains[2] * x[2];
+    assert!(
+        (mc.moments.e[0] - e0).abs() < 1e-6,
+        "{} vs {e0}",
+        mc.moments.e[0]
+    );
+    assert!((mc.moments.e[1] - 1.0).abs() < 1e-6, "{}", mc.moments.e[1]);
+    assert!(mc.moments.cov.abs().max() < 1e-6);
+    assert_eq!(mc.moments.relative_degree, 3);
+    // the exact path refuses relative degree 3 with a clear error
+    let mut ws = MomentWorkspace::new(&model);
+    ws.update(&model, &x, 2).unwrap();
+    let err = cbc_moments(&mut ws, &b, &mut ConditionMoments::zeros(1)).unwrap_err();
+    assert!(err.to_string().contains("relative_degree"), "{err}");
+}
+
+#[test]
+fn bad_settings_are_rejected() {
+    let hyper = MvgpHyper {
+        kernel: Rbf::new(vec![1.0; 2], 1.0).unwrap(),
+        A: DMatrix::identity(2, 2),
+        B: DMatrix::identity(2, 2),
+        sigma: 0.1,
+    };
+    let model = Mvgp::new(2, 1, hyper, PriorMean::Zero, InputMap::Identity).unwrap();
+    let b = PendulumSector::new(0.7854, 0.3927, 2, vec![1.0, 3.0]).unwrap();
+    assert!(mc_cbc_moments(
+        &model,
+        &b,
+        &[0.0, 0.0],
+        &McSettings {
+            samples: 1,
+            ..Default::default()
+        }
+    )
+    .unwrap_err()
+    .to_string()
+    .contains("samples"));
+    assert!(mc_cbc_moments(
+        &model,
+        &b,
+        &[0.0, 0.0],
+        &McSettings {
+            step: 0.0,
+            ..Default::default()
+        }
+    )
+    .unwrap_err()
+    .to_string()
+    .contains("step"));
+    assert!(mc_cbc_moments(&model, &b, &[0.0], &McSettings::default()).is_err());
+}
