@@ -52,7 +52,13 @@ fn relative_degree_two_matches_exact_moments() {
     let us: Vec<f64> = (0..10).map(|_| rng.random_range(-1.0..1.0)).collect();
     let xd: Vec<f64> = (0..20).map(|_| rng.random_range(-1.0..1.0)).collect();
     model.set_data(&xs, &us, &xd).unwrap();
-    let b = PendulumSector::new(0.7854, 0.3927, 2, vec![1.0, 3.0]).unwrap();
+    let b = PendulumSector::new(
+        std::f64::consts::FRAC_PI_4,
+        std::f64::consts::FRAC_PI_8,
+        2,
+        vec![1.0, 3.0],
+    )
+    .unwrap();
     let x = [1.2, -0.4];
     let mut ws = MomentWorkspace::new(&model);
     ws.update(&model, &x, 2).unwrap();
@@ -136,7 +142,13 @@ fn bad_settings_are_rejected() {
         sigma: 0.1,
     };
     let model = Mvgp::new(2, 1, hyper, PriorMean::Zero, InputMap::Identity).unwrap();
-    let b = PendulumSector::new(0.7854, 0.3927, 2, vec![1.0, 3.0]).unwrap();
+    let b = PendulumSector::new(
+        std::f64::consts::FRAC_PI_4,
+        std::f64::consts::FRAC_PI_8,
+        2,
+        vec![1.0, 3.0],
+    )
+    .unwrap();
     assert!(mc_cbc_moments(
         &model,
         &b,
