@@ -147,3 +147,29 @@ fn duplicate_points_with_tiny_noise_use_bounded_jitter() {
     assert!(p.mean.iter().all(|v| v.is_finite()));
     assert!(p.B.symmetric_eigenvalues().iter().all(|&e| e > -1e-8));
 }
+
+#[test]
+fn more_data_never_increases_posterior_variance() {
+    let (xs, us, xd) = data(60, 2, 1, 9);
+    let mut m = model(8);
+    let mut rng = ChaCha8Rng::seed_from_u64(10);
+    let probes: Vec<Vec<f64>> = (0..20)
+        .map(|_| (0..2).map(|_| rng.random_range(-2.5..2.5)).collect())
+        .collect();
+    let mut prev: Vec<nalgebra::DMatrix<f64>> =
+        probes.iter().map(|x| m.posterior(x).unwrap().B).collect();
+    for j in 0..60 {
+        m.add_observation(&xs[2 * j..2 * j + 2], &us[j..j + 1], &xd[2 * j..2 * j + 2])
+            .unwrap();
+        for (x, p) in probes.iter().zip(prev.iter_mut()) {
+            let b = m.posterior(x).unwrap().B;
+            // B_prev − B_new is positive semidefinite
+            let ev = (&*p - &b).symmetric_eigenvalues();
+            assert!(
+                ev.iter().all(|&e| e > -1e-9),
+                "variance grew at {x:?}: {ev}"
+            );
+            *p = b;
+        }
+    }
+}

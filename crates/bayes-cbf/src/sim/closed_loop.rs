@@ -97,7 +97,7 @@ pub struct StepRecord {
     pub p_star: Option<f64>,
     /// Time of the control step (posterior, moments, SOCP), µs.
     pub control_us: f64,
-    /// Observations in the model.
+    /// Observations in the model that computed this step's control.
     pub data_size: usize,
     /// A hyperparameter refit happened after this step.
     pub refit: bool,
@@ -177,6 +177,7 @@ pub fn run_closed_loop(
         let start = Instant::now();
         controller.step(&model, &x, &r.u_ref, Some((&r.xd, &r.xd_dot)), &mut out)?;
         let control_us = start.elapsed().as_secs_f64() * 1e6;
+        let data_size = model.len();
         let (status, p_star) = match &out.status {
             ControlStatus::Optimal => ("optimal", None),
             ControlStatus::AlmostOptimal => ("almost_optimal", None),
@@ -270,7 +271,7 @@ pub fn run_closed_loop(
             status,
             p_star,
             control_us,
-            data_size: model.len(),
+            data_size,
             refit,
             monitors: mon_min,
         });
