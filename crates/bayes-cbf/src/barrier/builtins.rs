@@ -119,7 +119,7 @@ impl Barrier for CircleHeading {
         let dx = x[0] - self.center[0];
         let dy = x[1] - self.center[1];
         let dist = (dx * dx + dy * dy - self.radius * self.radius) * self.q1;
-        let phi = dy.atan2(dx);
+        let phi = super::atan2(dy, dx);
         dist + (x[2] - phi).cos() * self.q2
     }
     fn relative_degree(&self) -> usize {

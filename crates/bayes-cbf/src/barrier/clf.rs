@@ -108,7 +108,7 @@ impl Lyapunov for AckermannClf {
         let bearing = if rho2.re() < 1e-12 {
             xd[2]
         } else {
-            dy.atan2(dx)
+            super::atan2(dy, dx)
         };
         let alpha = x[2] - bearing;
         rho2 * (0.5 * self.w1) + (D::from(1.0) - alpha.cos()) * self.w2

@@ -134,6 +134,33 @@ impl<T: Barrier> DynBarrier for T {
     }
 }
 
+/// `atan2(y, x)` on dual numbers with derivatives that stay finite when
+/// `x = 0` (num-dual differentiates `atan(y/x)`, which divides by zero on
+/// the y axis): `atan(y/x)` for `x > 0`, `±π/2 − atan(x/y)` for `y ≠ 0`,
+/// `atan(y/x) ± π` on the negative x axis. The derivative
+/// `(x dy − y dx)/(x² + y²)` is undefined only at the origin.
+pub fn atan2<D: DualNum<Primitive = f64> + Copy>(y: D, x: D) -> D {
+    use std::f64::consts::{FRAC_PI_2, PI};
+    let (yr, xr) = (y.re(), x.re());
+    if xr > 0.0 {
+        (y / x).atan()
+    } else if yr > 0.0 {
+        D::from(FRAC_PI_2) - (x / y).atan()
+    } else if yr < 0.0 {
+        D::from(-FRAC_PI_2) - (x / y).atan()
+    } else if xr < 0.0 {
+        // on the negative x axis: the branch cut of atan2 (±π)
+        let base = (y / x).atan();
+        if yr.is_sign_negative() {
+            base - PI
+        } else {
+            base + PI
+        }
+    } else {
+        y.atan2(x)
+    }
+}
+
 /// Checks a relative degree and its gains: `r ≥ 1`, `r` gains for `r ≥ 2`
 /// (one for `r = 1`), all finite and `≥ 0`.
 pub fn validate_gains(r: usize, gains: &[f64]) -> Result<(), InputError> {
@@ -156,4 +183,33 @@ pub fn validate_gains(r: usize, gains: &[f64]) -> Result<(), InputError> {
         }
     }
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn atan2_values_and_derivatives_everywhere_but_the_origin() {
+        for &(y, x) in &[
+            (0.3, 0.0),
+            (-0.3, 0.0),
+            (0.0, 0.7),
+            (0.0, -0.7),
+            (-0.0, -0.7),
+            (0.4, -0.2),
+            (-0.4, -0.2),
+            (1.0, 2.0),
+        ] {
+            let v: f64 = atan2(y, x);
+            assert!((v - f64::atan2(y, x)).abs() < 1e-15, "({y}, {x}): {v}");
+            let dy = atan2(Dual64::new(y, 1.0), Dual64::from(x)).eps;
+            let dx = atan2(Dual64::from(y), Dual64::new(x, 1.0)).eps;
+            let r2 = x * x + y * y;
+            assert!(
+                (dy - x / r2).abs() < 1e-12 && (dx + y / r2).abs() < 1e-12,
+                "({y}, {x}): {dy} {dx}"
+            );
+        }
+    }
 }

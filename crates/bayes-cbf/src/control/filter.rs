@@ -232,6 +232,18 @@ impl ControlOutput {
     }
 }
 
+/// The report of one barrier condition at `u`.
+fn report(mom: &ConditionMoments, c: f64, u: &[f64], zeta: f64) -> ConstraintReport {
+    let mean = mom.mean(u);
+    let std = mom.variance(u).sqrt();
+    ConstraintReport {
+        mean,
+        std,
+        c,
+        slack: mean - zeta - c * std,
+    }
+}
+
 /// The SOCP safety filter given condition moments (no GP inside): useful on
 /// its own, and the engine of [`SafetyController`].
 pub struct SafetyFilter {
@@ -240,7 +252,6 @@ pub struct SafetyFilter {
     program: ConeProgram,
     margin: Option<ConeProgram>,
     last_u: Vec<f64>,
-    ub: Vec<f64>,
 }
 
 impl std::fmt::Debug for SafetyFilter {
@@ -280,7 +291,6 @@ impl SafetyFilter {
             program,
             margin: None,
             last_u: vec![0.0; m],
-            ub: vec![0.0; m + 1],
         })
     }
 
@@ -294,17 +304,6 @@ impl SafetyFilter {
         quantile_factor(p, 1)?;
         self.settings.probability = p;
         Ok(())
-    }
-
-    fn report(&mut self, mom: &ConditionMoments, c: f64, u: &[f64]) -> ConstraintReport {
-        let mean = mom.mean(u);
-        let std = mom.variance(u).sqrt();
-        ConstraintReport {
-            mean,
-            std,
-            c,
-            slack: mean - self.settings.zeta - c * std,
-        }
     }
 
     /// Solves the SOCP for reference `u_ref` and writes the outcome.
@@ -342,8 +341,13 @@ impl SafetyFilter {
                     InputError::shape(&format!("moments[{i}].e"), m + 1, mom.e.len()).into(),
                 );
             }
-            check_finite(&format!("moments[{i}].e"), &mom.e)?;
-            check_finite(&format!("moments[{i}].cov"), mom.cov.as_slice())?;
+            // field names are formatted only on failure (no allocation per step)
+            if mom.e.iter().any(|v| !v.is_finite()) {
+                check_finite(&format!("moments[{i}].e"), &mom.e)?;
+            }
+            if mom.cov.iter().any(|v| !v.is_finite()) {
+                check_finite(&format!("moments[{i}].cov"), mom.cov.as_slice())?;
+            }
         }
         if out.u.len() != m || out.constraints.len() != cbcs.len() {
             *out = ControlOutput::new(m, cbcs.len());
@@ -378,23 +382,22 @@ impl SafetyFilter {
             let info = self.infeasible(cbcs, clc, status, out)?;
             out.status = ControlStatus::Infeasible(info);
         }
-        let u = out.u.clone();
         for (k, mom) in cbcs.iter().enumerate() {
             let c = quantile_factor(p, mom.relative_degree)?;
-            out.constraints[k] = self.report(mom, c, &u);
+            out.constraints[k] = report(mom, c, &out.u, zeta);
         }
+        let (u, delta) = (&out.u, out.delta);
         out.clf = clc.map(|mom| {
-            let mean = mom.mean(&u);
-            let std = mom.variance(&u).sqrt();
+            let mean = mom.mean(u);
+            let std = mom.variance(u).sqrt();
             ConstraintReport {
                 mean,
                 std,
                 c: c1,
-                slack: out.delta - mean - c1 * std,
+                slack: delta - mean - c1 * std,
             }
         });
         self.last_u.copy_from_slice(&out.u);
-        let _ = &self.ub;
         Ok(())
     }
 

@@ -1,0 +1,134 @@
+//! The control step (posterior, moments, SOCP) allocates nothing once its
+//! workspaces are warm: counted with a global allocator.
+
+use bayes_cbf::control::ControlOutput;
+use bayes_cbf::workloads::{ackermann_control, pendulum_control};
+use std::alloc::{GlobalAlloc, Layout, System};
+use std::cell::Cell;
+
+struct Counting;
+
+thread_local! {
+    // per test thread: tests run in parallel
+    static COUNTING: Cell<bool> = const { Cell::new(false) };
+    static ALLOCS: Cell<usize> = const { Cell::new(0) };
+}
+
+fn note() {
+    if COUNTING.with(Cell::get) {
+        ALLOCS.with(|a| a.set(a.get() + 1));
+    }
+}
+
+unsafe impl GlobalAlloc for Counting {
+    unsafe fn alloc(&self, layout: Layout) -> *mut u8 {
+        note();
+        unsafe { System.alloc(layout) }
+    }
+    unsafe fn dealloc(&self, ptr: *mut u8, layout: Layout) {
+        unsafe { System.dealloc(ptr, layout) }
+    }
+    unsafe fn realloc(&self, ptr: *mut u8, layout: Layout, new_size: usize) -> *mut u8 {
+        note();
+        unsafe { System.realloc(ptr, layout, new_size) }
+    }
+}
+
+#[global_allocator]
+static GLOBAL: Counting = Counting;
+
+fn count<F: FnMut()>(mut f: F) -> usize {
+    ALLOCS.with(|a| a.set(0));
+    COUNTING.with(|c| c.set(true));
+    f();
+    COUNTING.with(|c| c.set(false));
+    ALLOCS.with(Cell::get)
+}
+
+/// Allocations of 50 Ackermann control steps after warm-up.
+fn ackermann_step_allocations(k: usize) -> usize {
+    let mut w = ackermann_control(k, 3).unwrap();
+    let mut out = ControlOutput::new(2, 2);
+    let r = w.reference.clone().unwrap();
+    let mut x = w.x.clone();
+    for i in 0..5 {
+        x[0] = -3.0 + 0.013 * i as f64;
+        w.controller
+            .step(&w.model, &x, &w.u_ref, Some((&r.0, &r.1)), &mut out)
+            .unwrap();
+    }
+    count(|| {
+        for i in 0..50 {
+            x[0] = -3.0 + 0.013 * i as f64;
+            w.controller
+                .step(&w.model, &x, &w.u_ref, Some((&r.0, &r.1)), &mut out)
+                .unwrap();
+        }
+    })
+}
+
+/// The posterior and the moments of every condition allocate nothing; the
+/// whole step allocates only inside Clarabel, whose solve re-creates its
+/// nested timer maps: a small constant per step, independent of `k`.
+#[test]
+fn control_steps_do_not_allocate() {
+    faer::set_global_parallelism(faer::Par::Seq);
+    let small = ackermann_step_allocations(150);
+    let large = ackermann_step_allocations(600);
+    assert_eq!(small, large, "allocations depend on k: {small} vs {large}");
+    assert!(small <= 50 * 8, "{small} allocations in 50 steps");
+    eprintln!(
+        "control step: {} allocations per step, all in the SOCP solver's timers",
+        small / 50
+    );
+}
+
+#[test]
+fn posterior_and_moments_do_not_allocate() {
+    use bayes_cbf::barrier::{
+        cbc_moments, clc_moments, AckermannClf, CircleHeading, ConditionMoments, MomentWorkspace,
+        PendulumSector,
+    };
+    faer::set_global_parallelism(faer::Par::Seq);
+    let w = ackermann_control(150, 3).unwrap();
+    let mut ws = MomentWorkspace::new(&w.model);
+    let mut mom = ConditionMoments::zeros(2);
+    let b = CircleHeading::new([-1.1667, -1.5], 0.7906, 0.7, 0.3, 1, vec![5.0]).unwrap();
+    let clf = AckermannClf::new(0.9, 1.5, 10.0).unwrap();
+    let r = w.reference.clone().unwrap();
+    let mut x = w.x.clone();
+    let mut run = |x: &[f64]| {
+        ws.update(&w.model, x, 1).unwrap();
+        cbc_moments(&mut ws, &b, &mut mom).unwrap();
+        clc_moments(&mut ws, &clf, &r.0, &r.1, &mut mom).unwrap();
+    };
+    run(&x);
+    let n = count(|| {
+        for i in 0..50 {
+            x[1] = -1.0 + 0.01 * i as f64;
+            run(&x);
+        }
+    });
+    assert_eq!(n, 0, "relative degree 1: {n} allocations");
+    let w = pendulum_control(150, 3).unwrap();
+    let mut ws = MomentWorkspace::new(&w.model);
+    let mut mom = ConditionMoments::zeros(1);
+    let b = PendulumSector::new(
+        std::f64::consts::FRAC_PI_4,
+        std::f64::consts::FRAC_PI_8,
+        2,
+        vec![1.0, 3.0],
+    )
+    .unwrap();
+    let mut x = w.x.clone();
+    ws.update(&w.model, &x, 2).unwrap();
+    cbc_moments(&mut ws, &b, &mut mom).unwrap();
+    let n = count(|| {
+        for i in 0..50 {
+            x[1] = -0.01 + 0.01 * i as f64;
+            ws.update(&w.model, &x, 2).unwrap();
+            cbc_moments(&mut ws, &b, &mut mom).unwrap();
+        }
+    });
+    assert_eq!(n, 0, "relative degree 2: {n} allocations");
+}
