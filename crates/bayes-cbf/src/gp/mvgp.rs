@@ -157,23 +157,8 @@ impl<K: Kernel> Mvgp<K> {
         prior: PriorMean,
         input_map: InputMap,
     ) -> Result<Self, InputError> {
-        if n == 0 {
-            return Err(InputError::invalid("state_dim", 0.0, "must be ≥ 1"));
-        }
-        if m == 0 {
-            return Err(InputError::invalid("control_dim", 0.0, "must be ≥ 1"));
-        }
-        input_map.validate(n)?;
+        super::prior::check_model_dims(n, m, &input_map, &prior)?;
         hyper.validate(n, m, input_map.output_dim(n))?;
-        if let Some((pn, pm)) = prior.dims() {
-            if (pn, pm) != (n, m) {
-                return Err(InputError::shape(
-                    "prior_mean",
-                    format!("system with n = {n}, m = {m}"),
-                    format!("n = {pn}, m = {pm}"),
-                ));
-            }
-        }
         Ok(Self {
             n,
             m,

@@ -24,6 +24,34 @@ impl std::fmt::Debug for PriorMean {
     }
 }
 
+/// Checks the dimensions shared by every model of `F(x)`: `n, m ≥ 1`, the
+/// input map against `n`, and a system prior mean against `(n, m)`.
+pub(crate) fn check_model_dims(
+    n: usize,
+    m: usize,
+    input_map: &super::InputMap,
+    prior: &PriorMean,
+) -> Result<(), crate::error::InputError> {
+    use crate::error::InputError;
+    if n == 0 {
+        return Err(InputError::invalid("state_dim", 0.0, "must be ≥ 1"));
+    }
+    if m == 0 {
+        return Err(InputError::invalid("control_dim", 0.0, "must be ≥ 1"));
+    }
+    input_map.validate(n)?;
+    if let Some((pn, pm)) = prior.dims() {
+        if (pn, pm) != (n, m) {
+            return Err(InputError::shape(
+                "prior_mean",
+                format!("system with n = {n}, m = {m}"),
+                format!("n = {pn}, m = {pm}"),
+            ));
+        }
+    }
+    Ok(())
+}
+
 impl PriorMean {
     /// Writes `vec M0(x)` (column-major `n × (1+m)`) into `out`.
     #[inline]
