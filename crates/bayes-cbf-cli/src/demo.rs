@@ -44,7 +44,7 @@ pub enum Sampling {
 #[derive(Debug, Clone, PartialEq, Args)]
 pub struct DemoArgs {
     /// Output directory.
-    #[arg(long, default_value = "runs/demo")]
+    #[arg(long, default_value = "runs/learning-demo")]
     pub out: PathBuf,
     /// Seed of every random choice (initial states, torques, splits, fit).
     #[arg(long, default_value_t = 0)]
@@ -85,7 +85,7 @@ pub struct DemoArgs {
 impl Default for DemoArgs {
     fn default() -> Self {
         Self {
-            out: PathBuf::from("runs/demo"),
+            out: PathBuf::from("runs/learning-demo"),
             seed: 0,
             steps: 200,
             heldout: 100,

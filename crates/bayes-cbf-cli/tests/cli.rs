@@ -428,17 +428,47 @@ fn demo_writes_its_files_deterministically() {
 }
 
 #[test]
-fn default_job_runs_the_full_demo() {
+fn default_job_runs_the_closed_loop_comparison() {
     let dir = scratch_dir("default_job");
     let out = run_in(&dir, &[]);
     assert!(out.status.success(), "{}", out.stderr);
-    let summary: Value =
-        serde_json::from_str(&std::fs::read_to_string(dir.join("runs/demo/summary.json")).unwrap())
-            .unwrap();
+    assert!(
+        out.stderr.contains("runs/demo/comparison.png"),
+        "{}",
+        out.stderr
+    );
+    for f in [
+        "comparison.png",
+        "mean-cbf/summary.json",
+        "mean-cbf/animation.gif",
+        "bayes-cbf/trajectory.png",
+        "bayes-cbf/timeseries.png",
+    ] {
+        assert!(dir.join("runs/demo").join(f).is_file(), "{f} missing");
+    }
+    let read = |d: &str| -> Value {
+        serde_json::from_str(
+            &std::fs::read_to_string(dir.join("runs/demo").join(d).join("summary.json")).unwrap(),
+        )
+        .unwrap()
+    };
+    assert_eq!(read("mean-cbf")["collided"], true);
+    assert_eq!(read("bayes-cbf")["collided"], false);
+}
+
+#[test]
+fn learning_demo_fits_the_pendulum() {
+    let dir = scratch_dir("learning_demo");
+    let out = run_in(&dir, &["demo"]);
+    assert!(out.status.success(), "{}", out.stderr);
+    let summary: Value = serde_json::from_str(
+        &std::fs::read_to_string(dir.join("runs/learning-demo/summary.json")).unwrap(),
+    )
+    .unwrap();
     assert_eq!(summary["training_samples"], 200);
     assert_eq!(summary["grid"], 20);
     assert_eq!(
-        std::fs::read_to_string(dir.join("runs/demo/grid.csv"))
+        std::fs::read_to_string(dir.join("runs/learning-demo/grid.csv"))
             .unwrap()
             .lines()
             .count(),
