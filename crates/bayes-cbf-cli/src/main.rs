@@ -6,14 +6,21 @@
 //! bad field or value; JSON results go to stdout unless `--out` is given.
 
 mod barrier_file;
+mod bench;
 mod commands;
 mod csv_data;
 mod demo;
+mod experiments;
+#[cfg(test)]
+mod fuzz_tests;
 mod input_map_spec;
 mod logger;
 mod model_file;
+mod plot;
 mod prior_spec;
+mod run_cmd;
 mod safety_cmds;
+mod scenario;
 mod util;
 
 use clap::{Parser, Subcommand};
@@ -44,6 +51,12 @@ enum Command {
     Moments(safety_cmds::MomentsArgs),
     /// Safe control: the chance-constrained SOCP for one state.
     Control(safety_cmds::ControlArgs),
+    /// Run a built-in scenario or experiment, or a scenario TOML file.
+    Run(run_cmd::RunArgs),
+    /// List the built-in scenarios and experiments.
+    List,
+    /// Time the real workloads (control step, update, prediction, fits, streams) as JSON.
+    Bench(bench::BenchArgs),
     /// Pendulum learning demo: simulate, fit, evaluate on a grid.
     Demo(demo::DemoArgs),
 }
@@ -90,8 +103,11 @@ fn main() -> ExitCode {
         Some(Command::Predict(a)) => commands::run_predict(a),
         Some(Command::Demo(a)) => demo::run_demo(a),
         Some(Command::Moments(a)) => safety_cmds::run_moments(a),
+        Some(Command::Run(a)) => run_cmd::run(a),
+        Some(Command::List) => run_cmd::list(),
+        Some(Command::Bench(a)) => bench::run_bench(a),
         Some(Command::Control(a)) => safety_cmds::run_control(a),
-        None => demo::run_demo(&demo::DemoArgs::default()),
+        None => run_cmd::default_job(),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

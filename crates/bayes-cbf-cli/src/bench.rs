@@ -1,0 +1,289 @@
+//! `bayes-cbf bench`: timings of the real workloads as JSON, each next to
+//! the memory-bound floor of an exact posterior (one triangular solve with
+//! the `k × k` factor) measured in the same run.
+
+use crate::util::write_atomic;
+use anyhow::{bail, Context, Result};
+use bayes_cbf::control::ControlOutput;
+use bayes_cbf::gp::{
+    fit, fit_cogp, Cogp, CogpFitSettings, CogpHyper, FitSettings, InputMap, Mvgp, MvgpHyper,
+    PriorMean, Rbf,
+};
+use bayes_cbf::workloads::{
+    ackermann_control, ackermann_data, pendulum_control, pendulum_data, ControlWorkload,
+};
+use clap::Args;
+use nalgebra::DMatrix;
+use serde_json::{json, Value};
+use std::io::Write;
+use std::path::PathBuf;
+use std::time::Instant;
+
+/// Arguments of `bayes-cbf bench`.
+#[derive(Debug, Args)]
+pub struct BenchArgs {
+    /// Reduced sizes and repetitions (seconds instead of minutes).
+    #[arg(long)]
+    pub quick: bool,
+    /// Write the JSON here instead of stdout.
+    #[arg(long)]
+    pub out: Option<PathBuf>,
+    /// Threads for faer's dense linear algebra (default 1: single core).
+    #[arg(long, default_value_t = 1)]
+    pub threads: usize,
+}
+
+fn percentile(v: &mut [f64], q: f64) -> f64 {
+    v.sort_by(|a, b| a.total_cmp(b));
+    if v.is_empty() {
+        return f64::NAN;
+    }
+    v[((v.len() - 1) as f64 * q).round() as usize]
+}
+
+fn round(x: f64) -> f64 {
+    (x * 100.0).round() / 100.0
+}
+
+/// Microseconds of `f` over `reps` calls: (p50, p99).
+fn time_us(reps: usize, mut f: impl FnMut(usize)) -> (f64, f64) {
+    let mut t = Vec::with_capacity(reps);
+    for i in 0..reps {
+        let s = Instant::now();
+        f(i);
+        t.push(s.elapsed().as_secs_f64() * 1e6);
+    }
+    (
+        round(percentile(&mut t, 0.5)),
+        round(percentile(&mut t, 0.99)),
+    )
+}
+
+fn control_row(
+    system: &str,
+    rd: usize,
+    k: usize,
+    reps: usize,
+    w: &mut ControlWorkload,
+) -> Result<Value> {
+    let m = w.model.m();
+    let mut out = ControlOutput::new(m, 2);
+    let r = w.reference.clone();
+    let mut x = w.x.clone();
+    let mut err = None;
+    let (p50, p99) = time_us(reps, |i| {
+        x[0] = w.x[0] + 1e-4 * (i % 50) as f64;
+        let reference = r.as_ref().map(|(a, b)| (a.as_slice(), b.as_slice()));
+        if let Err(e) = w
+            .controller
+            .step(&w.model, &x, &w.u_ref, reference, &mut out)
+        {
+            err = Some(e);
+        }
+    });
+    if let Some(e) = err {
+        bail!("control step ({system}, k = {k}): {e}");
+    }
+    Ok(
+        json!({"case": "control_step", "system": system, "relative_degree": rd, "k": k, "p50_us": p50, "p99_us": p99}),
+    )
+}
+
+fn floor_row(model: &Mvgp, k: usize, reps: usize) -> Value {
+    let mut rhs = faer::Mat::<f64>::zeros(k, 1);
+    let (p50, _) = time_us(reps, |i| {
+        for j in 0..k {
+            rhs[(j, 0)] = ((i + j) % 7) as f64;
+        }
+        model.factor().solve_l_in_place(rhs.as_mut());
+    });
+    json!({"case": "floor", "k": k, "p50_us": p50})
+}
+
+fn fit_rows(system: &str, k: usize, reps: usize, iters: u64) -> Result<Vec<Value>> {
+    let (n, m, d, data, map, prior) = match system {
+        "ackermann" => (
+            3,
+            2,
+            1,
+            ackermann_data(k, 1.0, 11)?,
+            InputMap::Select(vec![2]),
+            PriorMean::Zero,
+        ),
+        _ => (
+            2,
+            1,
+            2,
+            pendulum_data(k, 11)?,
+            InputMap::Identity,
+            PriorMean::Zero,
+        ),
+    };
+    let mut mv = Vec::new();
+    let mut co = Vec::new();
+    for _ in 0..reps {
+        let hyper = MvgpHyper {
+            kernel: Rbf::new(vec![1.0; d], 1.0)?,
+            A: DMatrix::identity(n, n),
+            B: DMatrix::identity(m + 1, m + 1),
+            sigma: 0.1,
+        };
+        let mut model = Mvgp::new(n, m, hyper, prior.clone(), map.clone())?;
+        model.set_data(&data.xs, &data.us, &data.xdot)?;
+        let s = Instant::now();
+        fit(
+            &mut model,
+            &FitSettings {
+                max_iters: iters,
+                ..FitSettings::default()
+            },
+        )?;
+        mv.push(s.elapsed().as_secs_f64() * 1e3);
+        let np = n * (m + 1);
+        let ch = CogpHyper {
+            kernel: Rbf::new(vec![1.0; d], 1.0)?,
+            Sigma: DMatrix::identity(np, np),
+            S: DMatrix::identity(n, n) * 0.01,
+        };
+        let mut cogp = Cogp::new(n, m, ch, prior.clone(), map.clone())?;
+        cogp.set_data(&data.xs, &data.us, &data.xdot)?;
+        let s = Instant::now();
+        fit_cogp(
+            &mut cogp,
+            &CogpFitSettings {
+                max_iters: iters,
+                prefit_diagonal: false,
+                ..CogpFitSettings::default()
+            },
+        )?;
+        co.push(s.elapsed().as_secs_f64() * 1e3);
+    }
+    let (m50, c50) = (
+        round(percentile(&mut mv, 0.5)),
+        round(percentile(&mut co, 0.5)),
+    );
+    Ok(vec![
+        json!({"case": "fit", "model": "mvgp", "system": system, "k": k, "max_iters": iters, "p50_ms": m50}),
+        json!({"case": "fit", "model": "cogp", "system": system, "k": k, "max_iters": iters, "p50_ms": c50, "ratio_to_mvgp": round(c50 / m50)}),
+    ])
+}
+
+fn stream_row(steps: usize, window: usize) -> Result<Value> {
+    let mut w = ackermann_control(window, 5)?;
+    let extra = ackermann_data(steps, 12.0, 6)?;
+    let mut out = ControlOutput::new(2, 2);
+    let r = w.reference.clone().context("reference")?;
+    let mut times = Vec::with_capacity(steps);
+    for j in 0..steps {
+        let x = &extra.xs[3 * j..3 * j + 3];
+        let s = Instant::now();
+        w.controller
+            .step(&w.model, x, &w.u_ref, Some((&r.0, &r.1)), &mut out)?;
+        w.model.add_observation(
+            x,
+            &extra.us[2 * j..2 * j + 2],
+            &extra.xdot[3 * j..3 * j + 3],
+        )?;
+        w.model.remove_oldest();
+        times.push(s.elapsed().as_secs_f64() * 1e6);
+    }
+    let first: Vec<f64> = times[..steps / 10].to_vec();
+    let last: Vec<f64> = times[steps - steps / 10..].to_vec();
+    let (mut f, mut l) = (first, last);
+    Ok(json!({
+        "case": "stream", "system": "ackermann", "steps": steps, "window": window,
+        "p50_us": round(percentile(&mut times.clone(), 0.5)), "p99_us": round(percentile(&mut times, 0.99)),
+        "p50_us_first_tenth": round(percentile(&mut f, 0.5)), "p50_us_last_tenth": round(percentile(&mut l, 0.5)),
+    }))
+}
+
+/// Runs `bayes-cbf bench`.
+pub fn run_bench(a: &BenchArgs) -> Result<()> {
+    if a.threads == 0 || a.threads > 256 {
+        bail!("--threads = {}: must be in 1..=256", a.threads);
+    }
+    faer::set_global_parallelism(if a.threads == 1 {
+        faer::Par::Seq
+    } else {
+        faer::Par::rayon(a.threads)
+    });
+    let ks: &[usize] = if a.quick {
+        &[100, 200]
+    } else {
+        &[100, 200, 300, 1000, 3000]
+    };
+    let reps = |k: usize| {
+        if a.quick || k >= 3000 {
+            200
+        } else {
+            1000
+        }
+    };
+    let mut rows = Vec::new();
+    for &k in ks {
+        eprintln!("bench: k = {k}");
+        let mut w = ackermann_control(k, 0)?;
+        rows.push(control_row("ackermann", 1, k, reps(k), &mut w)?);
+        let mut p = pendulum_control(k, 0)?;
+        rows.push(control_row("pendulum", 2, k, reps(k), &mut p)?);
+        let e = p.extra.clone();
+        // one observation added to a model of size k (a fresh copy each time, not timed)
+        let adds = if k >= 3000 {
+            20
+        } else if k >= 1000 {
+            60
+        } else {
+            200
+        };
+        let mut t_add = Vec::with_capacity(adds);
+        let mut t_remove = Vec::with_capacity(adds);
+        for i in 0..adds {
+            let j = i % e.len();
+            let mut model = p.model.clone();
+            let s = Instant::now();
+            model.add_observation(
+                &e.xs[2 * j..2 * j + 2],
+                &e.us[j..j + 1],
+                &e.xdot[2 * j..2 * j + 2],
+            )?;
+            t_add.push(s.elapsed().as_secs_f64() * 1e6);
+            let s = Instant::now();
+            model.remove_oldest();
+            t_remove.push(s.elapsed().as_secs_f64() * 1e6);
+        }
+        rows.push(json!({"case": "add_observation", "system": "pendulum", "k": k, "p50_us": round(percentile(&mut t_add, 0.5)), "p99_us": round(percentile(&mut t_add, 0.99))}));
+        rows.push(json!({"case": "remove_oldest", "system": "pendulum", "k": k, "p50_us": round(percentile(&mut t_remove, 0.5)), "p99_us": round(percentile(&mut t_remove, 0.99))}));
+        let mut ws = p.model.workspace();
+        let mut post = p.model.posterior(&p.x)?;
+        let mut x = p.x.clone();
+        let (p50, p99) = time_us(reps(k), |i| {
+            x[1] = -0.01 + 1e-3 * (i % 100) as f64;
+            let _ = p.model.posterior_into(&x, &mut ws, &mut post);
+        });
+        rows.push(
+            json!({"case": "predict", "system": "pendulum", "k": k, "p50_us": p50, "p99_us": p99}),
+        );
+        rows.push(floor_row(&p.model, k, reps(k)));
+    }
+    let (fit_k, fit_reps, iters) = if a.quick { (100, 1, 10) } else { (500, 3, 30) };
+    eprintln!("bench: fits at k = {fit_k}");
+    rows.extend(fit_rows("ackermann", fit_k, fit_reps, iters)?);
+    rows.extend(fit_rows("pendulum", fit_k, fit_reps, iters)?);
+    eprintln!("bench: stream");
+    rows.push(if a.quick {
+        stream_row(2_000, 200)?
+    } else {
+        stream_row(20_000, 1_000)?
+    });
+    let mut text = serde_json::to_string_pretty(
+        &json!({"threads": a.threads, "quick": a.quick, "rows": rows}),
+    )?;
+    text.push('\n');
+    match &a.out {
+        Some(p) => write_atomic(p, text.as_bytes()),
+        None => std::io::stdout()
+            .lock()
+            .write_all(text.as_bytes())
+            .context("cannot write to stdout"),
+    }
+}
