@@ -158,16 +158,18 @@ pub(crate) const TRAJECTORY_LEN: usize = 20;
 /// (footnote 1) plus `N(0, 0.01²)` measurement noise ([`XDOT_NOISE`]).
 /// Each difference quotient `(x_{j+1} − x_j)/dt` is paired
 /// with the midpoint `x_j + ½ dt ẋ_j` of its step, where it matches
-/// `F(x)u̲_j` to `O(dt²)` (at `x_j` only to `O(dt)`): with seed 0 this cut the
-/// grid RMSE of the fitted MVGP from 0.068 to 0.001, and made its
-/// variance-weighted error 5.2 instead of 1.4e4 (the forward-difference bias
-/// is systematic, so the nearly noise-free fit was badly overconfident).
+/// `F(x)u̲_j` to `O(dt²)` (at `x_j` only to `O(dt)`). Measured with seed 0
+/// on noise-free data and the `(cos θ, sin θ, ω)` kernel input, this cut the
+/// grid RMSE of the fitted MVGP from 0.068 to 0.001 and its
+/// variance-weighted error from 1.4e4 to 5.2: the forward-difference bias is
+/// systematic, so the nearly noise-free fit was badly overconfident.
 /// The noise keeps the fits well posed: on exactly smooth data the
 /// likelihood drives the signal variance up and the posterior covariance
-/// down to where roundoff makes it indefinite (the CoGP's variance-weighted
-/// error then needed the extended jitter of [`variance_weighted`] and came
-/// out at 57 vs the MVGP's 5.8; with the noise both are near the calibrated
-/// value √(n(1+m)) = 2: 1.2 and 1.6).
+/// down to where roundoff makes it indefinite (with the identity kernel
+/// input and seed 0, the CoGP's variance-weighted error on the grid then
+/// needed the extended jitter of [`variance_weighted`] and came out at 57
+/// vs the MVGP's 5.8; with the noise, 1.2 and 1.6, near the calibrated
+/// value √(n(1+m)) = 2).
 pub(crate) fn pendulum_samples<R: Rng>(pend: &Pendulum, k: usize, rng: &mut R) -> Result<Dataset> {
     let mut ds = Dataset {
         n: 2,

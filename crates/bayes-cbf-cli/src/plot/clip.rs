@@ -153,7 +153,7 @@ pub(crate) fn ticks(lo: f64, hi: f64, log: bool) -> Vec<f64> {
         (first..=last).take(50).map(|i| i as f64 * step).collect()
     };
     if !log {
-        return linear(lo, hi, 6.0);
+        return linear(lo, hi, 8.0);
     }
     let (a, b) = (lo.log10(), hi.log10());
     let decades = b - a;

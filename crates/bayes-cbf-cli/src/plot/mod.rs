@@ -23,11 +23,6 @@
 //! # Ok(()) }
 //! ```
 
-// The API also serves the closed-loop scenario figures (obstacles, vehicle
-// poses, unsafe sectors), which are wired in separately; until every layer
-// kind has a caller in the binary, unused items must not fail the build.
-#![allow(dead_code)]
-
 mod clip;
 mod colormap;
 mod draw;
@@ -46,8 +41,6 @@ pub use colormap::finite_min_max as finite_range;
 /// The embedded font family name used by every text element.
 pub(crate) const FONT: &str = "sans-serif";
 
-/// Number of distinct palette colours before [`BLACK`] and [`GREY`].
-pub const PALETTE_LEN: usize = 10;
 /// Palette index of black.
 pub const BLACK: usize = 10;
 /// Palette index of grey.
@@ -97,6 +90,7 @@ pub enum LegendPos {
     #[default]
     UpperRight,
     /// Lower left.
+    #[allow(dead_code)] // declarative API: no caller in the binary yet
     LowerLeft,
     /// Lower right.
     LowerRight,
@@ -134,6 +128,7 @@ pub enum Layer {
         color: usize,
     },
     /// Shaded region between `lo` and `hi` over `xs` (e.g. ±2σ).
+    #[allow(dead_code)] // declarative API: no caller in the binary yet
     Band {
         xs: Vec<f64>,
         lo: Vec<f64>,
@@ -205,31 +200,6 @@ impl Layer {
             color,
             width: 2,
             dashed: false,
-        }
-    }
-
-    /// Named circle markers of 4 pixels.
-    pub fn scatter(name: &str, xs: Vec<f64>, ys: Vec<f64>, color: usize) -> Self {
-        Layer::Scatter {
-            name: Some(name.to_string()),
-            xs,
-            ys,
-            color,
-            size: 4,
-            shape: PointShape::Circle,
-        }
-    }
-
-    /// A heat map with automatic colour range and no zero contour.
-    pub fn heatmap(label: &str, xs: Vec<f64>, ys: Vec<f64>, values: Vec<f64>) -> Self {
-        Layer::Heatmap {
-            xs,
-            ys,
-            values,
-            zero_contour: false,
-            label: label.to_string(),
-            diverging: false,
-            range: None,
         }
     }
 }

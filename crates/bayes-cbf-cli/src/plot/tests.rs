@@ -82,12 +82,14 @@ fn all_layers_figure() -> Figure {
             width: 3,
             dashed: true,
         },
-        Layer::scatter(
-            "samples",
-            xs.clone(),
-            ys.iter().map(|y| y + 0.1).collect(),
-            2,
-        ),
+        Layer::Scatter {
+            name: Some("samples".into()),
+            xs: xs.clone(),
+            ys: ys.iter().map(|y| y + 0.1).collect(),
+            color: 2,
+            size: 4,
+            shape: PointShape::Circle,
+        },
         Layer::Scatter {
             name: Some("plus".into()),
             xs: vec![1.0, 2.0],

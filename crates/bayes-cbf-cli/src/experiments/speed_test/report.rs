@@ -4,17 +4,26 @@
 
 use super::{variant, Outcome, System, MAX_ITERS};
 use crate::experiments::{num, quantile, ModelKind};
-use crate::plot::{render_png, Figure, Layer, LegendPos, Panel, BLACK};
+use crate::plot::{render_png, Figure, Layer, LegendPos, Panel, BLACK, GREY};
 use crate::util::write_atomic;
 use anyhow::Result;
 use serde_json::{json, Value};
 use std::path::Path;
 
 /// Why [`MAX_ITERS`] is what it is (copied into `summary.json`).
-pub(super) const ITERATION_NOTE: &str = "L-BFGS is capped at max_iters iterations per start \
-(the CoGP full fit runs its diagonal pre-fit with the same cap). The full run's cost is \
-dominated by the CoGP fits at the largest k; the cap was chosen so that the full run \
-finishes in about 20 minutes on 2 cores (see the module docs of speed_test.rs).";
+pub(super) const ITERATION_NOTE: &str = "L-BFGS is capped at max_iters iterations per \
+start (the CoGP full fit runs its diagonal pre-fit with the same cap). Uncapped (100), a CoGP \
+full fit of 200 pendulum samples took 1000-1350 objective evaluations; at k = 1024 one costs \
+about 0.35 s, so those 30 fits alone would take hours. With the cap of 15 the full run \
+(1200 fits) took 1209 s on one core of a 2-vCPU Intel Xeon; CoGP full fits use 46-50 \
+evaluations, the other models 21-28, and the capped fits are near-calibrated \
+(variance-weighted error close to sqrt(n(1+m))).";
+
+/// Why timings depend on the thread count (copied into `summary.json`).
+pub(super) const TIMING_NOTE: &str = "Fits run in parallel on `threads` rayon threads \
+(RAYON_NUM_THREADS). Concurrent fits slow each other down (about 2x per fit with 2 threads \
+on a 2-vCPU machine, unevenly), so compare timings from RAYON_NUM_THREADS=1 runs; the \
+errors do not depend on the thread count.";
 
 /// Median and 2nd/9th deciles of a sample.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -248,7 +257,7 @@ pub(super) fn plots(table: &[Row], ratios: &[Value], out: &Path) -> Result<()> {
         });
         p.layers.push(Layer::HLine {
             y: 1.0,
-            color: 11,
+            color: GREY,
             dashed: false,
             name: None,
         });
