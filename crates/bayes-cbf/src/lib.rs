@@ -7,9 +7,15 @@
 //!
 //! ## Modules
 //! - [`systems`]: the [`systems::ControlAffine`] trait and built-in systems.
-//! - [`sim`]: zero-order-hold simulation and derivative estimation.
-//! - [`gp`]: MVGP regression, kernels, hyperparameter learning.
-//! - [`barrier`]: barrier and Lyapunov functions and their moments.
+//! - [`sim`]: zero-order-hold simulation, datasets, references (planner,
+//!   ε-greedy) and the closed loop with online learning.
+//! - [`gp`]: MVGP and CoGP regression, kernels, input maps, hyperparameter
+//!   learning, the joint posterior of `F` and its Jacobian, error metrics.
+//! - [`barrier`]: barrier and Lyapunov functions and the moments of their
+//!   conditions (exact for relative degree 1 and 2, Monte Carlo beyond).
+//! - [`control`]: the chance-constrained SOCP safety filter (Clarabel),
+//!   infeasibility outcomes and fallbacks.
+//! - [`workloads`]: the standard benchmark workloads.
 //!
 //! ## Error policy
 //! Programming errors (a slice of the wrong length passed between internal
