@@ -13,14 +13,18 @@ pub fn write_figures(out: &RunOutput, dir: &Path) -> Result<Vec<PathBuf>> {
     if !out.scenario.outputs.plots {
         return Ok(files);
     }
-    if out.built.obstacles.is_empty() && out.built.truth.n() == 2 {
-        files.push(pendulum(out, dir)?);
-    } else {
-        files.push(vehicle_map(out, dir)?);
-        files.push(vehicle_series(out, dir)?);
-        if out.scenario.outputs.animation {
-            files.push(animation(out, dir)?);
+    // figures by the system's shape: the pendulum (n = 2, m = 1) and the
+    // Ackermann vehicle (n = 3, m = 2); other systems get summary and CSV only
+    match (out.built.truth.n(), out.built.truth.m()) {
+        (2, 1) => files.push(pendulum(out, dir)?),
+        (3, 2) => {
+            files.push(vehicle_map(out, dir)?);
+            files.push(vehicle_series(out, dir)?);
+            if out.scenario.outputs.animation {
+                files.push(animation(out, dir)?);
+            }
         }
+        _ => {}
     }
     Ok(files)
 }
