@@ -12,6 +12,7 @@
 
 use super::cogp::{lml_grad, Cogp, CogpData, CogpHyper};
 use super::kernel::Kernel;
+use super::low_rank::{chain_low_rank, low_rank_plus_diag};
 use super::training::{FitReport, Rank};
 use crate::error::{Error, GpError, InputError};
 use argmin::core::{CostFunction, Executor, Gradient};
@@ -22,45 +23,6 @@ use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use rand_distr::{Distribution, StandardNormal};
 use std::sync::Mutex;
-
-/// Number of columns of `C` for a [`Rank`] of a `dim × dim` matrix.
-pub(crate) fn rank_cols(rank: Rank, dim: usize) -> usize {
-    match rank {
-        Rank::Full => dim,
-        Rank::Diagonal => 0,
-        Rank::Low(r) => r.min(dim),
-    }
-}
-
-/// `C Cᵀ + diag(exp(logv))` with `C` row-major `dim × r`.
-pub(crate) fn low_rank_plus_diag(c: &[f64], logv: &[f64], dim: usize, r: usize) -> DMatrix<f64> {
-    DMatrix::from_fn(dim, dim, |i, j| {
-        let s: f64 = (0..r).map(|q| c[i * r + q] * c[j * r + q]).sum();
-        if i == j {
-            s + logv[i].exp()
-        } else {
-            s
-        }
-    })
-}
-
-/// Chain rule through `M = C Cᵀ + diag(exp(logv))` for symmetric `M̄`:
-/// writes `[vec C̄ (row-major), M̄_ii v_i]` into `out`, `C̄ = 2 M̄ C`.
-pub(crate) fn chain_low_rank(
-    mbar: &DMatrix<f64>,
-    c: &[f64],
-    logv: &[f64],
-    r: usize,
-    out: &mut [f64],
-) {
-    let dim = mbar.nrows();
-    for i in 0..dim {
-        for q in 0..r {
-            out[i * r + q] = 2.0 * (0..dim).map(|j| mbar[(i, j)] * c[j * r + q]).sum::<f64>();
-        }
-        out[dim * r + i] = mbar[(i, i)] * logv[i].exp();
-    }
-}
 
 /// Settings of [`fit_cogp`], validated by [`CogpFitSettings::validate`].
 #[derive(Debug, Clone, PartialEq)]
@@ -493,8 +455,8 @@ pub fn fit_cogp<K: Kernel>(
         np,
         n_kern: kernel0.n_hyper(),
         scale_idx: kernel0.scale_index(),
-        rs: rank_cols(settings.rank_sigma, np),
-        rn: rank_cols(settings.rank_s, n),
+        rs: settings.rank_sigma.cols(np),
+        rn: settings.rank_s.cols(n),
     };
     let prefit = settings.prefit_diagonal && !settings.warm_start && layout.rs + layout.rn > 0;
     let diag = Objective::new(
@@ -609,8 +571,8 @@ mod tests {
                 np: n * p,
                 n_kern: n + 1,
                 scale_idx: Some(n),
-                rs: rank_cols(rs, n * p),
-                rn: rank_cols(rn, n),
+                rs: rs.cols(n * p),
+                rn: rn.cols(n),
             };
             let th: Vec<f64> = (0..layout.len())
                 .map(|_| rng.random_range(-0.5..0.5))

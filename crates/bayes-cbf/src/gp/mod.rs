@@ -7,6 +7,7 @@ mod factor;
 mod input_map;
 mod joint;
 mod kernel;
+mod low_rank;
 pub mod metrics;
 mod model;
 mod mvgp;

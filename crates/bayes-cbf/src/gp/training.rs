@@ -21,6 +21,7 @@
 
 use super::factor::CholFactor;
 use super::kernel::Kernel;
+use super::low_rank::{chain_low_rank, low_rank_plus_diag};
 use super::mvgp::{Mvgp, MvgpHyper};
 use crate::error::{Error, GpError, InputError};
 use argmin::core::{CostFunction, Executor, Gradient};
@@ -46,7 +47,8 @@ pub enum Rank {
 }
 
 impl Rank {
-    fn cols(self, dim: usize) -> usize {
+    /// Columns of `C` for a `dim × dim` matrix.
+    pub(crate) fn cols(self, dim: usize) -> usize {
         match self {
             Rank::Full => dim,
             Rank::Diagonal => 0,
@@ -167,21 +169,6 @@ impl Layout {
     fn len(&self) -> usize {
         self.off_va() + if self.learn_a { self.n - 1 } else { 0 }
     }
-}
-
-fn low_rank_plus_diag(c: &[f64], logv: &[f64], dim: usize, r: usize) -> DMatrix<f64> {
-    let mut m = DMatrix::zeros(dim, dim);
-    for i in 0..dim {
-        for j in 0..dim {
-            let mut s = 0.0;
-            for q in 0..r {
-                s += c[i * r + q] * c[j * r + q];
-            }
-            m[(i, j)] = s;
-        }
-        m[(i, i)] += logv[i].exp();
-    }
-    m
 }
 
 /// `(θ, −log p, −∇ log p)` of the last evaluation, `(θ, −log p)` of the
@@ -357,7 +344,6 @@ impl<K: Kernel> Objective<'_, K> {
             &bbar,
             &th[l.off_cb()..l.off_vb()],
             &th[l.off_vb()..l.off_vb() + p],
-            p,
             l.rb,
             &mut grad[l.off_cb()..l.off_vb() + p],
         );
@@ -366,7 +352,7 @@ impl<K: Kernel> Objective<'_, K> {
             let mut logv = vec![0.0; n];
             logv[1..].copy_from_slice(&th[l.off_va()..l.off_va() + n - 1]);
             let mut ga = vec![0.0; n * l.ra + n];
-            chain_low_rank(&abar, &th[l.off_ca()..l.off_va()], &logv, n, l.ra, &mut ga);
+            chain_low_rank(&abar, &th[l.off_ca()..l.off_va()], &logv, l.ra, &mut ga);
             grad[l.off_ca()..l.off_va()].copy_from_slice(&ga[..n * l.ra]);
             grad[l.off_va()..l.off_va() + n - 1].copy_from_slice(&ga[n * l.ra + 1..]);
         }
@@ -390,30 +376,6 @@ impl<K: Kernel> Objective<'_, K> {
         }
         c.0 = Some((th.to_vec(), f, g.clone()));
         (f, g)
-    }
-}
-
-/// Chain rule through `M = C Cᵀ + diag(exp(logv))`: writes
-/// `[vec C̄ (row-major), v̄ ∘ v]` into `out`, with `C̄ = 2 M̄ C`.
-fn chain_low_rank(
-    mbar: &DMatrix<f64>,
-    c: &[f64],
-    logv: &[f64],
-    dim: usize,
-    r: usize,
-    out: &mut [f64],
-) {
-    for i in 0..dim {
-        for q in 0..r {
-            let mut s = 0.0;
-            for j in 0..dim {
-                s += mbar[(i, j)] * c[j * r + q];
-            }
-            out[i * r + q] = 2.0 * s;
-        }
-    }
-    for i in 0..dim {
-        out[dim * r + i] = mbar[(i, i)] * logv[i].exp();
     }
 }
 
