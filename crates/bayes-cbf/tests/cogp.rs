@@ -7,8 +7,8 @@
 mod common;
 
 use bayes_cbf::gp::{
-    fit, fit_cogp, Cogp, CogpFitSettings, CogpHyper, DynamicsModel, FitSettings, InputMap, Kernel,
-    ModelFitSettings, Mvgp, MvgpHyper, PriorMean, Rank, Rbf,
+    fit_cogp, Cogp, CogpFitSettings, CogpHyper, DynamicsModel, InputMap, Kernel, ModelFitSettings,
+    Mvgp, MvgpHyper, PriorMean, Rank, Rbf,
 };
 use bayes_cbf::sim::sample_uniform;
 use bayes_cbf::systems::{DynSystem, Pendulum};
@@ -460,72 +460,4 @@ fn fit_is_deterministic_and_works_through_the_trait() {
     assert_eq!((mvgp.name(), mvgp.len()), ("MVGP", 50));
     let (mean, cov) = mvgp.posterior_vec(&[0.3, -1.0]).unwrap();
     assert_eq!((mean.shape(), cov.shape()), ((2, 2), (4, 4)));
-}
-
-/// Posterior time of the MVGP and the CoGP at k = 200 on the pendulum
-/// (run with `--ignored --nocapture`).
-#[test]
-#[ignore]
-fn posterior_timing_mvgp_vs_cogp() {
-    let (train, test) = pendulum_data(200, 3);
-    let mut cogp = unit_cogp(2, 1);
-    cogp.set_data(&train.xs, &train.us, &train.xdot).unwrap();
-    let mut mvgp = Mvgp::new(
-        2,
-        1,
-        MvgpHyper {
-            kernel: Rbf::new(vec![1.0; 2], 1.0).unwrap(),
-            A: DMatrix::identity(2, 2),
-            B: DMatrix::identity(2, 2),
-            sigma: 0.1,
-        },
-        PriorMean::Zero,
-        InputMap::Identity,
-    )
-    .unwrap();
-    mvgp.set_data(&train.xs, &train.us, &train.xdot).unwrap();
-    let t0 = std::time::Instant::now();
-    fit(&mut mvgp, &FitSettings::default()).unwrap();
-    let t_fit_m = t0.elapsed();
-    let t0 = std::time::Instant::now();
-    fit_cogp(&mut cogp, &CogpFitSettings::default()).unwrap();
-    let t_fit_c = t0.elapsed();
-    // minimum over repetitions: the machine may be shared
-    let min_time = |f: &mut dyn FnMut(), reps: usize| {
-        (0..reps)
-            .map(|_| {
-                let t0 = std::time::Instant::now();
-                f();
-                t0.elapsed().as_secs_f64()
-            })
-            .fold(f64::INFINITY, f64::min)
-    };
-    let per_point = 1e6 / test.len() as f64;
-    let tm = per_point
-        * min_time(
-            &mut || {
-                for x in test.xs.chunks(2) {
-                    std::hint::black_box(mvgp.posterior(x).unwrap());
-                }
-            },
-            20,
-        );
-    let tc = per_point
-        * min_time(
-            &mut || {
-                for x in test.xs.chunks(2) {
-                    std::hint::black_box(cogp.posterior(x).unwrap());
-                }
-            },
-            20,
-        );
-    let f_m = 1e3 * min_time(&mut || mvgp.refactor().unwrap(), 20);
-    let f_c = 1e3 * min_time(&mut || cogp.refactor().unwrap(), 20);
-    eprintln!(
-        "k = 200 pendulum: posterior MVGP {tm:.1} µs, CoGP {tc:.1} µs (ratio {:.1})",
-        tc / tm
-    );
-    eprintln!(
-        "factorisation MVGP {f_m:.2} ms, CoGP {f_c:.2} ms; fit MVGP {t_fit_m:?}, CoGP {t_fit_c:?}"
-    );
 }
