@@ -125,6 +125,42 @@ fn pendulum(out: &RunOutput, dir: &Path) -> Result<PathBuf> {
     Ok(path)
 }
 
+/// Heat map of [`scbc_grid`] on `cells × cells` points of the vehicle
+/// arena `[−4, 1] × [−3, 2]` with its zero contour; the colour range is
+/// `range`, or symmetric about zero and at most ±10 when `None`.
+fn scbc_heatmap(
+    out: &RunOutput,
+    theta: f64,
+    u: &[f64],
+    cells: usize,
+    range: Option<(f64, f64)>,
+) -> Layer {
+    let axis = |lo: f64| -> Vec<f64> {
+        (0..cells)
+            .map(|i| lo + 5.0 * i as f64 / (cells - 1) as f64)
+            .collect()
+    };
+    let (xs, ys) = (axis(-4.0), axis(-3.0));
+    let values = scbc_grid(out, theta, u, &xs, &ys);
+    let range = range.unwrap_or_else(|| {
+        let lim = values
+            .iter()
+            .filter(|v| v.is_finite())
+            .fold(0.0f64, |a, v| a.max(v.abs()))
+            .min(10.0);
+        (-lim, lim)
+    });
+    Layer::Heatmap {
+        xs,
+        ys,
+        values,
+        zero_contour: true,
+        label: "min SCBC".into(),
+        diverging: true,
+        range: Some(range),
+    }
+}
+
 /// Minimum over barriers of the stochastic CBC `E − ζ − c·std` on an
 /// `(x, y)` grid at fixed heading and control, with the final model.
 fn scbc_grid(out: &RunOutput, theta: f64, u: &[f64], xs: &[f64], ys: &[f64]) -> Vec<f64> {
@@ -217,9 +253,6 @@ fn vehicle_map(out: &RunOutput, dir: &Path) -> Result<PathBuf> {
         .map(|(i, _)| i)
         .unwrap_or(0);
     let (theta, u) = (rec[k].x[2], rec[k].u.clone());
-    let xs: Vec<f64> = (0..50).map(|i| -4.0 + 5.0 * i as f64 / 49.0).collect();
-    let ys: Vec<f64> = (0..50).map(|i| -3.0 + 5.0 * i as f64 / 49.0).collect();
-    let vals = scbc_grid(out, theta, &u, &xs, &ys);
     let mut panel = map_panel(
         out,
         rec.len(),
@@ -228,23 +261,9 @@ fn vehicle_map(out: &RunOutput, dir: &Path) -> Result<PathBuf> {
             theta, u[0], u[1]
         ),
     );
-    let lim = vals
-        .iter()
-        .filter(|v| v.is_finite())
-        .fold(0.0f64, |a, v| a.max(v.abs()))
-        .min(10.0);
-    panel.layers.insert(
-        0,
-        Layer::Heatmap {
-            xs,
-            ys,
-            values: vals,
-            zero_contour: true,
-            label: "min SCBC".into(),
-            diverging: true,
-            range: Some((-lim, lim)),
-        },
-    );
+    panel
+        .layers
+        .insert(0, scbc_heatmap(out, theta, &u, 50, None));
     panel.layers.push(Layer::Marker {
         x: rec[k].x[0],
         y: rec[k].x[1],
@@ -373,9 +392,6 @@ pub fn comparison_figure(a: &RunOutput, b: &RunOutput, path: &Path) -> Result<()
         let rec = &o.result.records;
         let k = rec.len() / 2;
         let (theta, u) = (rec[k].x[2], rec[k].u.clone());
-        let xs: Vec<f64> = (0..40).map(|i| -4.0 + 5.0 * i as f64 / 39.0).collect();
-        let ys: Vec<f64> = (0..40).map(|i| -3.0 + 5.0 * i as f64 / 39.0).collect();
-        let vals = scbc_grid(o, theta, &u, &xs, &ys);
         let mut p = map_panel(
             o,
             rec.len(),
@@ -384,18 +400,8 @@ pub fn comparison_figure(a: &RunOutput, b: &RunOutput, path: &Path) -> Result<()
                 o.scenario.name, o.scenario.controller.probability
             ),
         );
-        p.layers.insert(
-            0,
-            Layer::Heatmap {
-                xs,
-                ys,
-                values: vals,
-                zero_contour: true,
-                label: "min SCBC".into(),
-                diverging: true,
-                range: Some((-10.0, 10.0)),
-            },
-        );
+        p.layers
+            .insert(0, scbc_heatmap(o, theta, &u, 40, Some((-10.0, 10.0))));
         panels.push(p);
     }
     panels.extend([a, b].map(speed_panel));
