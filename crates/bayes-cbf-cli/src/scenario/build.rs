@@ -245,6 +245,7 @@ pub fn build(s: &Scenario) -> Result<Built> {
         fit,
         xdot_noise: l.xdot_noise,
         seed: s.seed,
+        ..LoopSettings::default()
     };
     loop_settings
         .validate()

@@ -44,6 +44,25 @@ pub struct LoopSettings {
     pub seed: u64,
 }
 
+impl Default for LoopSettings {
+    /// `dt = 0.01`, 100 steps, default integrator, learning every step,
+    /// no refits, no window, no measurement noise, seed 0.
+    fn default() -> Self {
+        Self {
+            dt: 0.01,
+            steps: 100,
+            sim: SimSettings::default(),
+            update_every: 1,
+            refit_every: 0,
+            refit_geometric: false,
+            window: None,
+            fit: FitSettings::default(),
+            xdot_noise: 0.0,
+            seed: 0,
+        }
+    }
+}
+
 impl LoopSettings {
     /// Checks the settings.
     pub fn validate(&self) -> Result<(), InputError> {
