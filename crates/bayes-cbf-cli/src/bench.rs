@@ -6,11 +6,13 @@ use crate::util::write_atomic;
 use anyhow::{bail, Context, Result};
 use bayes_cbf::control::ControlOutput;
 use bayes_cbf::gp::{
-    fit, fit_cogp, Cogp, CogpFitSettings, CogpHyper, FitSettings, InputMap, Mvgp, MvgpHyper,
-    PriorMean, Rbf,
+    fit, fit_cogp, held_out_errors, Cogp, CogpFitSettings, CogpHyper, FitSettings, InputMap, Mvgp,
+    MvgpHyper, PriorMean, Rbf,
 };
+use bayes_cbf::systems::Ackermann;
 use bayes_cbf::workloads::{
-    ackermann_control, ackermann_data, pendulum_control, pendulum_data, ControlWorkload,
+    ackermann_control, ackermann_data, ackermann_heading_sweep, pendulum_control, pendulum_data,
+    ControlWorkload,
 };
 use clap::Args;
 use nalgebra::DMatrix;
@@ -168,33 +170,148 @@ fn fit_rows(system: &str, k: usize, reps: usize, iters: u64) -> Result<Vec<Value
     ])
 }
 
-fn stream_row(steps: usize, window: usize) -> Result<Value> {
-    let mut w = ackermann_control(window, 5)?;
+/// How a stream bounds the model's data.
+#[derive(Debug, Clone, Copy)]
+enum Bound {
+    /// Drop the oldest point.
+    Window(usize),
+    /// Drop the least informative point (which may be the new one).
+    Budget(usize),
+    /// Keep everything.
+    Full,
+}
+
+impl Bound {
+    /// Adds one observation and applies the bound.
+    fn add(self, model: &mut Mvgp, x: &[f64], u: &[f64], xdot: &[f64]) -> Result<()> {
+        model.add_observation(x, u, xdot)?;
+        match self {
+            Bound::Window(w) => {
+                while model.len() > w {
+                    model.remove_oldest();
+                }
+            }
+            Bound::Budget(b) => {
+                while model.len() > b {
+                    model.remove_least_informative();
+                }
+            }
+            Bound::Full => {}
+        }
+        Ok(())
+    }
+    fn json(self, row: &mut Value) {
+        match self {
+            Bound::Window(w) => row["window"] = json!(w),
+            Bound::Budget(b) => row["budget"] = json!(b),
+            Bound::Full => row["full"] = json!(true),
+        }
+    }
+}
+
+/// A stream of `steps` Ackermann states (uniform): one control step and one
+/// bounded online update per state, timed together (`p50_us`, `p99_us`,
+/// `max_us`) and apart (`control_*`, `update_*`); `infeasible_steps` counts
+/// the steps whose SOCP was infeasible (they also solve the max-margin
+/// program and bisect for `p*`), `p99_us_feasible_steps` leaves them out.
+fn stream_row(steps: usize, bound: Bound, size: usize) -> Result<Value> {
+    let mut w = ackermann_control(size, 5)?;
     let extra = ackermann_data(steps, 12.0, 6)?;
     let mut out = ControlOutput::new(2, 2);
     let r = w.reference.clone().context("reference")?;
     let mut times = Vec::with_capacity(steps);
+    let mut control = Vec::with_capacity(steps);
+    let mut update = Vec::with_capacity(steps);
+    let mut infeasible = 0;
+    let mut feasible = Vec::with_capacity(steps);
     for j in 0..steps {
         let x = &extra.xs[3 * j..3 * j + 3];
         let s = Instant::now();
         w.controller
             .step(&w.model, x, &w.u_ref, Some((&r.0, &r.1)), &mut out)?;
-        w.model.add_observation(
+        let c = s.elapsed().as_secs_f64() * 1e6;
+        bound.add(
+            &mut w.model,
             x,
             &extra.us[2 * j..2 * j + 2],
             &extra.xdot[3 * j..3 * j + 3],
         )?;
-        w.model.remove_oldest();
-        times.push(s.elapsed().as_secs_f64() * 1e6);
+        let t = s.elapsed().as_secs_f64() * 1e6;
+        if out.is_infeasible() {
+            infeasible += 1;
+        } else {
+            feasible.push(t);
+        }
+        times.push(t);
+        control.push(c);
+        update.push(t - c);
     }
     let first: Vec<f64> = times[..steps / 10].to_vec();
     let last: Vec<f64> = times[steps - steps / 10..].to_vec();
     let (mut f, mut l) = (first, last);
-    Ok(json!({
-        "case": "stream", "system": "ackermann", "steps": steps, "window": window,
+    let max = times.iter().cloned().fold(0.0, f64::max);
+    let mut row = json!({
+        "case": "stream", "system": "ackermann", "steps": steps,
         "p50_us": round(percentile(&mut times.clone(), 0.5)), "p99_us": round(percentile(&mut times, 0.99)),
+        "max_us": round(max),
         "p50_us_first_tenth": round(percentile(&mut f, 0.5)), "p50_us_last_tenth": round(percentile(&mut l, 0.5)),
-    }))
+        "control_p50_us": round(percentile(&mut control.clone(), 0.5)), "control_p99_us": round(percentile(&mut control, 0.99)),
+        "update_p50_us": round(percentile(&mut update.clone(), 0.5)), "update_p99_us": round(percentile(&mut update, 0.99)),
+        "infeasible_steps": infeasible, "p99_us_feasible_steps": round(percentile(&mut feasible, 0.99)),
+    });
+    bound.json(&mut row);
+    Ok(row)
+}
+
+/// Prediction quality of a bounded model against the full data: the
+/// Ackermann heading sweep ([`ackermann_heading_sweep`]) streamed into a
+/// model of `size` points (window, budget) or all of them (full); errors of
+/// the final model on 1 000 uniform held-out states and controls over the
+/// whole heading range, and the time of each online update (add + bound).
+fn quality_rows(steps: usize, size: usize) -> Result<Vec<Value>> {
+    let data = ackermann_heading_sweep(steps, 12.0, 21)?;
+    let test = ackermann_data(1000, 12.0, 22)?;
+    let truth = Ackermann { wheelbase: 12.0 };
+    let mut rows = Vec::new();
+    for bound in [Bound::Window(size), Bound::Budget(size), Bound::Full] {
+        let mut model = ackermann_control(0, 0)?.model;
+        model.set_data(
+            &data.xs[..3 * size],
+            &data.us[..2 * size],
+            &data.xdot[..3 * size],
+        )?;
+        let mut times = Vec::with_capacity(steps - size);
+        for j in size..steps {
+            let s = Instant::now();
+            bound.add(
+                &mut model,
+                &data.xs[3 * j..3 * j + 3],
+                &data.us[2 * j..2 * j + 2],
+                &data.xdot[3 * j..3 * j + 3],
+            )?;
+            times.push(s.elapsed().as_secs_f64() * 1e6);
+        }
+        let errs = held_out_errors(&model, &test.xs, &test.us, &truth)?;
+        // heading range covered by the kept points
+        let mut thetas: Vec<f64> = model.xs().chunks(3).map(|x| x[2]).collect();
+        thetas.sort_by(f64::total_cmp);
+        let gap = thetas
+            .windows(2)
+            .map(|w| w[1] - w[0])
+            .chain([thetas[0] + 2.0 * std::f64::consts::PI - thetas[thetas.len() - 1]])
+            .fold(0.0, f64::max);
+        let mut row = json!({
+            "case": "stream_quality", "system": "ackermann", "steps": steps, "k_end": model.len(),
+            "update_p50_us": round(percentile(&mut times.clone(), 0.5)),
+            "update_p99_us": round(percentile(&mut times, 0.99)),
+            "rmse_fu": (errs.rmse_fu * 1e4).round() / 1e4,
+            "variance_weighted": (errs.variance_weighted * 1e3).round() / 1e3,
+            "largest_heading_gap_rad": (gap * 1e3).round() / 1e3,
+        });
+        bound.json(&mut row);
+        rows.push(row);
+    }
+    Ok(rows)
 }
 
 /// Runs `bayes-cbf bench`.
@@ -269,11 +386,30 @@ pub fn run_bench(a: &BenchArgs) -> Result<()> {
     eprintln!("bench: fits at k = {fit_k}");
     rows.extend(fit_rows("ackermann", fit_k, fit_reps, iters)?);
     rows.extend(fit_rows("pendulum", fit_k, fit_reps, iters)?);
-    eprintln!("bench: stream");
-    rows.push(if a.quick {
-        stream_row(2_000, 200)?
+    eprintln!("bench: streams");
+    let (steps, bounds): (usize, &[(Bound, usize)]) = if a.quick {
+        (
+            2_000,
+            &[(Bound::Window(200), 200), (Bound::Budget(200), 200)],
+        )
     } else {
-        stream_row(20_000, 1_000)?
+        (
+            20_000,
+            &[
+                (Bound::Window(1_000), 1_000),
+                (Bound::Window(200), 200),
+                (Bound::Budget(200), 200),
+            ],
+        )
+    };
+    for &(bound, size) in bounds {
+        rows.push(stream_row(steps, bound, size)?);
+    }
+    eprintln!("bench: stream quality");
+    rows.extend(if a.quick {
+        quality_rows(600, 60)?
+    } else {
+        quality_rows(4_000, 200)?
     });
     let mut text = serde_json::to_string_pretty(
         &json!({"threads": a.threads, "quick": a.quick, "rows": rows}),

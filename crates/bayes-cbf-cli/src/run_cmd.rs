@@ -23,9 +23,18 @@ pub struct RunArgs {
     /// Print the scenario (with overrides) as TOML and exit.
     #[arg(long)]
     pub print_config: bool,
-    /// Reduced version of an experiment (speed-test) for quick checks.
+    /// Reduced version of an experiment (speed-test, calibration, soak) for quick checks.
     #[arg(long)]
     pub quick: bool,
+    /// Episodes per system and truth of `calibration` (default 200).
+    #[arg(long, allow_hyphen_values = true)]
+    pub episodes: Option<usize>,
+    /// Control steps of `soak` (default 100000).
+    #[arg(long, allow_hyphen_values = true)]
+    pub steps: Option<usize>,
+    /// Sliding window (observations kept) of `soak` (default 500).
+    #[arg(long, allow_hyphen_values = true)]
+    pub window: Option<usize>,
 }
 
 /// Runs `bayes-cbf run`.
@@ -41,13 +50,24 @@ pub fn run(a: &RunArgs) -> Result<()> {
             .out
             .clone()
             .unwrap_or_else(|| PathBuf::from("runs").join(name));
-        return experiments::run(
+        return experiments::run_sized(
             name,
             &experiments::ExperimentArgs {
                 out,
                 seed: a.seed.unwrap_or(0),
                 quick: a.quick,
             },
+            &experiments::Sizes {
+                episodes: a.episodes,
+                steps: a.steps,
+                window: a.window,
+            },
+        );
+    }
+    if a.episodes.is_some() || a.steps.is_some() || a.window.is_some() {
+        anyhow::bail!(
+            "--episodes, --steps and --window apply to the experiments calibration and soak, not to the scenario '{}'",
+            a.scenario
         );
     }
     let mut sets = a.sets.clone();

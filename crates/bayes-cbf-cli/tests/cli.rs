@@ -502,3 +502,45 @@ fn help_is_available_everywhere() {
         assert!(out.stdout.contains("Usage"), "{args:?}: {}", out.stdout);
     }
 }
+
+/// `bench --quick --out FILE` writes every case of the JSON, with the
+/// bounded streams and the window / budget / full-data quality comparison.
+#[test]
+fn quick_bench_writes_every_case() {
+    let dir = scratch_dir("bench");
+    let out = dir.join("bench.json");
+    let r = run_in(&dir, &["bench", "--quick", "--out", &out.to_string_lossy()]);
+    assert!(r.status.success(), "{}", r.stderr);
+    let v: Value = serde_json::from_str(&std::fs::read_to_string(&out).unwrap()).unwrap();
+    assert_eq!(v["threads"], 1);
+    let rows = v["rows"].as_array().unwrap();
+    let cases = |c: &str| rows.iter().filter(|r| r["case"] == c).collect::<Vec<_>>();
+    for c in [
+        "control_step",
+        "add_observation",
+        "remove_oldest",
+        "predict",
+        "floor",
+        "fit",
+    ] {
+        assert!(!cases(c).is_empty(), "no {c} row");
+    }
+    let streams = cases("stream");
+    assert!(streams.iter().any(|r| r["window"] == 200));
+    assert!(streams.iter().any(|r| r["budget"] == 200));
+    for s in &streams {
+        assert_eq!(s["steps"], 2000);
+        assert!(s["p50_us"].as_f64().unwrap() > 0.0, "{s}");
+    }
+    let q = cases("stream_quality");
+    let err = |key: &str| {
+        q.iter()
+            .find(|r| !r[key].is_null())
+            .unwrap_or_else(|| panic!("no {key} quality row"))["rmse_fu"]
+            .as_f64()
+            .unwrap()
+    };
+    // a budget remembers the headings a window of the same size forgot
+    assert!(err("budget") < err("window") / 5.0, "{q:?}");
+    assert!(err("full") <= err("budget"), "{q:?}");
+}

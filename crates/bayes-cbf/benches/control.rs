@@ -63,6 +63,36 @@ fn gp_ops(c: &mut Criterion) {
             criterion::BatchSize::LargeInput,
         )
     });
+    // one budgeted update at k = 200: append, then drop the least
+    // informative of the 201 points (diag(G⁻¹) already tracked)
+    let mut w = ackermann_control(200, 0).unwrap();
+    let plain = w.model.clone();
+    w.model.gram_inverse_diagonal();
+    let e = w.extra.clone();
+    g.bench_function("budget_update/ackermann/200", |b| {
+        b.iter_batched(
+            || w.model.clone(),
+            |mut m| {
+                m.add_observation(&e.xs[0..3], &e.us[0..2], &e.xdot[0..3])
+                    .unwrap();
+                m.remove_least_informative();
+                m
+            },
+            criterion::BatchSize::LargeInput,
+        )
+    });
+    g.bench_function("window_update/ackermann/200", |b| {
+        b.iter_batched(
+            || plain.clone(),
+            |mut m| {
+                m.add_observation(&e.xs[0..3], &e.us[0..2], &e.xdot[0..3])
+                    .unwrap();
+                m.remove_oldest();
+                m
+            },
+            criterion::BatchSize::LargeInput,
+        )
+    });
     g.sample_size(10);
     let w = ackermann_control(500, 0).unwrap();
     g.bench_function("fit/mvgp/ackermann/500", |b| {

@@ -47,6 +47,41 @@ pub fn ackermann_data(k: usize, wheelbase: f64, seed: u64) -> Result<Dataset, Er
     )?)
 }
 
+/// A stream of Ackermann observations (true wheelbase `L`) whose heading
+/// sweeps once through `[−π, π)` in order: observation `j` has
+/// `θ_j ~ U[−π + 2πj/k, −π + 2π(j+1)/k)`, position uniform in `[−3, 3]²`,
+/// control uniform in `[−1, 1]²`, `ẋ = F(x)u̲ + N(0, 0.01² I)`. With the
+/// kernel on θ only, a sliding window of `w ≪ k` points sees only the
+/// last `2πw/k` radians of heading: the workload that separates a window
+/// from a budget (README, "Performance").
+pub fn ackermann_heading_sweep(k: usize, wheelbase: f64, seed: u64) -> Result<Dataset, Error> {
+    let sys = Ackermann { wheelbase };
+    let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    let mut out = Dataset {
+        n: 3,
+        m: 2,
+        ..Dataset::default()
+    };
+    let width = 2.0 * PI / k.max(1) as f64;
+    for j in 0..k {
+        let lo = -PI + width * j as f64;
+        let one = sample_uniform(
+            &sys,
+            &[-3.0, -3.0, lo],
+            &[3.0, 3.0, lo + width],
+            &[-1.0, -1.0],
+            &[1.0, 1.0],
+            1,
+            0.01,
+            &mut rng,
+        )?;
+        out.xs.extend_from_slice(&one.xs);
+        out.us.extend_from_slice(&one.us);
+        out.xdot.extend_from_slice(&one.xdot);
+    }
+    Ok(out)
+}
+
 /// Uniform training data of the pendulum (`m = l = 1`, `g = 10`).
 pub fn pendulum_data(k: usize, seed: u64) -> Result<Dataset, Error> {
     let sys = Pendulum::default();

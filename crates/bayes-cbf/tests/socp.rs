@@ -313,3 +313,70 @@ fn bad_settings_are_rejected() {
     )
     .is_err());
 }
+
+/// Random strictly feasible programs (u = 0 meets every barrier with room to
+/// spare, CLF slack free) are all solved to full accuracy with KKT residuals
+/// below 10⁻⁶. Guards the solver settings: without iterative refinement of
+/// the KKT solves about one in six of these ends `AlmostSolved` (13 %) or in
+/// a false infeasibility (3 %).
+#[test]
+fn random_feasible_programs_are_solved_to_full_accuracy() {
+    let mut rng = ChaCha8Rng::seed_from_u64(11);
+    for trial in 0..600 {
+        let m = 1 + trial % 3;
+        let nb = 1 + trial % 2;
+        let mut cbcs: Vec<ConditionMoments> = (0..nb)
+            .map(|i| random_moments(m, &mut rng, 1 + (i + trial) % 2, 0.3))
+            .collect();
+        for c in cbcs.iter_mut() {
+            let cp = quantile_factor(0.9, c.relative_degree).unwrap();
+            c.e[0] = 0.05 + cp * c.cov[(0, 0)].sqrt() + 0.5;
+        }
+        let clc = random_moments(m, &mut rng, 1, 0.3);
+        let mut settings = SafetySettings::new(m);
+        settings.probability = 0.9;
+        settings.zeta = 0.05;
+        settings.u_min = Some(vec![-3.0; m]);
+        settings.u_max = Some(vec![3.0; m]);
+        let mut filter = SafetyFilter::new(m, nb, true, settings).unwrap();
+        let u_ref: Vec<f64> = (0..m).map(|_| rng.random_range(-5.0..5.0)).collect();
+        let mut out = ControlOutput::new(m, nb);
+        filter.solve(&cbcs, Some(&clc), &u_ref, &mut out).unwrap();
+        assert_eq!(out.status, ControlStatus::Optimal, "trial {trial}");
+        check_kkt(&filter, 1e-6);
+    }
+}
+
+/// The filter solves each step's own data: the answer to a program does not
+/// depend on the programs solved before it by the same (warm, updated in
+/// place) solver, here one with moments scaled by 10³.
+#[test]
+fn solution_does_not_depend_on_earlier_steps() {
+    let mut rng = ChaCha8Rng::seed_from_u64(12);
+    let m = 2;
+    let mut settings = SafetySettings::new(m);
+    settings.probability = 0.95;
+    settings.u_min = Some(vec![-3.0; m]);
+    settings.u_max = Some(vec![3.0; m]);
+    for trial in 0..20 {
+        let mut make = |scale: f64| {
+            let mut c = random_moments(m, &mut rng, 1, 0.3 * scale);
+            c.e.iter_mut().for_each(|v| *v *= scale);
+            c.e[0] = scale * (0.5 + 2.0 * c.cov[(0, 0)].sqrt() / scale);
+            c
+        };
+        let first = [make(1e3), make(1e3)];
+        let target = [make(1.0), make(1.0)];
+        let u_ref = [rng.random_range(-5.0..5.0), rng.random_range(-5.0..5.0)];
+        let mut fresh = SafetyFilter::new(m, 2, false, settings.clone()).unwrap();
+        let mut warm = SafetyFilter::new(m, 2, false, settings.clone()).unwrap();
+        let (mut a, mut b) = (ControlOutput::new(m, 2), ControlOutput::new(m, 2));
+        warm.solve(&first, None, &u_ref, &mut b).unwrap();
+        warm.solve(&target, None, &u_ref, &mut b).unwrap();
+        fresh.solve(&target, None, &u_ref, &mut a).unwrap();
+        assert_eq!(a.status, b.status, "trial {trial}");
+        for (x, y) in a.u.iter().zip(&b.u) {
+            assert!((x - y).abs() <= 1e-12, "trial {trial}: {x} vs {y}");
+        }
+    }
+}

@@ -10,7 +10,11 @@
 //! hyperparameters) before they are scored, and MVGP and CoGP always share
 //! the kernel family (RBF), the prior mean (zero), the input map and the data.
 
+mod ackermann_triggering;
+mod calibration;
+mod covariance_shapes;
 mod pendulum_learning;
+mod soak;
 pub(crate) mod speed_test;
 
 use crate::util::write_atomic;
@@ -50,13 +54,65 @@ pub const EXPERIMENTS: &[(&str, &str)] = &[
         "speed-test",
         "MVGP vs CoGP, full and diag: fit/predict time and variance-weighted error vs k, pendulum and Ackermann (Fig. 5)",
     ),
+    (
+        "covariance-shapes",
+        "MVGP vs CoGP on Ackermann data: 3-sigma ellipses of the covariance of each column of F (Fig. 1)",
+    ),
+    (
+        "ackermann-triggering",
+        "Lipschitz bound and inter-trigger time, analytic and numerical; self-triggered vs fixed-step; tau vs zeta (Fig. 2)",
+    ),
+    (
+        "calibration",
+        "Monte Carlo of Bayes CBF (p = 0.9, 0.99, 0.999) and mean CBF on GP-prior and mis-specified truths: violation rate vs 1 - p",
+    ),
+    (
+        "soak",
+        "long online-learning run with a sliding window: NaN count, peak memory and control-step time over 100 000 steps",
+    ),
 ];
 
-/// Runs experiment `name` (one of [`EXPERIMENTS`]) with `args`.
+/// Sizes of the Monte Carlo experiments, from the command line; `None`
+/// takes the experiment's default.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub struct Sizes {
+    /// `--episodes` of `calibration`.
+    pub episodes: Option<usize>,
+    /// `--steps` of `soak`.
+    pub steps: Option<usize>,
+    /// `--window` of `soak`.
+    pub window: Option<usize>,
+}
+
+/// Runs experiment `name` (one of [`EXPERIMENTS`]) with `args` and default
+/// sizes.
+#[cfg_attr(not(test), allow(dead_code))]
 pub fn run(name: &str, args: &ExperimentArgs) -> Result<()> {
+    run_sized(name, args, &Sizes::default())
+}
+
+/// Runs experiment `name` with `args` and `sizes`; a size given to an
+/// experiment that has no such option is an error naming the option.
+pub fn run_sized(name: &str, args: &ExperimentArgs, sizes: &Sizes) -> Result<()> {
+    let takes = |option: &str, given: bool, accepted: &[&str]| -> Result<()> {
+        if given && !accepted.contains(&name) {
+            bail!(
+                "{option} applies to the experiment(s) {}, not to '{name}'",
+                accepted.join(", ")
+            );
+        }
+        Ok(())
+    };
+    takes("--episodes", sizes.episodes.is_some(), &["calibration"])?;
+    takes("--steps", sizes.steps.is_some(), &["soak"])?;
+    takes("--window", sizes.window.is_some(), &["soak"])?;
     match name {
         "pendulum-learning" => pendulum_learning::run(args),
         "speed-test" => speed_test::run(args),
+        "ackermann-triggering" => ackermann_triggering::run(args),
+        "covariance-shapes" => covariance_shapes::run(args),
+        "calibration" => calibration::run(args, sizes.episodes),
+        "soak" => soak::run(args, sizes.steps, sizes.window),
         _ => {
             let names: Vec<&str> = EXPERIMENTS.iter().map(|(n, _)| *n).collect();
             bail!(

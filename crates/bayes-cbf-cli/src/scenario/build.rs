@@ -8,8 +8,10 @@ use crate::prior_spec::PriorSpec;
 use crate::util::parse_rank;
 use anyhow::{bail, Context, Result};
 use bayes_cbf::barrier::{AckermannClf, DynBarrier, DynLyapunov};
-use bayes_cbf::control::{Fallback, SafetyController, SafetySettings};
-use bayes_cbf::gp::{FitSettings, Mvgp, MvgpHyper, Rbf};
+use bayes_cbf::control::{
+    Fallback, SafetyController, SafetySettings, ShiftedBarrier, TauSource, TriggerSettings,
+};
+use bayes_cbf::gp::{FitSettings, LipschitzSettings, Mvgp, MvgpHyper, Rbf};
 use bayes_cbf::sim::{
     ConstantReference, EpsilonGreedy, LoopSettings, Reference, SimSettings, StraightLinePlanner,
 };
@@ -169,10 +171,50 @@ pub fn build(s: &Scenario) -> Result<Built> {
             ))
         }
     };
+    // self-triggering
+    let trigger = match &s.trigger {
+        None => None,
+        Some(t) => {
+            vector("trigger.cuboid", &t.cuboid, n, "the state dimension")?;
+            let ts = TriggerSettings {
+                lipschitz: LipschitzSettings {
+                    delta_l: t.delta_l,
+                    sides: t.cuboid.clone(),
+                    grid: t.grid,
+                    samples: t.samples,
+                },
+                zeta: s.controller.zeta,
+                zeta_b: t.zeta_b,
+                l_alpha: t.l_alpha,
+                tau_min: t.tau_min,
+                tau_max: t.tau_max,
+                tau_from: TauSource::parse(&t.tau_from)?,
+                hold: t.self_triggered,
+            };
+            ts.validate(n)
+                .map_err(|e| anyhow::anyhow!("trigger: {e}"))?;
+            if barriers.iter().any(|b| b.degree() == 1) && s.controller.zeta <= 0.0 {
+                bail!(
+                    "controller.zeta = {}: self-triggering needs a margin ζ > 0 on relative-degree-1 barriers (Prop. 3)",
+                    s.controller.zeta
+                );
+            }
+            if barriers.iter().any(|b| b.degree() >= 2) && t.zeta_b <= 0.0 {
+                bail!(
+                    "trigger.zeta_b = {}: self-triggering needs ζ_b > 0 on barriers of relative degree ≥ 2 (Prop. 5)",
+                    t.zeta_b
+                );
+            }
+            Some(ts)
+        }
+    };
     // controller
     let c = &s.controller;
     let mut settings = SafetySettings::new(m);
-    settings.probability = c.probability;
+    settings.probability = match &trigger {
+        Some(ts) => ts.tilde_p(c.probability)?,
+        None => c.probability,
+    };
     settings.zeta = c.zeta;
     settings.lambda = c.lambda;
     if let Some(r) = &c.r {
@@ -195,7 +237,21 @@ pub fn build(s: &Scenario) -> Result<Built> {
             c.probability
         );
     }
-    let controller = SafetyController::new(n, m, barriers.clone(), clf, settings)
+    // Prop. 5: the SOCP enforces h − ζ_b for barriers of relative degree ≥ 2
+    let socp_barriers: Vec<Arc<dyn DynBarrier>> = match &trigger {
+        Some(ts) => barriers
+            .iter()
+            .map(|b| {
+                if b.degree() >= 2 {
+                    Arc::new(ShiftedBarrier::new(b.clone(), ts.zeta_b)) as Arc<dyn DynBarrier>
+                } else {
+                    b.clone()
+                }
+            })
+            .collect(),
+        None => barriers.clone(),
+    };
+    let controller = SafetyController::new(n, m, socp_barriers, clf, settings)
         .map_err(|e| anyhow::anyhow!("controller: {e}"))?;
     // reference
     let reference: Box<dyn Reference> = match &s.reference {
@@ -241,11 +297,13 @@ pub fn build(s: &Scenario) -> Result<Built> {
         update_every: l.update_every,
         refit_every: l.refit_every,
         refit_geometric: l.refit_geometric,
+        refit_background: (l.refit_background > 0).then_some(l.refit_background),
         window: if l.window == 0 { None } else { Some(l.window) },
+        budget: if l.budget == 0 { None } else { Some(l.budget) },
         fit,
         xdot_noise: l.xdot_noise,
         seed: s.seed,
-        ..LoopSettings::default()
+        trigger,
     };
     loop_settings
         .validate()

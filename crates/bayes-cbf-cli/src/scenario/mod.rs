@@ -42,6 +42,10 @@ pub const BUILTIN: &[(&str, &str)] = &[
         "ackermann-learning",
         include_str!("builtin/ackermann-learning.toml"),
     ),
+    (
+        "ackermann-self-triggered",
+        include_str!("builtin/ackermann-self-triggered.toml"),
+    ),
 ];
 
 /// A closed-loop scenario.
@@ -88,6 +92,73 @@ pub struct Scenario {
     /// Which outputs to write.
     #[serde(default)]
     pub outputs: OutputSpec,
+    /// Self-triggered control (paper, Sec. V-B, VI-C).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub trigger: Option<TriggerSpec>,
+}
+
+/// Self-triggering: Lipschitz bound of the learned dynamics on a cuboid
+/// around the state (Lemma 3) and the hold `τ_k` (Props. 3 and 5).
+///
+/// Relative-degree-1 barriers use the controller's margin `controller.zeta`
+/// as ζ (it must be > 0); barriers of relative degree ≥ 2 are shifted to
+/// `h − zeta_b` in the SOCP. The SOCP probability becomes
+/// `p / (1 − delta_l)` so that the interval guarantee is `controller.probability`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct TriggerSpec {
+    /// Side lengths of the cuboid around `x_k`, one per state coordinate.
+    pub cuboid: Vec<f64>,
+    /// δ_L: the Lipschitz bound holds with probability 1 − δ_L.
+    #[serde(default = "default_delta_l")]
+    pub delta_l: f64,
+    /// Grid nodes per side (analytic mean term, numerical estimate, L_h).
+    #[serde(default = "default_grid")]
+    pub grid: usize,
+    /// Sampled Jacobians per node for the numerical estimate (0: none).
+    #[serde(default = "default_grid")]
+    pub samples: usize,
+    /// Shift ζ_b of barriers of relative degree ≥ 2.
+    #[serde(default = "default_zeta_b")]
+    pub zeta_b: f64,
+    /// Lipschitz constant L_α of the class-K function.
+    #[serde(default = "one")]
+    pub l_alpha: f64,
+    /// Shortest hold (s).
+    #[serde(default = "default_tau_min")]
+    pub tau_min: f64,
+    /// Longest hold (s).
+    #[serde(default = "default_tau_max")]
+    pub tau_max: f64,
+    /// `analytic` or `numerical`: the estimate that sets the hold.
+    #[serde(default = "default_tau_from")]
+    pub tau_from: String,
+    /// Hold each control for τ_k (true), or keep the fixed period `dt` and
+    /// only evaluate τ_k (false).
+    #[serde(default = "yes")]
+    pub self_triggered: bool,
+}
+
+fn default_delta_l() -> f64 {
+    1e-4
+}
+fn default_grid() -> usize {
+    10
+}
+fn default_zeta_b() -> f64 {
+    1e-2
+}
+fn default_tau_min() -> f64 {
+    1e-3
+}
+fn default_tau_max() -> f64 {
+    0.1
+}
+fn default_tau_from() -> String {
+    "analytic".into()
+}
+fn yes() -> bool {
+    true
 }
 
 /// A covariance matrix given by structure.
@@ -154,8 +225,14 @@ pub struct LearningSpec {
     pub refit_every: usize,
     /// Also refit at 4, 8, 16, … observations below `refit_every`.
     pub refit_geometric: bool,
+    /// Run refits on a background thread, swapping the new hyperparameters
+    /// in this many steps after each refit is due (0: synchronous refits).
+    pub refit_background: usize,
     /// Sliding window (0: unbounded).
     pub window: usize,
+    /// Budget of the most informative observations (0: unbounded); exclusive
+    /// with `window`.
+    pub budget: usize,
     /// Noise floor of the refits.
     pub sigma_min: f64,
     /// L-BFGS iterations per refit.
@@ -174,7 +251,9 @@ impl Default for LearningSpec {
             update_every: 0,
             refit_every: 0,
             refit_geometric: false,
+            refit_background: 0,
             window: 0,
+            budget: 0,
             sigma_min: 0.0,
             max_iters: 50,
             rank_a: "full".into(),
@@ -316,6 +395,13 @@ pub fn apply_set(table: &mut toml::Table, assignment: &str) -> Result<()> {
         Err(_) => toml::Value::String(value.trim().to_string()),
     };
     let parts: Vec<&str> = key.split('.').collect();
+    // sections with defaults may be absent from the file
+    if parts.len() > 1
+        && ["learning", "sim", "outputs", "trigger"].contains(&parts[0])
+        && !table.contains_key(parts[0])
+    {
+        table.insert(parts[0].to_string(), toml::Value::Table(toml::Table::new()));
+    }
     let mut cur: &mut toml::Value = table
         .get_mut(parts[0])
         .ok_or_else(|| anyhow!("--set {key}: unknown key '{}'", parts[0]))?;

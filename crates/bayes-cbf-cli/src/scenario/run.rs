@@ -4,6 +4,7 @@ use super::build::{build, Built};
 use super::Scenario;
 use crate::util::write_atomic;
 use anyhow::{Context, Result};
+use bayes_cbf::control::{TriggerReport, TriggerSettings};
 use bayes_cbf::sim::{run_closed_loop, LoopResult, Monitor};
 use serde_json::json;
 use std::io::IsTerminal;
@@ -126,6 +127,11 @@ fn summarise(s: &Scenario, built: &Built, r: &LoopResult, wall: f64) -> serde_js
         .filter(|x| x.status == "infeasible")
         .count();
     let trace_start = r.records.first().map(|x| x.trace_cov);
+    let trigger = built
+        .loop_settings
+        .trigger
+        .as_ref()
+        .map(|ts| trigger_summary(ts, r));
     let trace_end = r.records.last().map(|x| x.trace_cov);
     json!({
         "scenario": s.name,
@@ -142,13 +148,79 @@ fn summarise(s: &Scenario, built: &Built, r: &LoopResult, wall: f64) -> serde_js
         "infeasible_steps": r.infeasible_steps,
         "fallback": s.controller.fallback,
         "fallback_steps": fallback_steps,
-        "triggers": s.steps,
+        "triggers": r.records.len(),
+        "self_triggered": built.loop_settings.trigger.as_ref().is_some_and(|t| t.hold),
+        "trigger": trigger,
         "control_step_us": {"p50": percentile(&us, 0.5), "p99": percentile(&us, 0.99), "max": us.last().copied().unwrap_or(f64::NAN)},
         "probability": s.controller.probability,
         "refits": refits,
         "data_size": r.model.len(),
         "trace_cov": {"start": trace_start, "end": trace_end},
         "wall_time_s": wall,
+    })
+}
+
+/// Median, mean, minimum and maximum of `v` (NaN-free), as JSON.
+fn stats(mut v: Vec<f64>) -> serde_json::Value {
+    v.retain(|x| x.is_finite());
+    if v.is_empty() {
+        return serde_json::Value::Null;
+    }
+    v.sort_by(|a, b| a.total_cmp(b));
+    json!({
+        "median": percentile(&v, 0.5),
+        "mean": v.iter().sum::<f64>() / v.len() as f64,
+        "min": v[0],
+        "max": v[v.len() - 1],
+    })
+}
+
+/// The self-triggering part of the summary: holds, `τ_k` and `L_f`, both
+/// estimates, and how often the hold was clamped.
+fn trigger_summary(ts: &TriggerSettings, r: &LoopResult) -> serde_json::Value {
+    let reps: Vec<_> = r
+        .records
+        .iter()
+        .filter_map(|x| x.trigger.as_ref())
+        .collect();
+    let field = |f: &dyn Fn(&TriggerReport) -> Option<f64>| -> Vec<f64> {
+        reps.iter().filter_map(|t| f(t)).collect()
+    };
+    let la = field(&|t| Some(t.lipschitz.analytic));
+    let ln = field(&|t| t.lipschitz.numerical);
+    let ratio: Vec<f64> = reps
+        .iter()
+        .filter_map(|t| t.lipschitz.numerical.map(|n| t.lipschitz.analytic / n))
+        .collect();
+    let numerical_exceeds = reps
+        .iter()
+        .filter(|t| {
+            t.lipschitz
+                .numerical
+                .is_some_and(|n| n > t.lipschitz.analytic)
+        })
+        .count();
+    json!({
+        "delta_l": ts.lipschitz.delta_l,
+        "cuboid": ts.lipschitz.sides,
+        "grid": ts.lipschitz.grid,
+        "samples": ts.lipschitz.samples,
+        "zeta": ts.zeta,
+        "zeta_b": ts.zeta_b,
+        "l_alpha": ts.l_alpha,
+        "tau_min": ts.tau_min,
+        "tau_max": ts.tau_max,
+        "tau_from": ts.tau_from.name(),
+        "hold_s": stats(r.records.iter().map(|x| x.hold).collect()),
+        "tau_analytic_s": stats(field(&|t| Some(t.tau_analytic))),
+        "tau_numerical_s": stats(field(&|t| t.tau_numerical)),
+        "lipschitz_analytic": stats(la),
+        "lipschitz_numerical": stats(ln),
+        "lipschitz_ratio_analytic_over_numerical": stats(ratio),
+        "numerical_above_analytic": numerical_exceeds,
+        "evaluation_us": stats(field(&|t| Some(t.eval_us))),
+        "clamped_to_tau_min": reps.iter().filter(|t| t.clamped_low).count(),
+        "clamped_to_tau_max": reps.iter().filter(|t| !t.clamped_low && t.hold >= ts.tau_max).count(),
     })
 }
 
@@ -174,10 +246,27 @@ fn trajectory_csv(built: &Built, r: &LoopResult) -> String {
             "control_us",
             "data_size",
             "refit",
+            "hold",
         ]
         .iter()
         .map(|s| s.to_string()),
     );
+    let with_trigger = built.loop_settings.trigger.is_some();
+    if with_trigger {
+        head.extend(
+            [
+                "lipschitz_analytic",
+                "lipschitz_numerical",
+                "tau_analytic",
+                "tau_numerical",
+                "l_h",
+                "xdot_norm",
+                "clamped",
+            ]
+            .iter()
+            .map(|s| s.to_string()),
+        );
+    }
     let mut out = head.join(",") + "\n";
     let f = |v: f64| {
         if v.is_finite() {
@@ -203,6 +292,26 @@ fn trajectory_csv(built: &Built, r: &LoopResult) -> String {
         row.push(f(rec.control_us));
         row.push(rec.data_size.to_string());
         row.push(u8::from(rec.refit).to_string());
+        row.push(f(rec.hold));
+        if with_trigger {
+            let (l, t) = match &rec.trigger {
+                Some(t) => (Some(&t.lipschitz), Some(t)),
+                None => (None, None),
+            };
+            row.push(l.map(|l| f(l.analytic)).unwrap_or_default());
+            row.push(l.and_then(|l| l.numerical).map(f).unwrap_or_default());
+            row.push(t.map(|t| f(t.tau_analytic)).unwrap_or_default());
+            row.push(t.and_then(|t| t.tau_numerical).map(f).unwrap_or_default());
+            row.push(
+                t.map(|t| f(t.l_h.iter().cloned().fold(0.0, f64::max)))
+                    .unwrap_or_default(),
+            );
+            row.push(t.map(|t| f(t.xdot_norm)).unwrap_or_default());
+            row.push(
+                t.map(|t| u8::from(t.clamped_low).to_string())
+                    .unwrap_or_default(),
+            );
+        }
         out += &(row.join(",") + "\n");
     }
     out

@@ -155,16 +155,7 @@ pub fn mc_cbc_moments<K: Kernel>(
     let eig = nalgebra::SymmetricEigen::new(chat);
     let sqrt_c =
         &eig.eigenvectors * DMatrix::from_diagonal(&eig.eigenvalues.map(|l| l.max(0.0).sqrt())); // Ĉ = S Sᵀ
-    let la = model
-        .hyper()
-        .A
-        .clone()
-        .cholesky()
-        .ok_or_else(|| InputError::NotPositiveDefinite {
-            field: "A".into(),
-            reason: "Cholesky failed".into(),
-        })?
-        .l();
+    let (la, _) = model.hyper().cholesky_factors()?;
     let centre_f = pts_f
         .iter()
         .position(|o| o.iter().all(|&d| d == 0))

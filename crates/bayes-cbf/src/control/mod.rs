@@ -2,10 +2,15 @@
 //! and Prop. 4), typed infeasibility (Remark 2) and declared fallbacks.
 
 mod filter;
+mod self_trigger;
 mod socp;
 
 pub use filter::{
     ConstraintReport, ControlOutput, ControlStatus, Fallback, InfeasibleInfo, SafetyController,
     SafetyFilter, SafetySettings,
+};
+pub use self_trigger::{
+    barrier_gradient_bound, evaluate_trigger, tau_relative_degree_one, tau_relative_degree_r,
+    ShiftedBarrier, TauSource, TriggerReport, TriggerSettings,
 };
 pub use socp::{SocpShape, SolveStatus};

@@ -30,6 +30,20 @@ pub fn clear_simd_state() {
 /// jitter added to the diagonal is `level × mean(diag G)`.
 pub const JITTER_LEVELS: [f64; 6] = [0.0, 1e-12, 1e-10, 1e-8, 1e-7, 1e-6];
 
+/// Smallest accepted squared pivot `L_jj²`, relative to its own diagonal
+/// entry `G_jj` (plus jitter): a pivot below it counts as a failed
+/// factorisation and escalates the jitter.
+///
+/// The computed factor satisfies `L Lᵀ = G + ΔG` with a backward error
+/// `|ΔG| ≲ k ε |G|` (ε = 2.2e-16), up to ~1e-13 relative at k = 1000. A
+/// pivot within that error of zero (near-duplicate points with tiny noise)
+/// makes `L Lᵀ` a factor of a possibly indefinite matrix, and the posterior
+/// `B k0 − Vᵀ V`, `V = L⁻¹ W`, amplifies the error by `1/L_jj²`. Measured
+/// (`tests/numerical_faults.rs`, a pendulum at rest observed 300 times with
+/// model noise σ = 1e-9): with the former floor of 1e-14, `tr B_k` reached
+/// −6·10⁴ times its prior value; with 1e-10 it stays ≥ 0.
+const MIN_PIVOT: f64 = 1e-10;
+
 /// Lower-triangular Cholesky factor with spare capacity for online growth.
 #[derive(Debug, Clone)]
 pub struct CholFactor {
@@ -51,7 +65,9 @@ impl Default for CholFactor {
 
 impl CholFactor {
     /// Factorises `G` (only the lower triangle is read), escalating jitter
-    /// through [`JITTER_LEVELS`]; fails with [`GpError::IllConditioned`].
+    /// through [`JITTER_LEVELS`] while the factorisation fails or leaves a
+    /// pivot `L_jj² ≤ 1e-10 (G_jj + jitter)` (within roundoff of singular);
+    /// fails with [`GpError::IllConditioned`].
     pub fn factor(g: MatRef<'_, f64>, capacity: usize) -> Result<Self, GpError> {
         Self::factor_impl(g, capacity, true)
     }
@@ -82,7 +98,11 @@ impl CholFactor {
                     sub[(j, j)] += jit;
                 }
             }
-            let ok = cholesky_in_place(l.as_mut().submatrix_mut(0, 0, k, k));
+            let ok = cholesky_in_place(l.as_mut().submatrix_mut(0, 0, k, k))
+                && (0..k).all(|j| {
+                    let p = l[(j, j)];
+                    p * p > MIN_PIVOT * (g[(j, j)] + jit).abs()
+                });
             clear_simd_state();
             if ok {
                 if level > 0.0 && log_jitter {
@@ -146,6 +166,62 @@ impl CholFactor {
         clear_simd_state();
     }
 
+    /// Solves `L_pᵀ X = B` in place with the leading `p × p` block `L_p`
+    /// of the factor (the factor before its last `k − p` appends).
+    #[track_caller]
+    pub fn solve_leading_lt_in_place(&self, p: usize, rhs: MatMut<'_, f64>) {
+        assert!(p <= self.k, "leading block {p} larger than k = {}", self.k);
+        let lp = self.l.as_ref().submatrix(0, 0, p, p);
+        solve_upper_triangular_in_place(lp.transpose(), rhs, Par::Seq);
+        clear_simd_state();
+    }
+
+    /// Column `j` of `G⁻¹` into `out[..k]`: `y = L⁻¹ e_j` (zero above `j`,
+    /// so only the trailing `(k − j)²/2` block is solved), then `Lᵀ c = y`.
+    /// O(k²).
+    #[track_caller]
+    pub fn inverse_column_into(&self, j: usize, out: &mut [f64]) {
+        let k = self.k;
+        assert!(
+            j < k && out.len() >= k,
+            "inverse_column_into: j = {j}, k = {k}"
+        );
+        let out = &mut out[..k];
+        out[..j].fill(0.0);
+        self.unit_solve_trailing(j, &mut out[j..]);
+        let rhs = MatMut::from_column_major_slice_mut(out, k, 1);
+        solve_upper_triangular_in_place(self.l().transpose(), rhs, Par::Seq);
+        clear_simd_state();
+    }
+
+    /// `y = (L⁻¹ e_j)[j..]`, written into `y` (length `k − j`).
+    fn unit_solve_trailing(&self, j: usize, y: &mut [f64]) {
+        let k = self.k;
+        let t = k - 1 - j;
+        let yj = 1.0 / self.l[(j, j)];
+        y[0] = yj;
+        for i in 0..t {
+            y[1 + i] = -self.l[(j + 1 + i, j)] * yj;
+        }
+        let l33 = self.l.as_ref().submatrix(j + 1, j + 1, t, t);
+        let rhs = MatMut::from_column_major_slice_mut(&mut y[1..], t, 1);
+        solve_lower_triangular_in_place(l33, rhs, Par::Seq);
+        clear_simd_state();
+    }
+
+    /// The diagonal of `G⁻¹`, `[G⁻¹]_jj = ‖L⁻¹ e_j‖²`, into `out` (cleared
+    /// first), using `work` (≥ k entries). `Σ_j (k − j)²/2 ≈ k³/6` flops,
+    /// no allocation once `out` has capacity `k`.
+    pub fn inverse_diagonal_into(&self, out: &mut Vec<f64>, work: &mut [f64]) {
+        let k = self.k;
+        out.clear();
+        for j in 0..k {
+            let y = &mut work[..k - j];
+            self.unit_solve_trailing(j, y);
+            out.push(y.iter().map(|v| v * v).sum());
+        }
+    }
+
     /// `G⁻¹` (full symmetric `k × k`) by faer's blocked inverse of the
     /// factor (≈ ⅔k³ flops).
     pub fn inverse(&self) -> Mat<f64> {
@@ -185,9 +261,9 @@ impl CholFactor {
     /// Appends one row: `g_new[i] = G[k, i]` for the existing `i < k`, and the
     /// new diagonal `G[k, k]`. Cost: one triangular solve, O(k²).
     ///
-    /// If the new pivot is not positive (e.g. a duplicate point with tiny
-    /// noise), jitter escalates through [`JITTER_LEVELS`] relative to
-    /// `diag` for this entry only.
+    /// If the new pivot is not positive, or `L_kk² ≤ 1e-10 (diag + jitter)`
+    /// (e.g. a duplicate point with tiny noise), jitter escalates through
+    /// [`JITTER_LEVELS`] relative to `diag` for this entry only.
     pub fn append(&mut self, g_new: &[f64], diag: f64, scratch: &mut [f64]) -> Result<(), GpError> {
         let k = self.k;
         assert_eq!(g_new.len(), k, "g_new length");
@@ -203,7 +279,7 @@ impl CholFactor {
         for &level in JITTER_LEVELS.iter() {
             let jit = level * diag.abs().max(f64::MIN_POSITIVE);
             let d2 = diag + jit - sq;
-            if d2 > 0.0 && d2.is_finite() && d2 > 1e-14 * (diag + jit).abs() {
+            if d2 > 0.0 && d2.is_finite() && d2 > MIN_PIVOT * (diag + jit).abs() {
                 if level > 0.0 {
                     log::warn!(
                         "online update (k = {}) needed jitter {jit:.3e} on the new diagonal entry",
@@ -228,43 +304,71 @@ impl CholFactor {
         })
     }
 
-    /// Removes the first row and column of `G`: with
-    /// `L = [l11 0; l21 L22]`, the new factor is `chol(L22 L22ᵀ + l21 l21ᵀ)`,
-    /// a rank-one update of `L22`, O(k²).
+    /// Removes the first row and column of `G` (sliding window); see
+    /// [`remove`](Self::remove). `scratch` needs `4k − 3` entries.
     pub fn remove_first(&mut self, scratch: &mut [f64]) {
+        if self.k > 0 {
+            self.remove(0, scratch);
+        }
+    }
+
+    /// Removes row and column `j` of `G`, O(k²).
+    ///
+    /// With `L = [L11 0 0; l21ᵀ l22 0; L31 l32 L33]` (block row `j` in the
+    /// middle), the factor of `G` without `j` is `[L11 0; L31 L33']` with
+    /// `L33' L33'ᵀ = L33 L33ᵀ + l32 l32ᵀ`: the rows below `j` move up, the
+    /// columns after `j` move left, and the trailing block takes a rank-one
+    /// update by `t = k − 1 − j` Givens rotations, `O(t²)`.
+    ///
+    /// Rotation `c` acts on column `c` of the trailing block and the vector
+    /// `v = l32`: `(L_c, v) ← (cos L_c + sin v, −sin L_c + cos v)`. They are
+    /// written to `scratch[t + 2c]` (cos) and `scratch[t + 2c + 1]` (sin) so
+    /// that a caller can apply the same orthogonal transformation to a
+    /// right-hand side `β = L⁻¹ R`: rows `(β3_c, β_j)` rotate the same way
+    /// and the first `t` results are the new `β3'`. `scratch` needs `4t + 1`
+    /// entries.
+    ///
+    /// Each trailing column is read once and written once (shift and
+    /// rotation fused, contiguous column slices), so the cost is one pass
+    /// over the `(k − j)²/2` trailing entries plus a `memmove` of the rows
+    /// below `j` in the first `j` columns.
+    #[track_caller]
+    pub fn remove(&mut self, j: usize, scratch: &mut [f64]) {
         let k = self.k;
-        if k == 0 {
-            return;
+        assert!(j < k, "remove: index {j} out of range (k = {k})");
+        let t = k - 1 - j;
+        assert!(scratch.len() > 4 * t, "remove: scratch too short");
+        let (v, rest) = scratch.split_at_mut(t);
+        let (rot, col) = rest.split_at_mut(2 * t);
+        v.copy_from_slice(&self.l.col_as_slice(j)[j + 1..k]);
+        // rows below j move up in the columns before j
+        for c in 0..j {
+            self.l.col_as_slice_mut(c).copy_within(j + 1..k, j);
         }
-        let v = &mut scratch[..k - 1];
-        for i in 1..k {
-            v[i - 1] = self.l[(i, 0)];
-        }
-        // shift L22 to the top-left corner, column by column (column-major)
-        for j in 1..k {
-            for i in j..k {
-                self.l[(i - 1, j - 1)] = self.l[(i, j)];
+        // trailing block: new column j + c is old column j + c + 1 moved up
+        // one row, rotated against v (rank-one update L33 L33ᵀ + v vᵀ)
+        for c in 0..t {
+            let cc = j + c;
+            let len = t - c;
+            col[..len].copy_from_slice(&self.l.col_as_slice(cc + 1)[cc + 1..k]);
+            let dst = &mut self.l.col_as_slice_mut(cc)[cc..cc + len];
+            let lcc = col[0];
+            let r = (lcc * lcc + v[c] * v[c]).sqrt();
+            let (cs, sn) = (lcc / r, v[c] / r);
+            dst[0] = r;
+            for ((d, &lic), vi) in dst[1..].iter_mut().zip(&col[1..len]).zip(&mut v[c + 1..]) {
+                *d = cs * lic + sn * *vi;
+                *vi = cs * *vi - sn * lic;
             }
+            rot[2 * c] = cs;
+            rot[2 * c + 1] = sn;
         }
         let k1 = k - 1;
         for i in 0..k {
             self.l[(k1, i)] = 0.0;
             self.l[(i, k1)] = 0.0;
         }
-        // rank-one update L L^T + v v^T
-        for c in 0..k1 {
-            let lcc = self.l[(c, c)];
-            let r = (lcc * lcc + v[c] * v[c]).sqrt();
-            let cs = r / lcc;
-            let sn = v[c] / lcc;
-            self.l[(c, c)] = r;
-            for i in c + 1..k1 {
-                let lic = (self.l[(i, c)] + sn * v[i]) / cs;
-                self.l[(i, c)] = lic;
-                v[i] = cs * v[i] - sn * lic;
-            }
-        }
-        self.jitter.remove(0);
+        self.jitter.remove(j);
         self.k = k1;
     }
 }
@@ -330,7 +434,7 @@ mod tests {
         let k = 30;
         let g = random_spd(k, 2);
         let mut f = CholFactor::factor(g.as_ref(), k).unwrap();
-        let mut scratch = vec![0.0; k];
+        let mut scratch = vec![0.0; 4 * k];
         for r in 1..5 {
             f.remove_first(&mut scratch);
             let fresh = CholFactor::factor(g.as_ref().submatrix(r, r, k - r, k - r), k).unwrap();
@@ -344,6 +448,39 @@ mod tests {
             .abs()
                 < 1e-9
         );
+    }
+
+    #[test]
+    fn remove_any_row_matches_refactorisation() {
+        let k = 25;
+        let g = random_spd(k, 3);
+        let mut scratch = vec![0.0; 4 * k];
+        for j in [0, 1, 7, 12, 23, 24] {
+            let mut f = CholFactor::factor(g.as_ref(), k).unwrap();
+            // β = L⁻¹ R for two right-hand sides, rotated along with the factor
+            let r = Mat::<f64>::from_fn(k, 2, |i, c| (i as f64 * 0.37 + c as f64).sin());
+            let mut beta = r.clone();
+            f.solve_l_in_place(beta.as_mut());
+            f.remove(j, &mut scratch);
+            let t = k - 1 - j;
+            for c in 0..2 {
+                let mut w = beta[(j, c)];
+                for q in 0..t {
+                    let (cs, sn) = (scratch[t + 2 * q], scratch[t + 2 * q + 1]);
+                    let b = beta[(j + 1 + q, c)];
+                    beta[(j + q, c)] = cs * b + sn * w;
+                    w = -sn * b + cs * w;
+                }
+            }
+            let keep: Vec<usize> = (0..k).filter(|&i| i != j).collect();
+            let gj = Mat::<f64>::from_fn(k - 1, k - 1, |a, b| g[(keep[a], keep[b])]);
+            let fresh = CholFactor::factor(gj.as_ref(), k).unwrap();
+            assert_close(f.l(), fresh.l(), 1e-10);
+            assert_eq!(f.jitter().len(), k - 1);
+            let mut bf = Mat::<f64>::from_fn(k - 1, 2, |a, c| r[(keep[a], c)]);
+            fresh.solve_l_in_place(bf.as_mut());
+            assert_close(beta.as_ref().submatrix(0, 0, k - 1, 2), bf.as_ref(), 1e-10);
+        }
     }
 
     #[test]

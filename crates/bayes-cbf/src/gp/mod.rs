@@ -7,6 +7,7 @@ mod factor;
 mod input_map;
 mod joint;
 mod kernel;
+mod lipschitz;
 mod low_rank;
 pub mod metrics;
 mod model;
@@ -20,6 +21,9 @@ pub use factor::{clear_simd_state, CholFactor, JITTER_LEVELS};
 pub use input_map::{Feature, InputMap};
 pub use joint::{JointPosterior, JointWorkspace};
 pub use kernel::{Kernel, Rbf};
+pub use lipschitz::{
+    factor_bounds, kernel_constants, FactorBounds, LipschitzEstimate, LipschitzSettings,
+};
 pub use metrics::{held_out_errors, variance_weighted_error, HeldOutErrors};
 pub use model::{DynamicsModel, ModelFitSettings};
 pub use mvgp::{check_spd, Mvgp, MvgpHyper, Posterior, PosteriorWorkspace};

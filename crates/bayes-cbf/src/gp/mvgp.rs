@@ -10,6 +10,8 @@ use faer::Mat;
 use nalgebra::DMatrix;
 use std::sync::OnceLock;
 
+mod budget;
+
 /// Hyperparameters of an MVGP with `B0(x, x') = B k0(x, x')`:
 /// `vec F ~ GP(vec M0, B k0 ⊗ A)`, noise `w ~ N(0, σ² A)`.
 #[derive(Debug, Clone, PartialEq)]
@@ -66,6 +68,21 @@ pub fn check_spd(field: &str, m: &DMatrix<f64>, dim: usize) -> Result<(), InputE
 }
 
 impl<K: Kernel> MvgpHyper<K> {
+    /// Lower Cholesky factors `(L_A, L_B)` of `A` and `B`, for sampling
+    /// `vec F ~ N(·, B ⊗ A)` as `L_A Z L_Bᵀ`.
+    pub fn cholesky_factors(&self) -> Result<(DMatrix<f64>, DMatrix<f64>), InputError> {
+        let chol = |field: &str, m: &DMatrix<f64>| {
+            m.clone()
+                .cholesky()
+                .map(|c| c.l())
+                .ok_or_else(|| InputError::NotPositiveDefinite {
+                    field: field.into(),
+                    reason: "Cholesky failed".into(),
+                })
+        };
+        Ok((chol("A", &self.A)?, chol("B", &self.B)?))
+    }
+
     /// Validates shapes and positivity for state dim `n`, control dim `m`,
     /// kernel input dim `d`.
     pub fn validate(&self, n: usize, m: usize, d: usize) -> Result<(), InputError> {
@@ -146,6 +163,8 @@ pub struct Mvgp<K: Kernel = Rbf> {
     /// `α = G⁻¹ Rᵀ = L⁻ᵀ β`, computed on demand.
     alpha: OnceLock<Mat<f64>>,
     scratch: Vec<f64>,
+    /// `diag(G⁻¹)` for the budget policy, maintained once requested.
+    info: budget::InfoTracker,
 }
 
 impl<K: Kernel> Mvgp<K> {
@@ -175,6 +194,7 @@ impl<K: Kernel> Mvgp<K> {
             beta: Mat::zeros(0, n),
             alpha: OnceLock::new(),
             scratch: Vec::new(),
+            info: budget::InfoTracker::default(),
         })
     }
 
@@ -339,6 +359,7 @@ impl<K: Kernel> Mvgp<K> {
         self.factor = CholFactor::default();
         self.beta = Mat::zeros(0, self.n);
         self.alpha = OnceLock::new();
+        self.info.reset();
     }
 
     /// Recomputes the factor and `β` from the stored data (O(k³)).
@@ -361,7 +382,8 @@ impl<K: Kernel> Mvgp<K> {
         self.factor
             .solve_l_in_place(self.beta.as_mut().submatrix_mut(0, 0, k, self.n));
         self.alpha = OnceLock::new();
-        self.scratch.resize(cap, 0.0);
+        self.scratch.resize(4 * cap + 1, 0.0);
+        self.info.reset();
         Ok(())
     }
 
@@ -404,6 +426,7 @@ impl<K: Kernel> Mvgp<K> {
         }
         self.alpha = OnceLock::new();
         self.scratch = gcol;
+        self.info_after_append();
         Ok(())
     }
 
@@ -418,32 +441,13 @@ impl<K: Kernel> Mvgp<K> {
         self.bu.truncate(self.bu.len() - p);
     }
 
-    /// Drops the oldest observation (sliding window): rank-one update of the
-    /// factor and one triangular solve for `β`, O(k²).
+    /// Drops the oldest observation (sliding window): a rank-one update of
+    /// the factor and the same rotations applied to `β`, O(k²)
+    /// ([`remove_observation`](Self::remove_observation)`(0)`).
     pub fn remove_oldest(&mut self) {
-        let k = self.len();
-        if k == 0 {
-            return;
+        if !self.is_empty() {
+            self.remove_observation(0);
         }
-        let (n, p) = (self.n, self.m + 1);
-        let d = self.input_map.output_dim(n);
-        self.xs.drain(..n);
-        self.zs.drain(..d);
-        self.us.drain(..p);
-        self.xdot.drain(..n);
-        self.resid.drain(..n);
-        self.bu.drain(..p);
-        self.scratch.resize(self.scratch.len().max(k), 0.0);
-        self.factor.remove_first(&mut self.scratch);
-        let k1 = k - 1;
-        for j in 0..k1 {
-            for i in 0..n {
-                self.beta[(j, i)] = self.resid[j * n + i];
-            }
-        }
-        self.factor
-            .solve_l_in_place(self.beta.as_mut().submatrix_mut(0, 0, k1, n));
-        self.alpha = OnceLock::new();
     }
 
     /// `α = G⁻¹ (Ẋ − 𝓜U̲)ᵀ`, `k × n`, cached until the data change.
@@ -642,21 +646,30 @@ impl<K: Kernel> Mvgp<K> {
             + (n * k) as f64 * (2.0 * std::f64::consts::PI).ln())
     }
 
-    /// Replaces the hyperparameters (validated) and refactorises.
+    /// Replaces the hyperparameters (validated) and refactorises; on error
+    /// the model keeps its previous hyperparameters and factor.
     pub fn set_hyper(&mut self, hyper: MvgpHyper<K>) -> Result<(), Error> {
         hyper.validate(self.n, self.m, self.input_map.output_dim(self.n))?;
-        self.hyper = hyper;
+        let old = std::mem::replace(&mut self.hyper, hyper);
+        self.update_bu();
+        if let Err(e) = self.refactor() {
+            // the factor and β are untouched on failure: restore the rest
+            self.hyper = old;
+            self.update_bu();
+            return Err(e.into());
+        }
+        Ok(())
+    }
+
+    fn update_bu(&mut self) {
         let p = self.m + 1;
-        let k = self.len();
-        for j in 0..k {
+        for j in 0..self.len() {
             for a in 0..p {
                 self.bu[j * p + a] = (0..p)
                     .map(|c| self.hyper.B[(a, c)] * self.us[j * p + c])
                     .sum();
             }
         }
-        self.refactor()?;
-        Ok(())
     }
 
     /// Rows reserved in the factor and `β` (grows geometrically).

@@ -1,10 +1,14 @@
 //! The closed loop: observe, reference, safety SOCP, zero-order hold on the
 //! true system, record the observation, update the model on schedule.
 
+use super::background_refit::BackgroundRefit;
 use super::reference::{Reference, ReferenceOut};
 use super::{SimSettings, Simulator};
 use crate::barrier::DynBarrier;
-use crate::control::{ControlOutput, ControlStatus, SafetyController};
+use crate::control::{
+    evaluate_trigger, ControlOutput, ControlStatus, SafetyController, TriggerReport,
+    TriggerSettings,
+};
 use crate::error::{Error, InputError};
 use crate::gp::{fit, FitSettings, Mvgp};
 use crate::systems::{wrap_angle, DynSystem};
@@ -35,6 +39,23 @@ pub struct LoopSettings {
     pub refit_geometric: bool,
     /// Sliding window: keep at most this many observations.
     pub window: Option<usize>,
+    /// Budget: keep at most this many observations, the most informative
+    /// ones. At the budget each new observation either replaces the stored
+    /// point of smallest leave-one-out predictive variance or is discarded
+    /// ([`Mvgp::remove_least_informative`]: the kept set has the largest
+    /// `log det(K + σ²I)`), O(k²) per observation. Exclusive with `window`.
+    pub budget: Option<usize>,
+    /// Refit on a background thread: `Some(d)` launches each scheduled refit
+    /// on a copy of the model (same data, hyperparameters and fit seed as the
+    /// synchronous refit, hence the same result) and swaps it in after step
+    /// `k + d` (`d ≥ 1`), the loop meanwhile going on with the previous
+    /// hyperparameters; the data changes since the launch are replayed on
+    /// the refitted model (O(k²) each). Deterministic: the swap happens at
+    /// that step whatever the thread timing (the loop waits for an
+    /// unfinished fit). A refit due while another runs is skipped; one still
+    /// running at the end is discarded. `None`: refits run synchronously
+    /// inside the step.
+    pub refit_background: Option<usize>,
     /// Hyperparameter-fit settings of the refits.
     pub fit: FitSettings,
     /// Standard deviation of the noise on the measured `ẋ` (finite
@@ -42,11 +63,15 @@ pub struct LoopSettings {
     pub xdot_noise: f64,
     /// Seed of the run (reference exploration, process and measurement noise).
     pub seed: u64,
+    /// Self-triggering (paper, Sec. V-B): evaluate `τ_k` at every trigger and,
+    /// if [`TriggerSettings::hold`], hold each control for `τ_k` until the
+    /// horizon `steps · dt` (so `steps` counts fixed-step triggers only).
+    pub trigger: Option<TriggerSettings>,
 }
 
 impl Default for LoopSettings {
     /// `dt = 0.01`, 100 steps, default integrator, learning every step,
-    /// no refits, no window, no measurement noise, seed 0.
+    /// no refits, no window or budget, no measurement noise, seed 0.
     fn default() -> Self {
         Self {
             dt: 0.01,
@@ -56,9 +81,12 @@ impl Default for LoopSettings {
             refit_every: 0,
             refit_geometric: false,
             window: None,
+            budget: None,
+            refit_background: None,
             fit: FitSettings::default(),
             xdot_noise: 0.0,
             seed: 0,
+            trigger: None,
         }
     }
 }
@@ -84,7 +112,30 @@ impl LoopSettings {
                 return Err(InputError::invalid("window", w as f64, "must be ≥ 2"));
             }
         }
+        if let Some(b) = self.budget {
+            if b < 2 {
+                return Err(InputError::invalid("budget", b as f64, "must be ≥ 2"));
+            }
+            if self.window.is_some() {
+                return Err(InputError::invalid(
+                    "budget",
+                    b as f64,
+                    "give either a window or a budget, not both",
+                ));
+            }
+        }
+        if self.refit_background == Some(0) {
+            return Err(InputError::invalid(
+                "refit_background",
+                0.0,
+                "must be ≥ 1 step (or absent: synchronous refits)",
+            ));
+        }
         SimSettings::new(self.sim.internal_step, self.sim.process_noise)?;
+        if let Some(t) = &self.trigger {
+            // the cuboid's dimension is checked against the system in the loop
+            t.validate(t.lipschitz.sides.len())?;
+        }
         self.fit.validate()
     }
 }
@@ -122,6 +173,11 @@ pub struct StepRecord {
     pub refit: bool,
     /// Each monitor's minimum over the fine grid of the step.
     pub monitors: Vec<f64>,
+    /// How long the control was held (s): `dt`, or `τ_k` clamped when
+    /// self-triggered.
+    pub hold: f64,
+    /// The trigger evaluation, when [`LoopSettings::trigger`] is set.
+    pub trigger: Option<TriggerReport>,
 }
 
 /// Result of a run.
@@ -190,12 +246,46 @@ pub fn run_closed_loop(
     let mut buffer: Vec<(Vec<f64>, Vec<f64>, Vec<f64>)> = Vec::new();
     let mut infeasible_steps = 0;
     let mut last_refit_len = 0;
-    for k in 0..settings.steps {
-        let t = k as f64 * settings.dt;
+    let mut background: Option<BackgroundRefit> = None;
+    if let Some(ts) = &settings.trigger {
+        if ts.lipschitz.sides.len() != n {
+            return Err(InputError::shape("trigger.cuboid", n, ts.lipschitz.sides.len()).into());
+        }
+    }
+    // a separate stream, so that evaluating τ_k leaves the run unchanged
+    let mut trigger_rng = ChaCha8Rng::seed_from_u64(settings.seed ^ 0x5e1f_7419_c0de_0001);
+    let self_triggered = settings.trigger.as_ref().is_some_and(|t| t.hold);
+    let horizon = settings.steps as f64 * settings.dt;
+    let mut t_now = 0.0;
+    let mut k = 0usize;
+    loop {
+        let t = if self_triggered {
+            t_now
+        } else {
+            k as f64 * settings.dt
+        };
+        if (self_triggered && t >= horizon - 1e-9) || (!self_triggered && k >= settings.steps) {
+            break;
+        }
         reference.at(k, t, &x, &mut rng, &mut r);
         let start = Instant::now();
         controller.step(&model, &x, &r.u_ref, Some((&r.xd, &r.xd_dot)), &mut out)?;
         let control_us = start.elapsed().as_secs_f64() * 1e6;
+        let trigger = match &settings.trigger {
+            Some(ts) => Some(evaluate_trigger(
+                &model,
+                &x,
+                &out.u,
+                barriers,
+                ts,
+                &mut trigger_rng,
+            )?),
+            None => None,
+        };
+        let hold = match &trigger {
+            Some(tr) if self_triggered => tr.hold.min(horizon - t),
+            _ => settings.dt,
+        };
         let data_size = model.len();
         let (status, p_star) = match &out.status {
             ControlStatus::Optimal => ("optimal", None),
@@ -213,7 +303,7 @@ pub fn run_closed_loop(
         let mut h_fine_min = h.clone();
         let mut mon_min: Vec<f64> = monitors.iter().map(|f| f(&x)).collect();
         let x_prev = x.clone();
-        sim.step_with(&mut x, &out.u, settings.dt, &mut rng, |_, xs| {
+        sim.step_with(&mut x, &out.u, hold, &mut rng, |_, xs| {
             for (b, hm) in barriers.iter().zip(h_fine_min.iter_mut()) {
                 *hm = hm.min(b.value(xs));
             }
@@ -237,11 +327,11 @@ pub fn run_closed_loop(
                     d
                 };
                 let e: f64 = StandardNormal.sample(&mut rng);
-                d / settings.dt + settings.xdot_noise * e
+                d / hold + settings.xdot_noise * e
             })
             .collect();
         buffer.push((x_prev.clone(), out.u.clone(), xdot));
-        if settings.update_every > 0 && (k + 1) % settings.update_every == 0 {
+        if settings.update_every > 0 && (k + 1).is_multiple_of(settings.update_every) {
             for (xo, uo, xd) in buffer.drain(..) {
                 // an observation the factor cannot absorb even with bounded
                 // jitter duplicates information already in the model
@@ -249,9 +339,24 @@ pub fn run_closed_loop(
                     log::warn!("step {k}: observation skipped ({e})");
                     continue;
                 }
+                // a refit running in the background replays these changes
+                if let Some(bg) = background.as_mut() {
+                    bg.record_add(xo, uo, xd);
+                }
                 if let Some(w) = settings.window {
                     while model.len() > w {
                         model.remove_oldest();
+                        if let Some(bg) = background.as_mut() {
+                            bg.record_remove(0);
+                        }
+                    }
+                }
+                if let Some(b) = settings.budget {
+                    while model.len() > b {
+                        let j = model.remove_least_informative();
+                        if let (Some(j), Some(bg)) = (j, background.as_mut()) {
+                            bg.record_remove(j);
+                        }
                     }
                 }
             }
@@ -262,20 +367,42 @@ pub fn run_closed_loop(
             && len.is_power_of_two()
             && len < settings.refit_every
             && len != last_refit_len;
-        let refit = settings.refit_every > 0
-            && ((k + 1) % settings.refit_every == 0 || geometric)
+        let due = settings.refit_every > 0
+            && ((k + 1).is_multiple_of(settings.refit_every) || geometric)
             && !model.is_empty();
-        if refit {
+        // a background refit launched d steps ago is swapped in first
+        let swapped = match background.take() {
+            Some(bg) if bg.due(k) => {
+                bg.finish(&mut model);
+                true
+            }
+            other => {
+                background = other;
+                false
+            }
+        };
+        if due {
             last_refit_len = len;
             let fs = FitSettings {
                 warm_start: true,
                 seed: settings.fit.seed.wrapping_add(k as u64),
                 ..settings.fit.clone()
             };
-            if let Err(e) = fit(&mut model, &fs) {
-                log::warn!("refit at step {k} failed ({e}); keeping the previous hyperparameters");
+            match settings.refit_background {
+                None => {
+                    if let Err(e) = fit(&mut model, &fs) {
+                        log::warn!(
+                            "refit at step {k} failed ({e}); keeping the previous hyperparameters"
+                        );
+                    }
+                }
+                Some(_) if background.is_some() => {
+                    log::info!("refit due at step {k} skipped: the previous one is still running");
+                }
+                Some(d) => background = Some(BackgroundRefit::launch(&model, fs, k, d)),
             }
         }
+        let refit = swapped || (due && settings.refit_background.is_none());
         let scbc = out.constraints.iter().map(|c| c.slack).collect();
         records.push(StepRecord {
             t,
@@ -293,8 +420,15 @@ pub fn run_closed_loop(
             data_size,
             refit,
             monitors: mon_min,
+            hold,
+            trigger,
         });
         progress(k);
+        k += 1;
+        t_now += hold;
+    }
+    if let Some(bg) = background {
+        bg.abandon();
     }
     Ok(LoopResult {
         records,

@@ -1,6 +1,7 @@
 //! Simulation of control-affine systems (paper, Sec. III) and derivative
 //! estimation from sampled trajectories (paper, footnote 1).
 
+mod background_refit;
 mod closed_loop;
 mod dataset;
 mod derivative;

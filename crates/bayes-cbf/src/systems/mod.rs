@@ -4,7 +4,9 @@
 //! exact Jacobians of `F` from forward-mode automatic differentiation
 //! (num-dual). The object-safe [`DynSystem`] is implemented for every
 //! [`ControlAffine`] so systems can be stored as `Arc<dyn DynSystem>` (for
-//! example as the prior mean of a GP).
+//! example as the prior mean of a GP). [`GpSample`] is a draw of the MVGP
+//! prior itself (random Fourier features), a truth for which a model with
+//! the same prior is exactly right.
 //!
 //! ## Layout
 //! `F(x) = [f(x) g(x)]` is `n × (1+m)` and is written **column-major** into a
@@ -12,9 +14,11 @@
 //! `vec F(x)`, the ordering used by the paper's Kronecker covariances.
 
 mod ackermann;
+mod gp_sample;
 mod pendulum;
 
 pub use ackermann::Ackermann;
+pub use gp_sample::GpSample;
 pub use pendulum::Pendulum;
 
 use num_dual::{Dual64, DualNum};

@@ -1,0 +1,149 @@
+//! Binomial confidence intervals and the exact sign test used by the
+//! calibration report.
+
+use serde_json::{json, Value};
+
+/// `z` of a two-sided 95 % interval.
+const Z95: f64 = 1.959_963_984_540_054;
+
+/// The Wilson score interval for `k` successes in `n` trials at 95 %:
+/// `(p̂ + z²/2n ± z √(p̂(1 − p̂)/n + z²/4n²)) / (1 + z²/n)`.
+///
+/// Chosen over the Wald interval because it stays inside `[0, 1]` and has
+/// close to nominal coverage for the small rates measured here, including
+/// `k = 0` (upper end `z²/(n + z²)`, about `3.8/n`). `n = 0` gives `[0, 1]`.
+pub(crate) fn wilson(k: usize, n: usize) -> (f64, f64) {
+    if n == 0 {
+        return (0.0, 1.0);
+    }
+    let (kf, nf) = (k as f64, n as f64);
+    let p = kf / nf;
+    let z2 = Z95 * Z95;
+    let denom = 1.0 + z2 / nf;
+    let centre = (p + z2 / (2.0 * nf)) / denom;
+    let half = Z95 * (p * (1.0 - p) / nf + z2 / (4.0 * nf * nf)).sqrt() / denom;
+    // exact ends at k = 0 and k = n (the formula leaves roundoff there)
+    let lo = if k == 0 {
+        0.0
+    } else {
+        (centre - half).max(0.0)
+    };
+    let hi = if k == n {
+        1.0
+    } else {
+        (centre + half).min(1.0)
+    };
+    (lo, hi)
+}
+
+/// A 95 % interval for a pooled rate `Σ k_e / Σ n_e` over episodes whose
+/// steps are correlated, by the cluster-robust (ratio-estimator) variance
+/// `E/(E − 1) Σ_e (k_e − r n_e)² / (Σ n_e)²` and a normal approximation,
+/// clipped to `[0, 1]`. `None` with fewer than 2 episodes with steps.
+pub(crate) fn cluster_interval(counts: &[(usize, usize)]) -> Option<(f64, f64)> {
+    let used: Vec<(f64, f64)> = counts
+        .iter()
+        .filter(|(_, n)| *n > 0)
+        .map(|&(k, n)| (k as f64, n as f64))
+        .collect();
+    let e = used.len() as f64;
+    let total: f64 = used.iter().map(|(_, n)| n).sum();
+    if used.len() < 2 || total == 0.0 {
+        return None;
+    }
+    let r = used.iter().map(|(k, _)| k).sum::<f64>() / total;
+    let ss: f64 = used.iter().map(|(k, n)| (k - r * n).powi(2)).sum();
+    let se = (e / (e - 1.0) * ss).sqrt() / total;
+    Some(((r - Z95 * se).max(0.0), (r + Z95 * se).min(1.0)))
+}
+
+/// `P(X ≥ k)` for `X ~ Binomial(n, ½)`: the one-sided exact sign
+/// (McNemar) test of `k` discordant pairs favouring one side out of `n`.
+pub(crate) fn sign_test_p(k: usize, n: usize) -> f64 {
+    if k == 0 {
+        return 1.0;
+    }
+    if k > n {
+        return 0.0;
+    }
+    // log pmf(j) = log C(n, j) − n log 2, accumulated
+    let mut logs = Vec::with_capacity(n + 1);
+    let mut lp = -(n as f64) * std::f64::consts::LN_2;
+    logs.push(lp);
+    for j in 1..=n {
+        lp += ((n - j + 1) as f64 / j as f64).ln();
+        logs.push(lp);
+    }
+    let tail = &logs[k..];
+    let max = tail.iter().cloned().fold(f64::NEG_INFINITY, f64::max);
+    let s: f64 = tail.iter().map(|l| (l - max).exp()).sum();
+    (max + s.ln()).exp().min(1.0)
+}
+
+/// `{"count", "of", "rate", "ci95"}` of a binomial proportion (Wilson).
+pub(crate) fn proportion(k: usize, n: usize) -> Value {
+    let (lo, hi) = wilson(k, n);
+    json!({
+        "count": k,
+        "of": n,
+        "rate": if n > 0 { json!(k as f64 / n as f64) } else { Value::Null },
+        "ci95": [lo, hi],
+    })
+}
+
+/// [`proportion`] of pooled per-episode counts `(k_e, n_e)`, with the
+/// cluster-robust interval as well (`ci95_clustered`).
+pub(crate) fn pooled(counts: &[(usize, usize)]) -> Value {
+    let k: usize = counts.iter().map(|c| c.0).sum();
+    let n: usize = counts.iter().map(|c| c.1).sum();
+    let mut v = proportion(k, n);
+    v["ci95_clustered"] = match cluster_interval(counts) {
+        Some((lo, hi)) => json!([lo, hi]),
+        None => Value::Null,
+    };
+    v
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn wilson_matches_reference_values() {
+        // reference: statsmodels proportion_confint(method="wilson")
+        let (lo, hi) = wilson(0, 200);
+        assert!(lo == 0.0 && (hi - 0.018_845).abs() < 1e-5, "{lo} {hi}");
+        let (lo, hi) = wilson(10, 100);
+        assert!(
+            (lo - 0.055_2).abs() < 1e-4 && (hi - 0.174_4).abs() < 1e-4,
+            "{lo} {hi}"
+        );
+        let (lo, hi) = wilson(50, 50);
+        assert!((lo - 0.928_6).abs() < 1e-4 && hi == 1.0, "{lo}");
+        assert_eq!(wilson(0, 0), (0.0, 1.0));
+    }
+
+    #[test]
+    fn sign_test_tails() {
+        assert!((sign_test_p(10, 10) - 0.5f64.powi(10)).abs() < 1e-15);
+        assert!((sign_test_p(5, 10) - 0.623_046_875).abs() < 1e-12);
+        assert_eq!(sign_test_p(0, 4), 1.0);
+        // large n does not underflow
+        let p = sign_test_p(600, 1000);
+        assert!(p > 0.0 && p < 1e-9, "{p}");
+    }
+
+    #[test]
+    fn clustered_interval_widens_with_correlated_episodes() {
+        // the same pooled rate 0.1: spread evenly vs concentrated in one episode
+        let even = vec![(10, 100); 10];
+        let lumpy: Vec<(usize, usize)> = (0..10)
+            .map(|i| (if i == 0 { 100 } else { 0 }, 100))
+            .collect();
+        let (a, b) = cluster_interval(&even).unwrap();
+        let (c, d) = cluster_interval(&lumpy).unwrap();
+        assert!(a == 0.1 && b == 0.1, "no between-episode spread: {a} {b}");
+        assert!(c < 0.05 && d > 0.25, "{c} {d}");
+        assert!(cluster_interval(&[(1, 10)]).is_none());
+    }
+}

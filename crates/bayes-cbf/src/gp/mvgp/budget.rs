@@ -1,0 +1,233 @@
+//! Bounded cost by a budget of the most informative observations: O(k²)
+//! removal of any observation and the log-determinant criterion that picks
+//! which one.
+//!
+//! ## The criterion
+//!
+//! With `G = K + σ²I` the Gram matrix of the stored observations, the
+//! information the observations carry about `F` (hyperparameters fixed) is
+//! `I(Ẋ; F) = ½ n log det(σ⁻² G)` (the `⊗ A` factor contributes the same
+//! `log det A` per point whatever the point, so it does not rank points).
+//! By the Schur complement,
+//!
+//! `det G = det G₋ⱼ · s_j`, `s_j = G_jj − g₋ⱼᵀ G₋ⱼ⁻¹ g₋ⱼ = 1 / [G⁻¹]_jj`,
+//!
+//! where `s_j` is the leave-one-out predictive variance of observation `j`
+//! (of `u̲_jᵀ F(x_j)ᵀ` per output, in units of `A`, noise included) given all
+//! the others. Dropping the observation with the **smallest** `s_j`, i.e. the
+//! largest `[G⁻¹]_jj`, keeps the subset with the largest `log det G₋ⱼ`: the
+//! most information among all subsets that drop one point. For the newest
+//! observation `s_k = L_kk²` is its predictive variance at insertion, the
+//! pivot of the append. The budget policy appends the new observation and
+//! then removes the least informative of the `k + 1`, which may be the new
+//! one (discarded) or an older one (replaced).
+//!
+//! The choice only ranks points: whatever is removed, the model stays the
+//! exact GP posterior given the points it keeps.
+//!
+//! ## Cost
+//!
+//! `d_j = [G⁻¹]_jj` is kept up to date in O(k²) per change instead of being
+//! recomputed (O(k³)):
+//!
+//! - append (`L_new = [L 0; lᵀ δ]`, `a = L⁻ᵀ l = G⁻¹ g`): by the block
+//!   inverse, `d_i += a_i² / δ²` for the old points, `d_k = 1/δ²`: one
+//!   extra triangular solve with the old factor;
+//! - removal of `j` (`c = G⁻¹ e_j`, two triangular solves):
+//!   `[G₋ⱼ⁻¹]_ii = d_i − c_i² / c_j`.
+//!
+//! The first use computes `d` exactly from the factor (`k³/6` flops); it is
+//! recomputed exactly after every refactorisation (refit, new
+//! hyperparameters) and every `64k` incremental updates (amortised
+//! `k²/384` flops). The incremental values drift slowly: measured relative
+//! error 6·10⁻¹⁴ after 4 000 updates at k = 40 without any recomputation.
+//! A budgeted step therefore costs one append, three triangular solves and
+//! one O(k²) removal: 2–3× an append alone, and about what a window step
+//! costs, whose removal of the oldest point rewrites the whole factor
+//! (measured at k = 200: 20 µs against 25 µs; at k = 1000: 0.76 ms against
+//! 0.73 ms).
+//!
+//! ## Trade-off against a sliding window
+//!
+//! Both bound `k`. The window forgets by age: regions of the state space
+//! visited long ago revert to the prior. The budget forgets by redundancy:
+//! it keeps points spread over everything visited (in the kernel's metric,
+//! weighted by `u̲ᵀ B u̲`), at about the update cost of the window, but with
+//! no notion of recency, so it suits stationary dynamics (fixed
+//! hyperparameters); a window suits dynamics that drift. On a stream whose
+//! heading sweeps once around the circle, a 200-point budget predicts
+//! `F(x)u̲` over all headings with 80× less error than a 200-point window
+//! and 3× more than all 4 000 points (README, "Performance").
+
+use super::Mvgp;
+use crate::gp::kernel::Kernel;
+use faer::MatMut;
+use std::sync::OnceLock;
+
+/// Exact recomputation of `diag(G⁻¹)` after this many incremental updates
+/// per stored point.
+const REFRESH_PER_POINT: usize = 64;
+
+/// `diag(G⁻¹)` maintained under appends and removals once requested.
+#[derive(Debug, Clone, Default)]
+pub(super) struct InfoTracker {
+    /// `d_j = [G⁻¹]_jj`, valid iff `tracked`.
+    diag: Vec<f64>,
+    tracked: bool,
+    /// Incremental updates since the last exact computation.
+    updates: usize,
+    /// Scratch of length ≥ k.
+    work: Vec<f64>,
+}
+
+impl InfoTracker {
+    /// Stops tracking (after a refactorisation or new data).
+    pub(super) fn reset(&mut self) {
+        self.tracked = false;
+        self.diag.clear();
+        self.updates = 0;
+    }
+}
+
+impl<K: Kernel> Mvgp<K> {
+    /// Updates `diag(G⁻¹)` after [`add_observation`](Self::add_observation)
+    /// grew the factor from `k` to `k + 1` rows (O(k²); nothing if
+    /// untracked).
+    pub(super) fn info_after_append(&mut self) {
+        if !self.info.tracked {
+            return;
+        }
+        let k = self.len() - 1;
+        let info = &mut self.info;
+        if info.work.len() < k + 1 {
+            info.work.resize(self.beta.nrows().max(k + 1), 0.0);
+        }
+        let l = self.factor.l();
+        let delta = l[(k, k)];
+        for (i, w) in info.work[..k].iter_mut().enumerate() {
+            *w = l[(k, i)];
+        }
+        // a = L⁻ᵀ l with the factor before the append
+        self.factor.solve_leading_lt_in_place(
+            k,
+            MatMut::from_column_major_slice_mut(&mut info.work[..k], k, 1),
+        );
+        let inv = 1.0 / (delta * delta);
+        for (d, a) in info.diag.iter_mut().zip(&info.work[..k]) {
+            *d += a * a * inv;
+        }
+        info.diag.push(inv);
+        info.updates += 1;
+        self.maybe_refresh_info();
+    }
+
+    fn maybe_refresh_info(&mut self) {
+        if self.info.updates > REFRESH_PER_POINT * self.len().max(16) {
+            self.refresh_info();
+        }
+    }
+
+    /// Computes `diag(G⁻¹)` exactly from the factor (`k³/6` flops) and
+    /// starts tracking it.
+    fn refresh_info(&mut self) {
+        let k = self.len();
+        let info = &mut self.info;
+        if info.work.len() < k {
+            info.work.resize(self.beta.nrows().max(k), 0.0);
+        }
+        self.factor
+            .inverse_diagonal_into(&mut info.diag, &mut info.work);
+        info.tracked = true;
+        info.updates = 0;
+    }
+
+    /// `[G⁻¹]_jj` for every stored observation `j`: the reciprocal of its
+    /// leave-one-out predictive variance `s_j` (module docs of the budget).
+    /// The first call computes it (`k³/6` flops) and switches on its O(k²)
+    /// maintenance in [`add_observation`](Self::add_observation) and the
+    /// removals, until the next refactorisation.
+    pub fn gram_inverse_diagonal(&mut self) -> &[f64] {
+        if !self.info.tracked {
+            self.refresh_info();
+        }
+        &self.info.diag
+    }
+
+    /// Removes observation `j` (0 = oldest) in O(k²): the factor row and
+    /// column by a rank-one update ([`CholFactor::remove`]), `β = L⁻¹Rᵀ` by
+    /// the same Givens rotations (O(k n)), and `diag(G⁻¹)` if tracked.
+    ///
+    /// Panics if `j ≥ k` (a programming error).
+    ///
+    /// [`CholFactor::remove`]: crate::gp::CholFactor::remove
+    #[track_caller]
+    pub fn remove_observation(&mut self, j: usize) {
+        let k = self.len();
+        assert!(j < k, "remove_observation: index {j} but k = {k}");
+        let (n, p) = (self.n, self.m + 1);
+        let d = self.input_map.output_dim(n);
+        if self.info.tracked {
+            let info = &mut self.info;
+            if info.work.len() < k {
+                info.work.resize(self.beta.nrows().max(k), 0.0);
+            }
+            // c = G⁻¹ e_j; [G₋ⱼ⁻¹]_ii = d_i − c_i² / c_j
+            self.factor.inverse_column_into(j, &mut info.work);
+            let cj = info.work[j];
+            for (dv, c) in info.diag.iter_mut().zip(&info.work[..k]) {
+                *dv -= c * c / cj;
+            }
+            info.diag.remove(j);
+            info.updates += 1;
+        }
+        self.xs.drain(j * n..(j + 1) * n);
+        self.zs.drain(j * d..(j + 1) * d);
+        self.us.drain(j * p..(j + 1) * p);
+        self.xdot.drain(j * n..(j + 1) * n);
+        self.resid.drain(j * n..(j + 1) * n);
+        self.bu.drain(j * p..(j + 1) * p);
+        let t = k - 1 - j;
+        if self.scratch.len() <= 4 * t {
+            self.scratch.resize(4 * self.beta.nrows().max(k) + 1, 0.0);
+        }
+        self.factor.remove(j, &mut self.scratch);
+        // β3' = first t entries of Qᵀ [β3; β_j], column by column
+        let rot = &self.scratch[t..3 * t];
+        for i in 0..n {
+            let mut w = self.beta[(j, i)];
+            for q in 0..t {
+                let (cs, sn) = (rot[2 * q], rot[2 * q + 1]);
+                let b = self.beta[(j + 1 + q, i)];
+                self.beta[(j + q, i)] = cs * b + sn * w;
+                w = cs * w - sn * b;
+            }
+            self.beta[(k - 1, i)] = 0.0;
+        }
+        self.alpha = OnceLock::new();
+        if self.info.tracked {
+            self.maybe_refresh_info();
+        }
+    }
+
+    /// The budget policy: removes the observation with the smallest
+    /// leave-one-out predictive variance (largest `[G⁻¹]_jj`, ties to the
+    /// oldest) and returns its index, `None` if there is no data. Called
+    /// right after [`add_observation`](Self::add_observation) on a model at
+    /// its budget, it either discards the new point (index `k`) or replaces
+    /// the least informative old one, keeping the `k`-subset of largest
+    /// `log det G` among those that drop one point. O(k²).
+    pub fn remove_least_informative(&mut self) -> Option<usize> {
+        if self.is_empty() {
+            return None;
+        }
+        let mut best = 0;
+        let diag = self.gram_inverse_diagonal();
+        for (j, v) in diag.iter().enumerate() {
+            if *v > diag[best] {
+                best = j;
+            }
+        }
+        self.remove_observation(best);
+        Some(best)
+    }
+}

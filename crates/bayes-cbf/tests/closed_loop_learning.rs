@@ -1,0 +1,234 @@
+//! Online learning modes of the closed loop: a budget bounds the data and
+//! keeps an exact model; background refits give the synchronous refit's
+//! hyperparameters `d` steps later, deterministically, and keep the refit
+//! out of the loop's step.
+
+use bayes_cbf::barrier::{DynBarrier, PendulumSector};
+use bayes_cbf::control::{SafetyController, SafetySettings};
+use bayes_cbf::gp::{FitSettings, InputMap, Mvgp, MvgpHyper, PriorMean, Rbf};
+use bayes_cbf::sim::{run_closed_loop, EpsilonGreedy, LoopResult, LoopSettings};
+use bayes_cbf::systems::Pendulum;
+use nalgebra::DMatrix;
+use std::sync::Arc;
+use std::time::Instant;
+
+fn model() -> Mvgp {
+    let hyper = MvgpHyper {
+        kernel: Rbf::new(vec![1.0; 3], 1.0).unwrap(),
+        A: DMatrix::identity(2, 2),
+        B: DMatrix::identity(2, 2),
+        sigma: 0.1,
+    };
+    let prior = PriorMean::System(Arc::new(Pendulum {
+        mass: 2.0,
+        length: 0.5,
+        gravity: 10.0,
+    }));
+    Mvgp::new(2, 1, hyper, prior, InputMap::periodic(2, &[0])).unwrap()
+}
+
+/// The pendulum of Sec. VII-A with ε-greedy exploration, `settings` applied.
+fn run(settings: &LoopSettings, on_step: impl FnMut(usize)) -> LoopResult {
+    let sector: Arc<dyn DynBarrier> =
+        Arc::new(PendulumSector::new(0.785, 0.39, 2, vec![1.0, 3.0]).unwrap());
+    let mut safety = SafetySettings::new(1);
+    safety.u_min = Some(vec![-20.0]);
+    safety.u_max = Some(vec![20.0]);
+    let mut ctrl = SafetyController::new(2, 1, vec![sector.clone()], None, safety).unwrap();
+    let mut reference = EpsilonGreedy::new(vec![-10.0], vec![10.0], 400.0).unwrap();
+    run_closed_loop(
+        &Pendulum::default(),
+        model(),
+        &mut ctrl,
+        &[sector],
+        &[],
+        &mut reference,
+        &[-0.5, 0.0],
+        settings,
+        on_step,
+    )
+    .unwrap()
+}
+
+fn base(steps: usize) -> LoopSettings {
+    LoopSettings {
+        steps,
+        update_every: 1,
+        xdot_noise: 0.01,
+        seed: 3,
+        fit: FitSettings {
+            max_iters: 20,
+            ..FitSettings::default()
+        },
+        ..LoopSettings::default()
+    }
+}
+
+/// The model rebuilt from scratch on `m`'s data with hyperparameters `h`.
+fn rebuilt(m: &Mvgp, h: &MvgpHyper) -> Mvgp {
+    let mut fresh = model();
+    fresh.set_hyper(h.clone()).unwrap();
+    fresh.set_data(m.xs(), &m.controls(), m.xdot()).unwrap();
+    fresh
+}
+
+fn assert_same_posterior(a: &Mvgp, b: &Mvgp, tol: f64) {
+    for x in [[-0.5, 0.0], [0.3, -1.0], [2.0, 0.5], [-2.5, 3.0]] {
+        let (pa, pb) = (a.posterior(&x).unwrap(), b.posterior(&x).unwrap());
+        let scale = 1.0 + pb.mean.amax().max(pb.B.amax());
+        assert!(
+            (&pa.mean - &pb.mean).amax() < tol * scale,
+            "{} vs {}",
+            pa.mean,
+            pb.mean
+        );
+        assert!((&pa.B - &pb.B).amax() < tol * scale, "{} vs {}", pa.B, pb.B);
+    }
+}
+
+#[test]
+fn budget_bounds_the_data_and_keeps_an_exact_model() {
+    let budget = 40;
+    let r = run(
+        &LoopSettings {
+            budget: Some(budget),
+            ..base(300)
+        },
+        |_| {},
+    );
+    assert!(r.records.iter().all(|rec| rec.data_size <= budget));
+    assert_eq!(r.records.last().unwrap().data_size, budget);
+    assert_eq!(r.model.len(), budget);
+    // the kept points are not simply the latest ones
+    let window = run(
+        &LoopSettings {
+            window: Some(budget),
+            ..base(300)
+        },
+        |_| {},
+    );
+    assert_ne!(r.model.xs(), window.model.xs());
+    let fresh = rebuilt(&r.model, r.model.hyper());
+    assert_same_posterior(&r.model, &fresh, 1e-9);
+}
+
+#[test]
+fn budget_and_window_are_exclusive_and_settings_are_checked() {
+    let both = LoopSettings {
+        window: Some(10),
+        budget: Some(10),
+        ..LoopSettings::default()
+    };
+    let e = both.validate().unwrap_err().to_string();
+    assert!(e.contains("budget") && e.contains("not both"), "{e}");
+    for bad in [
+        LoopSettings {
+            budget: Some(1),
+            ..LoopSettings::default()
+        },
+        LoopSettings {
+            refit_background: Some(0),
+            ..LoopSettings::default()
+        },
+    ] {
+        let e = bad.validate().unwrap_err().to_string();
+        assert!(
+            e.contains("budget") || e.contains("refit_background"),
+            "{e}"
+        );
+    }
+}
+
+/// One refit due after step 49, swapped in after step 59 (`d = 10`): the
+/// run equals a run without refits up to the swap, its hyperparameters are
+/// bit-for-bit the synchronous refit's, and the swapped-in model is the
+/// exact GP of the loop's data under them; with a window and a budget too
+/// (removals since the launch are replayed).
+#[test]
+fn background_refit_matches_the_synchronous_refit() {
+    for (window, budget) in [(None, None), (Some(30), None), (None, Some(30))] {
+        let mode = |s: LoopSettings| LoopSettings {
+            window,
+            budget,
+            ..s
+        };
+        let sync = run(
+            &mode(LoopSettings {
+                refit_every: 50,
+                ..base(60)
+            }),
+            |_| {},
+        );
+        let bg = run(
+            &mode(LoopSettings {
+                refit_every: 50,
+                refit_background: Some(10),
+                ..base(60)
+            }),
+            |_| {},
+        );
+        let none = run(&mode(base(60)), |_| {});
+        assert!(sync.records[49].refit);
+        let swaps: Vec<usize> = (0..60).filter(|&k| bg.records[k].refit).collect();
+        assert_eq!(swaps, vec![59], "{window:?} {budget:?}");
+        assert_ne!(sync.model.hyper(), none.model.hyper());
+        assert_eq!(
+            bg.model.hyper(),
+            sync.model.hyper(),
+            "{window:?} {budget:?}"
+        );
+        for (a, b) in bg.records.iter().zip(&none.records) {
+            assert_eq!((&a.x, &a.u, a.data_size), (&b.x, &b.u, b.data_size));
+        }
+        assert_eq!(bg.model.xs(), none.model.xs());
+        assert_eq!(bg.model.xdot(), none.model.xdot());
+        let fresh = rebuilt(&none.model, sync.model.hyper());
+        assert_same_posterior(&bg.model, &fresh, 1e-8);
+    }
+}
+
+/// The loop does not wait for a background refit: the step at which a
+/// refit falls due takes a fraction of the synchronous refit step.
+#[test]
+fn background_refit_stays_out_of_the_step() {
+    let timed = |s: &LoopSettings| {
+        let mut stamps = vec![Instant::now()];
+        run(s, |_| stamps.push(Instant::now()));
+        stamps
+            .windows(2)
+            .map(|w| (w[1] - w[0]).as_secs_f64())
+            .collect::<Vec<_>>()
+    };
+    let slow_fit = |s: LoopSettings| LoopSettings {
+        refit_every: 250,
+        fit: FitSettings {
+            max_iters: 60,
+            restarts: 1,
+            ..FitSettings::default()
+        },
+        ..s
+    };
+    let sync = timed(&slow_fit(base(260)));
+    let bg = timed(&slow_fit(LoopSettings {
+        refit_background: Some(5),
+        ..base(260)
+    }));
+    let typical = {
+        let mut v = sync[..249].to_vec();
+        v.sort_by(f64::total_cmp);
+        v[v.len() / 2]
+    };
+    // step 249: the refit is due (synchronous: inside; background: launched)
+    assert!(
+        sync[249] > 20.0 * typical,
+        "sync refit step {} vs {}",
+        sync[249],
+        typical
+    );
+    assert!(
+        bg[249] < 0.2 * sync[249],
+        "background launch step {} vs synchronous refit step {}",
+        bg[249],
+        sync[249]
+    );
+}
