@@ -4,11 +4,9 @@
 mod common;
 
 use bayes_cbf::gp::{InputMap, Mvgp, MvgpHyper, PriorMean, Rbf};
-use bayes_cbf::systems::{DynSystem, Pendulum};
-use common::{random_spd, rel_diff};
+use common::rel_diff;
 use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
-use std::sync::Arc;
 
 fn data(k: usize, n: usize, m: usize, seed: u64) -> (Vec<f64>, Vec<f64>, Vec<f64>) {
     let mut rng = ChaCha8Rng::seed_from_u64(seed);
@@ -20,19 +18,7 @@ fn data(k: usize, n: usize, m: usize, seed: u64) -> (Vec<f64>, Vec<f64>, Vec<f64
 }
 
 fn model(seed: u64) -> Mvgp {
-    let mut rng = ChaCha8Rng::seed_from_u64(seed);
-    let hyper = MvgpHyper {
-        kernel: Rbf::new(vec![0.8, 1.1], 1.3).unwrap(),
-        A: random_spd(2, &mut rng),
-        B: random_spd(2, &mut rng),
-        sigma: 0.05,
-    };
-    let prior: Arc<dyn DynSystem> = Arc::new(Pendulum {
-        mass: 2.0,
-        length: 1.0,
-        gravity: 9.0,
-    });
-    Mvgp::new(2, 1, hyper, PriorMean::System(prior), InputMap::Identity).unwrap()
+    common::pendulum_model(seed)
 }
 
 fn assert_same(a: &Mvgp, b: &Mvgp, tol: f64) {

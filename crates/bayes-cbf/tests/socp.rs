@@ -55,28 +55,46 @@ fn check_kkt(filter: &SafetyFilter, tol: f64) {
     }
 }
 
+/// Program `trial` of the random strictly feasible family: `m = 1 + trial % 3`
+/// controls, `1 + trial % 2` barriers of relative degree 1 or 2 that `u = 0`
+/// meets with room to spare at `p = 0.9`, `ζ = 0.05`, a CLF, bounds ±3 and a
+/// random reference in `[−5, 5]^m`.
+fn feasible_program(
+    trial: usize,
+    rng: &mut ChaCha8Rng,
+) -> (
+    Vec<ConditionMoments>,
+    ConditionMoments,
+    SafetyFilter,
+    Vec<f64>,
+) {
+    let m = 1 + trial % 3;
+    let nb = 1 + trial % 2;
+    let mut cbcs: Vec<ConditionMoments> = (0..nb)
+        .map(|i| random_moments(m, rng, 1 + (i + trial) % 2, 0.3))
+        .collect();
+    for c in cbcs.iter_mut() {
+        // u = 0 strictly feasible
+        let cp = quantile_factor(0.9, c.relative_degree).unwrap();
+        c.e[0] = 0.05 + cp * c.cov[(0, 0)].sqrt() + 0.5;
+    }
+    let clc = random_moments(m, rng, 1, 0.3);
+    let mut settings = SafetySettings::new(m);
+    settings.probability = 0.9;
+    settings.zeta = 0.05;
+    settings.u_min = Some(vec![-3.0; m]);
+    settings.u_max = Some(vec![3.0; m]);
+    let filter = SafetyFilter::new(m, nb, true, settings).unwrap();
+    let u_ref: Vec<f64> = (0..m).map(|_| rng.random_range(-5.0..5.0)).collect();
+    (cbcs, clc, filter, u_ref)
+}
+
 #[test]
 fn solution_satisfies_constraints_and_kkt() {
     let mut rng = ChaCha8Rng::seed_from_u64(1);
     for trial in 0..20 {
-        let m = 1 + trial % 3;
-        let nb = 1 + trial % 2;
-        let mut cbcs: Vec<ConditionMoments> = (0..nb)
-            .map(|i| random_moments(m, &mut rng, 1 + (i + trial) % 2, 0.3))
-            .collect();
-        for c in cbcs.iter_mut() {
-            // u = 0 strictly feasible
-            let cp = quantile_factor(0.9, c.relative_degree).unwrap();
-            c.e[0] = 0.05 + cp * c.cov[(0, 0)].sqrt() + 0.5;
-        }
-        let clc = random_moments(m, &mut rng, 1, 0.3);
-        let mut settings = SafetySettings::new(m);
-        settings.probability = 0.9;
-        settings.zeta = 0.05;
-        settings.u_min = Some(vec![-3.0; m]);
-        settings.u_max = Some(vec![3.0; m]);
-        let mut filter = SafetyFilter::new(m, nb, true, settings).unwrap();
-        let u_ref: Vec<f64> = (0..m).map(|_| rng.random_range(-5.0..5.0)).collect();
+        let (cbcs, clc, mut filter, u_ref) = feasible_program(trial, &mut rng);
+        let (m, nb) = (u_ref.len(), cbcs.len());
         let mut out = ControlOutput::new(m, nb);
         filter.solve(&cbcs, Some(&clc), &u_ref, &mut out).unwrap();
         assert_eq!(out.status, ControlStatus::Optimal, "trial {trial}");
@@ -323,23 +341,8 @@ fn bad_settings_are_rejected() {
 fn random_feasible_programs_are_solved_to_full_accuracy() {
     let mut rng = ChaCha8Rng::seed_from_u64(11);
     for trial in 0..600 {
-        let m = 1 + trial % 3;
-        let nb = 1 + trial % 2;
-        let mut cbcs: Vec<ConditionMoments> = (0..nb)
-            .map(|i| random_moments(m, &mut rng, 1 + (i + trial) % 2, 0.3))
-            .collect();
-        for c in cbcs.iter_mut() {
-            let cp = quantile_factor(0.9, c.relative_degree).unwrap();
-            c.e[0] = 0.05 + cp * c.cov[(0, 0)].sqrt() + 0.5;
-        }
-        let clc = random_moments(m, &mut rng, 1, 0.3);
-        let mut settings = SafetySettings::new(m);
-        settings.probability = 0.9;
-        settings.zeta = 0.05;
-        settings.u_min = Some(vec![-3.0; m]);
-        settings.u_max = Some(vec![3.0; m]);
-        let mut filter = SafetyFilter::new(m, nb, true, settings).unwrap();
-        let u_ref: Vec<f64> = (0..m).map(|_| rng.random_range(-5.0..5.0)).collect();
+        let (cbcs, clc, mut filter, u_ref) = feasible_program(trial, &mut rng);
+        let (m, nb) = (u_ref.len(), cbcs.len());
         let mut out = ControlOutput::new(m, nb);
         filter.solve(&cbcs, Some(&clc), &u_ref, &mut out).unwrap();
         assert_eq!(out.status, ControlStatus::Optimal, "trial {trial}");

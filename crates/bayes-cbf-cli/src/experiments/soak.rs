@@ -203,15 +203,7 @@ fn run_inner(args: &ExperimentArgs, steps: usize, window: usize) -> Result<()> {
             .with_context(|| format!("soak: chunk at step {done}"))?;
             for rec in &r.records {
                 times.push(rec.control_us);
-                let finite = rec
-                    .x
-                    .iter()
-                    .chain(&rec.u)
-                    .chain(&rec.h)
-                    .chain(&rec.h_fine_min)
-                    .chain(&rec.scbc)
-                    .all(|v| v.is_finite())
-                    && rec.trace_cov.is_finite();
+                let finite = rec.is_finite();
                 non_finite += usize::from(!finite);
                 h_violations += usize::from(rec.h_fine_min.iter().any(|&h| h < 0.0));
                 infeasible += usize::from(rec.status == "infeasible");

@@ -22,6 +22,7 @@
 
 use crate::barrier::DynBarrier;
 use crate::error::{Error, InputError};
+use crate::gp::lipschitz::{grid_nodes, grid_sup_estimate};
 use crate::gp::{LipschitzEstimate, LipschitzSettings, Mvgp};
 use num_dual::{Dual64, HyperDual64};
 use rand::Rng;
@@ -232,54 +233,17 @@ fn tau_for(
 /// neighbouring nodes.
 pub fn barrier_gradient_bound(b: &dyn DynBarrier, x: &[f64], s: &LipschitzSettings) -> f64 {
     let n = x.len();
-    let g = s.grid;
-    let counts: Vec<usize> = s
-        .sides
-        .iter()
-        .map(|&w| if w == 0.0 { 1 } else { g })
-        .collect();
-    let total: usize = counts.iter().product();
+    let all: Vec<usize> = (0..n).collect();
     let mut grad = vec![0.0; n];
     let mut scratch = vec![Dual64::from(0.0); n];
-    let mut norms = Vec::with_capacity(total);
-    let mut node = vec![0.0; n];
-    for idx in 0..total {
-        let mut rem = idx;
-        for c in (0..n).rev() {
-            let ic = rem % counts[c];
-            rem /= counts[c];
-            node[c] = if counts[c] == 1 {
-                x[c]
-            } else {
-                x[c] - s.sides[c] / 2.0 + s.sides[c] * ic as f64 / (g - 1) as f64
-            };
-        }
-        b.gradient(&node, &mut grad, &mut scratch);
-        norms.push(grad.iter().map(|v| v * v).sum::<f64>().sqrt());
-    }
-    let mut max = 0.0f64;
-    let mut slope = 0.0f64;
-    for idx in 0..total {
-        max = max.max(norms[idx]);
-        let mut rem = idx;
-        let mut stride = 1;
-        for c in (0..n).rev() {
-            let ic = rem % counts[c];
-            rem /= counts[c];
-            if ic + 1 < counts[c] {
-                let step = s.sides[c] / (g - 1) as f64;
-                slope = slope.max((norms[idx + stride] - norms[idx]).abs() / step);
-            }
-            stride *= counts[c];
-        }
-    }
-    let h: f64 = 0.5
-        * (0..n)
-            .filter(|&c| counts[c] > 1)
-            .map(|c| (s.sides[c] / (g - 1) as f64).powi(2))
-            .sum::<f64>()
-            .sqrt();
-    max + h * slope
+    let norms: Vec<Vec<f64>> = grid_nodes(x, &s.sides, s.grid, &all)
+        .iter()
+        .map(|node| {
+            b.gradient(node, &mut grad, &mut scratch);
+            vec![grad.iter().map(|v| v * v).sum::<f64>().sqrt()]
+        })
+        .collect();
+    grid_sup_estimate(&norms, &s.sides, s.grid)[0]
 }
 
 /// Evaluates the trigger at `(x_k, u_k)`: Lipschitz constants, `L_h`,

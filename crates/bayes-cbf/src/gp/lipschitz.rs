@@ -305,7 +305,7 @@ pub fn kernel_constants(bounds: &[FactorBounds], s: f64, with_data: bool) -> Vec
 
 /// The grid of `grid` nodes per coordinate over the cuboid `sides` centred
 /// at `x`, restricted to the coordinates `coords` (others fixed at `x`).
-fn grid_nodes(x: &[f64], sides: &[f64], grid: usize, coords: &[usize]) -> Vec<Vec<f64>> {
+pub(crate) fn grid_nodes(x: &[f64], sides: &[f64], grid: usize, coords: &[usize]) -> Vec<Vec<f64>> {
     let axis = |c: usize| -> Vec<f64> {
         if sides[c] == 0.0 {
             vec![x[c]]
@@ -330,6 +330,43 @@ fn grid_nodes(x: &[f64], sides: &[f64], grid: usize, coords: &[usize]) -> Vec<Ve
             .collect();
     }
     nodes
+}
+
+/// Estimates `sup |v_e|` over the cuboid of each component `e` of a smooth
+/// function sampled at the nodes of [`grid_nodes`] over all coordinates
+/// (`values[node][e]`): the grid maximum plus the covering radius times the
+/// largest finite-difference slope between neighbouring nodes.
+pub(crate) fn grid_sup_estimate(values: &[Vec<f64>], sides: &[f64], grid: usize) -> Vec<f64> {
+    let n = sides.len();
+    let dim = values.first().map_or(0, Vec::len);
+    let counts: Vec<usize> = sides
+        .iter()
+        .map(|&w| if w == 0.0 { 1 } else { grid })
+        .collect();
+    let mut sup = vec![0.0f64; dim];
+    let mut slope = vec![0.0f64; dim];
+    for (idx, v) in values.iter().enumerate() {
+        for e in 0..dim {
+            sup[e] = sup[e].max(v[e].abs());
+        }
+        let mut stride = 1;
+        let mut rem = idx;
+        for c in (0..n).rev() {
+            let ic = rem % counts[c];
+            rem /= counts[c];
+            if ic + 1 < counts[c] {
+                let other = &values[idx + stride];
+                let step = sides[c] / (grid - 1) as f64;
+                for e in 0..dim {
+                    slope[e] = slope[e].max((other[e] - v[e]).abs() / step);
+                }
+            }
+            stride *= counts[c];
+        }
+    }
+    let all: Vec<usize> = (0..n).collect();
+    let h = covering_radius(sides, grid, &all);
+    sup.iter().zip(&slope).map(|(s, d)| s + h * d).collect()
 }
 
 /// Largest distance from a point of the cuboid to its nearest grid node,
@@ -418,32 +455,7 @@ impl Mvgp<Rbf> {
             .into());
         }
 
-        // sup |∂_j μ_i|: grid maximum plus h times the largest neighbour slope
-        let h_all = covering_radius(sides, g, &all);
-        let mut mean_entries = vec![0.0f64; n * n];
-        let mut slope = vec![0.0f64; n * n];
-        for (idx, jm) in jmu.iter().enumerate() {
-            for e in 0..n * n {
-                mean_entries[e] = mean_entries[e].max(jm[e].abs());
-            }
-            let mut stride = 1;
-            let mut rem = idx;
-            for c in (0..n).rev() {
-                let ic = rem % counts[c];
-                rem /= counts[c];
-                if ic + 1 < counts[c] {
-                    let other = &jmu[idx + stride];
-                    let step = sides[c] / (g - 1) as f64;
-                    for e in 0..n * n {
-                        slope[e] = slope[e].max((other[e] - jm[e]).abs() / step);
-                    }
-                }
-                stride *= counts[c];
-            }
-        }
-        for e in 0..n * n {
-            mean_entries[e] += h_all * slope[e];
-        }
+        let mean_entries = grid_sup_estimate(&jmu, sides, g);
 
         // analytic bound
         let bounds = factor_bounds(&hyper.kernel, map, n);

@@ -7,7 +7,7 @@ mod factor;
 mod input_map;
 mod joint;
 mod kernel;
-mod lipschitz;
+pub(crate) mod lipschitz;
 mod low_rank;
 pub mod metrics;
 mod model;

@@ -180,6 +180,21 @@ pub struct StepRecord {
     pub trigger: Option<TriggerReport>,
 }
 
+impl StepRecord {
+    /// Every recorded number of the step (state, control, barrier values and
+    /// conditions, posterior trace) is finite.
+    pub fn is_finite(&self) -> bool {
+        self.x
+            .iter()
+            .chain(&self.u)
+            .chain(&self.h)
+            .chain(&self.h_fine_min)
+            .chain(&self.scbc)
+            .all(|v| v.is_finite())
+            && self.trace_cov.is_finite()
+    }
+}
+
 /// Result of a run.
 #[derive(Debug, Clone)]
 pub struct LoopResult {

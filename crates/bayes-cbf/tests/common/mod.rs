@@ -64,3 +64,23 @@ pub fn rel_diff(a: &DMatrix<f64>, b: &DMatrix<f64>) -> f64 {
         .zip(b.iter())
         .fold(0.0f64, |m, (x, y)| m.max((x - y).abs() / scale))
 }
+
+/// A 2-state, 1-input MVGP with a pendulum prior mean (m = 2, l = 1, g = 9),
+/// RBF lengthscales (0.8, 1.1), variance 1.3, random `A`, `B`, σ = 0.05.
+pub fn pendulum_model(seed: u64) -> bayes_cbf::gp::Mvgp {
+    use bayes_cbf::gp::{InputMap, Mvgp, MvgpHyper, PriorMean, Rbf};
+    use bayes_cbf::systems::{DynSystem, Pendulum};
+    let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    let hyper = MvgpHyper {
+        kernel: Rbf::new(vec![0.8, 1.1], 1.3).unwrap(),
+        A: random_spd(2, &mut rng),
+        B: random_spd(2, &mut rng),
+        sigma: 0.05,
+    };
+    let prior: std::sync::Arc<dyn DynSystem> = std::sync::Arc::new(Pendulum {
+        mass: 2.0,
+        length: 1.0,
+        gravity: 9.0,
+    });
+    Mvgp::new(2, 1, hyper, PriorMean::System(prior), InputMap::Identity).unwrap()
+}

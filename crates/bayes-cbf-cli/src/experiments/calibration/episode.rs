@@ -664,15 +664,7 @@ fn summarise(system: System, s: &Setup, r: &LoopResult, moments: &[(f64, f64)]) 
         ..EpisodeStats::default()
     };
     for (k, rec) in r.records.iter().enumerate() {
-        let finite = rec
-            .x
-            .iter()
-            .chain(&rec.u)
-            .chain(&rec.h)
-            .chain(&rec.h_fine_min)
-            .chain(&rec.scbc)
-            .all(|v| v.is_finite())
-            && rec.trace_cov.is_finite();
+        let finite = rec.is_finite();
         if !finite {
             st.non_finite += 1;
         }
