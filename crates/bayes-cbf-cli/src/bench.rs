@@ -2,7 +2,6 @@
 //! the memory-bound floor of an exact posterior (one triangular solve with
 //! the `k × k` factor) measured in the same run.
 
-use crate::util::write_atomic;
 use anyhow::{bail, Context, Result};
 use bayes_cbf::control::ControlOutput;
 use bayes_cbf::gp::{
@@ -14,6 +13,7 @@ use bayes_cbf::workloads::{
     ackermann_control, ackermann_data, ackermann_heading_sweep, pendulum_control, pendulum_data,
     ControlWorkload,
 };
+use bayes_cbf_scenario::io::write_atomic;
 use clap::Args;
 use nalgebra::DMatrix;
 use serde_json::{json, Value};
@@ -416,7 +416,7 @@ pub fn run_bench(a: &BenchArgs) -> Result<()> {
     )?;
     text.push('\n');
     match &a.out {
-        Some(p) => write_atomic(p, text.as_bytes()),
+        Some(p) => Ok(write_atomic(p, text.as_bytes())?),
         None => std::io::stdout()
             .lock()
             .write_all(text.as_bytes())

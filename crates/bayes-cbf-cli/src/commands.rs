@@ -1,13 +1,14 @@
 //! `bayes-cbf fit` and `bayes-cbf predict` (formats in `interfaces.md`).
 
-use crate::csv_data::{read_dataset, Layout};
-use crate::input_map_spec::{parse_input_map, to_input_map};
 use crate::logger::hold_warnings;
-use crate::model_file::ModelFile;
-use crate::prior_spec::PriorSpec;
-use crate::util::{parse_indices, parse_rank, parse_vector, rank_name, write_atomic};
 use anyhow::{bail, Context, Result};
 use bayes_cbf::gp::{fit, FitReport, FitSettings, InputMap, Mvgp, MvgpHyper, Rbf};
+use bayes_cbf_scenario::csv_data::{read_dataset, Layout};
+use bayes_cbf_scenario::input_map_spec::{parse_input_map, to_input_map};
+use bayes_cbf_scenario::io::write_atomic;
+use bayes_cbf_scenario::model_file::ModelFile;
+use bayes_cbf_scenario::parse::{parse_indices, parse_rank, parse_vector, rank_name};
+use bayes_cbf_scenario::prior_spec::PriorSpec;
 use clap::Args;
 use nalgebra::DMatrix;
 use serde::Serialize;
@@ -225,7 +226,7 @@ pub fn run_predict(a: &PredictArgs) -> Result<()> {
         .context("cannot serialise predictions")?;
     json.push('\n');
     match &a.out {
-        Some(p) => write_atomic(p, json.as_bytes()),
+        Some(p) => Ok(write_atomic(p, json.as_bytes())?),
         None => {
             let mut out = std::io::stdout().lock();
             out.write_all(json.as_bytes())

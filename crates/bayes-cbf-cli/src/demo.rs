@@ -12,15 +12,15 @@
 //! `--trajectory-len 200` reproduces the single trajectory.
 
 use crate::commands::initial_model;
-use crate::csv_data::to_csv;
 use crate::logger::hold_warnings;
-use crate::model_file::ModelFile;
-use crate::prior_spec::PriorSpec;
-use crate::util::write_atomic;
 use anyhow::{bail, Context, Result};
 use bayes_cbf::gp::{fit, FitSettings, InputMap, Mvgp};
 use bayes_cbf::sim::{simulate_trajectory, Dataset, SimSettings};
 use bayes_cbf::systems::{DynSystem, Pendulum};
+use bayes_cbf_scenario::csv_data::to_csv;
+use bayes_cbf_scenario::io::write_atomic;
+use bayes_cbf_scenario::model_file::ModelFile;
+use bayes_cbf_scenario::prior_spec::PriorSpec;
 use clap::{Args, ValueEnum};
 use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;

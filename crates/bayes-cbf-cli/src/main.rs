@@ -5,23 +5,12 @@
 //! exits non-zero with a one-line `error: ...` message on stderr naming the
 //! bad field or value; JSON results go to stdout unless `--out` is given.
 
-mod barrier_file;
 mod bench;
 mod commands;
-mod csv_data;
 mod demo;
-mod experiments;
-#[cfg(test)]
-mod fuzz_tests;
-mod input_map_spec;
 mod logger;
-mod model_file;
-mod plot;
-mod prior_spec;
 mod run_cmd;
 mod safety_cmds;
-mod scenario;
-mod util;
 
 use clap::{Parser, Subcommand};
 use std::process::ExitCode;

@@ -1,10 +1,15 @@
 //! `bayes-cbf run` and `bayes-cbf list`.
 
-use crate::experiments;
-use crate::scenario::{self, RunOptions, BUILTIN};
+use crate::logger::hold_warnings;
 use anyhow::Result;
+use bayes_cbf_plot::{comparison_figure, experiment_figures, write_figures};
+use bayes_cbf_scenario::experiments::{self, ExperimentArgs, ExperimentResult, Sizes};
+use bayes_cbf_scenario::io::{write_atomic, write_json};
+use bayes_cbf_scenario::scenario::{self, trajectory_csv, RunOutput, BUILTIN};
 use clap::Args;
-use std::path::PathBuf;
+use indicatif::{ProgressBar, ProgressStyle};
+use std::io::IsTerminal;
+use std::path::{Path, PathBuf};
 
 /// Arguments of `bayes-cbf run`.
 #[derive(Debug, Args)]
@@ -37,6 +42,19 @@ pub struct RunArgs {
     pub window: Option<usize>,
 }
 
+/// A progress bar on stderr when it is a terminal outside CI, else hidden.
+fn progress_bar(what: &str, unit: &str) -> ProgressBar {
+    if std::io::stderr().is_terminal() && std::env::var_os("CI").is_none() {
+        let style = ProgressStyle::with_template(&format!(
+            "{what} {{elapsed_precise}} [{{bar:40}}] {{pos}}/{{len}} {unit}, ETA {{eta}}"
+        ))
+        .unwrap_or_else(|_| ProgressStyle::default_bar());
+        ProgressBar::new(0).with_style(style)
+    } else {
+        ProgressBar::hidden()
+    }
+}
+
 /// Runs `bayes-cbf run`.
 pub fn run(a: &RunArgs) -> Result<()> {
     if let Some((name, _)) = experiments::EXPERIMENTS
@@ -50,14 +68,14 @@ pub fn run(a: &RunArgs) -> Result<()> {
             .out
             .clone()
             .unwrap_or_else(|| PathBuf::from("runs").join(name));
-        return experiments::run_sized(
+        return run_experiment(
             name,
-            &experiments::ExperimentArgs {
-                out,
+            &out,
+            &ExperimentArgs {
                 seed: a.seed.unwrap_or(0),
                 quick: a.quick,
             },
-            &experiments::Sizes {
+            &Sizes {
                 episodes: a.episodes,
                 steps: a.steps,
                 window: a.window,
@@ -83,11 +101,12 @@ pub fn run(a: &RunArgs) -> Result<()> {
         .out
         .clone()
         .unwrap_or_else(|| PathBuf::from("runs").join(&sc.name));
-    let (output, figures) = run_and_plot(&sc, &out)?;
+    let (output, figures) = run_and_plot(&sc, &out, true)?;
     let s = &output.summary;
+    let opt = |v: Option<f64>| v.map_or("null".to_string(), |d| d.to_string());
     eprintln!(
-        "{}: collided {}, min barrier {}, min obstacle distance {}, final goal distance {}, infeasible steps {}, control step p50 {:.0} µs",
-        sc.name, s["collided"], s["min_barrier"], s["min_obstacle_distance"], s["final_goal_distance"], s["infeasible_steps"], s["control_step_us"]["p50"].as_f64().unwrap_or(f64::NAN)
+        "{}: collided {}, min barrier {:?}, min obstacle distance {}, final goal distance {}, infeasible steps {}, control step p50 {:.0} µs",
+        sc.name, s.collided, s.min_barrier, opt(s.min_obstacle_distance), opt(s.final_goal_distance), s.infeasible_steps, s.control_step_us.p50
     );
     eprintln!(
         "wrote {}: summary.json, trajectory.csv{}",
@@ -101,28 +120,94 @@ pub fn run(a: &RunArgs) -> Result<()> {
     Ok(())
 }
 
-/// Runs a scenario into `out` and writes its figures; returns the run and
-/// the figure files.
+/// Writes a run's `summary.json` and `trajectory.csv` into `dir`.
+fn write_run(output: &RunOutput, dir: &Path) -> Result<()> {
+    write_json(&dir.join("summary.json"), &output.summary)?;
+    write_atomic(
+        &dir.join("trajectory.csv"),
+        trajectory_csv(output).as_bytes(),
+    )?;
+    Ok(())
+}
+
+/// Runs a scenario into `out`, writes its files and figures; returns the
+/// run and the figure files.
 fn run_and_plot(
     sc: &scenario::Scenario,
-    out: &std::path::Path,
-) -> Result<(scenario::RunOutput, Vec<PathBuf>)> {
-    let output = scenario::run_scenario(
-        sc,
-        &RunOptions {
-            out: out.to_path_buf(),
-            progress: true,
-        },
-    )?;
-    let figures = scenario::write_figures(&output, out)?;
+    out: &Path,
+    progress: bool,
+) -> Result<(RunOutput, Vec<PathBuf>)> {
+    let show = progress && std::io::stderr().is_terminal();
+    let name = sc.name.clone();
+    let output = scenario::run_scenario(sc, |k, steps| {
+        if show && (k % 10 == 0 || k + 1 == steps) {
+            eprint!("\r{name}: step {}/{steps}", k + 1);
+            if k + 1 == steps {
+                eprintln!();
+            }
+        }
+    })?;
+    write_run(&output, out)?;
+    let figures = write_figures(&output, out)?;
     Ok((output, figures))
+}
+
+/// Runs experiment `name` and writes its summary, tables and figures into
+/// `out`.
+fn run_experiment(name: &str, out: &Path, args: &ExperimentArgs, sizes: &Sizes) -> Result<()> {
+    let unit = match name {
+        "calibration" => "episodes",
+        "soak" => "steps",
+        _ => "fits",
+    };
+    let bar = progress_bar(name, unit);
+    let progress = |done: usize, total: usize| {
+        bar.set_length(total as u64);
+        bar.set_position(done as u64);
+    };
+    let result = hold_warnings(&format!("the {name} run"), || {
+        experiments::run_sized(name, args, sizes, &progress)
+    })?;
+    bar.finish_and_clear();
+    std::fs::create_dir_all(out)?;
+    write_json(&out.join("summary.json"), result.summary())?;
+    for t in result.tables() {
+        write_atomic(&out.join(&t.file), t.csv.as_bytes())?;
+    }
+    if let ExperimentResult::AckermannTriggering(r) = &result {
+        for (dir, o) in &r.runs {
+            write_run(o, &out.join(dir))?;
+        }
+    }
+    let figures = experiment_figures(&result, out)?;
+    match &result {
+        ExperimentResult::Calibration(r) => eprint!("{}", r.console_table),
+        ExperimentResult::Soak(r) if r.non_finite > 0 => anyhow::bail!(
+            "soak: {} step(s) produced non-finite values (see {})",
+            r.non_finite,
+            out.join("summary.json").display()
+        ),
+        _ => {}
+    }
+    let files: Vec<String> = std::iter::once("summary.json".to_string())
+        .chain(result.tables().iter().map(|t| t.file.clone()))
+        .chain(
+            figures
+                .iter()
+                .filter(|p| p.parent() == Some(out))
+                .filter_map(|p| p.file_name())
+                .map(|n| n.to_string_lossy().into_owned()),
+        )
+        .collect();
+    eprintln!("{name}: wrote {}: {}", out.display(), files.join(", "));
+    Ok(())
 }
 
 /// Runs `bayes-cbf list`.
 pub fn list() -> Result<()> {
-    for (name, text) in BUILTIN {
-        let desc = toml::from_str::<scenario::Scenario>(text)
-            .map(|s| s.description)
+    for (name, _) in BUILTIN {
+        let desc = scenario::load(name, &[])
+            .map(|(s, _)| s.description)
             .unwrap_or_default();
         println!("{name:<24} {desc}");
     }
@@ -144,10 +229,10 @@ pub fn default_job() -> Result<()> {
     ] {
         let (sc, _) = scenario::load(name, &[])?;
         let out = root.join(dir);
-        outputs.push(run_and_plot(&sc, &out)?.0);
+        outputs.push(run_and_plot(&sc, &out, true)?.0);
     }
     let comparison = root.join("comparison.png");
-    scenario::comparison_figure(&outputs[0], &outputs[1], &comparison)?;
+    comparison_figure(&outputs[0], &outputs[1], &comparison)?;
     eprintln!("Ackermann vehicle, true wheelbase 12, model wheelbase 1 (paper, Fig. 7):");
     for o in &outputs {
         let s = &o.summary;
@@ -155,9 +240,9 @@ pub fn default_job() -> Result<()> {
             "  {:<22} p = {:<4}  collided: {:<5}  closest obstacle distance {:>7.3} m  final distance to goal {:.2} m",
             o.scenario.name,
             o.scenario.controller.probability,
-            s["collided"],
-            s["min_obstacle_distance"].as_f64().unwrap_or(f64::NAN),
-            s["final_goal_distance"].as_f64().unwrap_or(f64::NAN)
+            s.collided,
+            s.min_obstacle_distance.unwrap_or(f64::NAN),
+            s.final_goal_distance.unwrap_or(f64::NAN)
         );
     }
     eprintln!("wrote {} (side by side), and runs/demo/mean-cbf/, runs/demo/bayes-cbf/ (summary.json, trajectory.csv, trajectory.png, timeseries.png, animation.gif)", comparison.display());

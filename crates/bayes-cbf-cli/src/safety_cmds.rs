@@ -1,8 +1,5 @@
 //! `bayes-cbf moments` and `bayes-cbf control` (interfaces.md).
 
-use crate::barrier_file::BarrierSpec;
-use crate::model_file::ModelFile;
-use crate::util::{parse_vector, write_atomic};
 use anyhow::{bail, Context, Result};
 use bayes_cbf::barrier::{
     cbc_moments, mc_cbc_moments, ConditionMoments, McSettings, MomentWorkspace,
@@ -10,6 +7,10 @@ use bayes_cbf::barrier::{
 use bayes_cbf::control::{
     ControlOutput, ControlStatus, Fallback, SafetyController, SafetySettings,
 };
+use bayes_cbf_scenario::barrier_file::BarrierSpec;
+use bayes_cbf_scenario::io::write_atomic;
+use bayes_cbf_scenario::model_file::ModelFile;
+use bayes_cbf_scenario::parse::parse_vector;
 use clap::Args;
 use serde::Serialize;
 use std::io::Write;
@@ -83,7 +84,7 @@ fn emit<T: Serialize>(value: &T, out: &Option<PathBuf>) -> Result<()> {
     let mut json = serde_json::to_string(value).context("cannot serialise output")?;
     json.push('\n');
     match out {
-        Some(p) => write_atomic(p, json.as_bytes()),
+        Some(p) => Ok(write_atomic(p, json.as_bytes())?),
         None => {
             let mut o = std::io::stdout().lock();
             o.write_all(json.as_bytes())

@@ -1,0 +1,226 @@
+//! `ackermann-triggering` (paper, Sec. VII-B "Evaluating triggering time",
+//! Fig. 2): the Lipschitz constant of the learned vehicle dynamics and the
+//! inter-trigger time τ_k, analytic (Lemma 3, Prop. 3) and numerical, over a
+//! run; the self-triggered loop against fixed-step control over the same
+//! horizon; and τ_k against the margin ζ.
+//!
+//! Runs (each a closed loop of the built-in scenario
+//! `ackermann-self-triggered`, outputs in a subdirectory):
+//!
+//! * `fixed-step/`: time-triggered at `dt`, τ_k evaluated at every step;
+//! * `self-triggered/`: each control held for the analytic τ_k (clamped to
+//!   `[τ_min, τ_max]`);
+//! * `self-triggered-numerical/`: held for the numerical τ_k;
+//! * `zeta-*/`: fixed-step runs with τ_k evaluated for a range of ζ.
+//!
+//! Top level: `summary.json` (the runs' outcomes, trigger counts, τ and L_f
+//! statistics, the ζ sweep), `lipschitz.png` (L_f and τ_k over the
+//! fixed-step run, Fig. 2), `tau-vs-zeta.png`.
+
+use super::ExperimentArgs;
+use crate::error::Result;
+use crate::scenario::{self, RunOutput};
+use bayes_cbf::control::{tau_relative_degree_one, tau_relative_degree_r};
+use serde_json::json;
+
+/// The result of `ackermann-triggering`.
+pub struct AckermannTriggering {
+    /// The closed-loop runs, each with the subdirectory its files go to:
+    /// `fixed-step`, `self-triggered`, `self-triggered-numerical`, then
+    /// one `zeta-*` run per swept ζ.
+    pub runs: Vec<(String, RunOutput)>,
+    /// The runs at each ζ: `(ζ, median analytic τ_k, median numerical
+    /// τ_k, closest obstacle distance, final goal distance)`.
+    pub sweep: Vec<[f64; 5]>,
+    /// ζ values of the τ–ζ curve on the self-triggered run's data.
+    pub dense_zeta: Vec<f64>,
+    /// Median analytic τ_k at each of [`Self::dense_zeta`].
+    pub curve_analytic: Vec<f64>,
+    /// Median numerical τ_k at each of [`Self::dense_zeta`].
+    pub curve_numerical: Vec<f64>,
+    /// `summary.json`.
+    pub summary: serde_json::Value,
+}
+
+impl AckermannTriggering {
+    /// The run written to subdirectory `dir`.
+    pub fn run(&self, dir: &str) -> Option<&RunOutput> {
+        self.runs.iter().find(|(d, _)| d == dir).map(|(_, o)| o)
+    }
+}
+
+/// ζ values of the trade-off sweep.
+const ZETAS: &[f64] = &[0.003, 0.01, 0.03, 0.1, 0.3];
+
+fn median(mut v: Vec<f64>) -> f64 {
+    v.retain(|x| x.is_finite());
+    if v.is_empty() {
+        return f64::NAN;
+    }
+    v.sort_by(|a, b| a.total_cmp(b));
+    v[v.len() / 2]
+}
+
+fn run_one(args: &ExperimentArgs, sets: &[String]) -> Result<RunOutput> {
+    let mut all = vec![format!("seed={}", args.seed)];
+    if args.quick {
+        all.extend(
+            [
+                "steps=100",
+                "trigger.grid=5",
+                "trigger.samples=4",
+                "outputs.animation=false",
+            ]
+            .map(String::from),
+        );
+    }
+    all.extend_from_slice(sets);
+    let (sc, _) = scenario::load("ackermann-self-triggered", &all)?;
+    scenario::run_scenario(&sc, |_, _| {})
+}
+
+/// One run's part of the summary.
+fn run_summary(o: &RunOutput) -> serde_json::Value {
+    let s = serde_json::to_value(&o.summary).unwrap_or_default();
+    json!({
+        "triggers": s["triggers"],
+        "self_triggered": s["self_triggered"],
+        "collided": s["collided"],
+        "safe": s["safe"],
+        "min_barrier": s["min_barrier"],
+        "min_obstacle_distance": s["min_obstacle_distance"],
+        "final_goal_distance": s["final_goal_distance"],
+        "infeasible_steps": s["infeasible_steps"],
+        "trigger": s["trigger"],
+    })
+}
+
+/// Runs the experiment.
+pub fn run(args: &ExperimentArgs) -> Result<AckermannTriggering> {
+    // fixed steps of 10 ms: refit every 40 steps (0.4 s, as the self-triggered run)
+    let fixed_sets = [
+        "trigger.self_triggered=false".to_string(),
+        "learning.refit_every=40".into(),
+    ];
+    let fixed = run_one(args, &fixed_sets)?;
+    let selft = run_one(args, &[])?;
+    let selfn = run_one(args, &["trigger.tau_from=\"numerical\"".into()])?;
+    let zetas: &[f64] = if args.quick { &ZETAS[1..3] } else { ZETAS };
+    let mut sweep = Vec::new();
+    let mut sweep_points = Vec::new();
+    let mut zeta_runs = Vec::new();
+    for &z in zetas {
+        let o = run_one(
+            args,
+            &[
+                fixed_sets[0].clone(),
+                fixed_sets[1].clone(),
+                format!("controller.zeta={z}"),
+                "outputs.plots=false".into(),
+            ],
+        )?;
+        let reps: Vec<_> = o
+            .result
+            .records
+            .iter()
+            .filter_map(|r| r.trigger.as_ref())
+            .collect();
+        let tau_a = median(reps.iter().map(|t| t.tau_analytic).collect());
+        let tau_n = median(reps.iter().filter_map(|t| t.tau_numerical).collect());
+        let s = &o.summary;
+        sweep.push(json!({
+            "zeta": z,
+            "tau_analytic_median_s": tau_a,
+            "tau_numerical_median_s": tau_n,
+            "min_obstacle_distance": s.min_obstacle_distance,
+            "final_goal_distance": s.final_goal_distance,
+            "collided": s.collided,
+        }));
+        sweep_points.push([
+            z,
+            tau_a,
+            tau_n,
+            s.min_obstacle_distance.unwrap_or(f64::NAN),
+            s.final_goal_distance.unwrap_or(f64::NAN),
+        ]);
+        zeta_runs.push((format!("zeta-{z}"), o));
+    }
+
+    // τ against ζ on the self-triggered run's own L_f, L_h and ‖ẋ‖
+    // (Prop. 3/5 at each trigger, median over the run): the effect of ζ alone
+    let degrees: Vec<usize> = selft.built.barriers.iter().map(|b| b.degree()).collect();
+    let ts = selft.built.loop_settings.trigger.clone();
+    let tau_at = |z: f64, l: f64, r: &bayes_cbf::control::TriggerReport| -> f64 {
+        // the sweep varies ζ of Prop. 3 and ζ_b of Prop. 5 together
+        let (la, zb) = (ts.as_ref().map_or(1.0, |t| t.l_alpha), z);
+        degrees
+            .iter()
+            .zip(&r.l_h)
+            .map(|(&d, &lh)| {
+                if d == 1 {
+                    tau_relative_degree_one(l, z, la, lh, r.xdot_norm)
+                } else {
+                    tau_relative_degree_r(l, zb, lh, r.xdot_norm)
+                }
+            })
+            .fold(f64::INFINITY, f64::min)
+    };
+    let dense: Vec<f64> = (0..=12)
+        .map(|i| 1e-3 * 10f64.powf(i as f64 / 4.0))
+        .collect();
+    let reps: Vec<_> = selft
+        .result
+        .records
+        .iter()
+        .filter_map(|r| r.trigger.as_ref())
+        .collect();
+    let curve = |numerical: bool| -> Vec<f64> {
+        dense
+            .iter()
+            .map(|&z| {
+                median(
+                    reps.iter()
+                        .filter_map(|r| {
+                            let l = if numerical {
+                                r.lipschitz.numerical?
+                            } else {
+                                r.lipschitz.analytic
+                            };
+                            Some(tau_at(z, l, r))
+                        })
+                        .collect(),
+                )
+            })
+            .collect()
+    };
+    let (curve_a, curve_n) = (curve(false), curve(true));
+    let summary = json!({
+        "scenario": "ackermann-triggering",
+        "seed": args.seed,
+        "quick": args.quick,
+        "horizon_s": fixed.scenario.dt * fixed.scenario.steps as f64,
+        "fixed_step": run_summary(&fixed),
+        "self_triggered": run_summary(&selft),
+        "self_triggered_numerical": run_summary(&selfn),
+        "zeta_sweep": sweep,
+        "tau_vs_zeta_on_self_triggered_data": dense
+            .iter()
+            .zip(curve_a.iter().zip(&curve_n))
+            .map(|(z, (a, n))| json!({"zeta": z, "tau_analytic_median_s": a, "tau_numerical_median_s": n}))
+            .collect::<Vec<_>>(),
+    });
+    let mut runs = vec![
+        ("fixed-step".to_string(), fixed),
+        ("self-triggered".to_string(), selft),
+        ("self-triggered-numerical".to_string(), selfn),
+    ];
+    runs.extend(zeta_runs);
+    Ok(AckermannTriggering {
+        runs,
+        sweep: sweep_points,
+        dense_zeta: dense,
+        curve_analytic: curve_a,
+        curve_numerical: curve_n,
+        summary,
+    })
+}

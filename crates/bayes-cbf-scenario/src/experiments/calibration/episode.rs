@@ -1,0 +1,771 @@
+//! One calibration episode: the truth, model, barrier, controller, reference
+//! and initial state of `(system, truth kind, episode)`, the closed-loop run,
+//! and what it says about safety.
+//!
+//! ## The true stochastic condition
+//! At every step with a solved SOCP the controller promised
+//! `P(CBC(x_k, u_k) ≥ 0) ≥ p` under its posterior (paper, Prop. 2 for
+//! relative degree 1, Gaussian, `c(p) = √2 erf⁻¹(2p − 1)`; Prop. 4 for
+//! relative degree 2, Cantelli, `c(p) = √(p/(1 − p))`). Here the condition
+//! is evaluated with the *true* dynamics at the applied control:
+//! - relative degree 1: `CBC = ∇h(x)ᵀ F(x) u̲ + α h(x)`;
+//! - relative degree 2: `CBC⁽²⁾ = ∇(L_f h)(x)ᵀ F(x) u̲ + k₀ h(x) + k₁ L_f h(x)`
+//!   with `L_f h = ∇hᵀ f`.
+//!
+//! Gradients are central differences (the CLI does not depend on num-dual).
+//!
+//! A negative value is a violation of the promise. When the model is exactly
+//! right, the fraction of violated steps is at most `1 − p` in expectation,
+//! and equal to it on the steps where the constraint is *active* (slack 0)
+//! for the Gaussian factor (Cantelli's is a bound for any distribution).
+
+use bayes_cbf::barrier::{
+    cbc_moments, CircleHeading, ConditionMoments, DynBarrier, MomentWorkspace, PendulumSector,
+};
+use bayes_cbf::control::{Fallback, SafetyController, SafetySettings};
+use bayes_cbf::gp::{Feature, InputMap, Mvgp, MvgpHyper, PriorMean, Rbf};
+use bayes_cbf::sim::{
+    run_closed_loop, LoopResult, LoopSettings, Monitor, Reference, ReferenceOut, SimSettings,
+};
+use bayes_cbf::systems::{wrap_angle, Ackermann, DynSystem, GpSample, Pendulum};
+use nalgebra::DMatrix;
+use rand::{RngExt, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use std::f64::consts::PI;
+use std::sync::Arc;
+
+use crate::error::{Context, Result};
+
+/// Random Fourier features per entry of a GP-prior truth.
+pub(crate) const FEATURES: usize = 128;
+/// Control period τ (s), as in the paper's experiments.
+pub(crate) const DT: f64 = 0.01;
+/// Fine RK4 grid on which `h ≥ 0` is checked (s).
+pub(crate) const INTERNAL_STEP: f64 = 1e-3;
+/// Standard deviation `q/√τ` of the forward difference `(x_{k+1} − x_k)/τ`
+/// caused by the process noise of the well-specified truths; the model's
+/// noise `σ² A` equals `NOISE² I`.
+pub(crate) const NOISE: f64 = 0.02;
+/// Process noise intensity `q` of the well-specified truths (Euler–Maruyama
+/// increments `q √h ξ` on the fine grid): with the states observed exactly,
+/// `ẋ` measured as `(x_{k+1} − x_k)/τ = F(x_k) u̲_k + w_k + O(τ)` with
+/// `w_k ~ N(0, q²/τ)` — the MVGP's own observation model with `σ² A = q²/τ I`.
+///
+/// Noise added to the measured `ẋ` instead (the closed loop's `xdot_noise`)
+/// is *not* that model: the next state reveals each noise value exactly, so
+/// the controller's noise-driven model errors also decide where its
+/// constraint becomes active. Measured during development with
+/// `xdot_noise = 0.02` (40 episodes, vehicle): mean-CBF violations on active
+/// steps 59 %, while the same steps replayed with independent noise gave
+/// 50.0 %.
+pub(crate) const PROCESS_NOISE_WELL: f64 = NOISE * 0.1; // q = NOISE √τ, τ = 0.01
+/// Process noise intensity of the mis-specified truths: `ẋ` noise
+/// `q/√τ = 0.1`, five times what the model assumes.
+pub(crate) const PROCESS_NOISE_MIS: f64 = 0.01;
+/// A step's chance constraint counts as active when its slack
+/// `E − c·std` is below this (the SOCP's accuracy is ~1e-8).
+pub(crate) const ACTIVE_SLACK: f64 = 1e-5;
+
+/// The two systems.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord)]
+pub(crate) enum System {
+    /// Ackermann vehicle (Eq. 32), relative-degree-1 obstacle barrier.
+    Vehicle,
+    /// Pendulum (Eq. 31), relative-degree-2 sector barrier.
+    Pendulum,
+}
+
+impl System {
+    pub fn name(self) -> &'static str {
+        match self {
+            System::Vehicle => "ackermann",
+            System::Pendulum => "pendulum",
+        }
+    }
+}
+
+/// Well-specified or mis-specified truth.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord)]
+pub(crate) enum TruthKind {
+    /// A draw of the model's own GP prior; no process noise.
+    WellSpecified,
+    /// The paper's parametric mismatch, with process noise.
+    MisSpecified,
+}
+
+impl TruthKind {
+    pub fn name(self) -> &'static str {
+        match self {
+            TruthKind::WellSpecified => "well_specified",
+            TruthKind::MisSpecified => "mis_specified",
+        }
+    }
+}
+
+/// One of the compared controllers.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub(crate) struct ControllerKind {
+    /// Report name.
+    pub name: &'static str,
+    /// Requested probability `p` (the mean CBF has `c(p) = 0`).
+    pub p: f64,
+    /// The mean CBF: `c = 0` (p = 0.5 at relative degree 1).
+    pub mean: bool,
+}
+
+/// Bayes CBF at p ∈ {0.9, 0.99, 0.999} and the mean CBF.
+pub(crate) const CONTROLLERS: [ControllerKind; 4] = [
+    ControllerKind {
+        name: "bayes-cbf p=0.9",
+        p: 0.9,
+        mean: false,
+    },
+    ControllerKind {
+        name: "bayes-cbf p=0.99",
+        p: 0.99,
+        mean: false,
+    },
+    ControllerKind {
+        name: "bayes-cbf p=0.999",
+        p: 0.999,
+        mean: false,
+    },
+    ControllerKind {
+        name: "mean-cbf",
+        p: 0.5,
+        mean: true,
+    },
+];
+
+impl ControllerKind {
+    /// The probability given to the SOCP: `p`, or for the mean CBF the one
+    /// with `c(p) = 0` — 0.5 for the Gaussian factor (relative degree 1),
+    /// ~0 for Cantelli's (relative degree 2: `p = 1e-9`, `c = 3e-5`).
+    pub fn socp_probability(self, system: System) -> f64 {
+        match (self.mean, system) {
+            (true, System::Pendulum) => 1e-9,
+            (true, System::Vehicle) => 0.5,
+            (false, _) => self.p,
+        }
+    }
+}
+
+// ------------------------------------------------------------------ vehicle
+
+/// Obstacle centre and radius (m).
+const OBSTACLE: ([f64; 2], f64) = ([0.0, 0.0], 0.6);
+/// Goal behind the obstacle.
+const GOAL: [f64; 2] = [2.5, 0.0];
+/// Lateral offset of the pursuit's first waypoint `(0, ±0.65)`, 5 cm
+/// outside the obstacle: the straight line to it from the start cuts
+/// through the disc, so the reference drives into the obstacle, but off its
+/// centre, so that about half of the filtered paths slide around it and
+/// reach the goal instead of stopping in front of it (the deadlock of CBF
+/// filters; with the waypoint on the obstacle's centre line almost every
+/// episode stopped there).
+const WAYPOINT_OFFSET: f64 = 0.65;
+/// The model's wheelbase (prior mean) and the mis-specified truth's
+/// (paper, Fig. 7: true 12, model 1).
+const WHEELBASE_MODEL: f64 = 1.0;
+const WHEELBASE_TRUE: f64 = 12.0;
+/// Reference speed (m/s) and heading gain (1/s) of the pursuit.
+const V_REF: f64 = 1.2;
+const HEADING_GAIN: f64 = 2.0;
+/// Control bounds `[v, z]`.
+const U_MAX_VEHICLE: [f64; 2] = [1.5, 3.0];
+/// The goal counts as reached within this distance (m).
+const GOAL_TOL: f64 = 0.3;
+
+/// Pure pursuit `û = [v_ref, L k wrap(bearing − θ)]` (clamped) of the
+/// waypoint `(0, ±0.35)` on the start's side while `x < 0`, then of the goal.
+#[derive(Debug, Clone)]
+struct Pursuit {
+    side: f64,
+}
+
+impl Reference for Pursuit {
+    fn at(&mut self, _k: usize, _t: f64, x: &[f64], _rng: &mut ChaCha8Rng, out: &mut ReferenceOut) {
+        let target = if x[0] < OBSTACLE.0[0] {
+            [OBSTACLE.0[0], OBSTACLE.0[1] + self.side * WAYPOINT_OFFSET]
+        } else {
+            GOAL
+        };
+        let bearing = (target[1] - x[1]).atan2(target[0] - x[0]);
+        let z = WHEELBASE_MODEL * HEADING_GAIN * wrap_angle(bearing - x[2]);
+        out.u_ref[0] = V_REF;
+        out.u_ref[1] = z.clamp(-U_MAX_VEHICLE[1], U_MAX_VEHICLE[1]);
+        out.xd.copy_from_slice(x);
+        out.xd_dot.fill(0.0);
+    }
+}
+
+// ----------------------------------------------------------------- pendulum
+
+/// Unsafe sector `θ_c ± Δ` (as `pendulum-safe`).
+const SECTOR: (f64, f64) = (PI / 4.0, PI / 8.0);
+/// Gains `k_α` of the relative-degree-2 barrier.
+/// `s² + 4s + 4` has a double root at −2: the condition lets `h` approach
+/// zero within about a second, so the episodes reach the boundary (with
+/// `pendulum-safe`'s `(1, 3)` the slow root −0.38 keeps `h > 0.1` for the
+/// whole episode and nothing is tested).
+const K_ALPHA: [f64; 2] = [4.0, 4.0];
+/// Mis-specified truth: mass and length (the model assumes 1 and 1).
+const PENDULUM_TRUE: Pendulum = Pendulum {
+    mass: 2.0,
+    length: 0.5,
+    gravity: 10.0,
+};
+/// Torque bound.
+const TORQUE_MAX: f64 = 20.0;
+/// PD gains of the reference that drives the pendulum to the sector centre.
+const KP: f64 = 12.0;
+const KD: f64 = 3.0;
+
+/// `û = m g l sin θ + K_p (θ_c − θ) − K_d ω` with the model's `m = l = 1`:
+/// a PD controller toward the centre of the unsafe sector.
+#[derive(Debug, Clone)]
+struct IntoSector;
+
+impl Reference for IntoSector {
+    fn at(&mut self, _k: usize, _t: f64, x: &[f64], _rng: &mut ChaCha8Rng, out: &mut ReferenceOut) {
+        let u = 10.0 * x[0].sin() + KP * wrap_angle(SECTOR.0 - x[0]) - KD * x[1];
+        out.u_ref[0] = u.clamp(-TORQUE_MAX, TORQUE_MAX);
+        out.xd.copy_from_slice(x);
+        out.xd_dot.fill(0.0);
+    }
+}
+
+// ----------------------------------------------------------------- episodes
+
+/// Everything one episode needs (shared by the four controllers).
+pub(crate) struct Setup {
+    pub truth: Arc<dyn DynSystem>,
+    pub model: Mvgp,
+    pub barrier: Arc<dyn DynBarrier>,
+    pub x0: Vec<f64>,
+    pub loop_settings: LoopSettings,
+    pub monitors: Vec<Monitor>,
+}
+
+#[allow(non_snake_case)]
+fn vehicle_hyper() -> Result<(MvgpHyper, InputMap)> {
+    // the kernel sees the heading only, periodically (shift invariance)
+    let map = InputMap::Features(vec![Feature::Cos(2), Feature::Sin(2)]);
+    let A = DMatrix::identity(3, 3) * 0.01;
+    let sigma = NOISE / 0.1; // σ² A = NOISE² I
+    Ok((
+        MvgpHyper {
+            kernel: Rbf::new(vec![1.0, 1.0], 1.0)?,
+            A,
+            B: DMatrix::identity(3, 3),
+            sigma,
+        },
+        map,
+    ))
+}
+
+#[allow(non_snake_case)]
+fn pendulum_hyper() -> Result<(MvgpHyper, InputMap)> {
+    let map = InputMap::periodic(2, &[0]);
+    let A = DMatrix::identity(2, 2) * 0.04;
+    let sigma = NOISE / 0.2; // σ² A = NOISE² I
+    Ok((
+        MvgpHyper {
+            kernel: Rbf::new(vec![1.0, 1.0, 3.0], 1.0)?,
+            A,
+            B: DMatrix::identity(2, 2),
+            sigma,
+        },
+        map,
+    ))
+}
+
+/// The setup of `(system, truth, seed)`: the truth draw, initial state and
+/// noise all come from `seed`, so the four controllers see the same episode.
+pub(crate) fn setup(system: System, truth: TruthKind, seed: u64, steps: usize) -> Result<Setup> {
+    let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    let process_noise = match truth {
+        TruthKind::WellSpecified => PROCESS_NOISE_WELL,
+        TruthKind::MisSpecified => PROCESS_NOISE_MIS,
+    };
+    let loop_settings = LoopSettings {
+        dt: DT,
+        steps,
+        sim: SimSettings::new(INTERNAL_STEP, process_noise)?,
+        update_every: 1,
+        refit_every: 0,
+        window: None,
+        xdot_noise: 0.0,
+        seed: rng.random(),
+        ..LoopSettings::default()
+    };
+    let truth_seed: u64 = rng.random();
+    match system {
+        System::Vehicle => {
+            let (hyper, map) = vehicle_hyper()?;
+            let prior = Ackermann {
+                wheelbase: WHEELBASE_MODEL,
+            };
+            let truth_sys: Arc<dyn DynSystem> = match truth {
+                TruthKind::WellSpecified => Arc::new(GpSample::draw(
+                    3,
+                    2,
+                    Some(prior),
+                    &hyper,
+                    &map,
+                    FEATURES,
+                    truth_seed,
+                )?),
+                TruthKind::MisSpecified => Arc::new(Ackermann {
+                    wheelbase: WHEELBASE_TRUE,
+                }),
+            };
+            let model = Mvgp::new(3, 2, hyper, PriorMean::System(Arc::new(prior)), map)?;
+            let barrier: Arc<dyn DynBarrier> = Arc::new(CircleHeading::new(
+                OBSTACLE.0,
+                OBSTACLE.1,
+                0.7,
+                0.3,
+                1,
+                vec![5.0],
+            )?);
+            let x0 = vec![
+                rng.random_range(-2.3..-1.9),
+                rng.random_range(-0.5..0.5),
+                rng.random_range(-0.3..0.3),
+            ];
+            let (c, r) = OBSTACLE;
+            let monitor: Monitor = Arc::new(move |x: &[f64]| (x[0] - c[0]).hypot(x[1] - c[1]) - r);
+            Ok(Setup {
+                truth: truth_sys,
+                model,
+                barrier,
+                x0,
+                loop_settings,
+                monitors: vec![monitor],
+            })
+        }
+        System::Pendulum => {
+            let (hyper, map) = pendulum_hyper()?;
+            let prior = Pendulum::default();
+            let truth_sys: Arc<dyn DynSystem> = match truth {
+                TruthKind::WellSpecified => Arc::new(GpSample::draw(
+                    2,
+                    1,
+                    Some(prior),
+                    &hyper,
+                    &map,
+                    FEATURES,
+                    truth_seed,
+                )?),
+                TruthKind::MisSpecified => Arc::new(PENDULUM_TRUE),
+            };
+            let model = Mvgp::new(2, 1, hyper, PriorMean::System(Arc::new(prior)), map)?;
+            let barrier: Arc<dyn DynBarrier> = Arc::new(PendulumSector::new(
+                SECTOR.0,
+                SECTOR.1,
+                2,
+                K_ALPHA.to_vec(),
+            )?);
+            let x0 = vec![rng.random_range(-0.6..0.0), rng.random_range(-0.5..0.5)];
+            Ok(Setup {
+                truth: truth_sys,
+                model,
+                barrier,
+                x0,
+                loop_settings,
+                monitors: Vec::new(),
+            })
+        }
+    }
+}
+
+/// The safety controller `kind` for `system` (max-margin fallback, bounds).
+pub(crate) fn controller(
+    system: System,
+    kind: ControllerKind,
+    barrier: &Arc<dyn DynBarrier>,
+) -> Result<SafetyController> {
+    let (n, m, lo, hi) = match system {
+        System::Vehicle => (
+            3,
+            2,
+            vec![-U_MAX_VEHICLE[0], -U_MAX_VEHICLE[1]],
+            U_MAX_VEHICLE.to_vec(),
+        ),
+        System::Pendulum => (2, 1, vec![-TORQUE_MAX], vec![TORQUE_MAX]),
+    };
+    let mut s = SafetySettings::new(m);
+    s.probability = kind.socp_probability(system);
+    s.zeta = 0.0;
+    s.u_min = Some(lo);
+    s.u_max = Some(hi);
+    s.fallback = Fallback::MaxMargin;
+    Ok(SafetyController::new(n, m, vec![barrier.clone()], None, s)?)
+}
+
+/// What one episode of one controller showed.
+#[derive(Debug, Clone, PartialEq, Default)]
+pub(crate) struct EpisodeStats {
+    /// Control steps run.
+    pub steps: usize,
+    /// `min h` over the fine grid of the whole episode.
+    pub min_h: f64,
+    /// Steps whose fine grid has `h < 0`.
+    pub steps_h_violated: usize,
+    /// Steps with a solved SOCP (the promise applies).
+    pub solved_steps: usize,
+    /// Solved steps whose true condition is negative.
+    pub cbc_violations: usize,
+    /// Solved steps with an active chance constraint.
+    pub active_steps: usize,
+    /// Active steps whose true condition is negative.
+    pub active_violations: usize,
+    /// Steps with an infeasible SOCP (the fallback was applied).
+    pub infeasible_steps: usize,
+    /// Standardised true conditions `z = (C_true − E[C]) / √Var[C]` of the
+    /// solved steps (`[0]`) and of the active steps (`[1]`), under the model
+    /// that chose the control (steps with zero predicted variance are left
+    /// out).
+    pub z: [ZStats; 2],
+    /// Closest distance to the obstacle (vehicle).
+    pub min_distance: Option<f64>,
+    /// Goal reached (vehicle: within [`GOAL_TOL`] at some step).
+    pub goal_reached: Option<bool>,
+    /// Non-finite values in the records (must stay 0).
+    pub non_finite: usize,
+    /// The run failed with this error (counted separately).
+    pub error: Option<String>,
+}
+
+/// `∇h(x)` by central differences (step 1e-6; the barriers are smooth and
+/// O(1), so the error is ~1e-10, far below the conditions' scale).
+fn grad_h(b: &dyn DynBarrier, x: &[f64]) -> Vec<f64> {
+    let eps = 1e-6;
+    let mut xp = x.to_vec();
+    (0..x.len())
+        .map(|j| {
+            xp[j] = x[j] + eps;
+            let a = b.value(&xp);
+            xp[j] = x[j] - eps;
+            let c = b.value(&xp);
+            xp[j] = x[j];
+            (a - c) / (2.0 * eps)
+        })
+        .collect()
+}
+
+/// `L_f h(x) = ∇h(x)ᵀ f(x)` with the true `f` (`fbuf` holds `vec F`).
+fn lie_f(truth: &dyn DynSystem, b: &dyn DynBarrier, x: &[f64], fbuf: &mut [f64]) -> f64 {
+    truth.eval_f64(x, fbuf);
+    grad_h(b, x)
+        .iter()
+        .zip(fbuf.iter())
+        .map(|(g, f)| g * f)
+        .sum()
+}
+
+/// The true barrier condition at `(x, u)` (module docs).
+pub(crate) fn true_condition(
+    truth: &dyn DynSystem,
+    b: &dyn DynBarrier,
+    x: &[f64],
+    u: &[f64],
+) -> f64 {
+    let n = x.len();
+    let mut fbuf = vec![0.0; n * (1 + u.len())];
+    let mut xdot = vec![0.0; n];
+    truth.xdot(x, u, &mut fbuf, &mut xdot);
+    let h = b.value(x);
+    let grad = grad_h(b, x);
+    let gains = b.class_k();
+    if b.degree() <= 1 {
+        let hdot: f64 = (0..n).map(|i| grad[i] * xdot[i]).sum();
+        return hdot + gains[0] * h;
+    }
+    // ∇(L_f h) by central differences of L_f h (step 1e-4 over the inner
+    // 1e-6 differences: error ~1e-6)
+    let eps = 1e-4;
+    let lf = lie_f(truth, b, x, &mut fbuf);
+    let mut xp = x.to_vec();
+    let mut ddh = 0.0;
+    for j in 0..n {
+        xp[j] = x[j] + eps;
+        let a = lie_f(truth, b, &xp, &mut fbuf);
+        xp[j] = x[j] - eps;
+        let c = lie_f(truth, b, &xp, &mut fbuf);
+        xp[j] = x[j];
+        ddh += (a - c) / (2.0 * eps) * xdot[j];
+    }
+    ddh + gains[0] * h + gains[1] * lf
+}
+
+/// Runs one episode with controller `kind` and summarises it.
+pub(crate) fn run_episode(
+    system: System,
+    truth: TruthKind,
+    kind: ControllerKind,
+    seed: u64,
+    steps: usize,
+) -> EpisodeStats {
+    match run_inner(system, truth, kind, seed, steps) {
+        Ok(s) => s,
+        Err(e) => EpisodeStats {
+            error: Some(format!("{e:#}")),
+            min_h: f64::NAN,
+            ..EpisodeStats::default()
+        },
+    }
+}
+
+fn run_inner(
+    system: System,
+    truth: TruthKind,
+    kind: ControllerKind,
+    seed: u64,
+    steps: usize,
+) -> Result<EpisodeStats> {
+    let s = setup(system, truth, seed, steps)?;
+    let mut ctrl = controller(system, kind, &s.barrier)?;
+    let mut reference: Box<dyn Reference> = match system {
+        System::Vehicle => Box::new(Pursuit {
+            side: if s.x0[1] >= 0.0 { 1.0 } else { -1.0 },
+        }),
+        System::Pendulum => Box::new(IntoSector),
+    };
+    let barriers = [s.barrier.clone()];
+    let r = run_closed_loop(
+        s.truth.as_ref(),
+        s.model.clone(),
+        &mut ctrl,
+        &barriers,
+        &s.monitors,
+        reference.as_mut(),
+        &s.x0,
+        &s.loop_settings,
+        |_| {},
+    )
+    .context("closed loop")?;
+    let moments = replay_moments(&s, &r).context("replaying the model's moments")?;
+    Ok(summarise(system, &s, &r, &moments))
+}
+
+/// The mean and standard deviation of the barrier condition at each step's
+/// state and applied control, under the model that chose the control.
+///
+/// Without a window the model at step `k` holds the first `data_size_k`
+/// observations of the final model, in order (observations the loop could
+/// not absorb never entered it), so it is rebuilt by the same O(k²) growth.
+fn replay_moments(s: &Setup, r: &LoopResult) -> Result<Vec<(f64, f64)>> {
+    let fin = &r.model;
+    let (n, m) = (fin.n(), fin.m());
+    let (xs, us, xd) = (fin.xs(), fin.controls(), fin.xdot());
+    let mut model = s.model.clone();
+    let mut ws = MomentWorkspace::new(&model);
+    let mut mom = ConditionMoments::zeros(m);
+    let degree = s.barrier.degree().min(2);
+    let mut out = Vec::with_capacity(r.records.len());
+    for rec in &r.records {
+        while model.len() < rec.data_size {
+            let j = model.len();
+            model.add_observation(
+                &xs[j * n..(j + 1) * n],
+                &us[j * m..(j + 1) * m],
+                &xd[j * n..(j + 1) * n],
+            )?;
+        }
+        ws.update(&model, &rec.x, degree)?;
+        cbc_moments(&mut ws, s.barrier.as_ref(), &mut mom)?;
+        out.push((mom.mean(&rec.u), mom.variance(&rec.u).sqrt()));
+    }
+    Ok(out)
+}
+
+/// Standard normal quantiles `Φ⁻¹(q)` for `q` = 0.5, 0.1, 0.01, 0.001.
+pub(crate) const NORMAL_QUANTILES: [(f64, f64); 4] = [
+    (0.5, 0.0),
+    (0.1, -1.281_551_565_544_600_5),
+    (0.01, -2.326_347_874_040_840_8),
+    (0.001, -3.090_232_306_167_813_5),
+];
+
+/// Summary of standardised conditions `z = (C_true − E[C]) / √Var[C]`: a
+/// calibrated Gaussian predictive distribution gives mean 0, variance 1 and
+/// `P(z < Φ⁻¹(q)) = q`.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub(crate) struct ZStats {
+    pub n: usize,
+    pub sum: f64,
+    pub sum2: f64,
+    /// Counts below each of [`NORMAL_QUANTILES`].
+    pub below: [usize; 4],
+    /// `Σ Φ(−E[C]/√Var[C])`: the violations the model expects.
+    pub expected: f64,
+}
+
+impl ZStats {
+    fn push(&mut self, z: f64, predicted: f64) {
+        self.n += 1;
+        self.sum += z;
+        self.sum2 += z * z;
+        for (b, (_, zq)) in self.below.iter_mut().zip(NORMAL_QUANTILES) {
+            *b += usize::from(z < zq);
+        }
+        self.expected += predicted;
+    }
+    /// Adds `o` into `self`.
+    pub fn merge(&mut self, o: &ZStats) {
+        self.n += o.n;
+        self.sum += o.sum;
+        self.sum2 += o.sum2;
+        for (a, b) in self.below.iter_mut().zip(o.below) {
+            *a += b;
+        }
+        self.expected += o.expected;
+    }
+    /// Mean and standard deviation.
+    pub fn mean_sd(&self) -> (f64, f64) {
+        if self.n == 0 {
+            return (f64::NAN, f64::NAN);
+        }
+        let nf = self.n as f64;
+        let mean = self.sum / nf;
+        (mean, (self.sum2 / nf - mean * mean).max(0.0).sqrt())
+    }
+}
+
+/// The standard normal distribution function, by the complementary error
+/// function of Numerical Recipes (`erfc`, Chebyshev fit, relative error
+/// < 1.2e-7).
+pub(crate) fn normal_cdf(x: f64) -> f64 {
+    let z = x.abs() / std::f64::consts::SQRT_2;
+    let t = 1.0 / (1.0 + 0.5 * z);
+    let poly = -z * z - 1.265_512_23
+        + t * (1.000_023_68
+            + t * (0.374_091_96
+                + t * (0.096_784_18
+                    + t * (-0.186_288_06
+                        + t * (0.278_868_07
+                            + t * (-1.135_203_98
+                                + t * (1.488_515_87 + t * (-0.822_152_23 + t * 0.170_872_77))))))));
+    let erfc = t * poly.exp();
+    if x >= 0.0 {
+        1.0 - 0.5 * erfc
+    } else {
+        0.5 * erfc
+    }
+}
+
+fn summarise(system: System, s: &Setup, r: &LoopResult, moments: &[(f64, f64)]) -> EpisodeStats {
+    let b = s.barrier.as_ref();
+    let mut st = EpisodeStats {
+        steps: r.records.len(),
+        min_h: r.min_barrier.first().copied().unwrap_or(f64::NAN),
+        ..EpisodeStats::default()
+    };
+    for (k, rec) in r.records.iter().enumerate() {
+        let finite = rec.is_finite();
+        if !finite {
+            st.non_finite += 1;
+        }
+        if rec.h_fine_min.iter().any(|&h| h < 0.0) {
+            st.steps_h_violated += 1;
+        }
+        if rec.status == "infeasible" {
+            st.infeasible_steps += 1;
+            continue;
+        }
+        st.solved_steps += 1;
+        let c = true_condition(s.truth.as_ref(), b, &rec.x, &rec.u);
+        let violated = c < 0.0;
+        st.cbc_violations += violated as usize;
+        let active = rec.scbc.first().is_some_and(|&sl| sl <= ACTIVE_SLACK);
+        if active {
+            st.active_steps += 1;
+            st.active_violations += violated as usize;
+        }
+        let (mean, std) = moments[k];
+        if std > 0.0 {
+            let (z, q) = ((c - mean) / std, normal_cdf(-mean / std));
+            st.z[0].push(z, q);
+            if active {
+                st.z[1].push(z, q);
+            }
+        }
+    }
+    if system == System::Vehicle {
+        st.min_distance = r.min_monitor.first().copied();
+        let reached = r
+            .records
+            .iter()
+            .map(|rec| &rec.x)
+            .chain(std::iter::once(&r.final_state))
+            .any(|x| (x[0] - GOAL[0]).hypot(x[1] - GOAL[1]) < GOAL_TOL);
+        st.goal_reached = Some(reached);
+    }
+    st
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// With the truth as the prior mean, no data and a negligible prior
+    /// covariance (`A` = 1e-14 I; at relative degree 2 the mean of the
+    /// condition includes `tr Cov(∇L_f h, F u̲)`), the model's mean of the
+    /// condition is the true condition: the library's exact moments against
+    /// this module's finite differences.
+    #[test]
+    fn true_condition_matches_the_moments_of_an_exact_model() {
+        for system in [System::Vehicle, System::Pendulum] {
+            let s = setup(system, TruthKind::MisSpecified, 3, 10).unwrap();
+            let truth = s.truth.clone();
+            let mut hyper = s.model.hyper().clone();
+            hyper.A *= 1e-12;
+            let model = Mvgp::new(
+                s.model.n(),
+                s.model.m(),
+                hyper,
+                PriorMean::System(truth.clone()),
+                s.model.input_map().clone(),
+            )
+            .unwrap();
+            let mut ws = MomentWorkspace::new(&model);
+            let mut mom = ConditionMoments::zeros(model.m());
+            let cases: Vec<(Vec<f64>, Vec<f64>)> = match system {
+                System::Vehicle => vec![
+                    (vec![-1.0, 0.3, 0.2], vec![1.0, 0.5]),
+                    (vec![0.4, -0.9, 2.0], vec![-0.7, 2.0]),
+                ],
+                System::Pendulum => {
+                    vec![(vec![0.1, 0.8], vec![3.0]), (vec![-0.5, -1.5], vec![-7.0])]
+                }
+            };
+            for (x, u) in cases {
+                ws.update(&model, &x, s.barrier.degree()).unwrap();
+                cbc_moments(&mut ws, s.barrier.as_ref(), &mut mom).unwrap();
+                let want = mom.mean(&u);
+                let got = true_condition(truth.as_ref(), s.barrier.as_ref(), &x, &u);
+                assert!(
+                    (got - want).abs() < 1e-5 * (1.0 + want.abs()),
+                    "{system:?} at {x:?}, {u:?}: {got} vs {want}"
+                );
+            }
+        }
+    }
+
+    #[test]
+    fn normal_cdf_values() {
+        for (x, want) in [
+            (0.0, 0.5),
+            (-1.281_551_565_5, 0.1),
+            (-3.090_232_306, 0.001),
+            (2.0, 0.977_249_868),
+        ] {
+            assert!(
+                (normal_cdf(x) - want).abs() < 2e-7 * want.max(1e-3) * 10.0,
+                "{x}"
+            );
+        }
+    }
+}

@@ -1,0 +1,253 @@
+//! `calibration`: does the promised safety probability hold? Closed-loop
+//! Monte Carlo of the Bayes CBF at `p ∈ {0.9, 0.99, 0.999}` and the mean
+//! CBF (`c(p) = 0`), on truths for which the model is exactly right and on
+//! the paper's parametric mismatch (SPEC, capability 9).
+//!
+//! ## Episodes
+//! Each episode draws (from its own seed) a truth, an initial state and the
+//! noise; the four controllers run the *same* episode (paired comparison).
+//! The model learns online at every step (O(k²) growth, no refits, no
+//! window). States are observed exactly and `ẋ` is measured by forward
+//! differences; the noise is process noise, so that the data follow the
+//! MVGP's own observation model (see [`episode::PROCESS_NOISE_WELL`]).
+//!
+//! - **Ackermann vehicle** (relative degree 1, Gaussian factor): obstacle
+//!   disc of radius 0.6 m at the origin with the paper's heading barrier
+//!   `h = 0.7 (‖p − o‖² − r²) + 0.3 cos(θ − bearing)`, `α = 5`; start
+//!   uniform in `[−2.3, −1.9] × [−0.5, 0.5] × [−0.3, 0.3]`; the reference is
+//!   a pure pursuit at 1.2 m/s of a waypoint `(0, ±0.65)` on the start's side
+//!   (the straight line to it cuts through the disc), then of the goal
+//!   `(2.5, 0)` behind the obstacle; bounds `|v| ≤ 1.5`, `|z| ≤ 3`; 450
+//!   steps. Model: prior mean the vehicle with wheelbase 1, kernel on
+//!   `(cos θ, sin θ)` (translation invariance), lengthscales 1,
+//!   `A = 0.01 I`, `B = I`, `σ² A = 0.02² I`.
+//! - **Pendulum** (relative degree 2, Cantelli factor): the unsafe sector
+//!   `45° ± 22.5°` of `pendulum-safe`, with `k_α = (4, 4)` (a double root
+//!   at −2, so that `h` may approach zero within the episode); start uniform
+//!   in `θ ∈ [−0.6, 0]`, `ω ∈ [−0.5, 0.5]`; the reference is a PD controller
+//!   into the centre of the sector; `|u| ≤ 20`; 250 steps. Model: prior
+//!   mean the pendulum `m = l = 1`, kernel on `(cos θ, sin θ, ω)`,
+//!   lengthscales `(1, 1, 3)`, `A = 0.04 I`, `B = I`, `σ² A = 0.02² I`.
+//!
+//! Truths:
+//! - **well specified**: a draw of the model's own prior
+//!   [`GpSample`](bayes_cbf::systems::GpSample) (128 random Fourier
+//!   features per entry) around the model's prior mean, with the model's
+//!   kernel, `A` and `B`, and process noise `q = 0.002` (`ẋ` noise
+//!   `q/√τ = 0.02`, what the model assumes). For the pendulum, `A = 0.04 I`
+//!   also randomises the kinematic row (`θ̇ = ω + δ(x) + δ'(x) u`), so a
+//!   truth drawn from this prior does not have relative degree 2 with
+//!   respect to the sector barrier: the condition the controller enforces
+//!   (which assumes `L_g h = 0`) then no longer implies `h ≥ 0`, and the
+//!   pendulum can enter the sector while every step's condition holds;
+//! - **mis-specified**: the vehicle with wheelbase 12 (model 1; paper,
+//!   Fig. 7), the pendulum with `m = 2`, `l = 0.5` (model 1, 1); process
+//!   noise `q = 0.01` (`ẋ` noise 0.1, five times the model's).
+//!
+//! ## What is counted (per controller)
+//! Episodes with `h < 0` anywhere on the fine RK4 grid (1 ms), steps with
+//! such a violation, the true barrier condition at every solved step (see
+//! [`episode`]): violated steps among all solved steps and among steps
+//! whose chance constraint is active, with the number the model expected
+//! (`Σ Φ(−E/√Var)`) and the standardised values
+//! `z = (C_true − E[C])/√Var[C]`; infeasible steps (the max-margin
+//! fallback was applied) and episodes using it, collisions and goal reached
+//! (vehicle). Rates come with 95 % Wilson score intervals; pooled step rates
+//! also with a cluster-robust interval, since steps of one episode are not
+//! independent. The paired sign test compares episode violations of the
+//! mean CBF and each Bayes CBF.
+//!
+//! Deterministic given `--seed` for any thread count: every episode's seed
+//! is a hash of `(seed, system, truth, episode)`, and results are collected
+//! in task order.
+
+mod episode;
+mod report;
+mod stats;
+
+use super::{ExperimentArgs, Progress, Table};
+use crate::bail;
+use crate::error::Result;
+use episode::{run_episode, ControllerKind, EpisodeStats, System, TruthKind, CONTROLLERS};
+use rayon::prelude::*;
+use std::sync::atomic::{AtomicUsize, Ordering};
+use std::time::Instant;
+
+pub use report::{Cell, Series, FLOOR};
+
+/// The result of `calibration`.
+pub struct Calibration {
+    /// The plotted rates, one cell per (system, truth).
+    pub cells: Vec<Cell>,
+    /// The table printed at the end of a run: one line per (system, truth,
+    /// controller).
+    pub console_table: String,
+    /// `summary.json`.
+    pub summary: serde_json::Value,
+    /// `episodes.csv`: one line per episode and controller.
+    pub tables: Vec<Table>,
+}
+
+/// Default number of episodes per (system, truth).
+pub(crate) const DEFAULT_EPISODES: usize = 200;
+/// Episodes of `--quick`.
+const QUICK_EPISODES: usize = 12;
+
+/// The experiment's size.
+#[derive(Debug, Clone, PartialEq)]
+pub(crate) struct Plan {
+    pub episodes: usize,
+    /// `(system, control steps per episode)`.
+    pub systems: Vec<(System, usize)>,
+}
+
+impl Plan {
+    /// The plan for `episodes` (default [`DEFAULT_EPISODES`]); `--quick`
+    /// runs fewer and shorter episodes.
+    pub fn new(quick: bool, episodes: Option<usize>) -> Result<Self> {
+        if episodes == Some(0) {
+            bail!("--episodes = 0: must be ≥ 1");
+        }
+        let (default, steps) = if quick {
+            (
+                QUICK_EPISODES,
+                [(System::Vehicle, 250), (System::Pendulum, 150)],
+            )
+        } else {
+            (
+                DEFAULT_EPISODES,
+                [(System::Vehicle, 450), (System::Pendulum, 250)],
+            )
+        };
+        Ok(Plan {
+            episodes: episodes.unwrap_or(default),
+            systems: steps.to_vec(),
+        })
+    }
+}
+
+/// One closed-loop run.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub(crate) struct Task {
+    pub system: System,
+    pub steps: usize,
+    pub truth: TruthKind,
+    pub episode: usize,
+    pub controller: usize,
+}
+
+/// SplitMix64 finaliser.
+fn mix(mut z: u64) -> u64 {
+    z = z.wrapping_add(0x9E37_79B9_7F4A_7C15);
+    z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+    z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+    z ^ (z >> 31)
+}
+
+/// Seed of an episode: the same for the four controllers.
+pub(crate) fn episode_seed(seed: u64, t: &Task) -> u64 {
+    mix(mix(mix(seed) ^ t.system as u64) ^ ((t.truth as u64) << 32 | t.episode as u64))
+}
+
+fn tasks(plan: &Plan) -> Vec<Task> {
+    let mut v = Vec::new();
+    for &(system, steps) in &plan.systems {
+        for truth in [TruthKind::WellSpecified, TruthKind::MisSpecified] {
+            for episode in 0..plan.episodes {
+                for controller in 0..CONTROLLERS.len() {
+                    v.push(Task {
+                        system,
+                        steps,
+                        truth,
+                        episode,
+                        controller,
+                    });
+                }
+            }
+        }
+    }
+    v
+}
+
+/// Runs every task of `plan` (in parallel) and returns the results in task
+/// order.
+pub(crate) fn run_tasks(
+    plan: &Plan,
+    seed: u64,
+    progress: &dyn Progress,
+) -> Vec<(Task, EpisodeStats)> {
+    let all = tasks(plan);
+    let done = AtomicUsize::new(0);
+    all.par_iter()
+        .map(|t| {
+            let kind: ControllerKind = CONTROLLERS[t.controller];
+            let s = run_episode(t.system, t.truth, kind, episode_seed(seed, t), t.steps);
+            progress.update(done.fetch_add(1, Ordering::Relaxed) + 1, all.len());
+            (*t, s)
+        })
+        .collect()
+}
+
+/// Runs the experiment with `episodes` per (system, truth) (see the module
+/// docs), reporting each finished episode.
+pub fn run(
+    args: &ExperimentArgs,
+    episodes: Option<usize>,
+    progress: &dyn Progress,
+) -> Result<Calibration> {
+    let plan = Plan::new(args.quick, episodes)?;
+    faer::set_global_parallelism(faer::Par::Seq);
+    let start = Instant::now();
+    let results = run_tasks(&plan, args.seed, progress);
+    let wall = start.elapsed().as_secs_f64();
+    let rows = report::tables(&plan, &results);
+    Ok(Calibration {
+        cells: report::plot_cells(&rows),
+        console_table: report::console_table(&rows),
+        summary: report::summary(args, &plan, &rows, &results, wall),
+        tables: vec![report::episodes_csv(&results)],
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn results_do_not_depend_on_the_thread_count() {
+        let plan = Plan {
+            episodes: 2,
+            systems: vec![(System::Vehicle, 60), (System::Pendulum, 40)],
+        };
+        let one = rayon::ThreadPoolBuilder::new()
+            .num_threads(1)
+            .build()
+            .unwrap()
+            .install(|| run_tasks(&plan, 5, &|_, _| {}));
+        let two = rayon::ThreadPoolBuilder::new()
+            .num_threads(2)
+            .build()
+            .unwrap()
+            .install(|| run_tasks(&plan, 5, &|_, _| {}));
+        assert_eq!(one.len(), 2 * 2 * 2 * 4);
+        assert_eq!(one, two);
+        for (t, s) in &one {
+            assert!(s.error.is_none(), "{t:?}: {:?}", s.error);
+            assert_eq!(s.steps, t.steps);
+            assert_eq!(s.non_finite, 0);
+        }
+        // the four controllers share each episode: the same start, so the
+        // same first h
+        let seeds: Vec<u64> = one.iter().map(|(t, _)| episode_seed(5, t)).collect();
+        assert_eq!(seeds[0], seeds[3]);
+        assert_ne!(seeds[0], seeds[4]);
+    }
+
+    #[test]
+    fn zero_episodes_is_an_error_naming_the_option() {
+        let e = Plan::new(false, Some(0)).unwrap_err().to_string();
+        assert!(e.contains("--episodes"), "{e}");
+        assert_eq!(Plan::new(true, None).unwrap().episodes, QUICK_EPISODES);
+        assert_eq!(Plan::new(false, Some(7)).unwrap().episodes, 7);
+    }
+}

@@ -1,0 +1,243 @@
+//! Barrier files (`barrier.json`, interfaces.md): parsing and validation.
+
+use crate::bail;
+use crate::error::{Context, Result};
+use bayes_cbf::barrier::{CircleHeading, Disc, DynBarrier, HalfSpace, PendulumSector};
+use serde::Deserialize;
+use std::path::Path;
+use std::sync::Arc;
+
+/// One barrier as written in a file.
+#[derive(Debug, Clone, PartialEq, Deserialize, serde::Serialize)]
+#[serde(tag = "type", rename_all = "snake_case", deny_unknown_fields)]
+pub enum BarrierSpec {
+    /// `h = cos(delta) − cos(θ − theta_c)`.
+    PendulumSector {
+        /// Sector centre (rad).
+        theta_c: f64,
+        /// Sector half-width (rad).
+        delta: f64,
+        /// Relative degree (1 or 2).
+        relative_degree: usize,
+        /// Gain for relative degree 1.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        alpha: Option<f64>,
+        /// Gains for relative degree 2.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        k_alpha: Option<Vec<f64>>,
+    },
+    /// Ackermann obstacle with heading term.
+    CircleHeading {
+        /// Obstacle centre.
+        center: [f64; 2],
+        /// Obstacle radius.
+        radius: f64,
+        /// Distance weight.
+        q1: f64,
+        /// Heading weight.
+        q2: f64,
+        /// Relative degree.
+        relative_degree: usize,
+        /// Gain for relative degree 1.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        alpha: Option<f64>,
+        /// Gains for relative degree 2.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        k_alpha: Option<Vec<f64>>,
+    },
+    /// `h = ‖x[indices] − center‖² − radius²`.
+    Disc {
+        /// State dimension.
+        state_dim: usize,
+        /// The two plane coordinates.
+        indices: [usize; 2],
+        /// Centre.
+        center: [f64; 2],
+        /// Radius.
+        radius: f64,
+        /// Relative degree.
+        relative_degree: usize,
+        /// Gain for relative degree 1.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        alpha: Option<f64>,
+        /// Gains for relative degree 2.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        k_alpha: Option<Vec<f64>>,
+    },
+    /// `h = normalᵀx − offset`.
+    HalfSpace {
+        /// Normal vector.
+        normal: Vec<f64>,
+        /// Offset.
+        offset: f64,
+        /// Relative degree.
+        relative_degree: usize,
+        /// Gain for relative degree 1.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        alpha: Option<f64>,
+        /// Gains for relative degree 2.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        k_alpha: Option<Vec<f64>>,
+    },
+}
+
+/// Gains from `alpha` (relative degree 1) or `k_alpha` (≥ 2).
+fn gains(r: usize, alpha: &Option<f64>, k_alpha: &Option<Vec<f64>>) -> Result<Vec<f64>> {
+    match (r, alpha, k_alpha) {
+        (0, _, _) => bail!("relative_degree = 0: must be ≥ 1"),
+        (1, Some(a), None) => Ok(vec![*a]),
+        (1, None, Some(k)) if k.len() == 1 => Ok(k.clone()),
+        (1, None, None) => bail!("alpha is required for relative_degree 1"),
+        (1, _, _) => bail!("give either alpha or a one-element k_alpha for relative_degree 1"),
+        (r, None, Some(k)) => {
+            if k.len() != r {
+                bail!(
+                    "k_alpha has {} entries, expected {r} (one per derivative order of h)",
+                    k.len()
+                );
+            }
+            Ok(k.clone())
+        }
+        (r, Some(_), _) => bail!("alpha is for relative_degree 1; use k_alpha with {r} entries"),
+        (r, None, None) => bail!("k_alpha with {r} entries is required for relative_degree {r}"),
+    }
+}
+
+impl BarrierSpec {
+    /// Builds the library barrier, validating every field.
+    pub fn build(&self) -> Result<Arc<dyn DynBarrier>> {
+        Ok(match self {
+            BarrierSpec::PendulumSector {
+                theta_c,
+                delta,
+                relative_degree,
+                alpha,
+                k_alpha,
+            } => Arc::new(PendulumSector::new(
+                *theta_c,
+                *delta,
+                *relative_degree,
+                gains(*relative_degree, alpha, k_alpha)?,
+            )?),
+            BarrierSpec::CircleHeading {
+                center,
+                radius,
+                q1,
+                q2,
+                relative_degree,
+                alpha,
+                k_alpha,
+            } => Arc::new(CircleHeading::new(
+                *center,
+                *radius,
+                *q1,
+                *q2,
+                *relative_degree,
+                gains(*relative_degree, alpha, k_alpha)?,
+            )?),
+            BarrierSpec::Disc {
+                state_dim,
+                indices,
+                center,
+                radius,
+                relative_degree,
+                alpha,
+                k_alpha,
+            } => Arc::new(Disc::new(
+                *state_dim,
+                *indices,
+                *center,
+                *radius,
+                *relative_degree,
+                gains(*relative_degree, alpha, k_alpha)?,
+            )?),
+            BarrierSpec::HalfSpace {
+                normal,
+                offset,
+                relative_degree,
+                alpha,
+                k_alpha,
+            } => Arc::new(HalfSpace::new(
+                normal.clone(),
+                *offset,
+                *relative_degree,
+                gains(*relative_degree, alpha, k_alpha)?,
+            )?),
+        })
+    }
+
+    /// Parses a barrier from JSON text; `name` is used in errors.
+    pub fn parse(text: &str, name: &str) -> Result<Self> {
+        if text.trim().is_empty() {
+            bail!("barrier file '{name}' is empty");
+        }
+        serde_json::from_str(text).with_context(|| format!("barrier file '{name}'"))
+    }
+
+    /// Loads and validates a barrier file.
+    pub fn load(path: &Path) -> Result<(Self, Arc<dyn DynBarrier>)> {
+        let name = path.display().to_string();
+        let text = std::fs::read_to_string(path)
+            .with_context(|| format!("cannot read barrier file '{name}'"))?;
+        let spec = Self::parse(&text, &name)?;
+        let b = spec
+            .build()
+            .with_context(|| format!("barrier file '{name}'"))?;
+        Ok((spec, b))
+    }
+}
+
+#[cfg(test)]
+#[allow(clippy::approx_constant)] // the literal values of interfaces.md
+mod tests {
+    use super::*;
+
+    #[test]
+    fn interface_examples_parse() {
+        let a = r#"{"type": "pendulum_sector", "theta_c": 0.7854, "delta": 0.3927, "relative_degree": 2, "k_alpha": [1.0, 3.0]}"#;
+        let b = r#"{"type": "circle_heading", "center": [-1.1667, -1.5], "radius": 0.7906, "q1": 0.7, "q2": 0.3, "relative_degree": 1, "alpha": 5.0}"#;
+        let ba = BarrierSpec::parse(a, "a").unwrap().build().unwrap();
+        assert_eq!(ba.degree(), 2);
+        assert!((ba.value(&[0.0, 0.0]) - (0.3927f64.cos() - 0.7854f64.cos())).abs() < 1e-12);
+        let bb = BarrierSpec::parse(b, "b").unwrap().build().unwrap();
+        assert_eq!(bb.class_k(), &[5.0]);
+    }
+
+    #[test]
+    fn bad_barriers_name_the_field() {
+        let cases = [
+            (
+                r#"{"type": "pendulum_sector", "theta_c": 0.7, "delta": 0.3, "relative_degree": 2, "k_alpha": [1.0]}"#,
+                "k_alpha",
+            ),
+            (
+                r#"{"type": "pendulum_sector", "theta_c": 0.7, "delta": 0.3, "relative_degree": 1}"#,
+                "alpha",
+            ),
+            (
+                r#"{"type": "pendulum_sector", "theta_c": 0.7, "delta": -0.3, "relative_degree": 1, "alpha": 1}"#,
+                "delta",
+            ),
+            (
+                r#"{"type": "circle_heading", "center": [0, 0], "radius": 0, "q1": 1, "q2": 1, "relative_degree": 1, "alpha": 1}"#,
+                "radius",
+            ),
+            (
+                r#"{"type": "circle_heading", "center": [0, 0], "radius": 1, "q1": 1, "q2": 1, "relative_degree": 1, "alpha": 1, "extra": 2}"#,
+                "extra",
+            ),
+            (r#"{"type": "triangle"}"#, "triangle"),
+            (
+                r#"{"type": "half_space", "normal": [0, 0], "offset": 1, "relative_degree": 1, "alpha": 1}"#,
+                "normal",
+            ),
+        ];
+        for (text, field) in cases {
+            let err = BarrierSpec::parse(text, "f")
+                .and_then(|s| s.build().map(|_| ()))
+                .unwrap_err();
+            let msg = format!("{err:#}");
+            assert!(msg.contains(field), "{msg} should name {field}");
+        }
+    }
+}

@@ -1,0 +1,104 @@
+//! Parsing of vectors, index lists and covariance structures given as text
+//! (command-line options, `--set` values, Python arguments).
+
+use crate::error::Result;
+use crate::{bail, err};
+use bayes_cbf::gp::Rank;
+
+/// Parses a comma-separated vector of finite numbers given to option `name`,
+/// e.g. `--x -0.3,0.2`.
+pub fn parse_vector(name: &str, s: &str) -> Result<Vec<f64>> {
+    if s.trim().is_empty() {
+        bail!("{name}: empty vector; expected comma-separated numbers such as 0.3,-0.2");
+    }
+    s.split(',')
+        .enumerate()
+        .map(|(i, tok)| {
+            let tok = tok.trim();
+            let v: f64 = tok
+                .parse()
+                .map_err(|_| err!("{name}[{i}] = '{tok}' is not a number (in '{s}')"))?;
+            if !v.is_finite() {
+                bail!("{name}[{i}] = {v} is not finite (in '{s}')");
+            }
+            Ok(v)
+        })
+        .collect()
+}
+
+/// Parses a comma-separated list of indices, each `< n`, for option `name`.
+/// `none` (or an empty string) gives an empty list.
+pub fn parse_indices(name: &str, s: &str, n: usize) -> Result<Vec<usize>> {
+    let t = s.trim();
+    if t.is_empty() || t.eq_ignore_ascii_case("none") {
+        return Ok(Vec::new());
+    }
+    let mut out: Vec<usize> = Vec::new();
+    for (j, tok) in t.split(',').enumerate() {
+        let tok = tok.trim();
+        let i: usize = tok
+            .parse()
+            .map_err(|_| err!("{name}[{j}] = '{tok}' is not a non-negative integer index"))?;
+        if i >= n {
+            bail!("{name}[{j}] = {i} is out of range: state indices are 0..{n}");
+        }
+        if out.contains(&i) {
+            bail!("{name}[{j}] = {i} is listed twice");
+        }
+        out.push(i);
+    }
+    Ok(out)
+}
+
+/// Parses the structure of a learned covariance for option `name`:
+/// `full`, `diag` (or `diagonal`), or a positive integer rank.
+pub fn parse_rank(name: &str, s: &str) -> Result<Rank> {
+    match s.trim().to_ascii_lowercase().as_str() {
+        "full" => Ok(Rank::Full),
+        "diag" | "diagonal" => Ok(Rank::Diagonal),
+        t => match t.parse::<usize>() {
+            Ok(0) => bail!("{name} = 0: a rank must be ≥ 1 (use 'diag' for a diagonal matrix)"),
+            Ok(r) => Ok(Rank::Low(r)),
+            Err(_) => bail!("{name} = '{s}': expected full, diag or a positive integer rank"),
+        },
+    }
+}
+
+/// Formats a rank back into the form [`parse_rank`] accepts.
+pub fn rank_name(r: Rank) -> String {
+    match r {
+        Rank::Full => "full".into(),
+        Rank::Diagonal => "diag".into(),
+        Rank::Low(k) => k.to_string(),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn vectors_and_lists() {
+        assert_eq!(parse_vector("--x", "-0.3, 0.2").unwrap(), vec![-0.3, 0.2]);
+        assert!(parse_vector("--x", "1,,2").is_err());
+        assert!(parse_vector("--x", "1,nan")
+            .unwrap_err()
+            .to_string()
+            .contains("--x[1]"));
+        assert!(parse_vector("--x", "").is_err());
+        assert_eq!(
+            parse_indices("--angle-index", "0,2", 3).unwrap(),
+            vec![0, 2]
+        );
+        assert!(parse_indices("--angle-index", "none", 3)
+            .unwrap()
+            .is_empty());
+        assert!(parse_indices("--angle-index", "3", 3).is_err());
+        assert!(parse_indices("--angle-index", "1,1", 3).is_err());
+        assert_eq!(parse_rank("--rank-a", "2").unwrap(), Rank::Low(2));
+        assert_eq!(parse_rank("--rank-a", "Diag").unwrap(), Rank::Diagonal);
+        assert!(parse_rank("--rank-a", "0").is_err());
+        assert!(parse_rank("--rank-a", "lots").is_err());
+        assert_eq!(rank_name(Rank::Low(3)), "3");
+    }
+}

@@ -1,0 +1,30 @@
+//! # bayes-cbf-scenario
+//!
+//! Everything around the core library [`bayes_cbf`] that a user needs
+//! without the command line: the file formats (model, barrier, prior mean,
+//! input map, CSV data), scenario files in TOML with `key=value` overrides,
+//! the built-in scenarios, closed-loop runs returning a typed
+//! [`scenario::RunSummary`], and the paper's experiments returning typed
+//! results. Nothing here prints or plots; the `bayes-cbf` binary, the
+//! figures crate and the Python package build on it.
+//!
+//! ## Error policy
+//! Every failure caused by input (a file, a field, a value) or by the
+//! numerics is an [`Error`] whose message is one line naming the field;
+//! nothing here panics on user input.
+
+#![warn(missing_docs)]
+// Index loops mirror the subscripts of the maths in the docs.
+#![allow(clippy::needless_range_loop)]
+
+pub mod error;
+pub mod experiments;
+pub mod formats;
+pub mod io;
+pub mod scenario;
+
+#[cfg(test)]
+mod fuzz_tests;
+
+pub use error::{Context, Error, Result};
+pub use formats::{barrier_file, csv_data, input_map_spec, model_file, parse, prior_spec};

@@ -1,0 +1,319 @@
+//! From a parsed [`Scenario`] to the library's objects, validating every
+//! field with errors that name it.
+
+use super::{ClfSpec, MatrixSpec, ReferenceSpec, Scenario};
+use crate::bail;
+use crate::barrier_file::BarrierSpec;
+use crate::error::{Context, Result};
+use crate::input_map_spec::to_input_map;
+use crate::parse::parse_rank;
+use crate::prior_spec::PriorSpec;
+use bayes_cbf::barrier::{AckermannClf, DynBarrier, DynLyapunov};
+use bayes_cbf::control::{
+    Fallback, SafetyController, SafetySettings, ShiftedBarrier, TauSource, TriggerSettings,
+};
+use bayes_cbf::gp::{FitSettings, LipschitzSettings, Mvgp, MvgpHyper, Rbf};
+use bayes_cbf::sim::{
+    ConstantReference, EpsilonGreedy, LoopSettings, Reference, SimSettings, StraightLinePlanner,
+};
+use bayes_cbf::systems::{Ackermann, DynSystem, Pendulum};
+use nalgebra::DMatrix;
+use rand::SeedableRng;
+use rand_chacha::ChaCha8Rng;
+use rand_distr::{Distribution, StandardNormal};
+use std::sync::Arc;
+
+/// Everything a run needs.
+pub struct Built {
+    /// The true system.
+    pub truth: Arc<dyn DynSystem>,
+    /// The initial model.
+    pub model: Mvgp,
+    /// The barriers (also checked on the fine grid).
+    pub barriers: Vec<Arc<dyn DynBarrier>>,
+    /// Obstacle discs `(centre, radius)` for the signed distance.
+    pub obstacles: Vec<([f64; 2], f64)>,
+    /// The controller.
+    pub controller: SafetyController,
+    /// The reference.
+    pub reference: Box<dyn Reference>,
+    /// Loop settings.
+    pub loop_settings: LoopSettings,
+}
+
+fn matrix(
+    field: &str,
+    spec: &MatrixSpec,
+    dim: usize,
+    rng: &mut ChaCha8Rng,
+) -> Result<DMatrix<f64>> {
+    let positive = |s: f64| -> Result<()> {
+        if !(s.is_finite() && s > 0.0) {
+            bail!("gp.{field}.scale = {s}: must be finite and > 0");
+        }
+        Ok(())
+    };
+    Ok(match spec {
+        MatrixSpec::Identity { scale } => {
+            positive(*scale)?;
+            DMatrix::identity(dim, dim) * *scale
+        }
+        MatrixSpec::Random { scale } => {
+            positive(*scale)?;
+            let c = DMatrix::<f64>::from_fn(dim, dim, |_, _| StandardNormal.sample(rng));
+            (&c * c.transpose() / dim as f64 + DMatrix::identity(dim, dim)) * *scale
+        }
+        MatrixSpec::Rows { rows } => {
+            if rows.len() != dim || rows.iter().any(|r| r.len() != dim) {
+                bail!("gp.{field}.rows must be {dim}×{dim}");
+            }
+            DMatrix::from_fn(dim, dim, |i, j| rows[i][j])
+        }
+    })
+}
+
+fn truth(spec: &PriorSpec) -> Result<Arc<dyn DynSystem>> {
+    Ok(match *spec {
+        PriorSpec::Zero => {
+            bail!("system: a true system is required (type = \"pendulum\" or \"ackermann\")")
+        }
+        PriorSpec::Pendulum {
+            mass,
+            length,
+            gravity,
+        } => Arc::new(Pendulum {
+            mass,
+            length,
+            gravity,
+        }),
+        PriorSpec::Ackermann { wheelbase } => Arc::new(Ackermann { wheelbase }),
+    })
+}
+
+fn vector(field: &str, v: &[f64], len: usize, what: &str) -> Result<()> {
+    if v.len() != len {
+        bail!("{field} has {} entries, expected {len} ({what})", v.len());
+    }
+    if let Some(i) = v.iter().position(|x| !x.is_finite()) {
+        bail!("{field}[{i}] = {} is not finite", v[i]);
+    }
+    Ok(())
+}
+
+/// Builds and validates a scenario.
+pub fn build(s: &Scenario) -> Result<Built> {
+    let truth = truth(&s.system)?;
+    let (n, m) = (truth.n(), truth.m());
+    vector("start", &s.start, n, "the state dimension")?;
+    if let Some(g) = &s.goal {
+        vector("goal", g, n, "the state dimension")?;
+    }
+    if !(s.dt.is_finite() && s.dt > 0.0) {
+        bail!("dt = {}: must be finite and > 0", s.dt);
+    }
+    if s.steps == 0 {
+        bail!("steps = 0: must be ≥ 1");
+    }
+    // model
+    let mut rng = ChaCha8Rng::seed_from_u64(s.seed ^ 0x5EED_0FAB);
+    let a = matrix("A", &s.gp.a, n, &mut rng)?;
+    let b = matrix("B", &s.gp.b, m + 1, &mut rng)?;
+    let input_map = to_input_map(s.gp.input_map.as_deref());
+    let kernel = Rbf::new(s.gp.lengthscales.clone(), s.gp.kernel_variance)
+        .map_err(|e| crate::err!("gp: {e}"))?;
+    let hyper = MvgpHyper {
+        kernel,
+        A: a,
+        B: b,
+        sigma: s.gp.noise_sigma,
+    };
+    if let PriorSpec::Pendulum { .. } | PriorSpec::Ackermann { .. } = s.gp.prior_mean {
+        let (pn, pm) = match s.gp.prior_mean {
+            PriorSpec::Pendulum { .. } => (2, 1),
+            _ => (3, 2),
+        };
+        if (pn, pm) != (n, m) {
+            bail!("gp.prior_mean is a {pn}-state model but the system has {n} states");
+        }
+    }
+    let model = Mvgp::new(n, m, hyper, s.gp.prior_mean.to_prior(), input_map)
+        .map_err(|e| crate::err!("gp: {e}"))?;
+    // barriers and obstacles
+    let mut barriers = Vec::new();
+    let mut obstacles = Vec::new();
+    for (i, spec) in s.barriers.iter().enumerate() {
+        let b = spec.build().with_context(|| format!("barriers[{i}]"))?;
+        if b.dim() != n {
+            bail!(
+                "barriers[{i}] is for state dimension {}, the system has {n}",
+                b.dim()
+            );
+        }
+        match spec {
+            BarrierSpec::CircleHeading { center, radius, .. } => obstacles.push((*center, *radius)),
+            BarrierSpec::Disc {
+                indices,
+                center,
+                radius,
+                ..
+            } if *indices == [0, 1] => obstacles.push((*center, *radius)),
+            _ => {}
+        }
+        barriers.push(b);
+    }
+    let clf: Option<Arc<dyn DynLyapunov>> = match &s.clf {
+        None => None,
+        Some(ClfSpec::Ackermann { w1, w2, gamma }) => {
+            if n != 3 {
+                bail!("clf: the ackermann CLF needs a 3-state system");
+            }
+            Some(Arc::new(
+                AckermannClf::new(*w1, *w2, *gamma).map_err(|e| crate::err!("clf: {e}"))?,
+            ))
+        }
+    };
+    // self-triggering
+    let trigger = match &s.trigger {
+        None => None,
+        Some(t) => {
+            vector("trigger.cuboid", &t.cuboid, n, "the state dimension")?;
+            let ts = TriggerSettings {
+                lipschitz: LipschitzSettings {
+                    delta_l: t.delta_l,
+                    sides: t.cuboid.clone(),
+                    grid: t.grid,
+                    samples: t.samples,
+                },
+                zeta: s.controller.zeta,
+                zeta_b: t.zeta_b,
+                l_alpha: t.l_alpha,
+                tau_min: t.tau_min,
+                tau_max: t.tau_max,
+                tau_from: TauSource::parse(&t.tau_from)?,
+                hold: t.self_triggered,
+            };
+            ts.validate(n).map_err(|e| crate::err!("trigger: {e}"))?;
+            if barriers.iter().any(|b| b.degree() == 1) && s.controller.zeta <= 0.0 {
+                bail!(
+                    "controller.zeta = {}: self-triggering needs a margin ζ > 0 on relative-degree-1 barriers (Prop. 3)",
+                    s.controller.zeta
+                );
+            }
+            if barriers.iter().any(|b| b.degree() >= 2) && t.zeta_b <= 0.0 {
+                bail!(
+                    "trigger.zeta_b = {}: self-triggering needs ζ_b > 0 on barriers of relative degree ≥ 2 (Prop. 5)",
+                    t.zeta_b
+                );
+            }
+            Some(ts)
+        }
+    };
+    // controller
+    let c = &s.controller;
+    let mut settings = SafetySettings::new(m);
+    settings.probability = match &trigger {
+        Some(ts) => ts.tilde_p(c.probability)?,
+        None => c.probability,
+    };
+    settings.zeta = c.zeta;
+    settings.lambda = c.lambda;
+    if let Some(r) = &c.r {
+        vector("controller.r", r, m, "the control dimension")?;
+        settings.r = DMatrix::from_diagonal(&nalgebra::DVector::from_column_slice(r));
+    }
+    if let Some(v) = &c.u_min {
+        vector("controller.u_min", v, m, "the control dimension")?;
+    }
+    if let Some(v) = &c.u_max {
+        vector("controller.u_max", v, m, "the control dimension")?;
+    }
+    settings.u_min = c.u_min.clone();
+    settings.u_max = c.u_max.clone();
+    settings.fallback = Fallback::parse(&c.fallback).map_err(|e| crate::err!("controller: {e}"))?;
+    if c.probability < 0.5 && (clf.is_some() || barriers.iter().any(|b| b.degree() == 1)) {
+        bail!(
+            "controller.probability = {}: must be ≥ 0.5 with relative-degree-1 conditions",
+            c.probability
+        );
+    }
+    // Prop. 5: the SOCP enforces h − ζ_b for barriers of relative degree ≥ 2
+    let socp_barriers: Vec<Arc<dyn DynBarrier>> = match &trigger {
+        Some(ts) => barriers
+            .iter()
+            .map(|b| {
+                if b.degree() >= 2 {
+                    Arc::new(ShiftedBarrier::new(b.clone(), ts.zeta_b)) as Arc<dyn DynBarrier>
+                } else {
+                    b.clone()
+                }
+            })
+            .collect(),
+        None => barriers.clone(),
+    };
+    let controller = SafetyController::new(n, m, socp_barriers, clf, settings)
+        .map_err(|e| crate::err!("controller: {e}"))?;
+    // reference
+    let reference: Box<dyn Reference> = match &s.reference {
+        ReferenceSpec::Planner { duration } => {
+            let goal = s
+                .goal
+                .clone()
+                .context("reference: the planner needs a goal")?;
+            Box::new(
+                StraightLinePlanner::new(s.start.clone(), goal, *duration)
+                    .map_err(|e| crate::err!("reference: {e}"))?,
+            )
+        }
+        ReferenceSpec::EpsilonGreedy { lo, hi, decay } => {
+            vector("reference.lo", lo, m, "the control dimension")?;
+            vector("reference.hi", hi, m, "the control dimension")?;
+            Box::new(
+                EpsilonGreedy::new(lo.clone(), hi.clone(), *decay)
+                    .map_err(|e| crate::err!("reference: {e}"))?,
+            )
+        }
+        ReferenceSpec::Constant { u } => {
+            vector("reference.u", u, m, "the control dimension")?;
+            Box::new(ConstantReference(u.clone()))
+        }
+    };
+    // loop
+    let l = &s.learning;
+    let fit = FitSettings {
+        rank_a: parse_rank("learning.rank_a", &l.rank_a)?,
+        rank_b: parse_rank("learning.rank_b", &l.rank_b)?,
+        max_iters: l.max_iters,
+        seed: s.seed,
+        sigma_min: l.sigma_min,
+        ..FitSettings::default()
+    };
+    let sim = SimSettings::new(s.sim.internal_step, s.sim.process_noise)
+        .map_err(|e| crate::err!("sim: {e}"))?;
+    let loop_settings = LoopSettings {
+        dt: s.dt,
+        steps: s.steps,
+        sim,
+        update_every: l.update_every,
+        refit_every: l.refit_every,
+        refit_geometric: l.refit_geometric,
+        refit_background: (l.refit_background > 0).then_some(l.refit_background),
+        window: if l.window == 0 { None } else { Some(l.window) },
+        budget: if l.budget == 0 { None } else { Some(l.budget) },
+        fit,
+        xdot_noise: l.xdot_noise,
+        seed: s.seed,
+        trigger,
+    };
+    loop_settings
+        .validate()
+        .map_err(|e| crate::err!("learning: {e}"))?;
+    Ok(Built {
+        truth,
+        model,
+        barriers,
+        obstacles,
+        controller,
+        reference,
+        loop_settings,
+    })
+}

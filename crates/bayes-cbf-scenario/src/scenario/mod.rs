@@ -1,0 +1,540 @@
+//! Scenario files: everything a closed-loop run needs, in TOML.
+//!
+//! A scenario names the true system, the GP model (prior mean, kernel, input
+//! map, initial `A`, `B`, `σ`), the online-learning schedule, the barriers,
+//! an optional CLF, the safety controller, the reference (planner, ε-greedy
+//! or constant), start, goal, `dt`, steps and seed. The built-in scenarios
+//! are TOML files compiled into the binary (`bayes-cbf list`;
+//! `bayes-cbf run NAME --print-config` prints one as a starting point).
+//! `--set key=value` overrides any field (`controller.probability=0.9`,
+//! `barriers.0.radius=0.5`); unknown keys are errors.
+
+mod build;
+mod run;
+
+pub use build::{build, Built};
+pub use run::{
+    run_scenario, trajectory_csv, Percentiles, RunOutput, RunSummary, Stats, TraceCov,
+    TriggerSummary,
+};
+
+use crate::barrier_file::BarrierSpec;
+use crate::error::{Context, Result};
+use crate::input_map_spec::FeatureSpec;
+use crate::prior_spec::PriorSpec;
+use crate::{bail, err};
+use serde::{Deserialize, Serialize};
+use std::path::Path;
+
+/// The built-in scenarios: (name, TOML text).
+pub const BUILTIN: &[(&str, &str)] = &[
+    ("pendulum-safe", include_str!("builtin/pendulum-safe.toml")),
+    (
+        "ackermann-mean-cbf",
+        include_str!("builtin/ackermann-mean-cbf.toml"),
+    ),
+    (
+        "ackermann-bayes-cbf",
+        include_str!("builtin/ackermann-bayes-cbf.toml"),
+    ),
+    (
+        "ackermann-no-learning",
+        include_str!("builtin/ackermann-no-learning.toml"),
+    ),
+    (
+        "ackermann-learning",
+        include_str!("builtin/ackermann-learning.toml"),
+    ),
+    (
+        "ackermann-self-triggered",
+        include_str!("builtin/ackermann-self-triggered.toml"),
+    ),
+];
+
+/// A closed-loop scenario.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Scenario {
+    /// Name, used for the default output directory.
+    pub name: String,
+    /// One line for `bayes-cbf list`.
+    #[serde(default)]
+    pub description: String,
+    /// Seed of everything random in the run (random A, B, exploration, noise).
+    #[serde(default)]
+    pub seed: u64,
+    /// Control period τ (s).
+    pub dt: f64,
+    /// Control steps.
+    pub steps: usize,
+    /// Initial state.
+    pub start: Vec<f64>,
+    /// Goal state (vehicle scenarios).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub goal: Option<Vec<f64>>,
+    /// The true system.
+    pub system: PriorSpec,
+    /// The GP model.
+    pub gp: GpSpec,
+    /// Online learning schedule.
+    #[serde(default)]
+    pub learning: LearningSpec,
+    /// Barriers (same fields as barrier files).
+    #[serde(default)]
+    pub barriers: Vec<BarrierSpec>,
+    /// Optional control Lyapunov function.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub clf: Option<ClfSpec>,
+    /// The safety controller.
+    pub controller: ControllerSpec,
+    /// The reference.
+    pub reference: ReferenceSpec,
+    /// Integration.
+    #[serde(default)]
+    pub sim: SimSpec,
+    /// Which outputs to write.
+    #[serde(default)]
+    pub outputs: OutputSpec,
+    /// Self-triggered control (paper, Sec. V-B, VI-C).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub trigger: Option<TriggerSpec>,
+}
+
+/// Self-triggering: Lipschitz bound of the learned dynamics on a cuboid
+/// around the state (Lemma 3) and the hold `τ_k` (Props. 3 and 5).
+///
+/// Relative-degree-1 barriers use the controller's margin `controller.zeta`
+/// as ζ (it must be > 0); barriers of relative degree ≥ 2 are shifted to
+/// `h − zeta_b` in the SOCP. The SOCP probability becomes
+/// `p / (1 − delta_l)` so that the interval guarantee is `controller.probability`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct TriggerSpec {
+    /// Side lengths of the cuboid around `x_k`, one per state coordinate.
+    pub cuboid: Vec<f64>,
+    /// δ_L: the Lipschitz bound holds with probability 1 − δ_L.
+    #[serde(default = "default_delta_l")]
+    pub delta_l: f64,
+    /// Grid nodes per side (analytic mean term, numerical estimate, L_h).
+    #[serde(default = "default_grid")]
+    pub grid: usize,
+    /// Sampled Jacobians per node for the numerical estimate (0: none).
+    #[serde(default = "default_grid")]
+    pub samples: usize,
+    /// Shift ζ_b of barriers of relative degree ≥ 2.
+    #[serde(default = "default_zeta_b")]
+    pub zeta_b: f64,
+    /// Lipschitz constant L_α of the class-K function.
+    #[serde(default = "one")]
+    pub l_alpha: f64,
+    /// Shortest hold (s).
+    #[serde(default = "default_tau_min")]
+    pub tau_min: f64,
+    /// Longest hold (s).
+    #[serde(default = "default_tau_max")]
+    pub tau_max: f64,
+    /// `analytic` or `numerical`: the estimate that sets the hold.
+    #[serde(default = "default_tau_from")]
+    pub tau_from: String,
+    /// Hold each control for τ_k (true), or keep the fixed period `dt` and
+    /// only evaluate τ_k (false).
+    #[serde(default = "yes")]
+    pub self_triggered: bool,
+}
+
+fn default_delta_l() -> f64 {
+    1e-4
+}
+fn default_grid() -> usize {
+    10
+}
+fn default_zeta_b() -> f64 {
+    1e-2
+}
+fn default_tau_min() -> f64 {
+    1e-3
+}
+fn default_tau_max() -> f64 {
+    0.1
+}
+fn default_tau_from() -> String {
+    "analytic".into()
+}
+fn yes() -> bool {
+    true
+}
+
+/// A covariance matrix given by structure.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(tag = "type", rename_all = "snake_case", deny_unknown_fields)]
+pub enum MatrixSpec {
+    /// `scale · I`.
+    Identity {
+        /// Scale > 0.
+        scale: f64,
+    },
+    /// `scale · (C Cᵀ / dim + I)` with `C` standard normal, drawn from the
+    /// scenario seed: the paper's "randomly generated" A and B, kept well
+    /// conditioned. (A nearly singular random `C Cᵀ` encodes a spurious,
+    /// almost deterministic relation between `f` and `g` in the prior, and
+    /// the pendulum then trusts a wrong-signed `g` before its first refit.)
+    Random {
+        /// Scale > 0.
+        scale: f64,
+    },
+    /// Explicit rows.
+    Rows {
+        /// The matrix, an array of rows.
+        rows: Vec<Vec<f64>>,
+    },
+}
+
+/// The GP model.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct GpSpec {
+    /// Prior mean (`"zero"` or a parametric model).
+    #[serde(default)]
+    pub prior_mean: PriorSpec,
+    /// What the kernel sees (default: the whole state).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub input_map: Option<Vec<FeatureSpec>>,
+    /// RBF lengthscales, one per kernel input.
+    pub lengthscales: Vec<f64>,
+    /// RBF variance.
+    #[serde(default = "one")]
+    pub kernel_variance: f64,
+    /// Row covariance `A` (n × n).
+    #[serde(rename = "A")]
+    pub a: MatrixSpec,
+    /// Column covariance `B` ((1+m) × (1+m)).
+    #[serde(rename = "B")]
+    pub b: MatrixSpec,
+    /// Noise scale σ (noise covariance σ²A).
+    pub noise_sigma: f64,
+}
+
+fn one() -> f64 {
+    1.0
+}
+
+/// Online learning schedule.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct LearningSpec {
+    /// Add buffered observations every this many steps (0: never).
+    pub update_every: usize,
+    /// Refit hyperparameters every this many steps (0: never).
+    pub refit_every: usize,
+    /// Also refit at 4, 8, 16, … observations below `refit_every`.
+    pub refit_geometric: bool,
+    /// Run refits on a background thread, swapping the new hyperparameters
+    /// in this many steps after each refit is due (0: synchronous refits).
+    pub refit_background: usize,
+    /// Sliding window (0: unbounded).
+    pub window: usize,
+    /// Budget of the most informative observations (0: unbounded); exclusive
+    /// with `window`.
+    pub budget: usize,
+    /// Noise floor of the refits.
+    pub sigma_min: f64,
+    /// L-BFGS iterations per refit.
+    pub max_iters: u64,
+    /// Structure of A in refits: full, diag or an integer rank.
+    pub rank_a: String,
+    /// Structure of B in refits.
+    pub rank_b: String,
+    /// Noise on the measured ẋ.
+    pub xdot_noise: f64,
+}
+
+impl Default for LearningSpec {
+    fn default() -> Self {
+        Self {
+            update_every: 0,
+            refit_every: 0,
+            refit_geometric: false,
+            refit_background: 0,
+            window: 0,
+            budget: 0,
+            sigma_min: 0.0,
+            max_iters: 50,
+            rank_a: "full".into(),
+            rank_b: "full".into(),
+            xdot_noise: 0.0,
+        }
+    }
+}
+
+/// A control Lyapunov function.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(tag = "type", rename_all = "snake_case", deny_unknown_fields)]
+pub enum ClfSpec {
+    /// `V = w1/2 ρ² + w2 (1 − cos α)` (paper, Sec. VII-B).
+    Ackermann {
+        /// Distance weight.
+        w1: f64,
+        /// Heading weight.
+        w2: f64,
+        /// Decay rate γ_V.
+        gamma: f64,
+    },
+}
+
+/// The safety controller.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ControllerSpec {
+    /// Required probability p of each stochastic condition.
+    pub probability: f64,
+    /// Margin ζ.
+    #[serde(default)]
+    pub zeta: f64,
+    /// CLF slack weight λ.
+    #[serde(default = "one")]
+    pub lambda: f64,
+    /// Diagonal of the objective weight R (default identity).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub r: Option<Vec<f64>>,
+    /// Lower control bounds.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub u_min: Option<Vec<f64>>,
+    /// Upper control bounds.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub u_max: Option<Vec<f64>>,
+    /// max_margin, relax, brake or hold.
+    #[serde(default = "max_margin")]
+    pub fallback: String,
+}
+
+fn max_margin() -> String {
+    "max_margin".into()
+}
+
+/// The reference.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(tag = "type", rename_all = "snake_case", deny_unknown_fields)]
+pub enum ReferenceSpec {
+    /// Straight line from start to goal in `duration` seconds, û = 0.
+    Planner {
+        /// Duration (s).
+        duration: f64,
+    },
+    /// `û ~ (1 − ε_k) δ_0 + ε_k U[lo, hi]`, `ε_k = 10^(−k/decay)`.
+    EpsilonGreedy {
+        /// Lower end.
+        lo: Vec<f64>,
+        /// Upper end.
+        hi: Vec<f64>,
+        /// Steps per decade.
+        decay: f64,
+    },
+    /// A constant reference control.
+    Constant {
+        /// The control.
+        u: Vec<f64>,
+    },
+}
+
+/// Integration settings.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct SimSpec {
+    /// RK4 step of the fine grid (s).
+    pub internal_step: f64,
+    /// Process noise intensity.
+    pub process_noise: f64,
+}
+
+impl Default for SimSpec {
+    fn default() -> Self {
+        Self {
+            internal_step: 1e-3,
+            process_noise: 0.0,
+        }
+    }
+}
+
+/// Outputs.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct OutputSpec {
+    /// Write PNG figures.
+    pub plots: bool,
+    /// Write animation.gif (vehicle scenarios).
+    pub animation: bool,
+}
+
+impl Default for OutputSpec {
+    fn default() -> Self {
+        Self {
+            plots: true,
+            animation: true,
+        }
+    }
+}
+
+/// Validates a scenario completely (everything a run would check before
+/// starting).
+pub fn validate(s: &Scenario) -> Result<()> {
+    build::build(s).map(|_| ())
+}
+
+/// Applies `key=value` to a TOML table; `key` is a dotted path whose numeric
+/// segments index arrays; `value` is a TOML literal (strings may be bare).
+pub fn apply_set(table: &mut toml::Table, assignment: &str) -> Result<()> {
+    let (key, value) = assignment
+        .split_once('=')
+        .ok_or_else(|| err!("--set '{assignment}': expected key=value"))?;
+    let key = key.trim();
+    if key.is_empty() {
+        bail!("--set '{assignment}': empty key");
+    }
+    let value: toml::Value = match format!("v = {}", value.trim()).parse::<toml::Table>() {
+        Ok(mut t) => t
+            .remove("v")
+            .unwrap_or(toml::Value::String(value.trim().into())),
+        Err(_) => toml::Value::String(value.trim().to_string()),
+    };
+    let parts: Vec<&str> = key.split('.').collect();
+    // sections with defaults may be absent from the file
+    if parts.len() > 1
+        && ["learning", "sim", "outputs", "trigger"].contains(&parts[0])
+        && !table.contains_key(parts[0])
+    {
+        table.insert(parts[0].to_string(), toml::Value::Table(toml::Table::new()));
+    }
+    let mut cur: &mut toml::Value = table
+        .get_mut(parts[0])
+        .ok_or_else(|| err!("--set {key}: unknown key '{}'", parts[0]))?;
+    for (i, part) in parts.iter().enumerate().skip(1) {
+        let path = parts[..i].join(".");
+        cur = match cur {
+            toml::Value::Table(t) => {
+                if !t.contains_key(*part) && i + 1 == parts.len() {
+                    // a new leaf: accepted here, judged by the typed parse
+                    t.insert((*part).to_string(), value.clone());
+                    return Ok(());
+                }
+                t.get_mut(*part)
+                    .ok_or_else(|| err!("--set {key}: '{path}' has no key '{part}'"))?
+            }
+            toml::Value::Array(a) => {
+                let idx: usize = part.parse().map_err(|_| {
+                    err!("--set {key}: '{path}' is an array; '{part}' is not an index")
+                })?;
+                let len = a.len();
+                a.get_mut(idx).ok_or_else(|| {
+                    err!("--set {key}: index {idx} out of range ('{path}' has {len} entries)")
+                })?
+            }
+            _ => bail!("--set {key}: '{path}' is a value, not a table"),
+        };
+    }
+    *cur = value;
+    Ok(())
+}
+
+/// The TOML text of a built-in scenario, or of the file at `name`.
+pub fn scenario_text(name: &str) -> Result<(String, String)> {
+    if let Some((n, t)) = BUILTIN.iter().find(|(n, _)| *n == name) {
+        return Ok((n.to_string(), t.to_string()));
+    }
+    let path = Path::new(name);
+    if path.is_file() {
+        let text = std::fs::read_to_string(path)
+            .with_context(|| format!("cannot read scenario file '{name}'"))?;
+        return Ok((name.to_string(), text));
+    }
+    let names: Vec<&str> = BUILTIN.iter().map(|(n, _)| *n).collect();
+    bail!(
+        "unknown scenario '{name}': not a built-in ({}) nor an existing file",
+        names.join(", ")
+    )
+}
+
+/// One-line rendering of a TOML parse error, with the line it points at.
+fn toml_error(source: &str, text: &str, e: &toml::de::Error) -> crate::error::Error {
+    let msg = e.message().replace('\n', " ");
+    match e.span() {
+        Some(span) => {
+            let line_no = text[..span.start.min(text.len())].matches('\n').count() + 1;
+            let line = text.lines().nth(line_no - 1).unwrap_or("").trim();
+            err!("scenario '{source}' line {line_no} (`{line}`): {msg}")
+        }
+        None => err!("scenario '{source}': {msg}"),
+    }
+}
+
+/// Loads a scenario by built-in name or path, applies the overrides, and
+/// parses it strictly. Returns the scenario and its merged TOML text.
+pub fn load(name: &str, sets: &[String]) -> Result<(Scenario, String)> {
+    let (source, text) = scenario_text(name)?;
+    if text.trim().is_empty() {
+        bail!("scenario '{source}' is empty");
+    }
+    let mut table: toml::Table = text
+        .parse()
+        .map_err(|e: toml::de::Error| toml_error(&source, &text, &e))?;
+    for s in sets {
+        apply_set(&mut table, s)?;
+    }
+    let merged = if sets.is_empty() {
+        text.clone()
+    } else {
+        toml::to_string(&table).context("cannot render the scenario")?
+    };
+    let scenario: Scenario =
+        toml::from_str(&merged).map_err(|e| toml_error(&source, &merged, &e))?;
+    Ok((scenario, merged))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn builtins_parse_and_round_trip() {
+        for (name, _) in BUILTIN {
+            let (s, _) = load(name, &[]).unwrap();
+            assert_eq!(&s.name, name);
+            let again: Scenario = toml::from_str(&toml::to_string(&s).unwrap()).unwrap();
+            assert_eq!(again, s);
+        }
+    }
+
+    #[test]
+    fn overrides_apply_and_unknown_keys_fail() {
+        let (s, _) = load(
+            "ackermann-bayes-cbf",
+            &[
+                "controller.probability=0.9".into(),
+                "barriers.1.radius=0.5".into(),
+                "seed=7".into(),
+            ],
+        )
+        .unwrap();
+        assert_eq!(s.controller.probability, 0.9);
+        assert_eq!(s.seed, 7);
+        match &s.barriers[1] {
+            BarrierSpec::CircleHeading { radius, .. } => assert_eq!(*radius, 0.5),
+            b => panic!("{b:?}"),
+        }
+        for (set, want) in [
+            ("controller.probabilty=0.9", "probabilty"),
+            ("bogus=1", "bogus"),
+            ("barriers.5.radius=1", "out of range"),
+            ("controller.probability=high", "probability"),
+            ("noequals", "key=value"),
+        ] {
+            let err = format!(
+                "{:#}",
+                load("ackermann-bayes-cbf", &[set.into()]).unwrap_err()
+            );
+            assert!(err.contains(want), "{set}: {err}");
+            assert!(!err.contains('\n'), "{err}");
+        }
+        assert!(format!("{:#}", load("no-such-scenario", &[]).unwrap_err())
+            .contains("unknown scenario"));
+    }
+}
