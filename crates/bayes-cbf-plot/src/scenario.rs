@@ -3,6 +3,7 @@
 use crate::plot::{render_gif, render_png, Figure, Layer, LegendPos, Panel, PointShape};
 use crate::Result;
 use bayes_cbf::barrier::{cbc_moments, quantile_factor, ConditionMoments, MomentWorkspace};
+use bayes_cbf::sim::StepStatus;
 use bayes_cbf_scenario::scenario::RunOutput;
 use std::path::{Path, PathBuf};
 
@@ -94,7 +95,7 @@ fn pendulum(out: &RunOutput, dir: &Path) -> Result<PathBuf> {
     ));
     let inf: Vec<f64> = rec
         .iter()
-        .filter(|r| r.status == "infeasible")
+        .filter(|r| r.status == StepStatus::Infeasible)
         .map(|r| r.t)
         .collect();
     if !inf.is_empty() {

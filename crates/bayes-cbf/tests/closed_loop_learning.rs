@@ -6,7 +6,7 @@
 use bayes_cbf::barrier::{DynBarrier, PendulumSector};
 use bayes_cbf::control::{SafetyController, SafetySettings};
 use bayes_cbf::gp::{FitSettings, InputMap, Mvgp, MvgpHyper, PriorMean, Rbf};
-use bayes_cbf::sim::{run_closed_loop, EpsilonGreedy, LoopResult, LoopSettings};
+use bayes_cbf::sim::{ClosedLoop, DataPolicy, EpsilonGreedy, LoopResult, LoopSettings};
 use bayes_cbf::systems::Pendulum;
 use nalgebra::DMatrix;
 use std::sync::Arc;
@@ -27,26 +27,34 @@ fn model() -> Mvgp {
     Mvgp::new(2, 1, hyper, prior, InputMap::periodic(2, &[0])).unwrap()
 }
 
-/// The pendulum of Sec. VII-A with ε-greedy exploration, `settings` applied.
-fn run(settings: &LoopSettings, on_step: impl FnMut(usize)) -> LoopResult {
+/// The controller, reference and barrier of the runs: the pendulum sector
+/// of Sec. VII-A with `|u| ≤ 20` and ε-greedy exploration.
+fn parts() -> (SafetyController, EpsilonGreedy, [Arc<dyn DynBarrier>; 1]) {
     let sector: Arc<dyn DynBarrier> =
         Arc::new(PendulumSector::new(0.785, 0.39, 2, vec![1.0, 3.0]).unwrap());
     let mut safety = SafetySettings::new(1);
     safety.u_min = Some(vec![-20.0]);
     safety.u_max = Some(vec![20.0]);
-    let mut ctrl = SafetyController::new(2, 1, vec![sector.clone()], None, safety).unwrap();
-    let mut reference = EpsilonGreedy::new(vec![-10.0], vec![10.0], 400.0).unwrap();
-    run_closed_loop(
-        &Pendulum::default(),
+    let ctrl = SafetyController::new(2, 1, vec![sector.clone()], None, safety).unwrap();
+    let reference = EpsilonGreedy::new(vec![-10.0], vec![10.0], 400.0).unwrap();
+    (ctrl, reference, [sector])
+}
+
+/// The pendulum of Sec. VII-A with ε-greedy exploration, `settings` applied.
+fn run(settings: &LoopSettings, mut on_step: impl FnMut(usize)) -> LoopResult {
+    let (mut ctrl, mut reference, barriers) = parts();
+    let truth = Pendulum::default();
+    ClosedLoop::new(
+        &truth,
         model(),
         &mut ctrl,
-        &[sector],
-        &[],
+        &barriers,
         &mut reference,
         &[-0.5, 0.0],
         settings,
-        on_step,
     )
+    .unwrap()
+    .run(&mut |k, _: &_| on_step(k))
     .unwrap()
 }
 
@@ -91,7 +99,7 @@ fn budget_bounds_the_data_and_keeps_an_exact_model() {
     let budget = 40;
     let r = run(
         &LoopSettings {
-            budget: Some(budget),
+            data: DataPolicy::Budget(budget),
             ..base(300)
         },
         |_| {},
@@ -102,7 +110,7 @@ fn budget_bounds_the_data_and_keeps_an_exact_model() {
     // the kept points are not simply the latest ones
     let window = run(
         &LoopSettings {
-            window: Some(budget),
+            data: DataPolicy::Window(budget),
             ..base(300)
         },
         |_| {},
@@ -113,17 +121,14 @@ fn budget_bounds_the_data_and_keeps_an_exact_model() {
 }
 
 #[test]
-fn budget_and_window_are_exclusive_and_settings_are_checked() {
-    let both = LoopSettings {
-        window: Some(10),
-        budget: Some(10),
-        ..LoopSettings::default()
-    };
-    let e = both.validate().unwrap_err().to_string();
-    assert!(e.contains("budget") && e.contains("not both"), "{e}");
+fn data_policies_and_settings_are_checked() {
     for bad in [
         LoopSettings {
-            budget: Some(1),
+            data: DataPolicy::Budget(1),
+            ..LoopSettings::default()
+        },
+        LoopSettings {
+            data: DataPolicy::Window(1),
             ..LoopSettings::default()
         },
         LoopSettings {
@@ -133,7 +138,7 @@ fn budget_and_window_are_exclusive_and_settings_are_checked() {
     ] {
         let e = bad.validate().unwrap_err().to_string();
         assert!(
-            e.contains("budget") || e.contains("refit_background"),
+            e.contains("budget") || e.contains("window") || e.contains("refit_background"),
             "{e}"
         );
     }
@@ -146,12 +151,12 @@ fn budget_and_window_are_exclusive_and_settings_are_checked() {
 /// (removals since the launch are replayed).
 #[test]
 fn background_refit_matches_the_synchronous_refit() {
-    for (window, budget) in [(None, None), (Some(30), None), (None, Some(30))] {
-        let mode = |s: LoopSettings| LoopSettings {
-            window,
-            budget,
-            ..s
-        };
+    for data in [
+        DataPolicy::All,
+        DataPolicy::Window(30),
+        DataPolicy::Budget(30),
+    ] {
+        let mode = |s: LoopSettings| LoopSettings { data, ..s };
         let sync = run(
             &mode(LoopSettings {
                 refit_every: 50,
@@ -170,13 +175,9 @@ fn background_refit_matches_the_synchronous_refit() {
         let none = run(&mode(base(60)), |_| {});
         assert!(sync.records[49].refit);
         let swaps: Vec<usize> = (0..60).filter(|&k| bg.records[k].refit).collect();
-        assert_eq!(swaps, vec![59], "{window:?} {budget:?}");
+        assert_eq!(swaps, vec![59], "{data:?}");
         assert_ne!(sync.model.hyper(), none.model.hyper());
-        assert_eq!(
-            bg.model.hyper(),
-            sync.model.hyper(),
-            "{window:?} {budget:?}"
-        );
+        assert_eq!(bg.model.hyper(), sync.model.hyper(), "{data:?}");
         for (a, b) in bg.records.iter().zip(&none.records) {
             assert_eq!((&a.x, &a.u, a.data_size), (&b.x, &b.u, b.data_size));
         }
@@ -231,4 +232,49 @@ fn background_refit_stays_out_of_the_step() {
         bg[249],
         sync[249]
     );
+}
+
+/// Stepping the engine one step at a time gives the same run as
+/// [`ClosedLoop::run`]; a step past the horizon is an error; the observer
+/// sees every step in order.
+#[test]
+fn stepping_equals_running() {
+    let settings = LoopSettings {
+        refit_every: 20,
+        data: DataPolicy::Window(25),
+        ..base(40)
+    };
+    let mut seen = Vec::new();
+    let whole = run(&settings, |k| seen.push(k));
+    assert_eq!(seen, (0..40).collect::<Vec<_>>());
+
+    let (mut ctrl, mut reference, barriers) = parts();
+    let truth = Pendulum::default();
+    let mut engine = ClosedLoop::new(
+        &truth,
+        model(),
+        &mut ctrl,
+        &barriers,
+        &mut reference,
+        &[-0.5, 0.0],
+        &settings,
+    )
+    .unwrap();
+    let mut k = 0;
+    while !engine.is_finished() {
+        let rec = engine.step().unwrap();
+        let want = &whole.records[k];
+        assert_eq!(
+            (&rec.x, &rec.u, rec.data_size),
+            (&want.x, &want.u, want.data_size)
+        );
+        assert_eq!((rec.refit, rec.status), (want.refit, want.status));
+        k += 1;
+    }
+    assert_eq!(k, 40);
+    assert_eq!(engine.state(), whole.final_state.as_slice());
+    assert_eq!(engine.model().xs(), whole.model.xs());
+    assert_eq!(engine.min_barrier(), whole.min_barrier.as_slice());
+    let e = engine.step().expect_err("past the horizon");
+    assert!(e.to_string().contains("horizon"), "{e}");
 }

@@ -21,7 +21,7 @@ use bayes_cbf::control::{ControlOutput, ControlStatus, SafetyController, SafetyS
 use bayes_cbf::gp::{
     fit, FitSettings, InputMap, Kernel, Mvgp, MvgpHyper, PriorMean, Rbf, JITTER_LEVELS,
 };
-use bayes_cbf::sim::{run_closed_loop, ConstantReference, LoopSettings};
+use bayes_cbf::sim::{ClosedLoop, ConstantReference, DataPolicy, LoopSettings};
 use bayes_cbf::systems::{DynSystem, Pendulum};
 use bayes_cbf::Error;
 use nalgebra::DMatrix;
@@ -514,20 +514,22 @@ fn closed_loop_at_rest_piles_up_duplicates_without_nan() {
     let ls = LoopSettings {
         steps: 300,
         update_every: 1,
-        window: Some(200),
+        data: DataPolicy::Window(200),
         ..LoopSettings::default()
     };
-    let r = run_closed_loop(
+    let barriers = [sector];
+    let mut reference = ConstantReference(vec![0.0]);
+    let r = ClosedLoop::new(
         &truth,
         model(1.0, 1e-9),
         &mut ctrl,
-        &[sector],
-        &[],
-        &mut ConstantReference(vec![0.0]),
+        &barriers,
+        &mut reference,
         &[0.0, 0.0],
         &ls,
-        |_| {},
     )
+    .unwrap()
+    .run(&mut |_, _: &_| {})
     .unwrap();
     let prior_trace = 3.0 * 1.5;
     let worst = r

@@ -17,11 +17,9 @@
 //! started, 30 L-BFGS iterations, noise floor 1e-3) at the end of every
 //! tenth of the run.
 //!
-//! The run is made of chunks of at most 1 000 steps of
-//! [`run_closed_loop`], each continuing from the previous chunk's state,
-//! model and controller, so that the per-step records (which the closed loop
-//! keeps for its caller) are dropped as the run goes instead of growing with
-//! it. After each tenth of the run the report takes the peak resident set
+//! The run steps one [`ClosedLoop`] to the end, keeping only running
+//! statistics of the step records (nothing grows with the run). After each
+//! tenth of the run the report takes the peak resident set
 //! size (`VmHWM` of `/proc/self/status`, Linux only), the current one
 //! (`VmRSS`), the 50 % and 99 % quantiles of the control-step time
 //! (posterior, moments, SOCP) and the mean wall time per loop step
@@ -35,7 +33,9 @@ use crate::error::{Context, Result};
 use bayes_cbf::barrier::{DynBarrier, PendulumSector};
 use bayes_cbf::control::{Fallback, SafetyController, SafetySettings};
 use bayes_cbf::gp::{FitSettings, InputMap, Mvgp, MvgpHyper, PriorMean, Rbf};
-use bayes_cbf::sim::{run_closed_loop, LoopSettings, Reference, ReferenceOut, SimSettings};
+use bayes_cbf::sim::{
+    ClosedLoop, DataPolicy, LoopSettings, Reference, ReferenceOut, SimSettings, StepStatus,
+};
 use bayes_cbf::systems::{wrap_angle, Pendulum};
 use nalgebra::DMatrix;
 use rand::RngExt;
@@ -70,8 +70,6 @@ pub(crate) const DEFAULT_STEPS: usize = 100_000;
 pub(crate) const DEFAULT_WINDOW: usize = 500;
 /// Steps of `--quick`.
 const QUICK_STEPS: usize = 5_000;
-/// Longest chunk of the closed loop.
-const CHUNK: usize = 1_000;
 
 /// The soak's reference: a PD controller toward the centre of the unsafe
 /// sector, `û = 10 sin θ + 12 wrap(θ_c − θ) − 3 ω`, plus a uniformly random
@@ -138,7 +136,7 @@ pub fn run(
         length: 0.8,
         gravity: 10.0,
     }));
-    let mut model = Mvgp::new(2, 1, hyper, prior, InputMap::periodic(2, &[0]))?;
+    let model = Mvgp::new(2, 1, hyper, prior, InputMap::periodic(2, &[0]))?;
     let barrier: Arc<dyn DynBarrier> =
         Arc::new(PendulumSector::new(PI / 4.0, PI / 8.0, 2, vec![4.0, 4.0])?);
     let mut settings = SafetySettings::new(1);
@@ -149,13 +147,39 @@ pub fn run(
     let mut ctrl = SafetyController::new(2, 1, vec![barrier.clone()], None, settings)?;
     let mut reference = Excite;
     let barriers = [barrier];
-    let mut x = vec![-0.3, 0.0];
+    let x0 = [-0.3, 0.0];
 
+    let ls = LoopSettings {
+        dt: 0.01,
+        steps,
+        sim: SimSettings::new(1e-3, 0.0)?,
+        update_every: 1,
+        // a refit after every tenth of the run
+        refit_every: (steps / 10).max(1),
+        data: DataPolicy::Window(window),
+        fit: FitSettings {
+            max_iters: 30,
+            sigma_min: 1e-3,
+            ..FitSettings::default()
+        },
+        xdot_noise: 0.02,
+        seed: args.seed,
+        ..LoopSettings::default()
+    };
+    let mut run = ClosedLoop::new(
+        &truth,
+        model,
+        &mut ctrl,
+        &barriers,
+        &mut reference,
+        &x0,
+        &ls,
+    )?;
     let (hwm_start, rss_start) = memory_kb();
     let started = Instant::now();
     let mut tenths = Vec::new();
     let mut times = Vec::with_capacity(steps / 10 + 1);
-    let (mut done, mut chunk_index) = (0usize, 0u64);
+    let mut done = 0usize;
     let (mut non_finite, mut h_violations, mut infeasible, mut refits) = (0usize, 0, 0, 0);
     let mut min_h = f64::INFINITY;
     for tenth in 0..10 {
@@ -164,58 +188,24 @@ pub fn run(
         let tenth_start = Instant::now();
         let tenth_steps = end - done;
         while done < end {
-            let n = (end - done).min(CHUNK);
-            let last_of_tenth = done + n == end;
-            let ls = LoopSettings {
-                dt: 0.01,
-                steps: n,
-                sim: SimSettings::new(1e-3, 0.0)?,
-                update_every: 1,
-                // refit once at the end of every tenth
-                refit_every: if last_of_tenth { n } else { 0 },
-                window: Some(window),
-                fit: FitSettings {
-                    max_iters: 30,
-                    sigma_min: 1e-3,
-                    ..FitSettings::default()
-                },
-                xdot_noise: 0.02,
-                seed: args.seed.wrapping_mul(1_000_003).wrapping_add(chunk_index),
-                ..LoopSettings::default()
-            };
-            let r = run_closed_loop(
-                &truth,
-                model,
-                &mut ctrl,
-                &barriers,
-                &[],
-                &mut reference,
-                &x,
-                &ls,
-                |_| {},
-            )
-            .with_context(|| format!("soak: chunk at step {done}"))?;
-            for rec in &r.records {
-                times.push(rec.control_us);
-                let finite = rec.is_finite();
-                non_finite += usize::from(!finite);
-                h_violations += usize::from(rec.h_fine_min.iter().any(|&h| h < 0.0));
-                infeasible += usize::from(rec.status == "infeasible");
-                refits += usize::from(rec.refit);
-                min_h = rec.h_fine_min.iter().cloned().fold(min_h, f64::min);
+            let rec = run.step().with_context(|| format!("soak: step {done}"))?;
+            times.push(rec.control_us);
+            non_finite += usize::from(!rec.is_finite());
+            h_violations += usize::from(rec.h_fine_min.iter().any(|&h| h < 0.0));
+            infeasible += usize::from(rec.status == StepStatus::Infeasible);
+            refits += usize::from(rec.refit);
+            min_h = rec.h_fine_min.iter().cloned().fold(min_h, f64::min);
+            done += 1;
+            if done.is_multiple_of(100) || done == steps {
+                progress.update(done, steps);
             }
-            x = r.final_state;
-            model = r.model;
-            done += n;
-            chunk_index += 1;
-            progress.update(done, steps);
         }
         let wall = tenth_start.elapsed().as_secs_f64();
         let (hwm, rss) = memory_kb();
         tenths.push(json!({
             "tenth": tenth + 1,
             "steps_done": done,
-            "model_observations": model.len(),
+            "model_observations": run.model().len(),
             "control_step_us": {"p50": num(quantile(&times, 0.5)), "p99": num(quantile(&times, 0.99))},
             "loop_step_mean_us": num(1e6 * wall / tenth_steps.max(1) as f64),
             "peak_rss_kb": hwm,
@@ -224,7 +214,7 @@ pub fn run(
     }
     let wall = started.elapsed().as_secs_f64();
     // the final model must still answer with finite values
-    let post = model.posterior(&x)?;
+    let post = run.model().posterior(run.state())?;
     let final_finite = post.mean.iter().chain(post.B.iter()).all(|v| v.is_finite());
     non_finite += usize::from(!final_finite);
     let at = |t: usize| tenths[t - 1].clone();
@@ -243,7 +233,7 @@ pub fn run(
         "system": "pendulum m = l = 1, prior mean m = 1.5, l = 0.8, relative-degree-2 Bayes CBF p = 0.99, reference: PD into the unsafe sector plus uniform random torques in [-10, 10]",
         "learning": "every step (O(k^2) growth), sliding window, refit at the end of every tenth",
         "non_finite": non_finite,
-        "final_model_observations": model.len(),
+        "final_model_observations": run.model().len(),
         "refits": refits,
         "steps_with_h_violation": h_violations,
         "min_h": num(min_h),

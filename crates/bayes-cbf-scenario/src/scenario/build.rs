@@ -14,7 +14,8 @@ use bayes_cbf::control::{
 };
 use bayes_cbf::gp::{FitSettings, LipschitzSettings, Mvgp, MvgpHyper, Rbf};
 use bayes_cbf::sim::{
-    ConstantReference, EpsilonGreedy, LoopSettings, Reference, SimSettings, StraightLinePlanner,
+    ConstantReference, DataPolicy, EpsilonGreedy, LoopSettings, Reference, SimSettings,
+    StraightLinePlanner,
 };
 use bayes_cbf::systems::{Ackermann, DynSystem, Pendulum};
 use nalgebra::DMatrix;
@@ -297,8 +298,14 @@ pub fn build(s: &Scenario) -> Result<Built> {
         refit_every: l.refit_every,
         refit_geometric: l.refit_geometric,
         refit_background: (l.refit_background > 0).then_some(l.refit_background),
-        window: if l.window == 0 { None } else { Some(l.window) },
-        budget: if l.budget == 0 { None } else { Some(l.budget) },
+        data: match (l.window, l.budget) {
+            (0, 0) => DataPolicy::All,
+            (w, 0) => DataPolicy::Window(w),
+            (0, b) => DataPolicy::Budget(b),
+            (w, b) => bail!(
+                "learning.window = {w} and learning.budget = {b}: give either a window or a budget, not both"
+            ),
+        },
         fit,
         xdot_noise: l.xdot_noise,
         seed: s.seed,

@@ -5,7 +5,7 @@ use super::build::{build, Built};
 use super::Scenario;
 use crate::error::{Context, Result};
 use bayes_cbf::control::{TriggerReport, TriggerSettings};
-use bayes_cbf::sim::{run_closed_loop, LoopResult, Monitor};
+use bayes_cbf::sim::{ClosedLoop, LoopResult, Monitor, StepStatus};
 use serde::{Deserialize, Serialize};
 use std::sync::Arc;
 use std::time::Instant;
@@ -177,17 +177,17 @@ pub fn run_scenario(
         .collect();
     let steps = scenario.steps;
     let started = Instant::now();
-    let result = run_closed_loop(
+    let result = ClosedLoop::new(
         built.truth.as_ref(),
         built.model.clone(),
         &mut built.controller,
         &built.barriers,
-        &monitors,
         built.reference.as_mut(),
         &scenario.start,
         &built.loop_settings,
-        |k| progress(k, steps),
     )
+    .map(|l| l.with_monitors(&monitors))
+    .and_then(|l| l.run(&mut |k, _: &_| progress(k, steps)))
     .with_context(|| format!("scenario '{}'", scenario.name))?;
     let wall = started.elapsed().as_secs_f64();
     let summary = summarise(scenario, &built, &result, wall);
@@ -227,7 +227,7 @@ fn summarise(s: &Scenario, built: &Built, r: &LoopResult, wall: f64) -> RunSumma
     let fallback_steps = r
         .records
         .iter()
-        .filter(|x| x.status == "infeasible")
+        .filter(|x| x.status == StepStatus::Infeasible)
         .count();
     RunSummary {
         scenario: s.name.clone(),
@@ -403,7 +403,7 @@ fn trajectory_table(built: &Built, r: &LoopResult) -> String {
         }
         row.push(rec.sclc.map(f).unwrap_or_default());
         row.push(f(rec.trace_cov));
-        row.push(rec.status.to_string());
+        row.push(rec.status.name().to_string());
         row.push(rec.p_star.map(f).unwrap_or_default());
         row.push(f(rec.control_us));
         row.push(rec.data_size.to_string());

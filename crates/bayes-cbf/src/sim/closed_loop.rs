@@ -1,5 +1,7 @@
-//! The closed loop: observe, reference, safety SOCP, zero-order hold on the
-//! true system, record the observation, update the model on schedule.
+//! The closed loop as an engine: observe, reference, safety SOCP,
+//! zero-order hold on the true system, record the observation, update the
+//! model on schedule; one [`ClosedLoop::step`] at a time or
+//! [`ClosedLoop::run`] to the horizon with an [`Observer`].
 
 use super::background_refit::BackgroundRefit;
 use super::reference::{Reference, ReferenceOut};
@@ -17,6 +19,44 @@ use rand_chacha::ChaCha8Rng;
 use rand_distr::{Distribution, StandardNormal};
 use std::sync::Arc;
 use std::time::Instant;
+
+/// Which observations the model keeps as data arrive.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum DataPolicy {
+    /// Every observation (the cost of a step grows with the data).
+    #[default]
+    All,
+    /// Sliding window: the last `k` observations (O(k²) per removal).
+    Window(usize),
+    /// Budget: at most `k` observations, the most informative ones. At the
+    /// budget each new observation either replaces the stored point of
+    /// smallest leave-one-out predictive variance or is discarded
+    /// ([`Mvgp::remove_least_informative`]: the kept set has the largest
+    /// `log det(K + σ²I)`), O(k²) per observation.
+    Budget(usize),
+}
+
+/// Outcome of a step's safety SOCP.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum StepStatus {
+    /// Solved to tolerance.
+    Optimal,
+    /// Solved to the reduced tolerance.
+    AlmostOptimal,
+    /// Infeasible: the declared fallback was applied.
+    Infeasible,
+}
+
+impl StepStatus {
+    /// `optimal`, `almost_optimal` or `infeasible`.
+    pub fn name(self) -> &'static str {
+        match self {
+            StepStatus::Optimal => "optimal",
+            StepStatus::AlmostOptimal => "almost_optimal",
+            StepStatus::Infeasible => "infeasible",
+        }
+    }
+}
 
 /// Schedule and simulation settings of a closed-loop run.
 #[derive(Debug, Clone, PartialEq)]
@@ -37,14 +77,8 @@ pub struct LoopSettings {
     /// `refit_every`): early refits calibrate the model while data is scarce,
     /// at an amortised O(k³) total cost.
     pub refit_geometric: bool,
-    /// Sliding window: keep at most this many observations.
-    pub window: Option<usize>,
-    /// Budget: keep at most this many observations, the most informative
-    /// ones. At the budget each new observation either replaces the stored
-    /// point of smallest leave-one-out predictive variance or is discarded
-    /// ([`Mvgp::remove_least_informative`]: the kept set has the largest
-    /// `log det(K + σ²I)`), O(k²) per observation. Exclusive with `window`.
-    pub budget: Option<usize>,
+    /// Which observations the model keeps.
+    pub data: DataPolicy,
     /// Refit on a background thread: `Some(d)` launches each scheduled refit
     /// on a copy of the model (same data, hyperparameters and fit seed as the
     /// synchronous refit, hence the same result) and swaps it in after step
@@ -71,7 +105,7 @@ pub struct LoopSettings {
 
 impl Default for LoopSettings {
     /// `dt = 0.01`, 100 steps, default integrator, learning every step,
-    /// no refits, no window or budget, no measurement noise, seed 0.
+    /// no refits, all data kept, no measurement noise, seed 0.
     fn default() -> Self {
         Self {
             dt: 0.01,
@@ -80,8 +114,7 @@ impl Default for LoopSettings {
             update_every: 1,
             refit_every: 0,
             refit_geometric: false,
-            window: None,
-            budget: None,
+            data: DataPolicy::All,
             refit_background: None,
             fit: FitSettings::default(),
             xdot_noise: 0.0,
@@ -107,22 +140,14 @@ impl LoopSettings {
                 "must be finite and ≥ 0",
             ));
         }
-        if let Some(w) = self.window {
-            if w < 2 {
+        match self.data {
+            DataPolicy::Window(w) if w < 2 => {
                 return Err(InputError::invalid("window", w as f64, "must be ≥ 2"));
             }
-        }
-        if let Some(b) = self.budget {
-            if b < 2 {
+            DataPolicy::Budget(b) if b < 2 => {
                 return Err(InputError::invalid("budget", b as f64, "must be ≥ 2"));
             }
-            if self.window.is_some() {
-                return Err(InputError::invalid(
-                    "budget",
-                    b as f64,
-                    "give either a window or a budget, not both",
-                ));
-            }
+            _ => {}
         }
         if self.refit_background == Some(0) {
             return Err(InputError::invalid(
@@ -161,8 +186,8 @@ pub struct StepRecord {
     pub sclc: Option<f64>,
     /// `tr(B_k(x, x) ⊗ A) = tr B_k · tr A`.
     pub trace_cov: f64,
-    /// Solver outcome: `optimal`, `almost_optimal` or `infeasible`.
-    pub status: &'static str,
+    /// Solver outcome.
+    pub status: StepStatus,
     /// `p*` of an infeasible step.
     pub p_star: Option<f64>,
     /// Time of the control step (posterior, moments, SOCP), µs.
@@ -216,109 +241,283 @@ pub struct LoopResult {
 /// recorded (e.g. the signed distance to an obstacle).
 pub type Monitor = Arc<dyn Fn(&[f64]) -> f64 + Send + Sync>;
 
-/// Runs the closed loop from `x0`.
+/// Something that watches a run step by step (progress, logging,
+/// statistics), as argmin's observers watch an optimiser.
+pub trait Observer {
+    /// Called after step `k` with its record.
+    fn observe(&mut self, k: usize, record: &StepRecord);
+}
+
+impl<F: FnMut(usize, &StepRecord)> Observer for F {
+    fn observe(&mut self, k: usize, record: &StepRecord) {
+        self(k, record)
+    }
+}
+
+/// The closed loop of a true system, a learned model and a safety
+/// controller, stepped one control period (or one self-triggered hold) at a
+/// time.
 ///
-/// `barriers` are those of the controller, used for the fine-grid check;
-/// `progress(k)` is called after each step.
-#[allow(clippy::too_many_arguments)]
-pub fn run_closed_loop(
-    truth: &dyn DynSystem,
-    mut model: Mvgp,
-    controller: &mut SafetyController,
-    barriers: &[Arc<dyn DynBarrier>],
-    monitors: &[Monitor],
-    reference: &mut dyn Reference,
-    x0: &[f64],
-    settings: &LoopSettings,
-    mut progress: impl FnMut(usize),
-) -> Result<LoopResult, Error> {
-    settings.validate()?;
-    let (n, m) = (truth.n(), truth.m());
-    if x0.len() != n {
-        return Err(InputError::shape("start", n, x0.len()).into());
-    }
-    crate::error::check_finite("start", x0)?;
-    if model.n() != n || model.m() != m {
-        return Err(InputError::shape(
-            "model dimensions",
-            format!("n = {n}, m = {m}"),
-            format!("n = {}, m = {}", model.n(), model.m()),
-        )
-        .into());
-    }
-    let mut rng = ChaCha8Rng::seed_from_u64(settings.seed);
-    let mut sim = Simulator::new(truth, settings.sim);
-    let mut x = x0.to_vec();
-    let mut out = ControlOutput::new(m, barriers.len());
-    let mut r = ReferenceOut {
-        u_ref: vec![0.0; m],
-        xd: vec![0.0; n],
-        xd_dot: vec![0.0; n],
-    };
-    let mut records = Vec::with_capacity(settings.steps);
-    let mut min_barrier = barriers.iter().map(|b| b.value(&x)).collect::<Vec<_>>();
-    let mut min_monitor = monitors.iter().map(|f| f(&x)).collect::<Vec<_>>();
-    let mut buffer: Vec<(Vec<f64>, Vec<f64>, Vec<f64>)> = Vec::new();
-    let mut infeasible_steps = 0;
-    let mut last_refit_len = 0;
-    let mut background: Option<BackgroundRefit> = None;
-    if let Some(ts) = &settings.trigger {
-        if ts.lipschitz.sides.len() != n {
-            return Err(InputError::shape("trigger.cuboid", n, ts.lipschitz.sides.len()).into());
+/// Each [`step`](Self::step): the reference at the current state, the
+/// controller's SOCP on the current model (posterior, moments), the
+/// self-trigger evaluation when configured, the zero-order hold of the
+/// control on the true system (RK4 on the fine grid, where every barrier
+/// and monitor is checked), the observation `ẋ ≈ (x⁺ − x)/τ` buffered,
+/// and, on schedule, the online update (O(k²) per observation, with the
+/// [`DataPolicy`]) and the hyperparameter refit (in the loop or on a
+/// background thread). Deterministic given [`LoopSettings::seed`].
+pub struct ClosedLoop<'a> {
+    truth: &'a dyn DynSystem,
+    model: Mvgp,
+    controller: &'a mut SafetyController,
+    barriers: &'a [Arc<dyn DynBarrier>],
+    monitors: &'a [Monitor],
+    reference: &'a mut dyn Reference,
+    settings: LoopSettings,
+    rng: ChaCha8Rng,
+    trigger_rng: ChaCha8Rng,
+    x: Vec<f64>,
+    out: ControlOutput,
+    r: ReferenceOut,
+    buffer: Vec<(Vec<f64>, Vec<f64>, Vec<f64>)>,
+    min_barrier: Vec<f64>,
+    min_monitor: Vec<f64>,
+    infeasible_steps: usize,
+    last_refit_len: usize,
+    background: Option<BackgroundRefit>,
+    t_now: f64,
+    k: usize,
+    last: Option<StepRecord>,
+}
+
+impl<'a> ClosedLoop<'a> {
+    /// A loop from state `x0`. `barriers` are checked on the fine grid (the
+    /// controller's own may be shifted versions of them); `model` is the
+    /// initial model, owned and updated by the loop.
+    pub fn new(
+        truth: &'a dyn DynSystem,
+        model: Mvgp,
+        controller: &'a mut SafetyController,
+        barriers: &'a [Arc<dyn DynBarrier>],
+        reference: &'a mut dyn Reference,
+        x0: &[f64],
+        settings: &LoopSettings,
+    ) -> Result<Self, Error> {
+        settings.validate()?;
+        let (n, m) = (truth.n(), truth.m());
+        if x0.len() != n {
+            return Err(InputError::shape("start", n, x0.len()).into());
         }
+        crate::error::check_finite("start", x0)?;
+        if model.n() != n || model.m() != m {
+            return Err(InputError::shape(
+                "model dimensions",
+                format!("n = {n}, m = {m}"),
+                format!("n = {}, m = {}", model.n(), model.m()),
+            )
+            .into());
+        }
+        if let Some(ts) = &settings.trigger {
+            if ts.lipschitz.sides.len() != n {
+                return Err(
+                    InputError::shape("trigger.cuboid", n, ts.lipschitz.sides.len()).into(),
+                );
+            }
+        }
+        Ok(Self {
+            truth,
+            model,
+            controller,
+            barriers,
+            monitors: &[],
+            reference,
+            settings: settings.clone(),
+            rng: ChaCha8Rng::seed_from_u64(settings.seed),
+            // a separate stream, so that evaluating τ_k leaves the run unchanged
+            trigger_rng: ChaCha8Rng::seed_from_u64(settings.seed ^ 0x5e1f_7419_c0de_0001),
+            x: x0.to_vec(),
+            out: ControlOutput::new(m, barriers.len()),
+            r: ReferenceOut {
+                u_ref: vec![0.0; m],
+                xd: vec![0.0; n],
+                xd_dot: vec![0.0; n],
+            },
+            buffer: Vec::new(),
+            min_barrier: barriers.iter().map(|b| b.value(x0)).collect(),
+            min_monitor: Vec::new(),
+            infeasible_steps: 0,
+            last_refit_len: 0,
+            background: None,
+            t_now: 0.0,
+            k: 0,
+            last: None,
+        })
     }
-    // a separate stream, so that evaluating τ_k leaves the run unchanged
-    let mut trigger_rng = ChaCha8Rng::seed_from_u64(settings.seed ^ 0x5e1f_7419_c0de_0001);
-    let self_triggered = settings.trigger.as_ref().is_some_and(|t| t.hold);
-    let horizon = settings.steps as f64 * settings.dt;
-    let mut t_now = 0.0;
-    let mut k = 0usize;
-    loop {
-        let t = if self_triggered {
-            t_now
+
+    /// Also records the minimum of each monitor (e.g. the signed distance
+    /// to an obstacle) over the fine grid.
+    pub fn with_monitors(mut self, monitors: &'a [Monitor]) -> Self {
+        self.min_monitor = monitors.iter().map(|f| f(&self.x)).collect();
+        self.monitors = monitors;
+        self
+    }
+
+    fn self_triggered(&self) -> bool {
+        self.settings.trigger.as_ref().is_some_and(|t| t.hold)
+    }
+
+    fn horizon(&self) -> f64 {
+        self.settings.steps as f64 * self.settings.dt
+    }
+
+    /// The time at the start of the next step.
+    pub fn time(&self) -> f64 {
+        if self.self_triggered() {
+            self.t_now
         } else {
-            k as f64 * settings.dt
-        };
-        if (self_triggered && t >= horizon - 1e-9) || (!self_triggered && k >= settings.steps) {
-            break;
+            self.k as f64 * self.settings.dt
         }
-        reference.at(k, t, &x, &mut rng, &mut r);
+    }
+
+    /// Whether the horizon is reached: `steps` fixed steps, or `steps · dt`
+    /// seconds of self-triggered holds.
+    pub fn is_finished(&self) -> bool {
+        if self.self_triggered() {
+            self.t_now >= self.horizon() - 1e-9
+        } else {
+            self.k >= self.settings.steps
+        }
+    }
+
+    /// Steps taken so far.
+    pub fn steps_taken(&self) -> usize {
+        self.k
+    }
+
+    /// The current state.
+    pub fn state(&self) -> &[f64] {
+        &self.x
+    }
+
+    /// The current model.
+    pub fn model(&self) -> &Mvgp {
+        &self.model
+    }
+
+    /// Minimum of each barrier over the fine grid so far.
+    pub fn min_barrier(&self) -> &[f64] {
+        &self.min_barrier
+    }
+
+    /// Minimum of each monitor over the fine grid so far.
+    pub fn min_monitor(&self) -> &[f64] {
+        &self.min_monitor
+    }
+
+    /// Steps whose SOCP was infeasible so far.
+    pub fn infeasible_steps(&self) -> usize {
+        self.infeasible_steps
+    }
+
+    /// The record of the last step, if any.
+    pub fn last_record(&self) -> Option<&StepRecord> {
+        self.last.as_ref()
+    }
+
+    /// Takes one step; an error if the horizon is already reached, or if
+    /// the controller or the trigger evaluation fails.
+    pub fn step(&mut self) -> Result<&StepRecord, Error> {
+        if self.is_finished() {
+            return Err(InputError::invalid(
+                "steps",
+                self.settings.steps as f64,
+                "the run has reached its horizon",
+            )
+            .into());
+        }
+        let rec = self.advance()?;
+        Ok(self.last.insert(rec))
+    }
+
+    /// Steps to the horizon, calling `observer` after each step, and
+    /// returns every step's record with the final state and model.
+    pub fn run(mut self, observer: &mut dyn Observer) -> Result<LoopResult, Error> {
+        let mut records = Vec::with_capacity(self.settings.steps);
+        while !self.is_finished() {
+            let rec = self.advance()?;
+            observer.observe(self.k - 1, &rec);
+            records.push(rec);
+        }
+        Ok(self.finish(records))
+    }
+
+    /// Ends the run (a background refit still running is joined and
+    /// dropped) and returns its result with `records`.
+    pub fn finish(mut self, records: Vec<StepRecord>) -> LoopResult {
+        if let Some(bg) = self.background.take() {
+            bg.abandon();
+        }
+        LoopResult {
+            records,
+            final_state: self.x,
+            min_barrier: self.min_barrier,
+            min_monitor: self.min_monitor,
+            infeasible_steps: self.infeasible_steps,
+            model: self.model,
+        }
+    }
+
+    /// One step: control, hold, observation, learning; the step's record.
+    fn advance(&mut self) -> Result<StepRecord, Error> {
+        let (n, k, t) = (self.truth.n(), self.k, self.time());
+        let self_triggered = self.self_triggered();
+        let horizon = self.horizon();
+        self.reference.at(k, t, &self.x, &mut self.rng, &mut self.r);
         let start = Instant::now();
-        controller.step(&model, &x, &r.u_ref, Some((&r.xd, &r.xd_dot)), &mut out)?;
+        self.controller.step(
+            &self.model,
+            &self.x,
+            &self.r.u_ref,
+            Some((&self.r.xd, &self.r.xd_dot)),
+            &mut self.out,
+        )?;
         let control_us = start.elapsed().as_secs_f64() * 1e6;
-        let trigger = match &settings.trigger {
+        let trigger = match &self.settings.trigger {
             Some(ts) => Some(evaluate_trigger(
-                &model,
-                &x,
-                &out.u,
-                barriers,
+                &self.model,
+                &self.x,
+                &self.out.u,
+                self.barriers,
                 ts,
-                &mut trigger_rng,
+                &mut self.trigger_rng,
             )?),
             None => None,
         };
         let hold = match &trigger {
             Some(tr) if self_triggered => tr.hold.min(horizon - t),
-            _ => settings.dt,
+            _ => self.settings.dt,
         };
-        let data_size = model.len();
-        let (status, p_star) = match &out.status {
-            ControlStatus::Optimal => ("optimal", None),
-            ControlStatus::AlmostOptimal => ("almost_optimal", None),
+        let data_size = self.model.len();
+        let (status, p_star) = match &self.out.status {
+            ControlStatus::Optimal => (StepStatus::Optimal, None),
+            ControlStatus::AlmostOptimal => (StepStatus::AlmostOptimal, None),
             ControlStatus::Infeasible(info) => {
-                infeasible_steps += 1;
-                ("infeasible", info.p_star)
+                self.infeasible_steps += 1;
+                (StepStatus::Infeasible, info.p_star)
             }
         };
-        let trace_cov = controller
+        let trace_cov = self
+            .controller
             .workspace()
-            .map(|ws| ws.posterior().B.trace() * model.hyper().A.trace())
+            .map(|ws| ws.posterior().B.trace() * self.model.hyper().A.trace())
             .unwrap_or(f64::NAN);
-        let h: Vec<f64> = barriers.iter().map(|b| b.value(&x)).collect();
+        let h: Vec<f64> = self.barriers.iter().map(|b| b.value(&self.x)).collect();
         let mut h_fine_min = h.clone();
-        let mut mon_min: Vec<f64> = monitors.iter().map(|f| f(&x)).collect();
-        let x_prev = x.clone();
-        sim.step_with(&mut x, &out.u, hold, &mut rng, |_, xs| {
+        let mut mon_min: Vec<f64> = self.monitors.iter().map(|f| f(&self.x)).collect();
+        let x_prev = self.x.clone();
+        let (barriers, monitors) = (self.barriers, self.monitors);
+        let mut sim = Simulator::new(self.truth, self.settings.sim);
+        sim.step_with(&mut self.x, &self.out.u, hold, &mut self.rng, |_, xs| {
             for (b, hm) in barriers.iter().zip(h_fine_min.iter_mut()) {
                 *hm = hm.min(b.value(xs));
             }
@@ -326,108 +525,37 @@ pub fn run_closed_loop(
                 *mm = mm.min(f(xs));
             }
         });
-        for (a, b) in min_barrier.iter_mut().zip(&h_fine_min) {
+        for (a, b) in self.min_barrier.iter_mut().zip(&h_fine_min) {
             *a = a.min(*b);
         }
-        for (a, b) in min_monitor.iter_mut().zip(&mon_min) {
+        for (a, b) in self.min_monitor.iter_mut().zip(&mon_min) {
             *a = a.min(*b);
         }
         // the measurement: forward difference of the observed states
         let xdot: Vec<f64> = (0..n)
             .map(|i| {
-                let d = x[i] - x_prev[i];
-                let d = if truth.angles().contains(&i) {
+                let d = self.x[i] - x_prev[i];
+                let d = if self.truth.angles().contains(&i) {
                     wrap_angle(d)
                 } else {
                     d
                 };
-                let e: f64 = StandardNormal.sample(&mut rng);
-                d / hold + settings.xdot_noise * e
+                let e: f64 = StandardNormal.sample(&mut self.rng);
+                d / hold + self.settings.xdot_noise * e
             })
             .collect();
-        buffer.push((x_prev.clone(), out.u.clone(), xdot));
-        if settings.update_every > 0 && (k + 1).is_multiple_of(settings.update_every) {
-            for (xo, uo, xd) in buffer.drain(..) {
-                // an observation the factor cannot absorb even with bounded
-                // jitter duplicates information already in the model
-                if let Err(e) = model.add_observation(&xo, &uo, &xd) {
-                    log::warn!("step {k}: observation skipped ({e})");
-                    continue;
-                }
-                // a refit running in the background replays these changes
-                if let Some(bg) = background.as_mut() {
-                    bg.record_add(xo, uo, xd);
-                }
-                if let Some(w) = settings.window {
-                    while model.len() > w {
-                        model.remove_oldest();
-                        if let Some(bg) = background.as_mut() {
-                            bg.record_remove(0);
-                        }
-                    }
-                }
-                if let Some(b) = settings.budget {
-                    while model.len() > b {
-                        let j = model.remove_least_informative();
-                        if let (Some(j), Some(bg)) = (j, background.as_mut()) {
-                            bg.record_remove(j);
-                        }
-                    }
-                }
-            }
-        }
-        let len = model.len();
-        let geometric = settings.refit_geometric
-            && len >= 16
-            && len.is_power_of_two()
-            && len < settings.refit_every
-            && len != last_refit_len;
-        let due = settings.refit_every > 0
-            && ((k + 1).is_multiple_of(settings.refit_every) || geometric)
-            && !model.is_empty();
-        // a background refit launched d steps ago is swapped in first
-        let swapped = match background.take() {
-            Some(bg) if bg.due(k) => {
-                bg.finish(&mut model);
-                true
-            }
-            other => {
-                background = other;
-                false
-            }
-        };
-        if due {
-            last_refit_len = len;
-            let fs = FitSettings {
-                warm_start: true,
-                seed: settings.fit.seed.wrapping_add(k as u64),
-                ..settings.fit.clone()
-            };
-            match settings.refit_background {
-                None => {
-                    if let Err(e) = fit(&mut model, &fs) {
-                        log::warn!(
-                            "refit at step {k} failed ({e}); keeping the previous hyperparameters"
-                        );
-                    }
-                }
-                Some(_) if background.is_some() => {
-                    log::info!("refit due at step {k} skipped: the previous one is still running");
-                }
-                Some(d) => background = Some(BackgroundRefit::launch(&model, fs, k, d)),
-            }
-        }
-        let refit = swapped || (due && settings.refit_background.is_none());
-        let scbc = out.constraints.iter().map(|c| c.slack).collect();
-        records.push(StepRecord {
+        self.buffer.push((x_prev.clone(), self.out.u.clone(), xdot));
+        self.learn(k);
+        let refit = self.refit(k);
+        let rec = StepRecord {
             t,
             x: x_prev,
-            u: out.u.clone(),
-            u_ref: r.u_ref.clone(),
+            u: self.out.u.clone(),
+            u_ref: self.r.u_ref.clone(),
             h,
             h_fine_min,
-            scbc,
-            sclc: out.clf.map(|c| c.slack),
+            scbc: self.out.constraints.iter().map(|c| c.slack).collect(),
+            sclc: self.out.clf.map(|c| c.slack),
             trace_cov,
             status,
             p_star,
@@ -437,20 +565,98 @@ pub fn run_closed_loop(
             monitors: mon_min,
             hold,
             trigger,
-        });
-        progress(k);
-        k += 1;
-        t_now += hold;
+        };
+        self.k += 1;
+        self.t_now += hold;
+        Ok(rec)
     }
-    if let Some(bg) = background {
-        bg.abandon();
+
+    /// Adds the buffered observations when an update is due after step `k`,
+    /// keeping the data within the [`DataPolicy`].
+    fn learn(&mut self, k: usize) {
+        let every = self.settings.update_every;
+        if every == 0 || !(k + 1).is_multiple_of(every) {
+            return;
+        }
+        for (xo, uo, xd) in self.buffer.drain(..) {
+            // an observation the factor cannot absorb even with bounded
+            // jitter duplicates information already in the model
+            if let Err(e) = self.model.add_observation(&xo, &uo, &xd) {
+                log::warn!("step {k}: observation skipped ({e})");
+                continue;
+            }
+            // a refit running in the background replays these changes
+            if let Some(bg) = self.background.as_mut() {
+                bg.record_add(xo, uo, xd);
+            }
+            match self.settings.data {
+                DataPolicy::All => {}
+                DataPolicy::Window(w) => {
+                    while self.model.len() > w {
+                        self.model.remove_oldest();
+                        if let Some(bg) = self.background.as_mut() {
+                            bg.record_remove(0);
+                        }
+                    }
+                }
+                DataPolicy::Budget(b) => {
+                    while self.model.len() > b {
+                        let j = self.model.remove_least_informative();
+                        if let (Some(j), Some(bg)) = (j, self.background.as_mut()) {
+                            bg.record_remove(j);
+                        }
+                    }
+                }
+            }
+        }
     }
-    Ok(LoopResult {
-        records,
-        final_state: x,
-        min_barrier,
-        min_monitor,
-        infeasible_steps,
-        model,
-    })
+
+    /// Swaps in a background refit that is due and runs or launches a
+    /// scheduled refit after step `k`; whether the model's hyperparameters
+    /// changed at this step.
+    fn refit(&mut self, k: usize) -> bool {
+        let s = &self.settings;
+        let len = self.model.len();
+        let geometric = s.refit_geometric
+            && len >= 16
+            && len.is_power_of_two()
+            && len < s.refit_every
+            && len != self.last_refit_len;
+        let due = s.refit_every > 0
+            && ((k + 1).is_multiple_of(s.refit_every) || geometric)
+            && !self.model.is_empty();
+        // a background refit launched d steps ago is swapped in first
+        let swapped = match self.background.take() {
+            Some(bg) if bg.due(k) => {
+                bg.finish(&mut self.model);
+                true
+            }
+            other => {
+                self.background = other;
+                false
+            }
+        };
+        if due {
+            self.last_refit_len = len;
+            let fs = FitSettings {
+                warm_start: true,
+                seed: s.fit.seed.wrapping_add(k as u64),
+                ..s.fit.clone()
+            };
+            match s.refit_background {
+                None => {
+                    if let Err(e) = fit(&mut self.model, &fs) {
+                        log::warn!(
+                            "refit at step {k} failed ({e}); keeping the previous hyperparameters"
+                        );
+                    }
+                }
+                Some(_) if self.background.is_some() => {
+                    log::info!("refit due at step {k} skipped: the previous one is still running");
+                }
+                Some(d) => self.background = Some(BackgroundRefit::launch(&self.model, fs, k, d)),
+            }
+        }
+        swapped || (due && s.refit_background.is_none())
+    }
 }

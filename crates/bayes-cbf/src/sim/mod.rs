@@ -7,7 +7,9 @@ mod dataset;
 mod derivative;
 mod reference;
 
-pub use closed_loop::{run_closed_loop, LoopResult, LoopSettings, Monitor, StepRecord};
+pub use closed_loop::{
+    ClosedLoop, DataPolicy, LoopResult, LoopSettings, Monitor, Observer, StepRecord, StepStatus,
+};
 pub use dataset::{sample_uniform, simulate_trajectory, Dataset};
 pub use derivative::finite_difference_xdot;
 pub use reference::{

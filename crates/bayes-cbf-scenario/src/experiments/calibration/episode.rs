@@ -25,7 +25,7 @@ use bayes_cbf::barrier::{
 use bayes_cbf::control::{Fallback, SafetyController, SafetySettings};
 use bayes_cbf::gp::{Feature, InputMap, Mvgp, MvgpHyper, PriorMean, Rbf};
 use bayes_cbf::sim::{
-    run_closed_loop, LoopResult, LoopSettings, Monitor, Reference, ReferenceOut, SimSettings,
+    ClosedLoop, LoopResult, LoopSettings, Monitor, Reference, ReferenceOut, SimSettings, StepStatus,
 };
 use bayes_cbf::systems::{wrap_angle, Ackermann, DynSystem, GpSample, Pendulum};
 use nalgebra::DMatrix;
@@ -294,7 +294,6 @@ pub(crate) fn setup(system: System, truth: TruthKind, seed: u64, steps: usize) -
         sim: SimSettings::new(INTERNAL_STEP, process_noise)?,
         update_every: 1,
         refit_every: 0,
-        window: None,
         xdot_noise: 0.0,
         seed: rng.random(),
         ..LoopSettings::default()
@@ -534,17 +533,17 @@ fn run_inner(
         System::Pendulum => Box::new(IntoSector),
     };
     let barriers = [s.barrier.clone()];
-    let r = run_closed_loop(
+    let r = ClosedLoop::new(
         s.truth.as_ref(),
         s.model.clone(),
         &mut ctrl,
         &barriers,
-        &s.monitors,
         reference.as_mut(),
         &s.x0,
         &s.loop_settings,
-        |_| {},
     )
+    .map(|l| l.with_monitors(&s.monitors))
+    .and_then(|l| l.run(&mut |_, _: &_| {}))
     .context("closed loop")?;
     let moments = replay_moments(&s, &r).context("replaying the model's moments")?;
     Ok(summarise(system, &s, &r, &moments))
@@ -671,7 +670,7 @@ fn summarise(system: System, s: &Setup, r: &LoopResult, moments: &[(f64, f64)]) 
         if rec.h_fine_min.iter().any(|&h| h < 0.0) {
             st.steps_h_violated += 1;
         }
-        if rec.status == "infeasible" {
+        if rec.status == StepStatus::Infeasible {
             st.infeasible_steps += 1;
             continue;
         }
