@@ -17,11 +17,13 @@
 // Index loops mirror the subscripts of the maths in the docs.
 #![allow(clippy::needless_range_loop)]
 
+pub mod bench;
 pub mod error;
 pub mod experiments;
 pub mod formats;
 pub mod io;
 pub mod scenario;
+pub mod workloads;
 
 #[cfg(test)]
 mod fuzz_tests;

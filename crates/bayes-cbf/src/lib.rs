@@ -15,7 +15,6 @@
 //!   conditions (exact for relative degree 1 and 2, Monte Carlo beyond).
 //! - [`control`]: the chance-constrained SOCP safety filter (Clarabel),
 //!   infeasibility outcomes and fallbacks.
-//! - [`workloads`]: the standard benchmark workloads.
 //!
 //! ## Error policy
 //! Programming errors (a slice of the wrong length passed between internal
@@ -34,6 +33,5 @@ pub mod error;
 pub mod gp;
 pub mod sim;
 pub mod systems;
-pub mod workloads;
 
 pub use error::{Error, GpError, InputError};

@@ -13,8 +13,8 @@
 
 use super::{fit_settings, new_model, ExperimentArgs, ModelKind};
 use crate::error::Result;
+use crate::workloads::ackermann_data;
 use bayes_cbf::gp::{DynamicsModel, InputMap};
-use bayes_cbf::workloads::ackermann_data;
 use nalgebra::DMatrix;
 use serde_json::json;
 use std::time::Instant;

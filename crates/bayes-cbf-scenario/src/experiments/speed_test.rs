@@ -61,10 +61,10 @@ use super::{
     ExperimentArgs, ModelKind, Progress, Table, OMEGA_MAX,
 };
 use crate::error::Result;
+use crate::workloads::ackermann_data;
 use bayes_cbf::gp::{metrics, InputMap};
 use bayes_cbf::sim::Dataset;
 use bayes_cbf::systems::{Ackermann, DynSystem, Pendulum};
-use bayes_cbf::workloads::ackermann_data;
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use rayon::prelude::*;

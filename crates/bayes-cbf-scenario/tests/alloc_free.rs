@@ -2,7 +2,7 @@
 //! workspaces are warm: counted with a global allocator.
 
 use bayes_cbf::control::ControlOutput;
-use bayes_cbf::workloads::{ackermann_control, pendulum_control};
+use bayes_cbf_scenario::workloads::{ackermann_control, pendulum_control};
 use std::alloc::{GlobalAlloc, Layout, System};
 use std::cell::Cell;
 

@@ -3,7 +3,7 @@
 
 use bayes_cbf::control::ControlOutput;
 use bayes_cbf::gp::{fit, FitSettings};
-use bayes_cbf::workloads::{ackermann_control, pendulum_control};
+use bayes_cbf_scenario::workloads::{ackermann_control, pendulum_control};
 use criterion::{criterion_group, criterion_main, BenchmarkId, Criterion};
 use std::hint::black_box;
 

@@ -1,0 +1,403 @@
+//! Timings of the real workloads (`bayes-cbf bench`), each next to the
+//! memory-bound floor of an exact posterior (one triangular solve with the
+//! `k × k` factor) measured in the same run: the control step, online
+//! updates, prediction, fits, bounded streams and their quality.
+
+use crate::bail;
+use crate::error::{Context, Result};
+use crate::workloads::{
+    ackermann_control, ackermann_data, ackermann_heading_sweep, pendulum_control, pendulum_data,
+    ControlWorkload,
+};
+use bayes_cbf::control::ControlOutput;
+use bayes_cbf::gp::{
+    fit, fit_cogp, held_out_errors, Cogp, CogpFitSettings, CogpHyper, FitSettings, InputMap, Mvgp,
+    MvgpHyper, PriorMean, Rbf,
+};
+use bayes_cbf::systems::Ackermann;
+use nalgebra::DMatrix;
+use serde_json::{json, Value};
+use std::time::Instant;
+
+fn percentile(v: &mut [f64], q: f64) -> f64 {
+    v.sort_by(|a, b| a.total_cmp(b));
+    if v.is_empty() {
+        return f64::NAN;
+    }
+    v[((v.len() - 1) as f64 * q).round() as usize]
+}
+
+fn round(x: f64) -> f64 {
+    (x * 100.0).round() / 100.0
+}
+
+/// Microseconds of `f` over `reps` calls: (p50, p99).
+fn time_us(reps: usize, mut f: impl FnMut(usize)) -> (f64, f64) {
+    let mut t = Vec::with_capacity(reps);
+    for i in 0..reps {
+        let s = Instant::now();
+        f(i);
+        t.push(s.elapsed().as_secs_f64() * 1e6);
+    }
+    (
+        round(percentile(&mut t, 0.5)),
+        round(percentile(&mut t, 0.99)),
+    )
+}
+
+fn control_row(
+    system: &str,
+    rd: usize,
+    k: usize,
+    reps: usize,
+    w: &mut ControlWorkload,
+) -> Result<Value> {
+    let m = w.model.m();
+    let mut out = ControlOutput::new(m, 2);
+    let r = w.reference.clone();
+    let mut x = w.x.clone();
+    let mut err = None;
+    let (p50, p99) = time_us(reps, |i| {
+        x[0] = w.x[0] + 1e-4 * (i % 50) as f64;
+        let reference = r.as_ref().map(|(a, b)| (a.as_slice(), b.as_slice()));
+        if let Err(e) = w
+            .controller
+            .step(&w.model, &x, &w.u_ref, reference, &mut out)
+        {
+            err = Some(e);
+        }
+    });
+    if let Some(e) = err {
+        bail!("control step ({system}, k = {k}): {e}");
+    }
+    Ok(
+        json!({"case": "control_step", "system": system, "relative_degree": rd, "k": k, "p50_us": p50, "p99_us": p99}),
+    )
+}
+
+fn floor_row(model: &Mvgp, k: usize, reps: usize) -> Value {
+    let mut rhs = faer::Mat::<f64>::zeros(k, 1);
+    let (p50, _) = time_us(reps, |i| {
+        for j in 0..k {
+            rhs[(j, 0)] = ((i + j) % 7) as f64;
+        }
+        model.factor().solve_l_in_place(rhs.as_mut());
+    });
+    json!({"case": "floor", "k": k, "p50_us": p50})
+}
+
+fn fit_rows(system: &str, k: usize, reps: usize, iters: u64) -> Result<Vec<Value>> {
+    let (n, m, d, data, map, prior) = match system {
+        "ackermann" => (
+            3,
+            2,
+            1,
+            ackermann_data(k, 1.0, 11)?,
+            InputMap::Select(vec![2]),
+            PriorMean::Zero,
+        ),
+        _ => (
+            2,
+            1,
+            2,
+            pendulum_data(k, 11)?,
+            InputMap::Identity,
+            PriorMean::Zero,
+        ),
+    };
+    let mut mv = Vec::new();
+    let mut co = Vec::new();
+    for _ in 0..reps {
+        let hyper = MvgpHyper {
+            kernel: Rbf::new(vec![1.0; d], 1.0)?,
+            A: DMatrix::identity(n, n),
+            B: DMatrix::identity(m + 1, m + 1),
+            sigma: 0.1,
+        };
+        let mut model = Mvgp::new(n, m, hyper, prior.clone(), map.clone())?;
+        model.set_data(&data.xs, &data.us, &data.xdot)?;
+        let s = Instant::now();
+        fit(
+            &mut model,
+            &FitSettings {
+                max_iters: iters,
+                ..FitSettings::default()
+            },
+        )?;
+        mv.push(s.elapsed().as_secs_f64() * 1e3);
+        let np = n * (m + 1);
+        let ch = CogpHyper {
+            kernel: Rbf::new(vec![1.0; d], 1.0)?,
+            Sigma: DMatrix::identity(np, np),
+            S: DMatrix::identity(n, n) * 0.01,
+        };
+        let mut cogp = Cogp::new(n, m, ch, prior.clone(), map.clone())?;
+        cogp.set_data(&data.xs, &data.us, &data.xdot)?;
+        let s = Instant::now();
+        fit_cogp(
+            &mut cogp,
+            &CogpFitSettings {
+                max_iters: iters,
+                prefit_diagonal: false,
+                ..CogpFitSettings::default()
+            },
+        )?;
+        co.push(s.elapsed().as_secs_f64() * 1e3);
+    }
+    let (m50, c50) = (
+        round(percentile(&mut mv, 0.5)),
+        round(percentile(&mut co, 0.5)),
+    );
+    Ok(vec![
+        json!({"case": "fit", "model": "mvgp", "system": system, "k": k, "max_iters": iters, "p50_ms": m50}),
+        json!({"case": "fit", "model": "cogp", "system": system, "k": k, "max_iters": iters, "p50_ms": c50, "ratio_to_mvgp": round(c50 / m50)}),
+    ])
+}
+
+/// How a stream bounds the model's data.
+#[derive(Debug, Clone, Copy)]
+enum Bound {
+    /// Drop the oldest point.
+    Window(usize),
+    /// Drop the least informative point (which may be the new one).
+    Budget(usize),
+    /// Keep everything.
+    Full,
+}
+
+impl Bound {
+    /// Adds one observation and applies the bound.
+    fn add(self, model: &mut Mvgp, x: &[f64], u: &[f64], xdot: &[f64]) -> Result<()> {
+        model.add_observation(x, u, xdot)?;
+        match self {
+            Bound::Window(w) => {
+                while model.len() > w {
+                    model.remove_oldest();
+                }
+            }
+            Bound::Budget(b) => {
+                while model.len() > b {
+                    model.remove_least_informative();
+                }
+            }
+            Bound::Full => {}
+        }
+        Ok(())
+    }
+    fn json(self, row: &mut Value) {
+        match self {
+            Bound::Window(w) => row["window"] = json!(w),
+            Bound::Budget(b) => row["budget"] = json!(b),
+            Bound::Full => row["full"] = json!(true),
+        }
+    }
+}
+
+/// A stream of `steps` Ackermann states (uniform): one control step and one
+/// bounded online update per state, timed together (`p50_us`, `p99_us`,
+/// `max_us`) and apart (`control_*`, `update_*`); `infeasible_steps` counts
+/// the steps whose SOCP was infeasible (they also solve the max-margin
+/// program and bisect for `p*`), `p99_us_feasible_steps` leaves them out.
+fn stream_row(steps: usize, bound: Bound, size: usize) -> Result<Value> {
+    let mut w = ackermann_control(size, 5)?;
+    let extra = ackermann_data(steps, 12.0, 6)?;
+    let mut out = ControlOutput::new(2, 2);
+    let r = w.reference.clone().context("reference")?;
+    let mut times = Vec::with_capacity(steps);
+    let mut control = Vec::with_capacity(steps);
+    let mut update = Vec::with_capacity(steps);
+    let mut infeasible = 0;
+    let mut feasible = Vec::with_capacity(steps);
+    for j in 0..steps {
+        let x = &extra.xs[3 * j..3 * j + 3];
+        let s = Instant::now();
+        w.controller
+            .step(&w.model, x, &w.u_ref, Some((&r.0, &r.1)), &mut out)?;
+        let c = s.elapsed().as_secs_f64() * 1e6;
+        bound.add(
+            &mut w.model,
+            x,
+            &extra.us[2 * j..2 * j + 2],
+            &extra.xdot[3 * j..3 * j + 3],
+        )?;
+        let t = s.elapsed().as_secs_f64() * 1e6;
+        if out.is_infeasible() {
+            infeasible += 1;
+        } else {
+            feasible.push(t);
+        }
+        times.push(t);
+        control.push(c);
+        update.push(t - c);
+    }
+    let first: Vec<f64> = times[..steps / 10].to_vec();
+    let last: Vec<f64> = times[steps - steps / 10..].to_vec();
+    let (mut f, mut l) = (first, last);
+    let max = times.iter().cloned().fold(0.0, f64::max);
+    let mut row = json!({
+        "case": "stream", "system": "ackermann", "steps": steps,
+        "p50_us": round(percentile(&mut times.clone(), 0.5)), "p99_us": round(percentile(&mut times, 0.99)),
+        "max_us": round(max),
+        "p50_us_first_tenth": round(percentile(&mut f, 0.5)), "p50_us_last_tenth": round(percentile(&mut l, 0.5)),
+        "control_p50_us": round(percentile(&mut control.clone(), 0.5)), "control_p99_us": round(percentile(&mut control, 0.99)),
+        "update_p50_us": round(percentile(&mut update.clone(), 0.5)), "update_p99_us": round(percentile(&mut update, 0.99)),
+        "infeasible_steps": infeasible, "p99_us_feasible_steps": round(percentile(&mut feasible, 0.99)),
+    });
+    bound.json(&mut row);
+    Ok(row)
+}
+
+/// Prediction quality of a bounded model against the full data: the
+/// Ackermann heading sweep ([`ackermann_heading_sweep`]) streamed into a
+/// model of `size` points (window, budget) or all of them (full); errors of
+/// the final model on 1 000 uniform held-out states and controls over the
+/// whole heading range, and the time of each online update (add + bound).
+fn quality_rows(steps: usize, size: usize) -> Result<Vec<Value>> {
+    let data = ackermann_heading_sweep(steps, 12.0, 21)?;
+    let test = ackermann_data(1000, 12.0, 22)?;
+    let truth = Ackermann { wheelbase: 12.0 };
+    let mut rows = Vec::new();
+    for bound in [Bound::Window(size), Bound::Budget(size), Bound::Full] {
+        let mut model = ackermann_control(0, 0)?.model;
+        model.set_data(
+            &data.xs[..3 * size],
+            &data.us[..2 * size],
+            &data.xdot[..3 * size],
+        )?;
+        let mut times = Vec::with_capacity(steps - size);
+        for j in size..steps {
+            let s = Instant::now();
+            bound.add(
+                &mut model,
+                &data.xs[3 * j..3 * j + 3],
+                &data.us[2 * j..2 * j + 2],
+                &data.xdot[3 * j..3 * j + 3],
+            )?;
+            times.push(s.elapsed().as_secs_f64() * 1e6);
+        }
+        let errs = held_out_errors(&model, &test.xs, &test.us, &truth)?;
+        // heading range covered by the kept points
+        let mut thetas: Vec<f64> = model.xs().chunks(3).map(|x| x[2]).collect();
+        thetas.sort_by(f64::total_cmp);
+        let gap = thetas
+            .windows(2)
+            .map(|w| w[1] - w[0])
+            .chain([thetas[0] + 2.0 * std::f64::consts::PI - thetas[thetas.len() - 1]])
+            .fold(0.0, f64::max);
+        let mut row = json!({
+            "case": "stream_quality", "system": "ackermann", "steps": steps, "k_end": model.len(),
+            "update_p50_us": round(percentile(&mut times.clone(), 0.5)),
+            "update_p99_us": round(percentile(&mut times, 0.99)),
+            "rmse_fu": (errs.rmse_fu * 1e4).round() / 1e4,
+            "variance_weighted": (errs.variance_weighted * 1e3).round() / 1e3,
+            "largest_heading_gap_rad": (gap * 1e3).round() / 1e3,
+        });
+        bound.json(&mut row);
+        rows.push(row);
+    }
+    Ok(rows)
+}
+
+/// Times every workload on `threads` threads of dense linear algebra
+/// (`quick`: reduced sizes and repetitions, seconds instead of minutes);
+/// `stage` is told what is being measured. Returns
+/// `{"threads", "quick", "rows": [...]}`, one row per measurement.
+pub fn run_bench(quick: bool, threads: usize, stage: &dyn Fn(&str)) -> Result<Value> {
+    if threads == 0 || threads > 256 {
+        bail!("--threads = {threads}: must be in 1..=256");
+    }
+    faer::set_global_parallelism(if threads == 1 {
+        faer::Par::Seq
+    } else {
+        faer::Par::rayon(threads)
+    });
+
+    let ks: &[usize] = if quick {
+        &[100, 200]
+    } else {
+        &[100, 200, 300, 1000, 3000]
+    };
+    let reps = |k: usize| {
+        if quick || k >= 3000 {
+            200
+        } else {
+            1000
+        }
+    };
+    let mut rows = Vec::new();
+    for &k in ks {
+        stage(&format!("k = {k}"));
+        let mut w = ackermann_control(k, 0)?;
+        rows.push(control_row("ackermann", 1, k, reps(k), &mut w)?);
+        let mut p = pendulum_control(k, 0)?;
+        rows.push(control_row("pendulum", 2, k, reps(k), &mut p)?);
+        let e = p.extra.clone();
+        // one observation added to a model of size k (a fresh copy each time, not timed)
+        let adds = if k >= 3000 {
+            20
+        } else if k >= 1000 {
+            60
+        } else {
+            200
+        };
+        let mut t_add = Vec::with_capacity(adds);
+        let mut t_remove = Vec::with_capacity(adds);
+        for i in 0..adds {
+            let j = i % e.len();
+            let mut model = p.model.clone();
+            let s = Instant::now();
+            model.add_observation(
+                &e.xs[2 * j..2 * j + 2],
+                &e.us[j..j + 1],
+                &e.xdot[2 * j..2 * j + 2],
+            )?;
+            t_add.push(s.elapsed().as_secs_f64() * 1e6);
+            let s = Instant::now();
+            model.remove_oldest();
+            t_remove.push(s.elapsed().as_secs_f64() * 1e6);
+        }
+        rows.push(json!({"case": "add_observation", "system": "pendulum", "k": k, "p50_us": round(percentile(&mut t_add, 0.5)), "p99_us": round(percentile(&mut t_add, 0.99))}));
+        rows.push(json!({"case": "remove_oldest", "system": "pendulum", "k": k, "p50_us": round(percentile(&mut t_remove, 0.5)), "p99_us": round(percentile(&mut t_remove, 0.99))}));
+        let mut ws = p.model.workspace();
+        let mut post = p.model.posterior(&p.x)?;
+        let mut x = p.x.clone();
+        let (p50, p99) = time_us(reps(k), |i| {
+            x[1] = -0.01 + 1e-3 * (i % 100) as f64;
+            let _ = p.model.posterior_into(&x, &mut ws, &mut post);
+        });
+        rows.push(
+            json!({"case": "predict", "system": "pendulum", "k": k, "p50_us": p50, "p99_us": p99}),
+        );
+        rows.push(floor_row(&p.model, k, reps(k)));
+    }
+    let (fit_k, fit_reps, iters) = if quick { (100, 1, 10) } else { (500, 3, 30) };
+    stage(&format!("fits at k = {fit_k}"));
+    rows.extend(fit_rows("ackermann", fit_k, fit_reps, iters)?);
+    rows.extend(fit_rows("pendulum", fit_k, fit_reps, iters)?);
+    stage("streams");
+    let (steps, bounds): (usize, &[(Bound, usize)]) = if quick {
+        (
+            2_000,
+            &[(Bound::Window(200), 200), (Bound::Budget(200), 200)],
+        )
+    } else {
+        (
+            20_000,
+            &[
+                (Bound::Window(1_000), 1_000),
+                (Bound::Window(200), 200),
+                (Bound::Budget(200), 200),
+            ],
+        )
+    };
+    for &(bound, size) in bounds {
+        rows.push(stream_row(steps, bound, size)?);
+    }
+    stage("stream quality");
+    rows.extend(if quick {
+        quality_rows(600, 60)?
+    } else {
+        quality_rows(4_000, 200)?
+    });
+    Ok(json!({"threads": threads, "quick": quick, "rows": rows}))
+}
