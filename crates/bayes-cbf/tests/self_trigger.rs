@@ -368,3 +368,67 @@ fn trigger_times_match_hand_computed_values() {
     assert!(tau_relative_degree_one(2.0, 0.02, 1.0, 3.0, 0.5) > t1);
     assert!(tau_relative_degree_one(4.0, 0.01, 1.0, 3.0, 0.5) < t1);
 }
+
+/// [`SelfTriggered`] applies the rules of Props. 3 and 5 once: the trigger's
+/// ζ is the SOCP margin, barriers of relative degree ≥ 2 are shifted by
+/// `ζ_b` (the constant term of their condition drops by `k_α[0] ζ_b`),
+/// the SOCP probability is `p / (1 − δ_L)`, and missing margins are errors
+/// naming the field.
+#[test]
+fn self_triggered_controller_owns_the_rules() {
+    use bayes_cbf::barrier::{DynBarrier, PendulumSector};
+    use bayes_cbf::control::{
+        ControlOutput, SafetyController, SafetySettings, SelfTriggered, TriggerSettings,
+    };
+    let sector: Arc<dyn DynBarrier> =
+        Arc::new(PendulumSector::new(0.785, 0.39, 2, vec![1.5, 3.0]).unwrap());
+    let mut settings = SafetySettings::new(1);
+    settings.probability = 0.9;
+    settings.zeta = 0.02;
+    let mut trigger = TriggerSettings::new(vec![0.1, 0.1]);
+    trigger.zeta = 7.0; // replaced by the controller's margin
+    trigger.zeta_b = 0.05;
+    trigger.lipschitz.delta_l = 0.01;
+    let mut st = SelfTriggered::new(
+        2,
+        1,
+        std::slice::from_ref(&sector),
+        None,
+        settings.clone(),
+        trigger.clone(),
+    )
+    .unwrap();
+    assert_eq!(st.trigger.zeta, 0.02);
+    let p = st.controller.filter_mut().settings().probability;
+    assert!((p - 0.9 / 0.99).abs() < 1e-15, "{p}");
+    let mut plain =
+        SafetyController::new(2, 1, vec![sector.clone()], None, settings.clone()).unwrap();
+    let m = model(InputMap::Identity, 4, 20);
+    let x = [1.2, -0.3];
+    let (mut a, mut b) = (ControlOutput::new(1, 1), ControlOutput::new(1, 1));
+    st.controller.step(&m, &x, &[0.0], None, &mut a).unwrap();
+    plain.step(&m, &x, &[0.0], None, &mut b).unwrap();
+    let (ea, eb) = (
+        &st.controller.barrier_moments()[0].e,
+        &plain.barrier_moments()[0].e,
+    );
+    assert!((eb[0] - ea[0] - 1.5 * 0.05).abs() < 1e-12, "{ea:?} {eb:?}");
+    assert!((ea[1] - eb[1]).abs() < 1e-12);
+
+    let mut no_shift = trigger.clone();
+    no_shift.zeta_b = 0.0;
+    let e = SelfTriggered::new(2, 1, &[sector], None, settings.clone(), no_shift)
+        .err()
+        .unwrap()
+        .to_string();
+    assert!(e.contains("trigger.zeta_b"), "{e}");
+    let rd1: Arc<dyn DynBarrier> =
+        Arc::new(PendulumSector::new(0.785, 0.39, 1, vec![1.0]).unwrap());
+    let mut no_margin = settings;
+    no_margin.zeta = 0.0;
+    let e = SelfTriggered::new(2, 1, &[rd1], None, no_margin, trigger)
+        .err()
+        .unwrap()
+        .to_string();
+    assert!(e.contains("controller.zeta"), "{e}");
+}

@@ -10,9 +10,9 @@ use crate::parse::parse_rank;
 use crate::prior_spec::PriorSpec;
 use bayes_cbf::barrier::{AckermannClf, DynBarrier, DynLyapunov};
 use bayes_cbf::control::{
-    Fallback, SafetyController, SafetySettings, ShiftedBarrier, TauSource, TriggerSettings,
+    Fallback, SafetyController, SafetySettings, SelfTriggered, TauSource, TriggerSettings,
 };
-use bayes_cbf::gp::{FitSettings, LipschitzSettings, Mvgp, MvgpHyper, Rbf};
+use bayes_cbf::gp::{FitSettings, LipschitzSettings, Mvgp, MvgpHyper, PriorMean, Rbf};
 use bayes_cbf::sim::{
     ConstantReference, DataPolicy, EpsilonGreedy, LoopSettings, Reference, SimSettings,
     StraightLinePlanner,
@@ -128,17 +128,17 @@ pub fn build(s: &Scenario) -> Result<Built> {
         B: b,
         sigma: s.gp.noise_sigma,
     };
-    if let PriorSpec::Pendulum { .. } | PriorSpec::Ackermann { .. } = s.gp.prior_mean {
-        let (pn, pm) = match s.gp.prior_mean {
-            PriorSpec::Pendulum { .. } => (2, 1),
-            _ => (3, 2),
-        };
-        if (pn, pm) != (n, m) {
-            bail!("gp.prior_mean is a {pn}-state model but the system has {n} states");
+    let prior = s.gp.prior_mean.to_prior();
+    if let PriorMean::System(p) = &prior {
+        if (p.n(), p.m()) != (n, m) {
+            bail!(
+                "gp.prior_mean has {} states and {} controls, the system {n} and {m}",
+                p.n(),
+                p.m()
+            );
         }
     }
-    let model = Mvgp::new(n, m, hyper, s.gp.prior_mean.to_prior(), input_map)
-        .map_err(|e| crate::err!("gp: {e}"))?;
+    let model = Mvgp::new(n, m, hyper, prior, input_map).map_err(|e| crate::err!("gp: {e}"))?;
     // barriers and obstacles
     let mut barriers = Vec::new();
     let mut obstacles = Vec::new();
@@ -178,7 +178,7 @@ pub fn build(s: &Scenario) -> Result<Built> {
         None => None,
         Some(t) => {
             vector("trigger.cuboid", &t.cuboid, n, "the state dimension")?;
-            let ts = TriggerSettings {
+            Some(TriggerSettings {
                 lipschitz: LipschitzSettings {
                     delta_l: t.delta_l,
                     sides: t.cuboid.clone(),
@@ -192,30 +192,13 @@ pub fn build(s: &Scenario) -> Result<Built> {
                 tau_max: t.tau_max,
                 tau_from: TauSource::parse(&t.tau_from)?,
                 hold: t.self_triggered,
-            };
-            ts.validate(n).map_err(|e| crate::err!("trigger: {e}"))?;
-            if barriers.iter().any(|b| b.degree() == 1) && s.controller.zeta <= 0.0 {
-                bail!(
-                    "controller.zeta = {}: self-triggering needs a margin ζ > 0 on relative-degree-1 barriers (Prop. 3)",
-                    s.controller.zeta
-                );
-            }
-            if barriers.iter().any(|b| b.degree() >= 2) && t.zeta_b <= 0.0 {
-                bail!(
-                    "trigger.zeta_b = {}: self-triggering needs ζ_b > 0 on barriers of relative degree ≥ 2 (Prop. 5)",
-                    t.zeta_b
-                );
-            }
-            Some(ts)
+            })
         }
     };
     // controller
     let c = &s.controller;
     let mut settings = SafetySettings::new(m);
-    settings.probability = match &trigger {
-        Some(ts) => ts.tilde_p(c.probability)?,
-        None => c.probability,
-    };
+    settings.probability = c.probability;
     settings.zeta = c.zeta;
     settings.lambda = c.lambda;
     if let Some(r) = &c.r {
@@ -231,28 +214,18 @@ pub fn build(s: &Scenario) -> Result<Built> {
     settings.u_min = c.u_min.clone();
     settings.u_max = c.u_max.clone();
     settings.fallback = Fallback::parse(&c.fallback).map_err(|e| crate::err!("controller: {e}"))?;
-    if c.probability < 0.5 && (clf.is_some() || barriers.iter().any(|b| b.degree() == 1)) {
-        bail!(
-            "controller.probability = {}: must be ≥ 0.5 with relative-degree-1 conditions",
-            c.probability
-        );
-    }
-    // Prop. 5: the SOCP enforces h − ζ_b for barriers of relative degree ≥ 2
-    let socp_barriers: Vec<Arc<dyn DynBarrier>> = match &trigger {
-        Some(ts) => barriers
-            .iter()
-            .map(|b| {
-                if b.degree() >= 2 {
-                    Arc::new(ShiftedBarrier::new(b.clone(), ts.zeta_b)) as Arc<dyn DynBarrier>
-                } else {
-                    b.clone()
-                }
-            })
-            .collect(),
-        None => barriers.clone(),
+    // Props. 3 and 5: one ζ, shifted barriers of relative degree ≥ 2, p̃
+    let (controller, trigger) = match trigger {
+        Some(ts) => {
+            let st = SelfTriggered::new(n, m, &barriers, clf, settings, ts)?;
+            (st.controller, Some(st.trigger))
+        }
+        None => (
+            SafetyController::new(n, m, barriers.clone(), clf, settings)
+                .map_err(|e| crate::err!("controller: {e}"))?,
+            None,
+        ),
     };
-    let controller = SafetyController::new(n, m, socp_barriers, clf, settings)
-        .map_err(|e| crate::err!("controller: {e}"))?;
     // reference
     let reference: Box<dyn Reference> = match &s.reference {
         ReferenceSpec::Planner { duration } => {

@@ -244,6 +244,21 @@ fn report(mom: &ConditionMoments, c: f64, u: &[f64], zeta: f64) -> ConstraintRep
     }
 }
 
+/// The one check of the probability against the conditions: with a
+/// relative-degree-1 condition (a barrier of relative degree 1 or a CLF)
+/// `p ≥ 0.5` is required, since `c(p) < 0` would make the cone constraint
+/// non-convex (Prop. 2).
+fn check_probability(p: f64, relative_degree_one: bool) -> Result<(), InputError> {
+    if p < 0.5 && relative_degree_one {
+        return Err(InputError::invalid(
+            "controller.probability",
+            p,
+            "must be ≥ 0.5 with relative-degree-1 conditions (c(p) < 0 would make the constraint non-convex)",
+        ));
+    }
+    Ok(())
+}
+
 /// The SOCP safety filter given condition moments (no GP inside): useful on
 /// its own, and the engine of [`SafetyController`].
 pub struct SafetyFilter {
@@ -354,9 +369,10 @@ impl SafetyFilter {
         }
         let p = self.settings.probability;
         let zeta = self.settings.zeta;
-        if p < 0.5 && (clc.is_some() || cbcs.iter().any(|c| c.relative_degree <= 1)) {
-            return Err(InputError::invalid("probability", p, "must be ≥ 0.5 with relative-degree-1 conditions (c(p) < 0 would make the constraint non-convex)").into());
-        }
+        check_probability(
+            p,
+            clc.is_some() || cbcs.iter().any(|c| c.relative_degree <= 1),
+        )?;
         for (k, mom) in cbcs.iter().enumerate() {
             let c = quantile_factor(p, mom.relative_degree)?;
             self.program.set_barrier(k, mom, c, zeta);
@@ -602,6 +618,10 @@ impl SafetyController {
                 return Err(InputError::shape("clf state dimension", n, c.dim()));
             }
         }
+        check_probability(
+            settings.probability,
+            clf.is_some() || barriers.iter().any(|b| b.degree() <= 1),
+        )?;
         let max_degree = barriers
             .iter()
             .map(|b| b.degree())

@@ -11,6 +11,6 @@ pub use filter::{
 };
 pub use self_trigger::{
     barrier_gradient_bound, evaluate_trigger, tau_relative_degree_one, tau_relative_degree_r,
-    ShiftedBarrier, TauSource, TriggerReport, TriggerSettings,
+    SelfTriggered, ShiftedBarrier, TauSource, TriggerReport, TriggerSettings,
 };
 pub use socp::{SocpShape, SolveStatus};

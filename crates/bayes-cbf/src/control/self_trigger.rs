@@ -20,7 +20,8 @@
 //! clamped to `[τ_min, τ_max]`; a clamp from below is reported, since the
 //! guarantee then no longer covers the whole hold.
 
-use crate::barrier::DynBarrier;
+use super::{SafetyController, SafetySettings};
+use crate::barrier::{DynBarrier, DynLyapunov};
 use crate::error::{Error, InputError};
 use crate::gp::lipschitz::{grid_nodes, grid_sup_estimate};
 use crate::gp::{LipschitzEstimate, LipschitzSettings, Mvgp};
@@ -327,5 +328,76 @@ impl DynBarrier for ShiftedBarrier {
     }
     fn label(&self) -> &str {
         self.inner.label()
+    }
+}
+
+/// A safety controller set up for self-triggered control, with the trigger
+/// settings it goes with: the rules of Props. 3 and 5 in one place.
+///
+/// - One margin ζ: the SOCP's [`SafetySettings::zeta`] is the ζ of Prop. 3
+///   (it must be > 0 when a barrier has relative degree 1);
+/// - barriers of relative degree ≥ 2 enter the SOCP shifted to
+///   `h_b = h − ζ_b` ([`ShiftedBarrier`], Prop. 5; `ζ_b` > 0 required);
+/// - the SOCP probability is `p̃ = p/(1 − δ_L)`
+///   ([`TriggerSettings::tilde_p`]), so that the guarantee over each hold is
+///   the requested `p` (the bound of Lemma 3 holds with probability
+///   `1 − δ_L`).
+///
+/// `barriers` are the unshifted barriers (check `h` against them);
+/// [`SafetyController::new`] checks the rest (`p ≥ 0.5` with
+/// relative-degree-1 conditions, dimensions, bounds).
+pub struct SelfTriggered {
+    /// The controller: shifted barriers, `p̃`, margin ζ.
+    pub controller: SafetyController,
+    /// The trigger settings, with `zeta` equal to the controller's.
+    pub trigger: TriggerSettings,
+}
+
+impl SelfTriggered {
+    /// Builds the controller for `n` states and `m` controls from the
+    /// requested `settings` (probability `p`, margin ζ) and `trigger`
+    /// (whose `zeta` is replaced by `settings.zeta`).
+    pub fn new(
+        n: usize,
+        m: usize,
+        barriers: &[Arc<dyn DynBarrier>],
+        clf: Option<Arc<dyn DynLyapunov>>,
+        mut settings: SafetySettings,
+        mut trigger: TriggerSettings,
+    ) -> Result<Self, Error> {
+        trigger.zeta = settings.zeta;
+        trigger.validate(n)?;
+        if barriers.iter().any(|b| b.degree() == 1) && settings.zeta <= 0.0 {
+            return Err(InputError::invalid(
+                "controller.zeta",
+                settings.zeta,
+                "self-triggering needs a margin ζ > 0 on relative-degree-1 barriers (Prop. 3)",
+            )
+            .into());
+        }
+        if barriers.iter().any(|b| b.degree() >= 2) && trigger.zeta_b <= 0.0 {
+            return Err(InputError::invalid(
+                "trigger.zeta_b",
+                trigger.zeta_b,
+                "self-triggering needs ζ_b > 0 on barriers of relative degree ≥ 2 (Prop. 5)",
+            )
+            .into());
+        }
+        settings.probability = trigger.tilde_p(settings.probability)?;
+        let shifted = barriers
+            .iter()
+            .map(|b| {
+                if b.degree() >= 2 {
+                    Arc::new(ShiftedBarrier::new(b.clone(), trigger.zeta_b)) as Arc<dyn DynBarrier>
+                } else {
+                    b.clone()
+                }
+            })
+            .collect();
+        let controller = SafetyController::new(n, m, shifted, clf, settings)?;
+        Ok(Self {
+            controller,
+            trigger,
+        })
     }
 }
