@@ -98,7 +98,7 @@ impl SpeedTest {
 /// experiment (1200 fits) finishes in about 20 minutes on this machine
 /// (measured: 1209 s single-threaded); see the module docs and
 /// `fit_settings.iteration_cap_note` in `summary.json`.
-pub(crate) const MAX_ITERS: u64 = 15;
+pub const MAX_ITERS: u64 = 15;
 /// Iteration cap of `--quick`.
 const QUICK_ITERS: u64 = 10;
 /// Held-out samples per repetition.

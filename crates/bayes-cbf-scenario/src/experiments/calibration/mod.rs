@@ -9,7 +9,7 @@
 //! The model learns online at every step (O(k²) growth, no refits, no
 //! window). States are observed exactly and `ẋ` is measured by forward
 //! differences; the noise is process noise, so that the data follow the
-//! MVGP's own observation model (see [`episode::PROCESS_NOISE_WELL`]).
+//! MVGP's own observation model (see `PROCESS_NOISE_WELL` in `episode.rs`).
 //!
 //! - **Ackermann vehicle** (relative degree 1, Gaussian factor): obstacle
 //!   disc of radius 0.6 m at the origin with the paper's heading barrier
@@ -47,7 +47,7 @@
 //! ## What is counted (per controller)
 //! Episodes with `h < 0` anywhere on the fine RK4 grid (1 ms), steps with
 //! such a violation, the true barrier condition at every solved step (see
-//! [`episode`]): violated steps among all solved steps and among steps
+//! `episode.rs`): violated steps among all solved steps and among steps
 //! whose chance constraint is active, with the number the model expected
 //! (`Σ Φ(−E/√Var)`) and the standardised values
 //! `z = (C_true − E[C])/√Var[C]`; infeasible steps (the max-margin
