@@ -20,11 +20,7 @@ use serde_json::{json, Value};
 use std::time::Instant;
 
 fn percentile(v: &mut [f64], q: f64) -> f64 {
-    v.sort_by(|a, b| a.total_cmp(b));
-    if v.is_empty() {
-        return f64::NAN;
-    }
-    v[((v.len() - 1) as f64 * q).round() as usize]
+    crate::stats::quantile(v, q)
 }
 
 fn round(x: f64) -> f64 {

@@ -23,6 +23,7 @@ pub mod experiments;
 pub mod formats;
 pub mod io;
 pub mod scenario;
+pub mod stats;
 pub mod workloads;
 
 #[cfg(test)]

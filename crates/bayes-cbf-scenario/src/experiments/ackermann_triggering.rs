@@ -20,6 +20,7 @@
 use super::ExperimentArgs;
 use crate::error::Result;
 use crate::scenario::{self, RunOutput};
+use crate::stats;
 use bayes_cbf::control::{tau_relative_degree_one, tau_relative_degree_r};
 use serde_json::json;
 
@@ -51,15 +52,6 @@ impl AckermannTriggering {
 
 /// ζ values of the trade-off sweep.
 const ZETAS: &[f64] = &[0.003, 0.01, 0.03, 0.1, 0.3];
-
-fn median(mut v: Vec<f64>) -> f64 {
-    v.retain(|x| x.is_finite());
-    if v.is_empty() {
-        return f64::NAN;
-    }
-    v.sort_by(|a, b| a.total_cmp(b));
-    v[v.len() / 2]
-}
 
 fn run_one(args: &ExperimentArgs, sets: &[String]) -> Result<RunOutput> {
     let mut all = vec![format!("seed={}", args.seed)];
@@ -125,8 +117,13 @@ pub fn run(args: &ExperimentArgs) -> Result<AckermannTriggering> {
             .iter()
             .filter_map(|r| r.trigger.as_ref())
             .collect();
-        let tau_a = median(reps.iter().map(|t| t.tau_analytic).collect());
-        let tau_n = median(reps.iter().filter_map(|t| t.tau_numerical).collect());
+        let tau_a = stats::median(&reps.iter().map(|t| t.tau_analytic).collect::<Vec<_>>());
+        let tau_n = stats::median(
+            &reps
+                .iter()
+                .filter_map(|t| t.tau_numerical)
+                .collect::<Vec<_>>(),
+        );
         let s = &o.summary;
         sweep.push(json!({
             "zeta": z,
@@ -178,8 +175,9 @@ pub fn run(args: &ExperimentArgs) -> Result<AckermannTriggering> {
         dense
             .iter()
             .map(|&z| {
-                median(
-                    reps.iter()
+                stats::median(
+                    &reps
+                        .iter()
                         .filter_map(|r| {
                             let l = if numerical {
                                 r.lipschitz.numerical?
@@ -188,7 +186,7 @@ pub fn run(args: &ExperimentArgs) -> Result<AckermannTriggering> {
                             };
                             Some(tau_at(z, l, r))
                         })
-                        .collect(),
+                        .collect::<Vec<_>>(),
                 )
             })
             .collect()

@@ -21,6 +21,7 @@ pub mod speed_test;
 
 use crate::bail;
 use crate::error::Result;
+pub(crate) use crate::stats::quantile;
 use bayes_cbf::gp::{
     metrics, Cogp, CogpHyper, DynamicsModel, InputMap, ModelFitSettings, Mvgp, MvgpHyper,
     PriorMean, Rbf,
@@ -427,23 +428,6 @@ pub(crate) fn linspace(a: f64, b: f64, n: usize) -> Vec<f64> {
     }
 }
 
-/// Quantile `q ∈ [0, 1]` of the finite values (linear interpolation between
-/// order statistics); NaN when there are none.
-pub(crate) fn quantile(values: &[f64], q: f64) -> f64 {
-    let mut v: Vec<f64> = values.iter().copied().filter(|x| x.is_finite()).collect();
-    if v.is_empty() {
-        return f64::NAN;
-    }
-    v.sort_by(f64::total_cmp);
-    let pos = q.clamp(0.0, 1.0) * (v.len() - 1) as f64;
-    let (i, w) = (pos.floor() as usize, pos - pos.floor());
-    if i + 1 < v.len() {
-        v[i] + w * (v[i + 1] - v[i])
-    } else {
-        v[i]
-    }
-}
-
 /// A JSON number, or `null` for NaN and infinities (JSON has neither).
 pub(crate) fn num(v: f64) -> serde_json::Value {
     if v.is_finite() {
@@ -462,9 +446,6 @@ mod tests {
     #[test]
     fn helpers() {
         assert_eq!(linspace(0.0, 1.0, 3), vec![0.0, 0.5, 1.0]);
-        assert!((quantile(&[3.0, 1.0, 2.0, f64::NAN], 0.5) - 2.0).abs() < 1e-15);
-        assert!((quantile(&[0.0, 10.0], 0.2) - 2.0).abs() < 1e-12);
-        assert!(quantile(&[], 0.5).is_nan());
         assert_eq!(num(f64::INFINITY), serde_json::Value::Null);
         let err = run(
             "nope",

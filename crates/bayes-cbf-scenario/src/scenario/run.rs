@@ -4,6 +4,7 @@
 use super::build::{build, Built};
 use super::Scenario;
 use crate::error::{Context, Result};
+use crate::stats::quantile;
 use bayes_cbf::control::{TriggerReport, TriggerSettings};
 use bayes_cbf::sim::{ClosedLoop, LoopResult, Monitor, StepStatus};
 use serde::{Deserialize, Serialize};
@@ -27,7 +28,7 @@ pub struct RunOutput {
 pub struct Percentiles {
     /// Median.
     pub p50: f64,
-    /// 99th percentile (nearest rank).
+    /// 99th percentile.
     pub p99: f64,
     /// Maximum.
     pub max: f64,
@@ -36,7 +37,7 @@ pub struct Percentiles {
 /// Median, mean, minimum and maximum of the finite values of a series.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct Stats {
-    /// Median (nearest rank).
+    /// Median.
     pub median: f64,
     /// Mean.
     pub mean: f64,
@@ -153,14 +154,6 @@ pub struct TriggerSummary {
     pub clamped_to_tau_max: usize,
 }
 
-fn percentile(sorted: &[f64], q: f64) -> f64 {
-    if sorted.is_empty() {
-        return f64::NAN;
-    }
-    let i = ((sorted.len() - 1) as f64 * q).round() as usize;
-    sorted[i.min(sorted.len() - 1)]
-}
-
 /// Runs `scenario`; `progress(k, steps)` is called after each step.
 pub fn run_scenario(
     scenario: &Scenario,
@@ -200,8 +193,7 @@ pub fn run_scenario(
 }
 
 fn summarise(s: &Scenario, built: &Built, r: &LoopResult, wall: f64) -> RunSummary {
-    let mut us: Vec<f64> = r.records.iter().map(|x| x.control_us).collect();
-    us.sort_by(|a, b| a.total_cmp(b));
+    let us: Vec<f64> = r.records.iter().map(|x| x.control_us).collect();
     let min_obstacle = r.min_monitor.iter().cloned().fold(f64::INFINITY, f64::min);
     let min_obstacle = if built.obstacles.is_empty() {
         None
@@ -252,9 +244,9 @@ fn summarise(s: &Scenario, built: &Built, r: &LoopResult, wall: f64) -> RunSumma
             .as_ref()
             .map(|ts| trigger_summary(ts, r)),
         control_step_us: Percentiles {
-            p50: percentile(&us, 0.5),
-            p99: percentile(&us, 0.99),
-            max: us.last().copied().unwrap_or(f64::NAN),
+            p50: quantile(&us, 0.5),
+            p99: quantile(&us, 0.99),
+            max: us.iter().copied().fold(f64::NAN, f64::max),
         },
         probability: s.controller.probability,
         refits: r.records.iter().filter(|x| x.refit).count(),
@@ -274,12 +266,11 @@ fn stats(mut v: Vec<f64>) -> Option<Stats> {
     if v.is_empty() {
         return None;
     }
-    v.sort_by(|a, b| a.total_cmp(b));
     Some(Stats {
-        median: percentile(&v, 0.5),
+        median: quantile(&v, 0.5),
         mean: v.iter().sum::<f64>() / v.len() as f64,
-        min: v[0],
-        max: v[v.len() - 1],
+        min: v.iter().copied().fold(f64::INFINITY, f64::min),
+        max: v.iter().copied().fold(f64::NEG_INFINITY, f64::max),
     })
 }
 

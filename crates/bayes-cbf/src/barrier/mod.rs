@@ -9,11 +9,13 @@
 
 mod builtins;
 mod clf;
+mod condition;
 mod moments;
 mod monte_carlo;
 
 pub use builtins::{CircleHeading, Disc, HalfSpace, PendulumSector};
 pub use clf::{AckermannClf, DynLyapunov, Lyapunov};
+pub use condition::true_condition;
 pub use moments::{cbc_moments, clc_moments, quantile_factor, ConditionMoments, MomentWorkspace};
 pub use monte_carlo::{mc_cbc_moments, McMoments, McSettings};
 

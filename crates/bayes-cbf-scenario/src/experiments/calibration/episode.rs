@@ -20,7 +20,8 @@
 //! for the Gaussian factor (Cantelli's is a bound for any distribution).
 
 use bayes_cbf::barrier::{
-    cbc_moments, CircleHeading, ConditionMoments, DynBarrier, MomentWorkspace, PendulumSector,
+    cbc_moments, true_condition, CircleHeading, ConditionMoments, DynBarrier, MomentWorkspace,
+    PendulumSector,
 };
 use bayes_cbf::control::{Fallback, SafetyController, SafetySettings};
 use bayes_cbf::gp::{Feature, InputMap, Mvgp, MvgpHyper, PriorMean, Rbf};
@@ -35,6 +36,7 @@ use std::f64::consts::PI;
 use std::sync::Arc;
 
 use crate::error::{Context, Result};
+use crate::stats::normal_cdf;
 
 /// Random Fourier features per entry of a GP-prior truth.
 pub(crate) const FEATURES: usize = 128;
@@ -437,66 +439,15 @@ pub(crate) struct EpisodeStats {
     pub error: Option<String>,
 }
 
-/// `∇h(x)` by central differences (step 1e-6; the barriers are smooth and
-/// O(1), so the error is ~1e-10, far below the conditions' scale).
-fn grad_h(b: &dyn DynBarrier, x: &[f64]) -> Vec<f64> {
-    let eps = 1e-6;
-    let mut xp = x.to_vec();
-    (0..x.len())
-        .map(|j| {
-            xp[j] = x[j] + eps;
-            let a = b.value(&xp);
-            xp[j] = x[j] - eps;
-            let c = b.value(&xp);
-            xp[j] = x[j];
-            (a - c) / (2.0 * eps)
-        })
-        .collect()
-}
-
-/// `L_f h(x) = ∇h(x)ᵀ f(x)` with the true `f` (`fbuf` holds `vec F`).
-fn lie_f(truth: &dyn DynSystem, b: &dyn DynBarrier, x: &[f64], fbuf: &mut [f64]) -> f64 {
-    truth.eval_f64(x, fbuf);
-    grad_h(b, x)
-        .iter()
-        .zip(fbuf.iter())
-        .map(|(g, f)| g * f)
-        .sum()
-}
-
-/// The true barrier condition at `(x, u)` (module docs).
-pub(crate) fn true_condition(
+/// The true barrier condition at `(x, u)`: [`true_condition`] by automatic
+/// differentiation of `h` and the true dynamics.
+pub(crate) fn condition(
     truth: &dyn DynSystem,
     b: &dyn DynBarrier,
     x: &[f64],
     u: &[f64],
-) -> f64 {
-    let n = x.len();
-    let mut fbuf = vec![0.0; n * (1 + u.len())];
-    let mut xdot = vec![0.0; n];
-    truth.xdot(x, u, &mut fbuf, &mut xdot);
-    let h = b.value(x);
-    let grad = grad_h(b, x);
-    let gains = b.class_k();
-    if b.degree() <= 1 {
-        let hdot: f64 = (0..n).map(|i| grad[i] * xdot[i]).sum();
-        return hdot + gains[0] * h;
-    }
-    // ∇(L_f h) by central differences of L_f h (step 1e-4 over the inner
-    // 1e-6 differences: error ~1e-6)
-    let eps = 1e-4;
-    let lf = lie_f(truth, b, x, &mut fbuf);
-    let mut xp = x.to_vec();
-    let mut ddh = 0.0;
-    for j in 0..n {
-        xp[j] = x[j] + eps;
-        let a = lie_f(truth, b, &xp, &mut fbuf);
-        xp[j] = x[j] - eps;
-        let c = lie_f(truth, b, &xp, &mut fbuf);
-        xp[j] = x[j];
-        ddh += (a - c) / (2.0 * eps) * xdot[j];
-    }
-    ddh + gains[0] * h + gains[1] * lf
+) -> Result<f64> {
+    Ok(true_condition(truth, b, x, u)?)
 }
 
 /// Runs one episode with controller `kind` and summarises it.
@@ -633,28 +584,6 @@ impl ZStats {
     }
 }
 
-/// The standard normal distribution function, by the complementary error
-/// function of Numerical Recipes (`erfc`, Chebyshev fit, relative error
-/// < 1.2e-7).
-pub(crate) fn normal_cdf(x: f64) -> f64 {
-    let z = x.abs() / std::f64::consts::SQRT_2;
-    let t = 1.0 / (1.0 + 0.5 * z);
-    let poly = -z * z - 1.265_512_23
-        + t * (1.000_023_68
-            + t * (0.374_091_96
-                + t * (0.096_784_18
-                    + t * (-0.186_288_06
-                        + t * (0.278_868_07
-                            + t * (-1.135_203_98
-                                + t * (1.488_515_87 + t * (-0.822_152_23 + t * 0.170_872_77))))))));
-    let erfc = t * poly.exp();
-    if x >= 0.0 {
-        1.0 - 0.5 * erfc
-    } else {
-        0.5 * erfc
-    }
-}
-
 fn summarise(system: System, s: &Setup, r: &LoopResult, moments: &[(f64, f64)]) -> EpisodeStats {
     let b = s.barrier.as_ref();
     let mut st = EpisodeStats {
@@ -675,7 +604,9 @@ fn summarise(system: System, s: &Setup, r: &LoopResult, moments: &[(f64, f64)]) 
             continue;
         }
         st.solved_steps += 1;
-        let c = true_condition(s.truth.as_ref(), b, &rec.x, &rec.u);
+        let Ok(c) = condition(s.truth.as_ref(), b, &rec.x, &rec.u) else {
+            continue;
+        };
         let violated = c < 0.0;
         st.cbc_violations += violated as usize;
         let active = rec.scbc.first().is_some_and(|&sl| sl <= ACTIVE_SLACK);
@@ -744,27 +675,12 @@ mod tests {
                 ws.update(&model, &x, s.barrier.degree()).unwrap();
                 cbc_moments(&mut ws, s.barrier.as_ref(), &mut mom).unwrap();
                 let want = mom.mean(&u);
-                let got = true_condition(truth.as_ref(), s.barrier.as_ref(), &x, &u);
+                let got = condition(truth.as_ref(), s.barrier.as_ref(), &x, &u).unwrap();
                 assert!(
                     (got - want).abs() < 1e-5 * (1.0 + want.abs()),
                     "{system:?} at {x:?}, {u:?}: {got} vs {want}"
                 );
             }
-        }
-    }
-
-    #[test]
-    fn normal_cdf_values() {
-        for (x, want) in [
-            (0.0, 0.5),
-            (-1.281_551_565_5, 0.1),
-            (-3.090_232_306, 0.001),
-            (2.0, 0.977_249_868),
-        ] {
-            assert!(
-                (normal_cdf(x) - want).abs() < 2e-7 * want.max(1e-3) * 10.0,
-                "{x}"
-            );
         }
     }
 }

@@ -2,9 +2,12 @@
 //! calibration report.
 
 use serde_json::{json, Value};
+use statrs::distribution::{Binomial, DiscreteCDF};
 
-/// `z` of a two-sided 95 % interval.
-const Z95: f64 = 1.959_963_984_540_054;
+/// `z` of a two-sided 95 % interval, `Φ⁻¹(0.975)`.
+fn z95() -> f64 {
+    crate::stats::normal_quantile(0.975)
+}
 
 /// The Wilson score interval for `k` successes in `n` trials at 95 %:
 /// `(p̂ + z²/2n ± z √(p̂(1 − p̂)/n + z²/4n²)) / (1 + z²/n)`.
@@ -18,10 +21,11 @@ pub(crate) fn wilson(k: usize, n: usize) -> (f64, f64) {
     }
     let (kf, nf) = (k as f64, n as f64);
     let p = kf / nf;
-    let z2 = Z95 * Z95;
+    let z = z95();
+    let z2 = z * z;
     let denom = 1.0 + z2 / nf;
     let centre = (p + z2 / (2.0 * nf)) / denom;
-    let half = Z95 * (p * (1.0 - p) / nf + z2 / (4.0 * nf * nf)).sqrt() / denom;
+    let half = z * (p * (1.0 - p) / nf + z2 / (4.0 * nf * nf)).sqrt() / denom;
     // exact ends at k = 0 and k = n (the formula leaves roundoff there)
     let lo = if k == 0 {
         0.0
@@ -54,7 +58,7 @@ pub(crate) fn cluster_interval(counts: &[(usize, usize)]) -> Option<(f64, f64)> 
     let r = used.iter().map(|(k, _)| k).sum::<f64>() / total;
     let ss: f64 = used.iter().map(|(k, n)| (k - r * n).powi(2)).sum();
     let se = (e / (e - 1.0) * ss).sqrt() / total;
-    Some(((r - Z95 * se).max(0.0), (r + Z95 * se).min(1.0)))
+    Some(((r - z95() * se).max(0.0), (r + z95() * se).min(1.0)))
 }
 
 /// `P(X ≥ k)` for `X ~ Binomial(n, ½)`: the one-sided exact sign
@@ -66,18 +70,10 @@ pub(crate) fn sign_test_p(k: usize, n: usize) -> f64 {
     if k > n {
         return 0.0;
     }
-    // log pmf(j) = log C(n, j) − n log 2, accumulated
-    let mut logs = Vec::with_capacity(n + 1);
-    let mut lp = -(n as f64) * std::f64::consts::LN_2;
-    logs.push(lp);
-    for j in 1..=n {
-        lp += ((n - j + 1) as f64 / j as f64).ln();
-        logs.push(lp);
+    match Binomial::new(0.5, n as u64) {
+        Ok(b) => b.sf(k as u64 - 1),
+        Err(_) => f64::NAN,
     }
-    let tail = &logs[k..];
-    let max = tail.iter().cloned().fold(f64::NEG_INFINITY, f64::max);
-    let s: f64 = tail.iter().map(|l| (l - max).exp()).sum();
-    (max + s.ln()).exp().min(1.0)
 }
 
 /// `{"count", "of", "rate", "ci95"}` of a binomial proportion (Wilson).
