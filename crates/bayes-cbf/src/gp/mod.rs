@@ -12,6 +12,7 @@ mod low_rank;
 pub mod metrics;
 mod model;
 mod mvgp;
+mod optimise;
 mod prior;
 mod training;
 
