@@ -16,6 +16,7 @@
 
 use super::kernel::Kernel;
 use super::mvgp::Mvgp;
+use super::simd::with_faer;
 use crate::error::InputError;
 use faer::Mat;
 use nalgebra::DMatrix;
@@ -181,23 +182,24 @@ impl<K: Kernel> Mvgp<K> {
             }
         }
         let mut v = ws.omega.as_mut().submatrix_mut(0, 0, k, pp);
-        self.factor().solve_l_in_place(v.as_mut());
+        self.factor().solve_l(v.as_mut());
         let v = v.as_ref();
-        let beta = self.beta();
-        for q in 0..pp {
-            let vq = v.col(q);
-            for i in 0..n {
-                out.mean[(i, q)] += beta.col(i).subrows(0, k).transpose() * vq;
-            }
-            for q2 in 0..=q {
-                let s = v.col(q2).transpose() * vq;
-                out.c[(q2, q)] -= s;
-                if q2 != q {
-                    out.c[(q, q2)] -= s;
+        let beta = self.beta_mat();
+        with_faer(|| {
+            for q in 0..pp {
+                let vq = v.col(q);
+                for i in 0..n {
+                    out.mean[(i, q)] += beta.col(i).subrows(0, k).transpose() * vq;
+                }
+                for q2 in 0..=q {
+                    let s = v.col(q2).transpose() * vq;
+                    out.c[(q2, q)] -= s;
+                    if q2 != q {
+                        out.c[(q, q2)] -= s;
+                    }
                 }
             }
-        }
-        super::factor::clear_simd_state();
+        });
         Ok(())
     }
 

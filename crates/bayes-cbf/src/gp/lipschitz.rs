@@ -72,7 +72,6 @@
 //! (`N^{|C|}` nodes, one `k × n` triangular solve each); the prior mean's
 //! Jacobian on the full `N^n` grid.
 
-use super::factor::clear_simd_state;
 use super::input_map::{Feature, InputMap};
 use super::kernel::{Kernel, Rbf};
 use super::mvgp::Mvgp;
@@ -617,7 +616,7 @@ impl Mvgp<Rbf> {
             }
             let mut jac_gp = vec![vec![0.0; n * n]; chunk.len()];
             if k > 0 {
-                let alpha = self.alpha();
+                let alpha = self.alpha_mat();
                 for (q, jg) in jac_gp.iter_mut().enumerate() {
                     for i in 0..n {
                         for c in 0..n {
@@ -626,8 +625,7 @@ impl Mvgp<Rbf> {
                         }
                     }
                 }
-                self.factor().solve_l_in_place(dw.as_mut());
-                clear_simd_state();
+                self.factor().solve_l(dw.as_mut());
             }
             for (q, (mut h, jg)) in prior_h.into_iter().zip(jac_gp).enumerate() {
                 if k > 0 {

@@ -26,6 +26,7 @@ use super::mvgp::{Mvgp, MvgpHyper};
 use super::optimise::{
     multi_start, perturb, EvalFailure, Evaluation, Harness, Objective, RunSettings, StartPlan,
 };
+use super::simd::with_faer;
 use crate::error::{Error, GpError, InputError};
 use faer::Mat;
 use nalgebra::DMatrix;
@@ -251,11 +252,11 @@ impl<K: Kernel> Objective for Likelihood<'_, K> {
             .map_err(|_| EvalFailure::NotPositiveDefinite)?;
         // α = G⁻¹ Rᵀ, S = G⁻¹
         let mut alpha = Mat::<f64>::from_fn(k, n, |j, i| self.resid[j * n + i]);
-        factor.solve_l_in_place(alpha.as_mut());
-        let beta = alpha.clone();
-        factor.solve_lt_in_place(alpha.as_mut());
-        let s = factor.inverse();
-        let qf = beta.transpose() * &beta;
+        factor.solve_l(alpha.as_mut());
+        let beta = with_faer(|| alpha.clone());
+        factor.solve_lt(alpha.as_mut());
+        let s = factor.inverse_mat();
+        let qf = with_faer(|| beta.transpose() * &beta);
         let Q = DMatrix::from_fn(n, n, |i, j| qf[(i, j)]);
         let chol_a = A
             .clone()
@@ -273,9 +274,7 @@ impl<K: Kernel> Objective for Likelihood<'_, K> {
         }
         // Ḡ = −½ (n S − α A⁻¹ αᵀ)
         let ainv_f = Mat::<f64>::from_fn(n, n, |i, j| Ainv[(i, j)]);
-        let aa = &alpha * &ainv_f;
-        let mut gbar = &aa * alpha.transpose();
-        super::factor::clear_simd_state();
+        let mut gbar = with_faer(|| &(&alpha * &ainv_f) * alpha.transpose());
         for j in 0..k {
             for i in 0..k {
                 gbar[(i, j)] = -0.5 * (n as f64 * s[(i, j)] - gbar[(i, j)]);
