@@ -523,35 +523,49 @@ impl SafetyFilter {
         })
     }
 
-    /// Dense `(A, b, P, q)`, cones, primal slack `s` and dual `z` of the
-    /// last control SOCP, for KKT verification.
-    #[doc(hidden)]
-    #[allow(clippy::type_complexity)]
-    pub fn kkt_data(
-        &self,
-    ) -> (
-        DMatrix<f64>,
-        Vec<f64>,
-        DMatrix<f64>,
-        Vec<f64>,
-        Vec<clarabel::solver::SupportedConeT<f64>>,
-        Vec<f64>,
-        Vec<f64>,
-        Vec<f64>,
-    ) {
+    /// The last control SOCP with its solution, for verifying the KKT
+    /// conditions (see [`KktData`]).
+    pub fn kkt_data(&self) -> KktData {
         let (a, b, p, q) = self.program.dense();
         let (s, z) = self.program.duals();
-        (
+        KktData {
             a,
             b,
             p,
             q,
-            self.program.cones().to_vec(),
-            self.program.x().to_vec(),
-            s.to_vec(),
-            z.to_vec(),
-        )
+            cones: self.program.cones().to_vec(),
+            x: self.program.x().to_vec(),
+            s: s.to_vec(),
+            z: z.to_vec(),
+        }
     }
+}
+
+/// A solved cone program in Clarabel's standard form,
+/// `min ½ xᵀPx + qᵀx` subject to `Ax + s = b`, `s ∈ K`, with its primal
+/// solution `x`, slack `s` and dual `z`. At an optimum the KKT conditions
+/// read `s = b − Ax ∈ K`, `z ∈ K*`, `Px + q + Aᵀz = 0` and `sᵀz = 0`.
+///
+/// Returned by [`SafetyFilter::kkt_data`] for the last control SOCP: `x` is
+/// `[u; δ]` (`δ` only with a CLF), the rows of `A` follow `cones`.
+#[derive(Debug, Clone, PartialEq)]
+pub struct KktData {
+    /// Constraint matrix `A` (dense).
+    pub a: DMatrix<f64>,
+    /// Constraint offset `b`.
+    pub b: Vec<f64>,
+    /// Quadratic cost `P` (dense, symmetric).
+    pub p: DMatrix<f64>,
+    /// Linear cost `q`.
+    pub q: Vec<f64>,
+    /// The cones `K`, in the row order of `A`.
+    pub cones: Vec<clarabel::solver::SupportedConeT<f64>>,
+    /// Primal solution `x`.
+    pub x: Vec<f64>,
+    /// Primal slack `s = b − Ax`.
+    pub s: Vec<f64>,
+    /// Dual solution `z`.
+    pub z: Vec<f64>,
 }
 
 /// A complete safety controller: posterior at `x`, moments of every barrier
