@@ -573,6 +573,8 @@ pub struct KktData {
 pub struct SafetyController {
     barriers: Vec<Arc<dyn DynBarrier>>,
     clf: Option<Arc<dyn DynLyapunov>>,
+    /// `n` zeros: the CLF reference `(x_d, ẋ_d)` when none is given.
+    zero_reference: Vec<f64>,
     filter: SafetyFilter,
     ws: Option<MomentWorkspace>,
     cbcs: Vec<ConditionMoments>,
@@ -627,6 +629,7 @@ impl SafetyController {
         Ok(Self {
             barriers,
             clf,
+            zero_reference: vec![0.0; n],
             filter,
             ws: None,
             cbcs: vec![ConditionMoments::zeros(m); nb],
@@ -698,9 +701,8 @@ impl SafetyController {
         self.steps += 1;
         let clc = match &self.clf {
             Some(c) => {
-                let n = x.len();
-                let zeros = [0.0; 16];
-                let (xd, xdd) = reference.unwrap_or((&zeros[..n.min(16)], &zeros[..n.min(16)]));
+                let zeros = self.zero_reference.as_slice();
+                let (xd, xdd) = reference.unwrap_or((zeros, zeros));
                 clc_moments(ws, c.as_ref(), xd, xdd, &mut self.clc)?;
                 Some(&self.clc)
             }
