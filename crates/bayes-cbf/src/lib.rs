@@ -25,6 +25,7 @@
 //! not positive definite, Gram matrices that cannot be factorised even after
 //! bounded jitter ([`error::GpError`]). Factorisations are never `.expect()`ed.
 
+#![warn(missing_docs)]
 // Index loops mirror the subscripts of the maths in the docs.
 #![allow(clippy::needless_range_loop)]
 
