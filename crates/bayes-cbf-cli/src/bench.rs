@@ -1,11 +1,9 @@
 //! `bayes-cbf bench`: timings of the real workloads as JSON
 //! ([`bayes_cbf_scenario::bench`]).
 
-use anyhow::{Context, Result};
+use anyhow::Result;
 use bayes_cbf_scenario::bench::run_bench as measure;
-use bayes_cbf_scenario::io::write_json;
 use clap::Args;
-use std::io::Write;
 use std::path::PathBuf;
 
 /// Arguments of `bayes-cbf bench`.
@@ -25,15 +23,5 @@ pub struct BenchArgs {
 /// Runs `bayes-cbf bench`.
 pub fn run_bench(a: &BenchArgs) -> Result<()> {
     let result = measure(a.quick, a.threads, &|stage| eprintln!("bench: {stage}"))?;
-    match &a.out {
-        Some(p) => Ok(write_json(p, &result)?),
-        None => {
-            let mut text = serde_json::to_string_pretty(&result)?;
-            text.push('\n');
-            std::io::stdout()
-                .lock()
-                .write_all(text.as_bytes())
-                .context("cannot write to stdout")
-        }
-    }
+    crate::output::emit(&result, &a.out, true)
 }

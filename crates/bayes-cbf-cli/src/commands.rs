@@ -12,7 +12,6 @@ use bayes_cbf_scenario::prior_spec::PriorSpec;
 use clap::Args;
 use nalgebra::DMatrix;
 use serde::Serialize;
-use std::io::Write;
 use std::path::PathBuf;
 use std::time::Instant;
 
@@ -199,7 +198,7 @@ pub fn run_predict(a: &PredictArgs) -> Result<()> {
     let model = file
         .to_model()
         .with_context(|| format!("model file '{}'", a.model.display()))?;
-    let n = model.n();
+    let n = model.state_dim();
     let mut predictions = Vec::with_capacity(a.xs.len());
     for (q, s) in a.xs.iter().enumerate() {
         let name = if a.xs.len() == 1 {
@@ -222,16 +221,5 @@ pub fn run_predict(a: &PredictArgs) -> Result<()> {
             A: rows(&model.hyper().A),
         });
     }
-    let mut json = serde_json::to_string(&Predictions { predictions })
-        .context("cannot serialise predictions")?;
-    json.push('\n');
-    match &a.out {
-        Some(p) => Ok(write_atomic(p, json.as_bytes())?),
-        None => {
-            let mut out = std::io::stdout().lock();
-            out.write_all(json.as_bytes())
-                .and_then(|()| out.flush())
-                .context("cannot write to stdout")
-        }
-    }
+    crate::output::emit(&Predictions { predictions }, &a.out, false)
 }

@@ -9,6 +9,7 @@ mod bench;
 mod commands;
 mod demo;
 mod logger;
+mod output;
 mod run_cmd;
 mod safety_cmds;
 

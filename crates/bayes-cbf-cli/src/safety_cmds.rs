@@ -8,12 +8,10 @@ use bayes_cbf::control::{
     ControlOutput, ControlStatus, Fallback, SafetyController, SafetySettings,
 };
 use bayes_cbf_scenario::barrier_file::BarrierSpec;
-use bayes_cbf_scenario::io::write_atomic;
 use bayes_cbf_scenario::model_file::ModelFile;
 use bayes_cbf_scenario::parse::parse_vector;
 use clap::Args;
 use serde::Serialize;
-use std::io::Write;
 use std::path::PathBuf;
 
 /// Arguments of `bayes-cbf moments`.
@@ -81,17 +79,7 @@ pub struct ControlArgs {
 }
 
 fn emit<T: Serialize>(value: &T, out: &Option<PathBuf>) -> Result<()> {
-    let mut json = serde_json::to_string(value).context("cannot serialise output")?;
-    json.push('\n');
-    match out {
-        Some(p) => Ok(write_atomic(p, json.as_bytes())?),
-        None => {
-            let mut o = std::io::stdout().lock();
-            o.write_all(json.as_bytes())
-                .and_then(|()| o.flush())
-                .context("cannot write to stdout")
-        }
-    }
+    crate::output::emit(value, out, false)
 }
 
 fn vector_of_len(name: &str, s: &str, len: usize, what: &str) -> Result<Vec<f64>> {
@@ -129,20 +117,21 @@ pub fn run_moments(a: &MomentsArgs) -> Result<()> {
         .to_model()
         .with_context(|| format!("model file '{}'", a.model.display()))?;
     let (_, barrier) = BarrierSpec::load(&a.barrier)?;
-    let (n, m) = (model.n(), model.m());
-    if barrier.dim() != n {
+    let (n, m) = (model.state_dim(), model.control_dim());
+    if barrier.state_dim() != n {
         bail!(
             "barrier '{}' is for state dimension {}, but the model's state_dim is {n}",
             a.barrier.display(),
-            barrier.dim()
+            barrier.state_dim()
         );
     }
     let x = vector_of_len("--x", &a.x, n, "state_dim")?;
     let u = vector_of_len("--u", &a.u, m, "control_dim")?;
     let label = format!("barrier '{}'", a.barrier.display());
-    let (mom, method, samples, mean_se, variance_se) = if barrier.degree() <= 2 {
+    let (mom, method, samples, mean_se, variance_se) = if barrier.relative_degree() <= 2 {
         let mut ws = MomentWorkspace::new(&model);
-        ws.update(&model, &x, barrier.degree()).context("--x")?;
+        ws.update(&model, &x, barrier.relative_degree())
+            .context("--x")?;
         let mut mom = ConditionMoments::zeros(m);
         cbc_moments(&mut ws, barrier.as_ref(), &mut mom).with_context(|| label.clone())?;
         (mom, "exact", None, None, None)
@@ -219,15 +208,15 @@ pub fn run_control(a: &ControlArgs) -> Result<()> {
     let model = ModelFile::load(&a.model)?
         .to_model()
         .with_context(|| format!("model file '{}'", a.model.display()))?;
-    let (n, m) = (model.n(), model.m());
+    let (n, m) = (model.state_dim(), model.control_dim());
     let mut barriers = Vec::new();
     for path in &a.barriers {
         let (_, b) = BarrierSpec::load(path)?;
-        if b.dim() != n {
+        if b.state_dim() != n {
             bail!(
                 "barrier '{}' is for state dimension {}, but the model's state_dim is {n}",
                 path.display(),
-                b.dim()
+                b.state_dim()
             );
         }
         barriers.push(b);
@@ -251,14 +240,14 @@ pub fn run_control(a: &ControlArgs) -> Result<()> {
         .map(|s| vector_of_len("--u-max", s, m, "control_dim"))
         .transpose()?;
     settings.fallback = Fallback::parse(&a.fallback).context("--fallback")?;
-    if a.probability < 0.5 && barriers.iter().any(|b| b.degree() == 1) {
+    if a.probability < 0.5 && barriers.iter().any(|b| b.relative_degree() == 1) {
         bail!(
             "--probability = {}: must be ≥ 0.5 with relative-degree-1 barriers",
             a.probability
         );
     }
     let labels: Vec<String> = a.barriers.iter().map(|p| p.display().to_string()).collect();
-    let degrees: Vec<usize> = barriers.iter().map(|b| b.degree()).collect();
+    let degrees: Vec<usize> = barriers.iter().map(|b| b.relative_degree()).collect();
     let mut ctrl = SafetyController::new(n, m, barriers, None, settings)
         .map_err(anyhow::Error::from)
         .map_err(|e| fix_field(e, "--"))?;

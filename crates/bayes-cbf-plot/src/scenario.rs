@@ -16,7 +16,7 @@ pub fn write_figures(out: &RunOutput, dir: &Path) -> Result<Vec<PathBuf>> {
     }
     // figures by the system's shape: the pendulum (n = 2, m = 1) and the
     // Ackermann vehicle (n = 3, m = 2); other systems get summary and CSV only
-    match (out.built.truth.n(), out.built.truth.m()) {
+    match (out.built.truth.state_dim(), out.built.truth.control_dim()) {
         (2, 1) => files.push(pendulum(out, dir)?),
         (3, 2) => {
             files.push(vehicle_map(out, dir)?);
@@ -174,7 +174,7 @@ fn scbc_grid(out: &RunOutput, theta: f64, u: &[f64], xs: &[f64], ys: &[f64]) -> 
     let p = out.scenario.controller.probability;
     let zeta = out.scenario.controller.zeta;
     let mut ws = MomentWorkspace::new(model);
-    let mut mom = ConditionMoments::zeros(model.m());
+    let mut mom = ConditionMoments::zeros(model.control_dim());
     let mut vals = Vec::with_capacity(xs.len() * ys.len());
     for &y in ys {
         for &x in xs {
@@ -183,7 +183,7 @@ fn scbc_grid(out: &RunOutput, theta: f64, u: &[f64], xs: &[f64], ys: &[f64]) -> 
             if ws.update(model, &state, 2).is_ok() {
                 for b in &out.built.barriers {
                     if cbc_moments(&mut ws, b.as_ref(), &mut mom).is_ok() {
-                        let c = quantile_factor(p.max(0.5), b.degree()).unwrap_or(0.0);
+                        let c = quantile_factor(p.max(0.5), b.relative_degree()).unwrap_or(0.0);
                         best = best.min(mom.mean(u) - zeta - c * mom.variance(u).sqrt());
                     }
                 }

@@ -48,7 +48,7 @@ fn control_row(
     reps: usize,
     w: &mut ControlWorkload,
 ) -> Result<Value> {
-    let m = w.model.m();
+    let m = w.model.control_dim();
     let mut out = ControlOutput::new(m, 2);
     let r = w.reference.clone();
     let mut x = w.x.clone();
@@ -72,12 +72,12 @@ fn control_row(
 }
 
 fn floor_row(model: &Mvgp, k: usize, reps: usize) -> Value {
-    let mut rhs = faer::Mat::<f64>::zeros(k, 1);
+    let mut rhs = nalgebra::DMatrix::<f64>::zeros(k, 1);
     let (p50, _) = time_us(reps, |i| {
         for j in 0..k {
             rhs[(j, 0)] = ((i + j) % 7) as f64;
         }
-        model.factor().solve_l_in_place(rhs.as_mut());
+        model.factor().solve_l_in_place(&mut rhs);
     });
     json!({"case": "floor", "k": k, "p50_us": p50})
 }

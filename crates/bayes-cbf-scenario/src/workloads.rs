@@ -109,7 +109,7 @@ fn from_builtin(name: &str, k: usize, data: Dataset) -> Result<ControlWorkload> 
         model,
         controller: built.controller,
         x: sc.start.clone(),
-        u_ref: vec![0.0; built.truth.m()],
+        u_ref: vec![0.0; built.truth.control_dim()],
         reference: None,
         extra: data.slice(k..data.len()),
     })

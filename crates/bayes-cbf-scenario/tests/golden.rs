@@ -137,3 +137,30 @@ fn every_experiment_reproduces_its_summary() {
     }
     assert!(failures.is_empty(), "{failures:#?}");
 }
+
+/// The core's settings and hyperparameters round-trip through serde (its
+/// `serde` feature, enabled by this crate).
+#[test]
+fn core_settings_round_trip_through_serde() {
+    use bayes_cbf::control::{SafetySettings, TriggerSettings};
+    use bayes_cbf::sim::{DataPolicy, LoopSettings};
+    let loop_settings = LoopSettings {
+        data: DataPolicy::Budget(200),
+        trigger: Some(TriggerSettings::new(vec![0.2, 0.2, 0.1])),
+        ..LoopSettings::default()
+    };
+    let text = serde_json::to_string(&loop_settings).unwrap();
+    let back: LoopSettings = serde_json::from_str(&text).unwrap();
+    assert_eq!(back, loop_settings);
+    let (sc, _) = scenario::load("ackermann-bayes-cbf", &[]).unwrap();
+    let built = scenario::build(&sc).unwrap();
+    let hyper = built.model.hyper().clone();
+    let back: bayes_cbf::gp::MvgpHyper =
+        serde_json::from_str(&serde_json::to_string(&hyper).unwrap()).unwrap();
+    assert_eq!(back, hyper);
+    let mut safety = SafetySettings::new(2);
+    safety.u_min = Some(vec![-1.0, -2.0]);
+    let back: SafetySettings =
+        serde_json::from_str(&serde_json::to_string(&safety).unwrap()).unwrap();
+    assert_eq!(back, safety);
+}

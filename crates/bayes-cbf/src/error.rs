@@ -1,4 +1,4 @@
-//! Error types, one enum per layer, joined into [`Error`] with `#[from]`.
+//! Error types, one enum per layer, joined into [`Error`](enum@Error) with `#[from]`.
 
 use thiserror::Error;
 

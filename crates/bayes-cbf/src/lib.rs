@@ -13,6 +13,7 @@
 //!   learning, the joint posterior of `F` and its Jacobian, error metrics.
 //! - [`barrier`]: barrier and Lyapunov functions and the moments of their
 //!   conditions (exact for relative degree 1 and 2, Monte Carlo beyond).
+//! - [`autodiff`]: seeding dual numbers for derivatives of user functions.
 //! - [`control`]: the chance-constrained SOCP safety filter (Clarabel),
 //!   infeasibility outcomes and fallbacks.
 //!
@@ -24,9 +25,11 @@
 //! not positive definite, Gram matrices that cannot be factorised even after
 //! bounded jitter ([`error::GpError`]). Factorisations are never `.expect()`ed.
 
+#![warn(missing_docs)]
 // Index loops mirror the subscripts of the maths in the docs.
 #![allow(clippy::needless_range_loop)]
 
+pub mod autodiff;
 pub mod barrier;
 pub mod control;
 pub mod error;

@@ -36,8 +36,8 @@ fn check_moments(
     mean0: &dyn DynSystem,
     points: &[Vec<f64>],
 ) {
-    let n = mean0.n();
-    let p = mean0.m() + 1;
+    let n = mean0.state_dim();
+    let p = mean0.control_dim() + 1;
     let np = n * p;
     // samples[point][entry][draw]
     let mut samples = vec![vec![Vec::with_capacity(DRAWS); np]; points.len()];

@@ -25,10 +25,10 @@ struct Table {
 }
 
 impl DynamicsModel for Table {
-    fn n(&self) -> usize {
+    fn state_dim(&self) -> usize {
         self.n
     }
-    fn m(&self) -> usize {
+    fn control_dim(&self) -> usize {
         self.m
     }
     fn len(&self) -> usize {

@@ -77,7 +77,7 @@ fn monte_carlo(
     mut f: impl FnMut(&DMatrix<f64>) -> f64,
 ) -> (f64, f64, f64, f64) {
     let joint = model.joint_posterior(x).unwrap();
-    let n = model.n();
+    let n = model.state_dim();
     let pp = joint.c.ncols();
     let cov = joint.c.kronecker(&model.hyper().A);
     let dim = cov.nrows();
@@ -142,15 +142,15 @@ fn cbc_direct(
 }
 
 fn check_against_mc(model: &Mvgp, barrier: &dyn DynBarrier, x: &[f64], u: &[f64], seed: u64) {
-    let (n, p) = (model.n(), model.m() + 1);
-    let r = barrier.degree();
+    let (n, p) = (model.state_dim(), model.control_dim() + 1);
+    let r = barrier.relative_degree();
     let mut ws = MomentWorkspace::new(model);
     ws.update(model, x, r).unwrap();
-    let mut out = ConditionMoments::zeros(model.m());
+    let mut out = ConditionMoments::zeros(model.control_dim());
     cbc_moments(&mut ws, barrier, &mut out).unwrap();
     let (h, g, hess) = grad_hess(barrier, x);
     assert!((out.value - h).abs() < 1e-12);
-    let gains = barrier.class_k().to_vec();
+    let gains = barrier.gains().to_vec();
     let (mc_mean, mc_var, se_mean, se_var) = monte_carlo(model, x, 100_000, seed, |bf| {
         cbc_direct(bf, n, p, h, &g, &hess, &gains, r, u)
     });
@@ -380,4 +380,59 @@ fn autodiff_derivatives_match_finite_differences() {
         c[i] -= e;
         assert!(((clf.v(&a, &xd) - clf.v(&c, &xd)) / (2.0 * e) - gv[i]).abs() < 1e-7);
     }
+}
+
+/// Lemma 4 as printed against the exact variance of `xᵀy` for jointly
+/// Gaussian `x`, `y`: the printed `½ tr((Σxy + Σyx)²)` equals
+/// `tr(Σxy Σxy) + tr(Σxy Σyx)`, where the exact variance has
+/// `tr(Σxy Σxy) + tr(Σxx Σyy)`. Monte Carlo agrees with the exact
+/// expression, and the printed one is off by exactly
+/// `tr(Σxy Σyx) − tr(Σxx Σyy)`, many standard errors away.
+#[test]
+#[allow(non_snake_case)]
+fn lemma_4_as_printed_swaps_one_trace() {
+    let d = 3;
+    let mut rng = ChaCha8Rng::seed_from_u64(41);
+    let S = random_spd(2 * d, &mut rng);
+    let mean: Vec<f64> = (0..2 * d).map(|_| rng.random_range(-1.0..1.0)).collect();
+    let block = |r: usize, c: usize| S.view((r * d, c * d), (d, d)).into_owned();
+    let (sxx, sxy, syx, syy) = (block(0, 0), block(0, 1), block(1, 0), block(1, 1));
+    let xb = DVector::from_column_slice(&mean[..d]);
+    let yb = DVector::from_column_slice(&mean[d..]);
+    let tr = |a: &DMatrix<f64>, b: &DMatrix<f64>| (a * b).trace();
+    let mean_terms = (yb.transpose() * &sxx * &yb)[(0, 0)]
+        + (xb.transpose() * &syy * &xb)[(0, 0)]
+        + (yb.transpose() * &sxy * &xb)[(0, 0)]
+        + (xb.transpose() * &syx * &yb)[(0, 0)];
+    let exact = tr(&sxx, &syy) + tr(&sxy, &sxy) + mean_terms;
+    let sum = &sxy + &syx;
+    let printed = 0.5 * tr(&sum, &sum) + mean_terms;
+    let swap = tr(&sxy, &syx) - tr(&sxx, &syy);
+    assert!((printed - exact - swap).abs() < 1e-12 * exact.abs());
+
+    let chol = S.clone().cholesky().unwrap();
+    let draws = 200_000;
+    let products: Vec<f64> = (0..draws)
+        .map(|_| {
+            let z = DVector::from_fn(2 * d, |_, _| StandardNormal.sample(&mut rng));
+            let v = chol.l() * z;
+            (0..d)
+                .map(|i| (mean[i] + v[i]) * (mean[d + i] + v[d + i]))
+                .sum()
+        })
+        .collect();
+    let nf = draws as f64;
+    let m = products.iter().sum::<f64>() / nf;
+    let var = products.iter().map(|p| (p - m).powi(2)).sum::<f64>() / nf;
+    let m4 = products.iter().map(|p| (p - m).powi(4)).sum::<f64>() / nf;
+    // standard error of the sample variance: √((μ₄ − σ⁴)/N)
+    let se = ((m4 - var * var) / nf).sqrt();
+    assert!(
+        (var - exact).abs() < 4.0 * se,
+        "MC {var} exact {exact} ± {se}"
+    );
+    assert!(
+        (var - printed).abs() > 10.0 * se,
+        "MC {var} printed {printed} ± {se}: the swap {swap} is not visible"
+    );
 }

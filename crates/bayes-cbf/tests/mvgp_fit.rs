@@ -140,7 +140,7 @@ fn held_out_relative_rmse(
     sys: &dyn DynSystem,
     test: &bayes_cbf::sim::Dataset,
 ) -> f64 {
-    let (n, m) = (sys.n(), sys.m());
+    let (n, m) = (sys.state_dim(), sys.control_dim());
     let (mut num, mut den) = (0.0, 0.0);
     let mut fbuf = vec![0.0; n * (1 + m)];
     let mut truth = vec![0.0; n];

@@ -157,7 +157,7 @@ fn min_eig_ratio(c: &DMatrix<f64>) -> f64 {
 /// The posterior is finite and PSD at every probe and jointly over them.
 fn assert_posterior_psd(model: &Mvgp, label: &str) {
     let pts = probes();
-    let p = model.m() + 1;
+    let p = model.control_dim() + 1;
     let np = pts.len() * p;
     let mut stacked = DMatrix::zeros(np, np);
     for (a, xa) in pts.iter().enumerate() {
@@ -181,7 +181,8 @@ fn assert_posterior_psd(model: &Mvgp, label: &str) {
         }
         // F and its Jacobian jointly (relative degree 2 uses it)
         let mut ws = model.joint_workspace();
-        let mut joint = bayes_cbf::gp::JointPosterior::zeros(model.n(), model.m());
+        let mut joint =
+            bayes_cbf::gp::JointPosterior::zeros(model.state_dim(), model.control_dim());
         model.joint_posterior_into(xa, &mut ws, &mut joint).unwrap();
         assert!(
             joint
@@ -223,7 +224,7 @@ fn assert_jitter_bounded(model: &Mvgp, label: &str) -> f64 {
     let f = model.factor();
     let max_level = *JITTER_LEVELS.last().unwrap();
     // the diagonal of G: u̲ᵀ B u̲ k0(x, x) + σ²
-    let (p, s) = (model.m() + 1, model.hyper().sigma);
+    let (p, s) = (model.control_dim() + 1, model.hyper().sigma);
     let us = model.augmented_controls();
     let bu = model.bu();
     let kxx = model.hyper().kernel.value(&[0.0; 3], &[0.0; 3]);

@@ -71,7 +71,7 @@ fn kappa_cd(gp: &Mvgp, x: &[f64], y: &[f64], u: &[f64], c: usize, d: usize) -> f
 
 fn f_mean(gp: &Mvgp, x: &[f64], u: &[f64]) -> Vec<f64> {
     let mm = gp.posterior_mean(x).unwrap();
-    (0..gp.n())
+    (0..gp.state_dim())
         .map(|i| mm[(i, 0)] + (0..u.len()).map(|a| mm[(i, a + 1)] * u[a]).sum::<f64>())
         .collect()
 }

@@ -3,7 +3,9 @@
 //! infeasibility with the largest feasible probability `p*`.
 
 use bayes_cbf::barrier::{quantile_factor, ConditionMoments};
-use bayes_cbf::control::{ControlOutput, ControlStatus, Fallback, SafetyFilter, SafetySettings};
+use bayes_cbf::control::{
+    ControlOutput, ControlStatus, Fallback, KktData, SafetyFilter, SafetySettings,
+};
 use clarabel::solver::SupportedConeT;
 use nalgebra::{DMatrix, DVector};
 use rand::{RngExt, SeedableRng};
@@ -18,7 +20,16 @@ fn random_moments(m: usize, rng: &mut ChaCha8Rng, r: usize, scale: f64) -> Condi
 
 /// Checks `s = b − Ax ∈ K`, `z ∈ K*`, `Px + q + Aᵀz = 0`, `sᵀz = 0`.
 fn check_kkt(filter: &SafetyFilter, tol: f64) {
-    let (a, b, p, q, cones, x, s, z) = filter.kkt_data();
+    let KktData {
+        a,
+        b,
+        p,
+        q,
+        cones,
+        x,
+        s,
+        z,
+    } = filter.kkt_data();
     let (xv, sv, zv) = (
         DVector::from_vec(x),
         DVector::from_vec(s),

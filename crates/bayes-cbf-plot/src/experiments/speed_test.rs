@@ -99,7 +99,7 @@ pub fn figures(r: &SpeedTest, out: &Path) -> Result<Vec<PathBuf>> {
     render_png(&fig, &out.join("speed_test.png"))?;
     let mut panels = Vec::new();
     for s in systems {
-        let n = System::n(s) as f64;
+        let n = System::state_dim(s) as f64;
         let mut p = Panel::new(
             &format!("{}: CoGP / MVGP median time", s.name()),
             "observations k",

@@ -145,7 +145,12 @@ pub fn run(args: &ExperimentArgs) -> Result<AckermannTriggering> {
 
     // τ against ζ on the self-triggered run's own L_f, L_h and ‖ẋ‖
     // (Prop. 3/5 at each trigger, median over the run): the effect of ζ alone
-    let degrees: Vec<usize> = selft.built.barriers.iter().map(|b| b.degree()).collect();
+    let degrees: Vec<usize> = selft
+        .built
+        .barriers
+        .iter()
+        .map(|b| b.relative_degree())
+        .collect();
     let ts = selft.built.loop_settings.trigger.clone();
     let tau_at = |z: f64, l: f64, r: &bayes_cbf::control::TriggerReport| -> f64 {
         // the sweep varies ζ of Prop. 3 and ζ_b of Prop. 5 together

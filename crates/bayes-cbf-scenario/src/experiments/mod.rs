@@ -384,7 +384,10 @@ pub fn variance_weighted(
     xs: &[f64],
     truth: &dyn DynSystem,
 ) -> Result<(f64, usize)> {
-    let (n, np) = (model.n(), model.n() * (model.m() + 1));
+    let (n, np) = (
+        model.state_dim(),
+        model.state_dim() * (model.control_dim() + 1),
+    );
     let mut f = vec![0.0; np];
     let (mut sum, mut extended, mut points) = (0.0, 0, 0usize);
     for x in xs.chunks(n) {

@@ -124,7 +124,7 @@ impl System {
         }
     }
     /// State dimension.
-    pub fn n(self) -> usize {
+    pub fn state_dim(self) -> usize {
         match self {
             System::Pendulum => 2,
             System::Ackermann => 3,
@@ -270,7 +270,7 @@ fn measure(c: Case, seed: u64, max_iters: u64, out: &mut Outcome) -> Result<()> 
     out.evaluations = report.evaluations;
     out.log_likelihood = model.log_marginal_likelihood();
     let grid = c.system.grid();
-    let n = c.system.n();
+    let n = c.system.state_dim();
     let start = Instant::now();
     let mut checksum = 0.0;
     for x in grid.chunks(n) {
@@ -310,7 +310,7 @@ fn cases(plan: &Plan) -> Vec<Case> {
     let cost = |c: &Case| {
         let size = (c.k
             * if c.kind == ModelKind::Cogp {
-                c.system.n()
+                c.system.state_dim()
             } else {
                 1
             }) as f64;

@@ -197,10 +197,10 @@ mod tests {
         let a = r#"{"type": "pendulum_sector", "theta_c": 0.7854, "delta": 0.3927, "relative_degree": 2, "k_alpha": [1.0, 3.0]}"#;
         let b = r#"{"type": "circle_heading", "center": [-1.1667, -1.5], "radius": 0.7906, "q1": 0.7, "q2": 0.3, "relative_degree": 1, "alpha": 5.0}"#;
         let ba = BarrierSpec::parse(a, "a").unwrap().build().unwrap();
-        assert_eq!(ba.degree(), 2);
+        assert_eq!(ba.relative_degree(), 2);
         assert!((ba.value(&[0.0, 0.0]) - (0.3927f64.cos() - 0.7854f64.cos())).abs() < 1e-12);
         let bb = BarrierSpec::parse(b, "b").unwrap().build().unwrap();
-        assert_eq!(bb.class_k(), &[5.0]);
+        assert_eq!(bb.gains(), &[5.0]);
     }
 
     #[test]

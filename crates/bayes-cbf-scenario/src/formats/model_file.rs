@@ -257,7 +257,7 @@ impl ModelFile {
 
     /// The model file describing `model` (hyperparameters and data).
     pub fn from_model(model: &Mvgp, prior: &PriorSpec) -> Self {
-        let (n, m) = (model.n(), model.m());
+        let (n, m) = (model.state_dim(), model.control_dim());
         let h = model.hyper();
         let rows = |v: &[f64], w: usize| v.chunks(w).map(<[f64]>::to_vec).collect::<Vec<_>>();
         let controls = model.controls();

@@ -104,7 +104,7 @@ fn vector(field: &str, v: &[f64], len: usize, what: &str) -> Result<()> {
 /// Builds and validates a scenario.
 pub fn build(s: &Scenario) -> Result<Built> {
     let truth = truth(&s.system)?;
-    let (n, m) = (truth.n(), truth.m());
+    let (n, m) = (truth.state_dim(), truth.control_dim());
     vector("start", &s.start, n, "the state dimension")?;
     if let Some(g) = &s.goal {
         vector("goal", g, n, "the state dimension")?;
@@ -130,11 +130,11 @@ pub fn build(s: &Scenario) -> Result<Built> {
     };
     let prior = s.gp.prior_mean.to_prior();
     if let PriorMean::System(p) = &prior {
-        if (p.n(), p.m()) != (n, m) {
+        if (p.state_dim(), p.control_dim()) != (n, m) {
             bail!(
                 "gp.prior_mean has {} states and {} controls, the system {n} and {m}",
-                p.n(),
-                p.m()
+                p.state_dim(),
+                p.control_dim()
             );
         }
     }
@@ -144,10 +144,10 @@ pub fn build(s: &Scenario) -> Result<Built> {
     let mut obstacles = Vec::new();
     for (i, spec) in s.barriers.iter().enumerate() {
         let b = spec.build().with_context(|| format!("barriers[{i}]"))?;
-        if b.dim() != n {
+        if b.state_dim() != n {
             bail!(
                 "barriers[{i}] is for state dimension {}, the system has {n}",
-                b.dim()
+                b.state_dim()
             );
         }
         match spec {

@@ -332,8 +332,8 @@ pub fn trajectory_csv(out: &RunOutput) -> String {
 }
 
 fn trajectory_table(built: &Built, r: &LoopResult) -> String {
-    let n = built.truth.n();
-    let m = built.truth.m();
+    let n = built.truth.state_dim();
+    let m = built.truth.control_dim();
     let nb = built.barriers.len();
     let mut head: Vec<String> = vec!["t".into()];
     head.extend((1..=n).map(|i| format!("x{i}")));

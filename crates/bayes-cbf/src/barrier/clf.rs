@@ -20,11 +20,11 @@ pub trait Lyapunov: Send + Sync {
 /// Object-safe view of a [`Lyapunov`] function.
 pub trait DynLyapunov: Send + Sync {
     /// State dimension.
-    fn dim(&self) -> usize;
+    fn state_dim(&self) -> usize;
     /// `V` on dual numbers.
     fn v_dual(&self, x: &[Dual64], xd: &[Dual64]) -> Dual64;
     /// `γ`.
-    fn rate(&self) -> f64;
+    fn gamma(&self) -> f64;
 
     /// `∇ₓV` into `grad`, returns `(V, ∇_{x_d}Vᵀ ẋ_d)`. Scratch length `2n`.
     fn gradient(
@@ -39,8 +39,8 @@ pub trait DynLyapunov: Send + Sync {
         let (sx, sd) = scratch.split_at_mut(n);
         let mut v = 0.0;
         for j in 0..n {
+            crate::autodiff::seed_dual(x, j, &mut sx[..n]);
             for i in 0..n {
-                sx[i] = Dual64::new(x[i], if i == j { 1.0 } else { 0.0 });
                 sd[i] = Dual64::from(xd[i]);
             }
             let r = self.v_dual(sx, &sd[..n]);
@@ -58,14 +58,14 @@ pub trait DynLyapunov: Send + Sync {
 }
 
 impl<T: Lyapunov> DynLyapunov for T {
-    fn dim(&self) -> usize {
-        self.state_dim()
+    fn state_dim(&self) -> usize {
+        Lyapunov::state_dim(self)
     }
     fn v_dual(&self, x: &[Dual64], xd: &[Dual64]) -> Dual64 {
         self.v(x, xd)
     }
-    fn rate(&self) -> f64 {
-        self.gamma()
+    fn gamma(&self) -> f64 {
+        Lyapunov::gamma(self)
     }
 }
 

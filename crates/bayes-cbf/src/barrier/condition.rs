@@ -23,8 +23,8 @@ pub fn true_condition(
     x: &[f64],
     u: &[f64],
 ) -> Result<f64, InputError> {
-    let (n, m) = (system.n(), system.m());
-    if x.len() != n || barrier.dim() != n {
+    let (n, m) = (system.state_dim(), system.control_dim());
+    if x.len() != n || barrier.state_dim() != n {
         return Err(InputError::shape("x", n, x.len()));
     }
     if u.len() != m {
@@ -34,9 +34,9 @@ pub fn true_condition(
     let mut fbuf = vec![0.0; rows];
     let mut xdot = vec![0.0; n];
     system.xdot(x, u, &mut fbuf, &mut xdot);
-    let gains = barrier.class_k();
+    let gains = barrier.gains();
     let mut grad = vec![0.0; n];
-    match barrier.degree() {
+    match barrier.relative_degree() {
         1 => {
             let h = barrier.gradient(x, &mut grad, &mut vec![Dual64::from(0.0); n]);
             Ok(dot(&grad, &xdot) + gains[0] * h)

@@ -46,7 +46,7 @@ pub trait Barrier: Send + Sync {
 /// Object-safe view of a [`Barrier`], implemented for all of them.
 pub trait DynBarrier: Send + Sync {
     /// State dimension.
-    fn dim(&self) -> usize;
+    fn state_dim(&self) -> usize;
     /// `h(x)`.
     fn value(&self, x: &[f64]) -> f64;
     /// `h` on dual numbers.
@@ -54,20 +54,18 @@ pub trait DynBarrier: Send + Sync {
     /// `h` on hyper-dual numbers.
     fn value_hyper(&self, x: &[HyperDual64]) -> HyperDual64;
     /// Relative degree.
-    fn degree(&self) -> usize;
+    fn relative_degree(&self) -> usize;
     /// Class-K gains.
-    fn class_k(&self) -> &[f64];
+    fn gains(&self) -> &[f64];
     /// Name.
-    fn label(&self) -> &str;
+    fn name(&self) -> &str;
 
     /// `∇h(x)` into `grad` (length n); returns `h(x)`. `scratch` length `n`.
     fn gradient(&self, x: &[f64], grad: &mut [f64], scratch: &mut [Dual64]) -> f64 {
         let n = x.len();
         let mut h = 0.0;
         for j in 0..n {
-            for (i, s) in scratch.iter_mut().enumerate().take(n) {
-                *s = Dual64::new(x[i], if i == j { 1.0 } else { 0.0 });
-            }
+            crate::autodiff::seed_dual(x, j, &mut scratch[..n]);
             let v = self.value_dual(&scratch[..n]);
             grad[j] = v.eps;
             h = v.re;
@@ -91,14 +89,7 @@ pub trait DynBarrier: Send + Sync {
         let mut h = self.value(x);
         for a in 0..n {
             for b in a..n {
-                for (i, s) in scratch.iter_mut().enumerate().take(n) {
-                    *s = HyperDual64::new(
-                        x[i],
-                        if i == a { 1.0 } else { 0.0 },
-                        if i == b { 1.0 } else { 0.0 },
-                        0.0,
-                    );
-                }
+                crate::autodiff::seed_hyper(x, a, b, &mut scratch[..n]);
                 let v = self.value_hyper(&scratch[..n]);
                 hess[a * n + b] = v.eps1eps2;
                 hess[b * n + a] = v.eps1eps2;
@@ -113,8 +104,8 @@ pub trait DynBarrier: Send + Sync {
 }
 
 impl<T: Barrier> DynBarrier for T {
-    fn dim(&self) -> usize {
-        self.state_dim()
+    fn state_dim(&self) -> usize {
+        Barrier::state_dim(self)
     }
     fn value(&self, x: &[f64]) -> f64 {
         self.h(x)
@@ -125,14 +116,14 @@ impl<T: Barrier> DynBarrier for T {
     fn value_hyper(&self, x: &[HyperDual64]) -> HyperDual64 {
         self.h(x)
     }
-    fn degree(&self) -> usize {
-        self.relative_degree()
+    fn relative_degree(&self) -> usize {
+        Barrier::relative_degree(self)
     }
-    fn class_k(&self) -> &[f64] {
-        self.gains()
+    fn gains(&self) -> &[f64] {
+        Barrier::gains(self)
     }
-    fn label(&self) -> &str {
-        self.name()
+    fn name(&self) -> &str {
+        Barrier::name(self)
     }
 }
 

@@ -19,8 +19,10 @@
 //!   + ȳ_i ȳ'_j S(a_i,a_j)]`, `S = Cov`.
 //!
 //! With `y = y'` this is `tr(Σaa Σyy) + tr(Σay Σay) + ȳᵀΣaaȳ + āᵀΣyyā +
-//! 2ȳᵀΣay ā`: the paper's Lemma 4 omits the `tr(Σay Σay)` term; the exact
-//! expression here is validated against Monte Carlo in the tests.
+//! 2ȳᵀΣay ā`. The paper's Lemma 4 prints `½ tr((Σay + Σya)²)`, which is
+//! `tr(Σay Σay) + tr(Σay Σya)`: it has `tr(Σay Σya)` where `tr(Σaa Σyy)`
+//! belongs. The exact expression here is validated against Monte Carlo in
+//! the tests, and so is that swap.
 
 use super::{DynBarrier, DynLyapunov};
 use crate::error::{Error, InputError};
@@ -159,7 +161,7 @@ pub struct MomentWorkspace {
 impl MomentWorkspace {
     /// A workspace for `model`.
     pub fn new<K: Kernel>(model: &Mvgp<K>) -> Self {
-        let (n, m) = (model.n(), model.m());
+        let (n, m) = (model.state_dim(), model.control_dim());
         let p = m + 1;
         let pp = p * (1 + n);
         let big_n = n * pp;
@@ -196,7 +198,7 @@ impl MomentWorkspace {
     ) -> Result<(), InputError> {
         if max_degree >= 2 {
             model.joint_posterior_into(x, &mut self.joint_ws, &mut self.joint)?;
-            let (n, p) = (model.n(), model.m() + 1);
+            let (n, p) = (model.state_dim(), model.control_dim() + 1);
             for c in 0..p {
                 for i in 0..n {
                     self.post.mean[(i, c)] = self.joint.mean[(i, c)];
@@ -267,19 +269,19 @@ pub fn cbc_moments(
     barrier: &dyn DynBarrier,
     out: &mut ConditionMoments,
 ) -> Result<(), Error> {
-    let r = barrier.degree();
-    let gains = barrier.class_k();
+    let r = barrier.relative_degree();
+    let gains = barrier.gains();
     super::validate_gains(r, gains)?;
     match r {
         1 => {
-            check_dims(ws, barrier.dim(), 1)?;
+            check_dims(ws, barrier.state_dim(), 1)?;
             let h = barrier.gradient(&ws.x, &mut ws.grad, &mut ws.sd);
             rd1(ws, h, gains[0], out);
             out.value = h;
             out.relative_degree = 1;
         }
         2 => {
-            check_dims(ws, barrier.dim(), 2)?;
+            check_dims(ws, barrier.state_dim(), 2)?;
             let h = barrier.hessian(&ws.x, &mut ws.grad, &mut ws.hess, &mut ws.sh);
             rd2(ws, h, gains[0], gains[1], out);
             out.value = h;
@@ -297,7 +299,7 @@ pub fn cbc_moments(
     let nrm: f64 = out.e[1..].iter().map(|v| v * v).sum::<f64>().sqrt();
     let scale = out.e[0].abs().max(1.0);
     if nrm < 1e-9 * scale {
-        log::warn!("barrier '{}': L_g L_f^(r-1) h ≈ 0 at x = {:?} (|e_u| = {nrm:.2e}); is relative degree {r} right?", barrier.label(), ws.x);
+        log::warn!("barrier '{}': L_g L_f^(r-1) h ≈ 0 at x = {:?} (|e_u| = {nrm:.2e}); is relative degree {r} right?", barrier.name(), ws.x);
     }
     Ok(())
 }
@@ -311,13 +313,13 @@ pub fn clc_moments(
     xd_dot: &[f64],
     out: &mut ConditionMoments,
 ) -> Result<(), Error> {
-    check_dims(ws, clf.dim(), 1)?;
+    check_dims(ws, clf.state_dim(), 1)?;
     let n = ws.x.len();
     if xd.len() != n || xd_dot.len() != n {
         return Err(InputError::shape("reference", n, xd.len().min(xd_dot.len())).into());
     }
     let (v, dvdt) = clf.gradient(&ws.x, xd, xd_dot, &mut ws.grad, &mut ws.sd);
-    rd1(ws, v, clf.rate(), out);
+    rd1(ws, v, clf.gamma(), out);
     out.e[0] += dvdt;
     out.value = v;
     out.relative_degree = 1;

@@ -26,6 +26,7 @@ use rand_distr::{Distribution, StandardNormal};
 
 /// Settings of the Monte Carlo moment estimate.
 #[derive(Debug, Clone, Copy, PartialEq)]
+#[cfg_attr(feature = "serde", derive(serde::Serialize, serde::Deserialize))]
 pub struct McSettings {
     /// Number of posterior draws.
     pub samples: usize,
@@ -103,13 +104,13 @@ pub fn mc_cbc_moments<K: Kernel>(
     x: &[f64],
     settings: &McSettings,
 ) -> Result<McMoments, Error> {
-    let (n, m) = (model.n(), model.m());
+    let (n, m) = (model.state_dim(), model.control_dim());
     let p = m + 1;
-    let r = barrier.degree();
-    let gains = barrier.class_k();
+    let r = barrier.relative_degree();
+    let gains = barrier.gains();
     super::validate_gains(r, gains)?;
-    if barrier.dim() != n {
-        return Err(InputError::shape("barrier state dimension", n, barrier.dim()).into());
+    if barrier.state_dim() != n {
+        return Err(InputError::shape("barrier state dimension", n, barrier.state_dim()).into());
     }
     if x.len() != n {
         return Err(InputError::shape("x", n, x.len()).into());

@@ -12,6 +12,7 @@ use std::sync::Arc;
 
 /// What to apply when the SOCP is infeasible (paper, Remark 2).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+#[cfg_attr(feature = "serde", derive(serde::Serialize, serde::Deserialize))]
 pub enum Fallback {
     /// Maximise the worst stochastic CBC within the bounds (itself an SOCP).
     #[default]
@@ -53,6 +54,7 @@ impl Fallback {
 
 /// Settings of the safety SOCP, validated by [`SafetySettings::validate`].
 #[derive(Debug, Clone, PartialEq)]
+#[cfg_attr(feature = "serde", derive(serde::Serialize, serde::Deserialize))]
 pub struct SafetySettings {
     /// Required probability `p̃` of each stochastic condition.
     pub probability: f64,
@@ -539,35 +541,49 @@ impl SafetyFilter {
         })
     }
 
-    /// Dense `(A, b, P, q)`, cones, primal slack `s` and dual `z` of the
-    /// last control SOCP, for KKT verification.
-    #[doc(hidden)]
-    #[allow(clippy::type_complexity)]
-    pub fn kkt_data(
-        &self,
-    ) -> (
-        DMatrix<f64>,
-        Vec<f64>,
-        DMatrix<f64>,
-        Vec<f64>,
-        Vec<clarabel::solver::SupportedConeT<f64>>,
-        Vec<f64>,
-        Vec<f64>,
-        Vec<f64>,
-    ) {
+    /// The last control SOCP with its solution, for verifying the KKT
+    /// conditions (see [`KktData`]).
+    pub fn kkt_data(&self) -> KktData {
         let (a, b, p, q) = self.program.dense();
         let (s, z) = self.program.duals();
-        (
+        KktData {
             a,
             b,
             p,
             q,
-            self.program.cones().to_vec(),
-            self.program.x().to_vec(),
-            s.to_vec(),
-            z.to_vec(),
-        )
+            cones: self.program.cones().to_vec(),
+            x: self.program.x().to_vec(),
+            s: s.to_vec(),
+            z: z.to_vec(),
+        }
     }
+}
+
+/// A solved cone program in Clarabel's standard form,
+/// `min ½ xᵀPx + qᵀx` subject to `Ax + s = b`, `s ∈ K`, with its primal
+/// solution `x`, slack `s` and dual `z`. At an optimum the KKT conditions
+/// read `s = b − Ax ∈ K`, `z ∈ K*`, `Px + q + Aᵀz = 0` and `sᵀz = 0`.
+///
+/// Returned by [`SafetyFilter::kkt_data`] for the last control SOCP: `x` is
+/// `[u; δ]` (`δ` only with a CLF), the rows of `A` follow `cones`.
+#[derive(Debug, Clone, PartialEq)]
+pub struct KktData {
+    /// Constraint matrix `A` (dense).
+    pub a: DMatrix<f64>,
+    /// Constraint offset `b`.
+    pub b: Vec<f64>,
+    /// Quadratic cost `P` (dense, symmetric).
+    pub p: DMatrix<f64>,
+    /// Linear cost `q`.
+    pub q: Vec<f64>,
+    /// The cones `K`, in the row order of `A`.
+    pub cones: Vec<clarabel::solver::SupportedConeT<f64>>,
+    /// Primal solution `x`.
+    pub x: Vec<f64>,
+    /// Primal slack `s = b − Ax`.
+    pub s: Vec<f64>,
+    /// Dual solution `z`.
+    pub z: Vec<f64>,
 }
 
 /// A complete safety controller: posterior at `x`, moments of every barrier
@@ -575,6 +591,8 @@ impl SafetyFilter {
 pub struct SafetyController {
     barriers: Vec<Arc<dyn DynBarrier>>,
     clf: Option<Arc<dyn DynLyapunov>>,
+    /// `n` zeros: the CLF reference `(x_d, ẋ_d)` when none is given.
+    zero_reference: Vec<f64>,
     filter: SafetyFilter,
     ws: Option<MomentWorkspace>,
     cbcs: Vec<ConditionMoments>,
@@ -604,27 +622,27 @@ impl SafetyController {
         settings: SafetySettings,
     ) -> Result<Self, InputError> {
         for (i, b) in barriers.iter().enumerate() {
-            if b.dim() != n {
+            if b.state_dim() != n {
                 return Err(InputError::shape(
                     &format!("barrier[{i}] state dimension"),
                     n,
-                    b.dim(),
+                    b.state_dim(),
                 ));
             }
-            super::super::barrier::validate_gains(b.degree(), b.class_k())?;
+            super::super::barrier::validate_gains(b.relative_degree(), b.gains())?;
         }
         if let Some(c) = &clf {
-            if c.dim() != n {
-                return Err(InputError::shape("clf state dimension", n, c.dim()));
+            if c.state_dim() != n {
+                return Err(InputError::shape("clf state dimension", n, c.state_dim()));
             }
         }
         check_probability(
             settings.probability,
-            clf.is_some() || barriers.iter().any(|b| b.degree() <= 1),
+            clf.is_some() || barriers.iter().any(|b| b.relative_degree() <= 1),
         )?;
         let max_degree = barriers
             .iter()
-            .map(|b| b.degree())
+            .map(|b| b.relative_degree())
             .max()
             .unwrap_or(1)
             .min(2);
@@ -633,6 +651,7 @@ impl SafetyController {
         Ok(Self {
             barriers,
             clf,
+            zero_reference: vec![0.0; n],
             filter,
             ws: None,
             cbcs: vec![ConditionMoments::zeros(m); nb],
@@ -678,18 +697,18 @@ impl SafetyController {
         reference: Option<(&[f64], &[f64])>,
         out: &mut ControlOutput,
     ) -> Result<(), Error> {
-        if model.m() != self.filter.shape.m {
+        if model.control_dim() != self.filter.shape.m {
             return Err(InputError::shape(
                 "model control dimension",
                 self.filter.shape.m,
-                model.m(),
+                model.control_dim(),
             )
             .into());
         }
         let ws = self.ws.get_or_insert_with(|| MomentWorkspace::new(model));
         ws.update(model, x, self.max_degree)?;
         for (b, mom) in self.barriers.iter().zip(self.cbcs.iter_mut()) {
-            if b.degree() <= 2 {
+            if b.relative_degree() <= 2 {
                 cbc_moments(ws, b.as_ref(), mom)?;
             } else {
                 // no closed form: Monte Carlo over joint posterior draws,
@@ -704,9 +723,8 @@ impl SafetyController {
         self.steps += 1;
         let clc = match &self.clf {
             Some(c) => {
-                let n = x.len();
-                let zeros = [0.0; 16];
-                let (xd, xdd) = reference.unwrap_or((&zeros[..n.min(16)], &zeros[..n.min(16)]));
+                let zeros = self.zero_reference.as_slice();
+                let (xd, xdd) = reference.unwrap_or((zeros, zeros));
                 clc_moments(ws, c.as_ref(), xd, xdd, &mut self.clc)?;
                 Some(&self.clc)
             }

@@ -6,8 +6,8 @@ mod self_trigger;
 mod socp;
 
 pub use filter::{
-    ConstraintReport, ControlOutput, ControlStatus, Fallback, InfeasibleInfo, SafetyController,
-    SafetyFilter, SafetySettings,
+    ConstraintReport, ControlOutput, ControlStatus, Fallback, InfeasibleInfo, KktData,
+    SafetyController, SafetyFilter, SafetySettings,
 };
 pub use self_trigger::{
     barrier_gradient_bound, evaluate_trigger, tau_relative_degree_one, tau_relative_degree_r,

@@ -31,6 +31,7 @@ use std::sync::Arc;
 
 /// Which Lipschitz estimate sets the hold.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+#[cfg_attr(feature = "serde", derive(serde::Serialize, serde::Deserialize))]
 pub enum TauSource {
     /// The analytic bound of Lemma 3 (holds with probability `1 − δ_L`).
     #[default]
@@ -63,6 +64,7 @@ impl TauSource {
 
 /// Settings of the self-triggering computation.
 #[derive(Debug, Clone, PartialEq)]
+#[cfg_attr(feature = "serde", derive(serde::Serialize, serde::Deserialize))]
 pub struct TriggerSettings {
     /// Lipschitz settings (`δ_L`, cuboid, grid, samples).
     pub lipschitz: LipschitzSettings,
@@ -220,7 +222,7 @@ fn tau_for(
         .iter()
         .zip(l_h)
         .map(|(b, &lh)| {
-            if b.degree() == 1 {
+            if b.relative_degree() == 1 {
                 tau_relative_degree_one(l_f, s.zeta, s.l_alpha, lh, xdot)
             } else {
                 tau_relative_degree_r(l_f, s.zeta_b, lh, xdot)
@@ -258,10 +260,10 @@ pub fn evaluate_trigger<R: Rng>(
     rng: &mut R,
 ) -> Result<TriggerReport, Error> {
     let started = std::time::Instant::now();
-    settings.validate(model.n())?;
+    settings.validate(model.state_dim())?;
     let lipschitz = model.lipschitz(x, u, &settings.lipschitz, rng)?;
     let mean = model.posterior_mean(x)?;
-    let xdot_norm = (0..model.n())
+    let xdot_norm = (0..model.state_dim())
         .map(|i| {
             let v = mean[(i, 0)] + (0..u.len()).map(|a| mean[(i, a + 1)] * u[a]).sum::<f64>();
             v * v
@@ -308,8 +310,8 @@ impl ShiftedBarrier {
 }
 
 impl DynBarrier for ShiftedBarrier {
-    fn dim(&self) -> usize {
-        self.inner.dim()
+    fn state_dim(&self) -> usize {
+        self.inner.state_dim()
     }
     fn value(&self, x: &[f64]) -> f64 {
         self.inner.value(x) - self.shift
@@ -320,14 +322,14 @@ impl DynBarrier for ShiftedBarrier {
     fn value_hyper(&self, x: &[HyperDual64]) -> HyperDual64 {
         self.inner.value_hyper(x) - self.shift
     }
-    fn degree(&self) -> usize {
-        self.inner.degree()
+    fn relative_degree(&self) -> usize {
+        self.inner.relative_degree()
     }
-    fn class_k(&self) -> &[f64] {
-        self.inner.class_k()
+    fn gains(&self) -> &[f64] {
+        self.inner.gains()
     }
-    fn label(&self) -> &str {
-        self.inner.label()
+    fn name(&self) -> &str {
+        self.inner.name()
     }
 }
 
@@ -367,7 +369,7 @@ impl SelfTriggered {
     ) -> Result<Self, Error> {
         trigger.zeta = settings.zeta;
         trigger.validate(n)?;
-        if barriers.iter().any(|b| b.degree() == 1) && settings.zeta <= 0.0 {
+        if barriers.iter().any(|b| b.relative_degree() == 1) && settings.zeta <= 0.0 {
             return Err(InputError::invalid(
                 "controller.zeta",
                 settings.zeta,
@@ -375,7 +377,7 @@ impl SelfTriggered {
             )
             .into());
         }
-        if barriers.iter().any(|b| b.degree() >= 2) && trigger.zeta_b <= 0.0 {
+        if barriers.iter().any(|b| b.relative_degree() >= 2) && trigger.zeta_b <= 0.0 {
             return Err(InputError::invalid(
                 "trigger.zeta_b",
                 trigger.zeta_b,
@@ -387,7 +389,7 @@ impl SelfTriggered {
         let shifted = barriers
             .iter()
             .map(|b| {
-                if b.degree() >= 2 {
+                if b.relative_degree() >= 2 {
                     Arc::new(ShiftedBarrier::new(b.clone(), trigger.zeta_b)) as Arc<dyn DynBarrier>
                 } else {
                     b.clone()

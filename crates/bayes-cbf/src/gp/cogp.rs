@@ -31,6 +31,7 @@ use super::input_map::InputMap;
 use super::kernel::{Kernel, Rbf};
 use super::mvgp::check_spd;
 use super::prior::PriorMean;
+use super::simd::with_faer;
 use crate::error::{check_finite, Error, GpError, InputError};
 use faer::{Mat, Par};
 use nalgebra::DMatrix;
@@ -39,6 +40,7 @@ use std::sync::OnceLock;
 /// Hyperparameters of a CoGP: `vec F ~ GP(vec M0, Σ k0)`, noise `w ~ N(0, S)`.
 #[derive(Debug, Clone, PartialEq)]
 #[allow(non_snake_case)]
+#[cfg_attr(feature = "serde", derive(serde::Serialize, serde::Deserialize))]
 pub struct CogpHyper<K: Kernel = Rbf> {
     /// Scalar kernel `k0`.
     pub kernel: K,
@@ -156,11 +158,11 @@ impl<K: Kernel> Cogp<K> {
     }
 
     /// State dimension `n`.
-    pub fn n(&self) -> usize {
+    pub fn state_dim(&self) -> usize {
         self.n
     }
     /// Control dimension `m`.
-    pub fn m(&self) -> usize {
+    pub fn control_dim(&self) -> usize {
         self.m
     }
     /// Number of observations `k` (the Gram matrix is `kn × kn`).
@@ -281,7 +283,7 @@ impl<K: Kernel> Cogp<K> {
         );
         let factor = CholFactor::factor(g.as_ref(), k * n)?;
         let mut beta = Mat::<f64>::from_fn(k * n, 1, |r, _| self.resid[r]);
-        factor.solve_l_in_place(beta.as_mut());
+        factor.solve_l(beta.as_mut());
         (self.su, self.factor, self.beta) = (su, factor, beta);
         self.alpha = OnceLock::new();
         Ok(())
@@ -302,8 +304,8 @@ impl<K: Kernel> Cogp<K> {
     /// `α = 𝐆⁻¹ vec(Ẋ − 𝓜U̲)`, cached until the data change.
     pub fn alpha(&self) -> &[f64] {
         self.alpha.get_or_init(|| {
-            let mut a = self.beta.clone();
-            self.factor.solve_lt_in_place(a.as_mut());
+            let mut a = with_faer(|| self.beta.clone());
+            self.factor.solve_lt(a.as_mut());
             (0..a.nrows()).map(|r| a[(r, 0)]).collect()
         })
     }
@@ -342,7 +344,7 @@ impl<K: Kernel> Cogp<K> {
                 }
             }
         }
-        self.factor.solve_l_in_place(w.as_mut());
+        self.factor.solve_l(w.as_mut());
         w
     }
 
@@ -384,8 +386,7 @@ impl<K: Kernel> Cogp<K> {
             return Ok(CogpPosterior { mean, cov });
         }
         let v = self.v_matrix(&z);
-        let vb = v.transpose() * &self.beta;
-        let vtv = v.transpose() * &v;
+        let (vb, vtv) = with_faer(|| (v.transpose() * &self.beta, v.transpose() * &v));
         for a in 0..np {
             mean[a] += vb[(a, 0)];
             for b in 0..np {
@@ -406,7 +407,7 @@ impl<K: Kernel> Cogp<K> {
             return Ok(out);
         }
         let (v1, v2) = (self.v_matrix(&z1), self.v_matrix(&z2));
-        let c = v1.transpose() * &v2;
+        let c = with_faer(|| v1.transpose() * &v2);
         for a in 0..np {
             for b in 0..np {
                 out[(a, b)] -= c[(a, b)];
@@ -480,18 +481,23 @@ pub(crate) fn lml_grad<K: Kernel>(
     let factor = CholFactor::factor(g.as_ref(), kn)?;
     drop(g);
     let mut alpha = Mat::<f64>::from_fn(kn, 1, |r, _| resid[r]);
-    factor.solve_l_in_place(alpha.as_mut());
+    factor.solve_l(alpha.as_mut());
     let quad: f64 = (0..kn).map(|r| alpha[(r, 0)].powi(2)).sum();
-    factor.solve_lt_in_place(alpha.as_mut());
+    factor.solve_lt(alpha.as_mut());
     let ll = -0.5 * (quad + factor.log_det() + kn as f64 * (2.0 * std::f64::consts::PI).ln());
     // Ḡ = ½ (α αᵀ − 𝐆⁻¹), with 𝐆⁻¹ = L⁻ᵀ L⁻¹ (lower triangle) by faer
     let mut gbar = Mat::<f64>::zeros(kn, kn);
-    {
+    with_faer(|| {
         use faer::dyn_stack::{MemBuffer, MemStack};
         use faer::linalg::cholesky::llt::inverse;
         let mut mem = MemBuffer::new(inverse::inverse_scratch::<f64>(kn, Par::Seq));
-        inverse::inverse(gbar.as_mut(), factor.l(), Par::Seq, MemStack::new(&mut mem));
-    }
+        inverse::inverse(
+            gbar.as_mut(),
+            factor.l_ref(),
+            Par::Seq,
+            MemStack::new(&mut mem),
+        );
+    });
     for c in 0..kn {
         for r in c..kn {
             let v = 0.5 * (alpha[(r, 0)] * alpha[(c, 0)] - gbar[(r, c)]);
@@ -548,7 +554,7 @@ impl<K: Kernel> Cogp<K> {
     ///
     /// Costs `O((kn)³)`: it forms `𝐆⁻¹` explicitly.
     pub fn log_marginal_likelihood_gradient(&self) -> Result<CogpGradient, Error> {
-        let (n, p) = (self.n(), self.m() + 1);
+        let (n, p) = (self.state_dim(), self.control_dim() + 1);
         let k = self.len();
         if k == 0 {
             return Err(GpError::NoData.into());

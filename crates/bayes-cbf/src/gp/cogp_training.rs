@@ -12,20 +12,20 @@
 
 use super::cogp::{lml_grad, Cogp, CogpData, CogpHyper};
 use super::kernel::Kernel;
-use super::low_rank::{chain_low_rank, low_rank_plus_diag};
+use super::low_rank::{chain_low_rank, init_low_rank, low_rank_plus_diag};
+use super::optimise::{
+    multi_start, perturb, prefit, EvalFailure, Evaluation, Harness, Objective, RunSettings,
+    StartPlan,
+};
 use super::training::{FitReport, Rank};
 use crate::error::{Error, GpError, InputError};
-use argmin::core::{CostFunction, Executor, Gradient};
-use argmin::solver::linesearch::MoreThuenteLineSearch;
-use argmin::solver::quasinewton::LBFGS;
 use nalgebra::DMatrix;
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
-use rand_distr::{Distribution, StandardNormal};
-use std::sync::Mutex;
 
 /// Settings of [`fit_cogp`], validated by [`CogpFitSettings::validate`].
 #[derive(Debug, Clone, PartialEq)]
+#[cfg_attr(feature = "serde", derive(serde::Serialize, serde::Deserialize))]
 pub struct CogpFitSettings {
     /// Structure of `Σ` (`Rank::Diagonal` is the paper's "diag" CoGP).
     pub rank_sigma: Rank,
@@ -105,21 +105,14 @@ impl Layout {
     }
 }
 
-type Cache = (
-    Option<(Vec<f64>, f64, Vec<f64>)>,
-    Option<(Vec<f64>, f64)>,
-    usize,
-);
-
-struct Objective<'a, K: Kernel> {
+/// `−log p(θ)` of the CoGP (module docs) on fixed data.
+struct Likelihood<'a, K: Kernel> {
     layout: Layout,
     kernel: K,
     data: CogpData<'a>,
-    /// (θ, −log p, −∇ log p) of the last evaluation, the best seen, count.
-    cache: Mutex<Cache>,
 }
 
-impl<K: Kernel> Objective<'_, K> {
+impl<K: Kernel> Likelihood<'_, K> {
     #[allow(non_snake_case)]
     fn unpack(&self, th: &[f64]) -> Result<(K, DMatrix<f64>, DMatrix<f64>), InputError> {
         let l = &self.layout;
@@ -148,27 +141,52 @@ impl<K: Kernel> Objective<'_, K> {
         Ok((kern, Sigma, S))
     }
 
-    /// Returns (−log p, −∇θ log p).
-    fn eval(&self, th: &[f64]) -> (f64, Vec<f64>) {
-        const PENALTY: f64 = 1e30;
+    /// θ for the given kernel (its scale is ignored), `Σ` and `S`.
+    #[allow(non_snake_case)]
+    fn theta(
+        &self,
+        kern: &K,
+        Sigma: &DMatrix<f64>,
+        S: &DMatrix<f64>,
+        exact: bool,
+        rng: &mut ChaCha8Rng,
+    ) -> Vec<f64> {
         let l = &self.layout;
-        let fail = || (PENALTY, vec![0.0; th.len()]);
+        let mut th = vec![0.0; l.len()];
+        let free = kern
+            .log_hyper()
+            .into_iter()
+            .enumerate()
+            .filter(|(i, _)| Some(*i) != l.scale_idx);
+        for (t, (_, h)) in free.enumerate() {
+            th[t] = h;
+        }
+        let (cs, rest) = th[l.off_cs()..].split_at_mut(l.np * l.rs);
+        let (vs, rest) = rest.split_at_mut(l.np);
+        let (cn, vn) = rest.split_at_mut(l.n * l.rn);
+        init_low_rank(Sigma, l.rs, exact, rng, cs, vs);
+        init_low_rank(S, l.rn, exact, rng, cn, vn);
+        th
+    }
+}
+
+impl<K: Kernel> Objective for Likelihood<'_, K> {
+    /// `(−log p, −∇θ log p)`.
+    fn eval(&self, th: &[f64]) -> Evaluation {
+        let l = &self.layout;
         // log-scale parameters are bounded to |θ| ≤ 50; the factors C are
         // on the scale of √Σ and only need to be finite
         let is_log =
             |i: usize| i < l.off_cs() || (l.off_vs()..l.off_cn()).contains(&i) || i >= l.off_vn();
         let bad = |(i, v): (usize, &f64)| !v.is_finite() || (is_log(i) && v.abs() > 50.0);
         if th.iter().enumerate().any(bad) {
-            return fail();
+            return Err(EvalFailure::OutOfRange);
         }
-        let Ok((kern, sigma, s)) = self.unpack(th) else {
-            return fail();
-        };
-        let Ok(g) = lml_grad(&self.data, &kern, &sigma, &s) else {
-            return fail();
-        };
+        let (kern, sigma, s) = self.unpack(th).map_err(|_| EvalFailure::InvalidHyper)?;
+        let g = lml_grad(&self.data, &kern, &sigma, &s)
+            .map_err(|_| EvalFailure::NotPositiveDefinite)?;
         if !g.log_likelihood.is_finite() {
-            return fail();
+            return Err(EvalFailure::NonFinite);
         }
         let mut grad = vec![0.0; th.len()];
         let mut t = 0;
@@ -195,168 +213,7 @@ impl<K: Kernel> Objective<'_, K> {
         for gi in grad.iter_mut() {
             *gi = -*gi;
         }
-        (-g.log_likelihood, grad)
-    }
-
-    fn cached(&self, th: &[f64]) -> (f64, Vec<f64>) {
-        let mut c = self.cache.lock().unwrap_or_else(|e| e.into_inner());
-        if let Some((t, f, g)) = &c.0 {
-            if t.as_slice() == th {
-                return (*f, g.clone());
-            }
-        }
-        let (f, g) = self.eval(th);
-        c.2 += 1;
-        if c.1.as_ref().is_none_or(|(_, bf)| f < *bf) {
-            c.1 = Some((th.to_vec(), f));
-        }
-        c.0 = Some((th.to_vec(), f, g.clone()));
-        (f, g)
-    }
-}
-
-struct ObjRef<'b, 'a, K: Kernel>(&'b Objective<'a, K>);
-
-impl<K: Kernel> CostFunction for ObjRef<'_, '_, K> {
-    type Param = Vec<f64>;
-    type Output = f64;
-    fn cost(&self, p: &Self::Param) -> Result<f64, argmin::core::Error> {
-        Ok(self.0.cached(p).0)
-    }
-}
-
-impl<K: Kernel> Gradient for ObjRef<'_, '_, K> {
-    type Param = Vec<f64>;
-    type Gradient = Vec<f64>;
-    fn gradient(&self, p: &Self::Param) -> Result<Vec<f64>, argmin::core::Error> {
-        Ok(self.0.cached(p).1)
-    }
-}
-
-/// Resumptions of L-BFGS (with fresh memory, from the best point) after an
-/// early stop within one start.
-const MAX_RESUMES: usize = 4;
-
-/// One start of L-BFGS from `th` with an iteration budget. A line-search
-/// failure (normal near the optimum, and on the curved valleys of
-/// `C Cᵀ + diag(v)`) ends a run early; the run then resumes from the best
-/// point seen while it still improves and budget remains. Returns the best
-/// point of this start.
-fn run_start<K: Kernel>(
-    obj: &Objective<'_, K>,
-    th: Vec<f64>,
-    budget: u64,
-) -> Option<(Vec<f64>, f64)> {
-    let best_of = || {
-        obj.cache
-            .lock()
-            .unwrap_or_else(|e| e.into_inner())
-            .1
-            .clone()
-    };
-    let (mut th, mut remaining) = (th, budget);
-    let mut last = f64::INFINITY;
-    for _ in 0..=MAX_RESUMES {
-        let solver = LBFGS::new(MoreThuenteLineSearch::new(), 10);
-        let used = Executor::new(ObjRef(obj), solver)
-            .configure(|st| st.param(th).max_iters(remaining))
-            .run()
-            .map(|r| r.state().iter)
-            .unwrap_or(remaining);
-        let (bt, bf) = best_of()?;
-        let improved = bf < last - 1e-8 * (1.0 + bf.abs());
-        remaining = remaining.saturating_sub(used.max(1));
-        if remaining == 0 || !improved {
-            break;
-        }
-        last = bf;
-        th = bt;
-    }
-    best_of()
-}
-
-/// Starting `C`, `log v` for `M ≈ C Cᵀ + diag(v)`. With `exact` and full
-/// rank (warm starts): `v = ½ λ_min(M)`, `C = chol(M − diag(v))`. Otherwise
-/// `C` small random and `v` the rest of the diagonal (floored): the scale
-/// then sits in `log v`, where the optimiser can shrink it to zero, rather
-/// than in `C`, whose gradient vanishes as `C → 0`.
-fn init_factor(
-    m: &DMatrix<f64>,
-    r: usize,
-    exact: bool,
-    rng: &mut ChaCha8Rng,
-    c: &mut [f64],
-    logv: &mut [f64],
-) {
-    let dim = m.nrows();
-    if exact && r == dim {
-        let lmin = m.clone().symmetric_eigenvalues().min();
-        if lmin > 0.0 {
-            let v = 0.5 * lmin;
-            let shifted = m - DMatrix::identity(dim, dim) * v;
-            if let Some(ch) = shifted.cholesky() {
-                let lo = ch.l();
-                for i in 0..dim {
-                    for q in 0..dim {
-                        c[i * r + q] = lo[(i, q)];
-                    }
-                    logv[i] = v.ln();
-                }
-                return;
-            }
-        }
-    }
-    for i in 0..dim {
-        let scale = 0.1 * m[(i, i)].abs().sqrt();
-        for q in 0..r {
-            let z: f64 = StandardNormal.sample(rng);
-            c[i * r + q] = scale * z;
-        }
-        let cc: f64 = (0..r).map(|q| c[i * r + q].powi(2)).sum();
-        logv[i] = (m[(i, i)] - cc).max(1e-3 * m[(i, i)].abs()).max(1e-12).ln();
-    }
-}
-
-impl<'a, K: Kernel> Objective<'a, K> {
-    fn new(layout: Layout, kernel: K, data: CogpData<'a>) -> Self {
-        Self {
-            layout,
-            kernel,
-            data,
-            cache: Mutex::new((None, None, 0)),
-        }
-    }
-
-    /// θ for the given kernel (its scale is ignored), `Σ` and `S`.
-    #[allow(non_snake_case)]
-    fn theta(
-        &self,
-        kern: &K,
-        Sigma: &DMatrix<f64>,
-        S: &DMatrix<f64>,
-        exact: bool,
-        rng: &mut ChaCha8Rng,
-    ) -> Vec<f64> {
-        let l = &self.layout;
-        let mut th = vec![0.0; l.len()];
-        let free = kern
-            .log_hyper()
-            .into_iter()
-            .enumerate()
-            .filter(|(i, _)| Some(*i) != l.scale_idx);
-        for (t, (_, h)) in free.enumerate() {
-            th[t] = h;
-        }
-        let (cs, rest) = th[l.off_cs()..].split_at_mut(l.np * l.rs);
-        let (vs, rest) = rest.split_at_mut(l.np);
-        let (cn, vn) = rest.split_at_mut(l.n * l.rn);
-        init_factor(Sigma, l.rs, exact, rng, cs, vs);
-        init_factor(S, l.rn, exact, rng, cn, vn);
-        th
-    }
-
-    fn evaluations(&self) -> usize {
-        self.cache.lock().unwrap_or_else(|e| e.into_inner()).2
+        Ok((-g.log_likelihood, grad))
     }
 }
 
@@ -367,7 +224,11 @@ impl<'a, K: Kernel> Objective<'a, K> {
 fn data_driven_start<K: Kernel>(
     model: &Cogp<K>,
 ) -> Result<(K, DMatrix<f64>, DMatrix<f64>), InputError> {
-    let (n, np, k) = (model.n(), model.n() * (model.m() + 1), model.len());
+    let (n, np, k) = (
+        model.state_dim(),
+        model.state_dim() * (model.control_dim() + 1),
+        model.len(),
+    );
     let d = model.input_map().output_dim(n);
     let (zs, us, resid) = (
         model.mapped_inputs(),
@@ -432,7 +293,7 @@ pub fn fit_cogp<K: Kernel>(
     if k == 0 {
         return Err(GpError::NoData.into());
     }
-    let (n, p) = (model.n(), model.m() + 1);
+    let (n, p) = (model.state_dim(), model.control_dim() + 1);
     let np = n * p;
     let initial_ll = model.log_marginal_likelihood();
     let (kernel0, Sigma0, S0) = if settings.warm_start {
@@ -458,74 +319,62 @@ pub fn fit_cogp<K: Kernel>(
         rs: settings.rank_sigma.cols(np),
         rn: settings.rank_s.cols(n),
     };
-    let prefit = settings.prefit_diagonal && !settings.warm_start && layout.rs + layout.rn > 0;
-    let diag = Objective::new(
-        Layout {
+    let use_prefit = settings.prefit_diagonal && !settings.warm_start && layout.rs + layout.rn > 0;
+    let diag = Harness::new(Likelihood {
+        layout: Layout {
             rs: 0,
             rn: 0,
             ..layout.clone()
         },
-        kernel0.clone(),
+        kernel: kernel0.clone(),
         data,
-    );
-    let obj = Objective::new(layout, kernel0.clone(), data);
-    let mut rng = ChaCha8Rng::seed_from_u64(settings.seed);
-    let perturb = |th: &mut Vec<f64>, rng: &mut ChaCha8Rng| {
-        for v in th.iter_mut() {
-            let z: f64 = StandardNormal.sample(rng);
-            *v += 0.5 * z;
-        }
+    });
+    let full = Harness::new(Likelihood {
+        layout,
+        kernel: kernel0.clone(),
+        data,
+    });
+    // a run that stops early (line-search failure) resumes from the best
+    // point with fresh memory, up to 4 times, while it improves
+    let run = RunSettings {
+        max_iters: settings.max_iters,
+        stall_resumes: 4,
+        relative_cost_tolerance: None,
     };
-    let mut best: Option<(Vec<f64>, f64)> = None;
+    let mut rng = ChaCha8Rng::seed_from_u64(settings.seed);
+    let (obj, dg) = (full.objective(), diag.objective());
     let starts = 1 + settings.restarts;
-    for s in 0..starts {
-        let exact = settings.warm_start && s == 0;
-        let mut candidates = Vec::new();
-        let th = if prefit {
-            let mut th = diag.theta(&kernel0, &Sigma0, &S0, false, &mut rng);
-            if s > 0 {
-                perturb(&mut th, &mut rng);
-            }
-            match run_start(&diag, th, settings.max_iters) {
-                Some((bt, bf)) if bf < 1e29 => {
-                    let (kd, sd, nd) = diag.unpack(&bt)?;
-                    let th = obj.theta(&kd, &sd, &nd, false, &mut rng);
-                    // the diagonal optimum itself (C = 0) stays a candidate
-                    let mut th_diag = th.clone();
-                    let l = &obj.layout;
-                    th_diag[l.off_cs()..l.off_vs()].fill(0.0);
-                    th_diag[l.off_cn()..l.off_vn()].fill(0.0);
-                    let f = obj.eval(&th_diag).0;
-                    candidates.push((th_diag, f));
-                    th
-                }
-                _ => obj.theta(&kernel0, &Sigma0, &S0, false, &mut rng),
-            }
-        } else {
+    let best = multi_start(&full, starts, &run, |s| {
+        if !use_prefit {
+            let exact = settings.warm_start && s == 0;
             let mut th = obj.theta(&kernel0, &Sigma0, &S0, exact, &mut rng);
             if s > 0 {
                 perturb(&mut th, &mut rng);
             }
-            th
-        };
-        candidates.extend(run_start(&obj, th, settings.max_iters));
-        for (bt, bf) in candidates {
-            if best.as_ref().is_none_or(|(_, f)| bf < *f) {
-                best = Some((bt, bf));
-            }
+            return Ok::<_, Error>(StartPlan::at(th));
         }
-    }
-    let evaluations = obj.evaluations() + diag.evaluations();
-    let (bt, bf) =
-        best.ok_or_else(|| GpError::Optimisation("no finite likelihood evaluated".into()))?;
-    if bf >= 1e29 {
-        return Err(GpError::Optimisation(
-            "no hyperparameters gave a positive-definite Gram matrix".into(),
-        )
-        .into());
-    }
-    let (kern, Sigma, S) = obj.unpack(&bt)?;
-    drop((obj, diag));
+        let mut th = dg.theta(&kernel0, &Sigma0, &S0, false, &mut rng);
+        if s > 0 {
+            perturb(&mut th, &mut rng);
+        }
+        prefit(&diag, &full, th, &run, |optimum| {
+            let Some(opt) = optimum else {
+                // no diagonal model could be evaluated: start the full fit cold
+                return Ok((obj.theta(&kernel0, &Sigma0, &S0, false, &mut rng), None));
+            };
+            let (kd, sd, nd) = dg.unpack(opt)?;
+            let th = obj.theta(&kd, &sd, &nd, false, &mut rng);
+            // the diagonal optimum itself (C = 0) stays a candidate
+            let mut th_diag = th.clone();
+            let l = &obj.layout;
+            th_diag[l.off_cs()..l.off_vs()].fill(0.0);
+            th_diag[l.off_cn()..l.off_vn()].fill(0.0);
+            Ok((th, Some(th_diag)))
+        })
+    })?;
+    let evaluations = full.evaluations() + diag.evaluations();
+    let (kern, Sigma, S) = obj.unpack(&best.theta)?;
+    drop((full, diag));
     model.set_hyper(CogpHyper {
         kernel: kern,
         Sigma: 0.5 * (&Sigma + Sigma.transpose()),
@@ -577,7 +426,7 @@ mod tests {
             let th: Vec<f64> = (0..layout.len())
                 .map(|_| rng.random_range(-0.5..0.5))
                 .collect();
-            let obj = Objective {
+            let obj = Likelihood {
                 layout,
                 kernel,
                 data: CogpData {
@@ -589,16 +438,15 @@ mod tests {
                     us: &us,
                     resid: &resid,
                 },
-                cache: Mutex::new((None, None, 0)),
             };
-            let (f0, g) = obj.eval(&th);
-            assert!(f0 < 1e29);
+            let f = |th: &[f64]| obj.eval(th).unwrap();
+            let (_, g) = f(&th);
             let h = 1e-6;
             for i in 0..th.len() {
                 let (mut tp, mut tm) = (th.clone(), th.clone());
                 tp[i] += h;
                 tm[i] -= h;
-                let fd = (obj.eval(&tp).0 - obj.eval(&tm).0) / (2.0 * h);
+                let fd = (f(&tp).0 - f(&tm).0) / (2.0 * h);
                 assert!(
                     (fd - g[i]).abs() < 1e-5 * (1.0 + fd.abs()),
                     "n={n} m={m} param {i}: fd {fd} analytic {}",

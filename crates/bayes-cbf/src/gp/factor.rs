@@ -1,30 +1,16 @@
 //! A Cholesky factor `L Lᵀ = G` of a Gram matrix that grows by one row per
 //! observation (O(k²)) and drops its oldest row (O(k²) rank-one update).
+//!
+//! The factor is stored as a faer matrix; the public methods take and return
+//! nalgebra matrices or slices, the faer-typed ones are crate-private.
 
+use super::simd::with_faer;
 use crate::error::GpError;
 use faer::linalg::triangular_solve::{
     solve_lower_triangular_in_place, solve_upper_triangular_in_place,
 };
 use faer::{Mat, MatMut, MatRef, Par};
-
-/// Clears the upper halves of the AVX registers (`vzeroupper`).
-///
-/// faer's SIMD kernels return with the upper register state dirty; on many
-/// x86 CPUs every later legacy-SSE instruction (libm's `exp` entry point,
-/// scalar code compiled for the x86-64 baseline) then pays a transition
-/// penalty. Measured here: a 200 × 200 RBF Gram matrix took 3.3 ms after a
-/// faer call and 0.30 ms after this. Called after every faer operation on
-/// hot paths.
-#[inline]
-pub fn clear_simd_state() {
-    #[cfg(target_arch = "x86_64")]
-    {
-        if std::arch::is_x86_feature_detected!("avx") {
-            // SAFETY: the `avx` feature was detected at run time.
-            unsafe { std::arch::x86_64::_mm256_zeroupper() }
-        }
-    }
-}
+use nalgebra::DMatrix;
 
 /// Relative jitter levels tried, in order, when a factorisation fails: the
 /// jitter added to the diagonal is `level × mean(diag G)`.
@@ -68,13 +54,13 @@ impl CholFactor {
     /// through [`JITTER_LEVELS`] while the factorisation fails or leaves a
     /// pivot `L_jj² ≤ 1e-10 (G_jj + jitter)` (within roundoff of singular);
     /// fails with [`GpError::IllConditioned`].
-    pub fn factor(g: MatRef<'_, f64>, capacity: usize) -> Result<Self, GpError> {
+    pub(crate) fn factor(g: MatRef<'_, f64>, capacity: usize) -> Result<Self, GpError> {
         Self::factor_impl(g, capacity, true)
     }
 
     /// [`factor`](Self::factor) without logging the jitter (used inside
     /// optimisers, which evaluate many nearby matrices).
-    pub fn factor_quiet(g: MatRef<'_, f64>, capacity: usize) -> Result<Self, GpError> {
+    pub(crate) fn factor_quiet(g: MatRef<'_, f64>, capacity: usize) -> Result<Self, GpError> {
         Self::factor_impl(g, capacity, false)
     }
 
@@ -98,12 +84,11 @@ impl CholFactor {
                     sub[(j, j)] += jit;
                 }
             }
-            let ok = cholesky_in_place(l.as_mut().submatrix_mut(0, 0, k, k))
+            let ok = with_faer(|| cholesky_in_place(l.as_mut().submatrix_mut(0, 0, k, k)))
                 && (0..k).all(|j| {
                     let p = l[(j, j)];
                     p * p > MIN_PIVOT * (g[(j, j)] + jit).abs()
                 });
-            clear_simd_state();
             if ok {
                 if level > 0.0 && log_jitter {
                     log::warn!("Gram matrix (k = {k}) needed jitter {jit:.3e} ({level:e} × mean diagonal) to factorise");
@@ -137,8 +122,14 @@ impl CholFactor {
         self.k == 0
     }
 
-    /// The factor `L` (`k × k`).
-    pub fn l(&self) -> MatRef<'_, f64> {
+    /// A copy of the factor `L` (`k × k`, lower triangular).
+    pub fn l(&self) -> DMatrix<f64> {
+        let l = self.l_ref();
+        DMatrix::from_fn(self.k, self.k, |i, j| l[(i, j)])
+    }
+
+    /// The factor `L` (`k × k`), borrowed.
+    pub(crate) fn l_ref(&self) -> MatRef<'_, f64> {
         self.l.as_ref().submatrix(0, 0, self.k, self.k)
     }
 
@@ -152,28 +143,50 @@ impl CholFactor {
         self.jitter.iter().cloned().fold(0.0, f64::max)
     }
 
-    /// Solves `L X = B` in place (`B` has `k` rows).
+    /// Solves `L X = B` in place; `B` must have `k` rows.
     #[track_caller]
-    pub fn solve_l_in_place(&self, rhs: MatMut<'_, f64>) {
-        solve_lower_triangular_in_place(self.l(), rhs, Par::Seq);
-        clear_simd_state();
+    pub fn solve_l_in_place(&self, rhs: &mut DMatrix<f64>) {
+        let (r, c) = rhs.shape();
+        self.solve_l(MatMut::from_column_major_slice_mut(
+            rhs.as_mut_slice(),
+            r,
+            c,
+        ));
     }
 
-    /// Solves `Lᵀ X = B` in place.
+    /// Solves `Lᵀ X = B` in place; `B` must have `k` rows.
     #[track_caller]
-    pub fn solve_lt_in_place(&self, rhs: MatMut<'_, f64>) {
-        solve_upper_triangular_in_place(self.l().transpose(), rhs, Par::Seq);
-        clear_simd_state();
+    pub fn solve_lt_in_place(&self, rhs: &mut DMatrix<f64>) {
+        let (r, c) = rhs.shape();
+        self.solve_lt(MatMut::from_column_major_slice_mut(
+            rhs.as_mut_slice(),
+            r,
+            c,
+        ));
+    }
+
+    /// Solves `L X = B` in place (`B` has `k` rows).
+    #[track_caller]
+    pub(crate) fn solve_l(&self, rhs: MatMut<'_, f64>) {
+        assert_eq!(rhs.nrows(), self.k, "right-hand side rows");
+        with_faer(|| solve_lower_triangular_in_place(self.l_ref(), rhs, Par::Seq));
+    }
+
+    /// Solves `Lᵀ X = B` in place (`B` has `k` rows).
+    #[track_caller]
+    pub(crate) fn solve_lt(&self, rhs: MatMut<'_, f64>) {
+        assert_eq!(rhs.nrows(), self.k, "right-hand side rows");
+        with_faer(|| solve_upper_triangular_in_place(self.l_ref().transpose(), rhs, Par::Seq));
     }
 
     /// Solves `L_pᵀ X = B` in place with the leading `p × p` block `L_p`
     /// of the factor (the factor before its last `k − p` appends).
     #[track_caller]
-    pub fn solve_leading_lt_in_place(&self, p: usize, rhs: MatMut<'_, f64>) {
+    pub(crate) fn solve_leading_lt(&self, p: usize, rhs: MatMut<'_, f64>) {
         assert!(p <= self.k, "leading block {p} larger than k = {}", self.k);
+        assert_eq!(rhs.nrows(), p, "right-hand side rows");
         let lp = self.l.as_ref().submatrix(0, 0, p, p);
-        solve_upper_triangular_in_place(lp.transpose(), rhs, Par::Seq);
-        clear_simd_state();
+        with_faer(|| solve_upper_triangular_in_place(lp.transpose(), rhs, Par::Seq));
     }
 
     /// Column `j` of `G⁻¹` into `out[..k]`: `y = L⁻¹ e_j` (zero above `j`,
@@ -189,9 +202,7 @@ impl CholFactor {
         let out = &mut out[..k];
         out[..j].fill(0.0);
         self.unit_solve_trailing(j, &mut out[j..]);
-        let rhs = MatMut::from_column_major_slice_mut(out, k, 1);
-        solve_upper_triangular_in_place(self.l().transpose(), rhs, Par::Seq);
-        clear_simd_state();
+        self.solve_lt(MatMut::from_column_major_slice_mut(out, k, 1));
     }
 
     /// `y = (L⁻¹ e_j)[j..]`, written into `y` (length `k − j`).
@@ -205,8 +216,7 @@ impl CholFactor {
         }
         let l33 = self.l.as_ref().submatrix(j + 1, j + 1, t, t);
         let rhs = MatMut::from_column_major_slice_mut(&mut y[1..], t, 1);
-        solve_lower_triangular_in_place(l33, rhs, Par::Seq);
-        clear_simd_state();
+        with_faer(|| solve_lower_triangular_in_place(l33, rhs, Par::Seq));
     }
 
     /// The diagonal of `G⁻¹`, `[G⁻¹]_jj = ‖L⁻¹ e_j‖²`, into `out` (cleared
@@ -224,14 +234,26 @@ impl CholFactor {
 
     /// `G⁻¹` (full symmetric `k × k`) by faer's blocked inverse of the
     /// factor (≈ ⅔k³ flops).
-    pub fn inverse(&self) -> Mat<f64> {
+    pub fn inverse(&self) -> DMatrix<f64> {
+        let inv = self.inverse_mat();
+        DMatrix::from_fn(self.k, self.k, |i, j| inv[(i, j)])
+    }
+
+    /// [`inverse`](Self::inverse) as a faer matrix.
+    pub(crate) fn inverse_mat(&self) -> Mat<f64> {
         use faer::dyn_stack::{MemBuffer, MemStack};
         use faer::linalg::cholesky::llt::inverse;
         let k = self.k;
         let mut out = Mat::<f64>::zeros(k, k);
-        let mut mem = MemBuffer::new(inverse::inverse_scratch::<f64>(k, Par::Seq));
-        inverse::inverse(out.as_mut(), self.l(), Par::Seq, MemStack::new(&mut mem));
-        clear_simd_state();
+        with_faer(|| {
+            let mut mem = MemBuffer::new(inverse::inverse_scratch::<f64>(k, Par::Seq));
+            inverse::inverse(
+                out.as_mut(),
+                self.l_ref(),
+                Par::Seq,
+                MemStack::new(&mut mem),
+            );
+        });
         // only the lower triangle is written
         for j in 0..k {
             for i in 0..j {
@@ -252,9 +274,11 @@ impl CholFactor {
         }
         let cap = (2 * self.l.nrows()).max(k).max(16);
         let mut l = Mat::<f64>::zeros(cap, cap);
-        l.as_mut()
-            .submatrix_mut(0, 0, self.k, self.k)
-            .copy_from(self.l());
+        with_faer(|| {
+            l.as_mut()
+                .submatrix_mut(0, 0, self.k, self.k)
+                .copy_from(self.l_ref())
+        });
         self.l = l;
     }
 
@@ -270,11 +294,7 @@ impl CholFactor {
         self.ensure_capacity(k + 1);
         let row = &mut scratch[..k];
         row.copy_from_slice(g_new);
-        {
-            let rhs = faer::MatMut::from_column_major_slice_mut(row, k, 1);
-            solve_lower_triangular_in_place(self.l(), rhs, Par::Seq);
-        }
-        clear_simd_state();
+        self.solve_l(MatMut::from_column_major_slice_mut(row, k, 1));
         let sq: f64 = row.iter().map(|v| v * v).sum();
         for &level in JITTER_LEVELS.iter() {
             let jit = level * diag.abs().max(f64::MIN_POSITIVE);
@@ -426,7 +446,7 @@ mod tests {
             f.append(&col, g[(j, j)], &mut scratch).unwrap();
         }
         let fresh = CholFactor::factor(g.as_ref(), k).unwrap();
-        assert_close(f.l(), fresh.l(), 1e-10);
+        assert_close(f.l_ref(), fresh.l_ref(), 1e-10);
     }
 
     #[test]
@@ -438,7 +458,7 @@ mod tests {
         for r in 1..5 {
             f.remove_first(&mut scratch);
             let fresh = CholFactor::factor(g.as_ref().submatrix(r, r, k - r, k - r), k).unwrap();
-            assert_close(f.l(), fresh.l(), 1e-10);
+            assert_close(f.l_ref(), fresh.l_ref(), 1e-10);
         }
         assert!(
             (f.log_det()
@@ -460,7 +480,7 @@ mod tests {
             // β = L⁻¹ R for two right-hand sides, rotated along with the factor
             let r = Mat::<f64>::from_fn(k, 2, |i, c| (i as f64 * 0.37 + c as f64).sin());
             let mut beta = r.clone();
-            f.solve_l_in_place(beta.as_mut());
+            f.solve_l(beta.as_mut());
             f.remove(j, &mut scratch);
             let t = k - 1 - j;
             for c in 0..2 {
@@ -475,10 +495,10 @@ mod tests {
             let keep: Vec<usize> = (0..k).filter(|&i| i != j).collect();
             let gj = Mat::<f64>::from_fn(k - 1, k - 1, |a, b| g[(keep[a], keep[b])]);
             let fresh = CholFactor::factor(gj.as_ref(), k).unwrap();
-            assert_close(f.l(), fresh.l(), 1e-10);
+            assert_close(f.l_ref(), fresh.l_ref(), 1e-10);
             assert_eq!(f.jitter().len(), k - 1);
             let mut bf = Mat::<f64>::from_fn(k - 1, 2, |a, c| r[(keep[a], c)]);
-            fresh.solve_l_in_place(bf.as_mut());
+            fresh.solve_l(bf.as_mut());
             assert_close(beta.as_ref().submatrix(0, 0, k - 1, 2), bf.as_ref(), 1e-10);
         }
     }
@@ -487,7 +507,7 @@ mod tests {
     fn inverse_matches_solves() {
         let g = random_spd(37, 5);
         let f = CholFactor::factor(g.as_ref(), 37).unwrap();
-        let inv = f.inverse();
+        let inv = f.inverse_mat();
         let prod = &g * &inv;
         assert_close(prod.as_ref(), Mat::<f64>::identity(37, 37).as_ref(), 1e-9);
     }

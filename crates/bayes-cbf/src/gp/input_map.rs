@@ -4,6 +4,7 @@ use crate::error::InputError;
 
 /// One kernel input computed from one state coordinate.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[cfg_attr(feature = "serde", derive(serde::Serialize, serde::Deserialize))]
 pub enum Feature {
     /// `x_i`.
     Coord(usize),
@@ -29,6 +30,7 @@ impl Feature {
 /// Sec. VII-B). [`InputMap::periodic`] embeds angles as `(cos θ, sin θ)` so
 /// the kernel is continuous across the `±π` wrap.
 #[derive(Debug, Clone, PartialEq, Eq, Default)]
+#[cfg_attr(feature = "serde", derive(serde::Serialize, serde::Deserialize))]
 pub enum InputMap {
     /// `z = x`.
     #[default]

@@ -16,6 +16,7 @@
 
 use super::kernel::Kernel;
 use super::mvgp::Mvgp;
+use super::simd::with_faer;
 use crate::error::InputError;
 use faer::Mat;
 use nalgebra::DMatrix;
@@ -59,7 +60,7 @@ pub struct JointWorkspace {
 impl<K: Kernel> Mvgp<K> {
     /// A workspace for [`joint_posterior_into`](Self::joint_posterior_into).
     pub fn joint_workspace(&self) -> JointWorkspace {
-        let (n, p) = (self.n(), self.m() + 1);
+        let (n, p) = (self.state_dim(), self.control_dim() + 1);
         let d = self.input_map().output_dim(n);
         JointWorkspace {
             z: vec![0.0; d],
@@ -83,7 +84,7 @@ impl<K: Kernel> Mvgp<K> {
         ws: &mut JointWorkspace,
         out: &mut JointPosterior,
     ) -> Result<(), InputError> {
-        let (n, m) = (self.n(), self.m());
+        let (n, m) = (self.state_dim(), self.control_dim());
         let p = m + 1;
         let pp = p * (1 + n);
         if x.len() != n {
@@ -181,30 +182,31 @@ impl<K: Kernel> Mvgp<K> {
             }
         }
         let mut v = ws.omega.as_mut().submatrix_mut(0, 0, k, pp);
-        self.factor().solve_l_in_place(v.as_mut());
+        self.factor().solve_l(v.as_mut());
         let v = v.as_ref();
-        let beta = self.beta();
-        for q in 0..pp {
-            let vq = v.col(q);
-            for i in 0..n {
-                out.mean[(i, q)] += beta.col(i).subrows(0, k).transpose() * vq;
-            }
-            for q2 in 0..=q {
-                let s = v.col(q2).transpose() * vq;
-                out.c[(q2, q)] -= s;
-                if q2 != q {
-                    out.c[(q, q2)] -= s;
+        let beta = self.beta_mat();
+        with_faer(|| {
+            for q in 0..pp {
+                let vq = v.col(q);
+                for i in 0..n {
+                    out.mean[(i, q)] += beta.col(i).subrows(0, k).transpose() * vq;
+                }
+                for q2 in 0..=q {
+                    let s = v.col(q2).transpose() * vq;
+                    out.c[(q2, q)] -= s;
+                    if q2 != q {
+                        out.c[(q, q2)] -= s;
+                    }
                 }
             }
-        }
-        super::factor::clear_simd_state();
+        });
         Ok(())
     }
 
     /// Allocating wrapper of [`joint_posterior_into`](Self::joint_posterior_into).
     pub fn joint_posterior(&self, x: &[f64]) -> Result<JointPosterior, InputError> {
         let mut ws = self.joint_workspace();
-        let mut out = JointPosterior::zeros(self.n(), self.m());
+        let mut out = JointPosterior::zeros(self.state_dim(), self.control_dim());
         self.joint_posterior_into(x, &mut ws, &mut out)?;
         Ok(out)
     }

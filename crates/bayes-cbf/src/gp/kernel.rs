@@ -41,6 +41,7 @@ pub trait Kernel: Clone + Send + Sync + std::fmt::Debug {
 ///
 /// Log hyperparameters: `[log ℓ_1, …, log ℓ_d, log s]`.
 #[derive(Debug, Clone, PartialEq)]
+#[cfg_attr(feature = "serde", derive(serde::Serialize, serde::Deserialize))]
 pub struct Rbf {
     lengthscales: Vec<f64>,
     inv_l2: Vec<f64>,

@@ -72,7 +72,6 @@
 //! (`N^{|C|}` nodes, one `k × n` triangular solve each); the prior mean's
 //! Jacobian on the full `N^n` grid.
 
-use super::factor::clear_simd_state;
 use super::input_map::{Feature, InputMap};
 use super::kernel::{Kernel, Rbf};
 use super::mvgp::Mvgp;
@@ -85,6 +84,7 @@ use rand_distr::{Distribution, StandardNormal};
 
 /// Settings of the Lipschitz computation.
 #[derive(Debug, Clone, PartialEq)]
+#[cfg_attr(feature = "serde", derive(serde::Serialize, serde::Deserialize))]
 pub struct LipschitzSettings {
     /// `δ_L ∈ (0, 1)`: the analytic bound holds with probability `1 − δ_L`.
     pub delta_l: f64,
@@ -397,7 +397,7 @@ impl Mvgp<Rbf> {
         settings: &LipschitzSettings,
         rng: &mut R,
     ) -> Result<LipschitzEstimate, Error> {
-        let n = self.n();
+        let n = self.state_dim();
         settings.validate(n)?;
         let ubar = self.augmented(x, u)?;
         let p = ubar.len();
@@ -534,7 +534,7 @@ impl Mvgp<Rbf> {
         x: &[f64],
         u: &[f64],
     ) -> Result<(DMatrix<f64>, DMatrix<f64>), Error> {
-        let n = self.n();
+        let n = self.state_dim();
         let ubar = self.augmented(x, u)?;
         let beta = self.beta_u(&ubar);
         let nm = self.node_moments(&[x.to_vec()], &ubar, beta).remove(0);
@@ -548,7 +548,7 @@ impl Mvgp<Rbf> {
 
     /// Checks `x` and `u` and returns `u̲ = [1, u]`.
     fn augmented(&self, x: &[f64], u: &[f64]) -> Result<Vec<f64>, Error> {
-        let (n, m) = (self.n(), self.m());
+        let (n, m) = (self.state_dim(), self.control_dim());
         if x.len() != n {
             return Err(InputError::shape("x", n, x.len()).into());
         }
@@ -579,7 +579,7 @@ impl Mvgp<Rbf> {
     /// `∂_c μ_i = Σ_l α_li ∂_c w_l` and
     /// `H_cd = β ∂_c∂'_d k0(x, x) − (L⁻¹∂_c w)ᵀ(L⁻¹∂_d w)`.
     fn node_moments(&self, nodes: &[Vec<f64>], ubar: &[f64], beta: f64) -> Vec<NodeMoments> {
-        let (n, p, k) = (self.n(), ubar.len(), self.len());
+        let (n, p, k) = (self.state_dim(), ubar.len(), self.len());
         let map = self.input_map();
         let kern = &self.hyper().kernel;
         let d = map.output_dim(n);
@@ -617,7 +617,7 @@ impl Mvgp<Rbf> {
             }
             let mut jac_gp = vec![vec![0.0; n * n]; chunk.len()];
             if k > 0 {
-                let alpha = self.alpha();
+                let alpha = self.alpha_mat();
                 for (q, jg) in jac_gp.iter_mut().enumerate() {
                     for i in 0..n {
                         for c in 0..n {
@@ -626,8 +626,7 @@ impl Mvgp<Rbf> {
                         }
                     }
                 }
-                self.factor().solve_l_in_place(dw.as_mut());
-                clear_simd_state();
+                self.factor().solve_l(dw.as_mut());
             }
             for (q, (mut h, jg)) in prior_h.into_iter().zip(jac_gp).enumerate() {
                 if k > 0 {

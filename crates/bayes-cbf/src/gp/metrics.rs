@@ -69,12 +69,12 @@ fn check_inputs(
     us: Option<&[f64]>,
     truth: &dyn DynSystem,
 ) -> Result<usize, InputError> {
-    let (n, m) = (model.n(), model.m());
-    if (truth.n(), truth.m()) != (n, m) {
+    let (n, m) = (model.state_dim(), model.control_dim());
+    if (truth.state_dim(), truth.control_dim()) != (n, m) {
         return Err(InputError::shape(
             "truth",
             format!("system with n = {n}, m = {m}"),
-            format!("n = {}, m = {}", truth.n(), truth.m()),
+            format!("n = {}, m = {}", truth.state_dim(), truth.control_dim()),
         ));
     }
     let t = xs.len() / n;
@@ -112,7 +112,7 @@ fn sums(
     weighted: bool,
 ) -> Result<(usize, [f64; 4]), Error> {
     let t = check_inputs(model, xs, us, truth)?;
-    let (n, m) = (model.n(), model.m());
+    let (n, m) = (model.state_dim(), model.control_dim());
     let np = n * (m + 1);
     let mut f = vec![0.0; np];
     let mut e = vec![0.0; np];
@@ -172,7 +172,7 @@ pub fn variance_weighted_error(
 /// `√( Σ_{x ∈ 𝒯} ‖vec(M_k(x) − F(x))‖² / (|𝒯| n(1+m)) )`.
 pub fn rmse_f(model: &dyn DynamicsModel, xs: &[f64], truth: &dyn DynSystem) -> Result<f64, Error> {
     let (t, acc) = sums(model, xs, None, truth, false)?;
-    Ok((acc[1] / (t * model.n() * (model.m() + 1)) as f64).sqrt())
+    Ok((acc[1] / (t * model.state_dim() * (model.control_dim() + 1)) as f64).sqrt())
 }
 
 /// RMSE of the predicted state derivative, entrywise:
@@ -185,7 +185,7 @@ pub fn rmse_fu(
     truth: &dyn DynSystem,
 ) -> Result<f64, Error> {
     let (t, acc) = sums(model, xs, Some(us), truth, false)?;
-    Ok((acc[2] / (t * model.n()) as f64).sqrt())
+    Ok((acc[2] / (t * model.state_dim()) as f64).sqrt())
 }
 
 /// Relative error of the predicted state derivative:
@@ -237,7 +237,10 @@ pub fn held_out_errors(
     truth: &dyn DynSystem,
 ) -> Result<HeldOutErrors, Error> {
     let (t, acc) = sums(model, xs, Some(us), truth, true)?;
-    let (n, np) = (model.n(), model.n() * (model.m() + 1));
+    let (n, np) = (
+        model.state_dim(),
+        model.state_dim() * (model.control_dim() + 1),
+    );
     Ok(HeldOutErrors {
         variance_weighted: (acc[0] / t as f64).sqrt(),
         rmse_f: (acc[1] / (t * np) as f64).sqrt(),

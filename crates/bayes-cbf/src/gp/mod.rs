@@ -12,12 +12,14 @@ mod low_rank;
 pub mod metrics;
 mod model;
 mod mvgp;
+mod optimise;
 mod prior;
+mod simd;
 mod training;
 
 pub use cogp::{Cogp, CogpGradient, CogpHyper, CogpPosterior};
 pub use cogp_training::{fit_cogp, CogpFitSettings};
-pub use factor::{clear_simd_state, CholFactor, JITTER_LEVELS};
+pub use factor::{CholFactor, JITTER_LEVELS};
 pub use input_map::{Feature, InputMap};
 pub use joint::{JointPosterior, JointWorkspace};
 pub use kernel::{Kernel, Rbf};

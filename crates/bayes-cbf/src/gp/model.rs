@@ -11,6 +11,7 @@ use nalgebra::DMatrix;
 
 /// Settings of [`DynamicsModel::fit`], common to both models.
 #[derive(Debug, Clone, PartialEq)]
+#[cfg_attr(feature = "serde", derive(serde::Serialize, serde::Deserialize))]
 pub struct ModelFitSettings {
     /// Structure of the large covariance: `B` (`(1+m)²`) for the MVGP, `Σ`
     /// (`(n(1+m))²`) for the CoGP. `Rank::Diagonal` gives the paper's "diag"
@@ -92,9 +93,9 @@ impl ModelFitSettings {
 /// (`K_k` of the Appendix lemma, Eq. `coregionalization-posterior`).
 pub trait DynamicsModel {
     /// State dimension `n`.
-    fn n(&self) -> usize;
+    fn state_dim(&self) -> usize;
     /// Control dimension `m`.
-    fn m(&self) -> usize;
+    fn control_dim(&self) -> usize;
     /// Number of observations `k`.
     fn len(&self) -> usize;
     /// No observations.
@@ -118,11 +119,11 @@ pub trait DynamicsModel {
 }
 
 impl<K: Kernel> DynamicsModel for Mvgp<K> {
-    fn n(&self) -> usize {
-        Mvgp::n(self)
+    fn state_dim(&self) -> usize {
+        Mvgp::state_dim(self)
     }
-    fn m(&self) -> usize {
-        Mvgp::m(self)
+    fn control_dim(&self) -> usize {
+        Mvgp::control_dim(self)
     }
     fn len(&self) -> usize {
         Mvgp::len(self)
@@ -152,11 +153,11 @@ impl<K: Kernel> DynamicsModel for Mvgp<K> {
 }
 
 impl<K: Kernel> DynamicsModel for Cogp<K> {
-    fn n(&self) -> usize {
-        Cogp::n(self)
+    fn state_dim(&self) -> usize {
+        Cogp::state_dim(self)
     }
-    fn m(&self) -> usize {
-        Cogp::m(self)
+    fn control_dim(&self) -> usize {
+        Cogp::control_dim(self)
     }
     fn len(&self) -> usize {
         Cogp::len(self)

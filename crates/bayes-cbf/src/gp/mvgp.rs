@@ -5,6 +5,7 @@ use super::factor::CholFactor;
 use super::input_map::InputMap;
 use super::kernel::{Kernel, Rbf};
 use super::prior::PriorMean;
+use super::simd::with_faer;
 use crate::error::{check_finite, Error, GpError, InputError};
 use faer::Mat;
 use nalgebra::DMatrix;
@@ -16,6 +17,7 @@ mod budget;
 /// `vec F ~ GP(vec M0, B k0 ⊗ A)`, noise `w ~ N(0, σ² A)`.
 #[derive(Debug, Clone, PartialEq)]
 #[allow(non_snake_case)]
+#[cfg_attr(feature = "serde", derive(serde::Serialize, serde::Deserialize))]
 pub struct MvgpHyper<K: Kernel = Rbf> {
     /// Scalar kernel `k0`.
     pub kernel: K,
@@ -199,11 +201,11 @@ impl<K: Kernel> Mvgp<K> {
     }
 
     /// State dimension `n`.
-    pub fn n(&self) -> usize {
+    pub fn state_dim(&self) -> usize {
         self.n
     }
     /// Control dimension `m`.
-    pub fn m(&self) -> usize {
+    pub fn control_dim(&self) -> usize {
         self.m
     }
     /// Number of observations `k`.
@@ -380,7 +382,7 @@ impl<K: Kernel> Mvgp<K> {
             }
         }
         self.factor
-            .solve_l_in_place(self.beta.as_mut().submatrix_mut(0, 0, k, self.n));
+            .solve_l(self.beta.as_mut().submatrix_mut(0, 0, k, self.n));
         self.alpha = OnceLock::new();
         self.scratch.resize(4 * cap + 1, 0.0);
         self.info.reset();
@@ -411,12 +413,14 @@ impl<K: Kernel> Mvgp<K> {
         if self.beta.nrows() < k + 1 {
             let cap = (2 * self.beta.nrows()).max(k + 1).max(16);
             let mut nb = Mat::<f64>::zeros(cap, n);
-            nb.as_mut()
-                .submatrix_mut(0, 0, k, n)
-                .copy_from(self.beta.as_ref().submatrix(0, 0, k, n));
+            with_faer(|| {
+                nb.as_mut()
+                    .submatrix_mut(0, 0, k, n)
+                    .copy_from(self.beta.as_ref().submatrix(0, 0, k, n))
+            });
             self.beta = nb;
         }
-        let l = self.factor.l();
+        let l = self.factor.l_ref();
         for i in 0..n {
             let mut s = self.resid[k * n + i];
             for j in 0..k {
@@ -450,12 +454,18 @@ impl<K: Kernel> Mvgp<K> {
         }
     }
 
+    /// A copy of `α = G⁻¹ (Ẋ − 𝓜U̲)ᵀ`, `k × n`.
+    pub fn alpha(&self) -> DMatrix<f64> {
+        let a = self.alpha_mat();
+        DMatrix::from_fn(self.len(), self.n, |j, i| a[(j, i)])
+    }
+
     /// `α = G⁻¹ (Ẋ − 𝓜U̲)ᵀ`, `k × n`, cached until the data change.
-    pub fn alpha(&self) -> &Mat<f64> {
+    pub(crate) fn alpha_mat(&self) -> &Mat<f64> {
         self.alpha.get_or_init(|| {
             let k = self.len();
-            let mut a = self.beta.as_ref().submatrix(0, 0, k, self.n).to_owned();
-            self.factor.solve_lt_in_place(a.as_mut());
+            let mut a = with_faer(|| self.beta.as_ref().submatrix(0, 0, k, self.n).to_owned());
+            self.factor.solve_lt(a.as_mut());
             a
         })
     }
@@ -513,7 +523,7 @@ impl<K: Kernel> Mvgp<K> {
             return Ok(out);
         }
         self.fill_w(x, &mut ws);
-        let alpha = self.alpha();
+        let alpha = self.alpha_mat();
         for j in 0..self.len() {
             for c in 0..p {
                 let w = ws.w[(j, c)];
@@ -561,23 +571,24 @@ impl<K: Kernel> Mvgp<K> {
         }
         self.fill_w(x, ws);
         let mut v = ws.w.as_mut().submatrix_mut(0, 0, k, p);
-        self.factor.solve_l_in_place(v.as_mut());
+        self.factor.solve_l(v.as_mut());
         let v = v.as_ref();
-        for c in 0..p {
-            let vc = v.col(c);
-            for i in 0..n {
-                let bc = self.beta.as_ref().col(i).subrows(0, k);
-                out.mean[(i, c)] += bc.transpose() * vc;
-            }
-            for a in 0..=c {
-                let s = v.col(a).transpose() * vc;
-                out.B[(a, c)] -= s;
-                if a != c {
-                    out.B[(c, a)] -= s;
+        with_faer(|| {
+            for c in 0..p {
+                let vc = v.col(c);
+                for i in 0..n {
+                    let bc = self.beta.as_ref().col(i).subrows(0, k);
+                    out.mean[(i, c)] += bc.transpose() * vc;
+                }
+                for a in 0..=c {
+                    let s = v.col(a).transpose() * vc;
+                    out.B[(a, c)] -= s;
+                    if a != c {
+                        out.B[(c, a)] -= s;
+                    }
                 }
             }
-        }
-        super::factor::clear_simd_state();
+        });
         Ok(())
     }
 
@@ -610,14 +621,16 @@ impl<K: Kernel> Mvgp<K> {
         self.fill_w(x, &mut ws1);
         self.fill_w(x2, &mut ws2);
         let mut v1 = ws1.w.as_mut().submatrix_mut(0, 0, k, p);
-        self.factor.solve_l_in_place(v1.as_mut());
+        self.factor.solve_l(v1.as_mut());
         let mut v2 = ws2.w.as_mut().submatrix_mut(0, 0, k, p);
-        self.factor.solve_l_in_place(v2.as_mut());
-        for a in 0..p {
-            for b in 0..p {
-                out[(a, b)] -= v1.as_ref().col(a).transpose() * v2.as_ref().col(b);
+        self.factor.solve_l(v2.as_mut());
+        with_faer(|| {
+            for a in 0..p {
+                for b in 0..p {
+                    out[(a, b)] -= v1.as_ref().col(a).transpose() * v2.as_ref().col(b);
+                }
             }
-        }
+        });
         Ok(out)
     }
 
@@ -631,8 +644,7 @@ impl<K: Kernel> Mvgp<K> {
         }
         // R G^{-1} R^T = βᵀ β
         let b = self.beta.as_ref().submatrix(0, 0, k, n);
-        let q = b.transpose() * b;
-        super::factor::clear_simd_state();
+        let q = with_faer(|| b.transpose() * b);
         let qn = DMatrix::from_fn(n, n, |i, j| q[(i, j)]);
         let chol_a = match self.hyper.A.clone().cholesky() {
             Some(c) => c,
@@ -680,8 +692,15 @@ impl<K: Kernel> Mvgp<K> {
     pub fn bu(&self) -> &[f64] {
         &self.bu
     }
-    /// `β = L⁻¹ Rᵀ` (rows beyond [`len`](Self::len) are spare capacity).
-    pub fn beta(&self) -> faer::MatRef<'_, f64> {
+    /// A copy of `β = L⁻¹ Rᵀ`, `k × n`.
+    pub fn beta(&self) -> DMatrix<f64> {
+        let b = self.beta.as_ref();
+        DMatrix::from_fn(self.len(), self.n, |j, i| b[(j, i)])
+    }
+
+    /// `β = L⁻¹ Rᵀ`, borrowed (rows beyond [`len`](Self::len) are spare
+    /// capacity).
+    pub(crate) fn beta_mat(&self) -> faer::MatRef<'_, f64> {
         self.beta.as_ref()
     }
     /// Mapped training inputs (row-major `k × d`).

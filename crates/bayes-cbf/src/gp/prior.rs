@@ -19,7 +19,7 @@ impl std::fmt::Debug for PriorMean {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         match self {
             PriorMean::Zero => write!(f, "Zero"),
-            PriorMean::System(s) => write!(f, "System(n={}, m={})", s.n(), s.m()),
+            PriorMean::System(s) => write!(f, "System(n={}, m={})", s.state_dim(), s.control_dim()),
         }
     }
 }
@@ -74,7 +74,7 @@ impl PriorMean {
     pub fn dims(&self) -> Option<(usize, usize)> {
         match self {
             PriorMean::Zero => None,
-            PriorMean::System(s) => Some((s.n(), s.m())),
+            PriorMean::System(s) => Some((s.state_dim(), s.control_dim())),
         }
     }
 }

@@ -21,21 +21,21 @@
 
 use super::factor::CholFactor;
 use super::kernel::Kernel;
-use super::low_rank::{chain_low_rank, low_rank_plus_diag};
+use super::low_rank::{chain_low_rank, init_low_rank, low_rank_plus_diag};
 use super::mvgp::{Mvgp, MvgpHyper};
+use super::optimise::{
+    multi_start, perturb, EvalFailure, Evaluation, Harness, Objective, RunSettings, StartPlan,
+};
+use super::simd::with_faer;
 use crate::error::{Error, GpError, InputError};
-use argmin::core::{CostFunction, Executor, Gradient};
-use argmin::solver::linesearch::MoreThuenteLineSearch;
-use argmin::solver::quasinewton::LBFGS;
 use faer::Mat;
 use nalgebra::DMatrix;
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
-use rand_distr::{Distribution, StandardNormal};
-use std::sync::Mutex;
 
 /// Structure of a learned covariance matrix `C Cᵀ + diag(v)`.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+#[cfg_attr(feature = "serde", derive(serde::Serialize, serde::Deserialize))]
 pub enum Rank {
     /// `C` square: any positive-definite matrix.
     #[default]
@@ -59,6 +59,7 @@ impl Rank {
 
 /// Settings of [`fit`], validated by [`FitSettings::validate`].
 #[derive(Debug, Clone, PartialEq)]
+#[cfg_attr(feature = "serde", derive(serde::Serialize, serde::Deserialize))]
 pub struct FitSettings {
     /// Structure of `A`.
     pub rank_a: Rank,
@@ -171,15 +172,8 @@ impl Layout {
     }
 }
 
-/// `(θ, −log p, −∇ log p)` of the last evaluation, `(θ, −log p)` of the
-/// best point seen, and the number of evaluations.
-type EvalCache = (
-    Option<(Vec<f64>, f64, Vec<f64>)>,
-    Option<(Vec<f64>, f64)>,
-    usize,
-);
-
-struct Objective<'a, K: Kernel> {
+/// `−log p(θ)` of the MVGP (module docs) on fixed data.
+struct Likelihood<'a, K: Kernel> {
     layout: Layout,
     kernel: K,
     fixed_a: DMatrix<f64>,
@@ -188,11 +182,9 @@ struct Objective<'a, K: Kernel> {
     resid: &'a [f64],
     k: usize,
     d: usize,
-    /// Last evaluation, best point seen, evaluation count.
-    cache: Mutex<EvalCache>,
 }
 
-impl<K: Kernel> Objective<'_, K> {
+impl<K: Kernel> Likelihood<'_, K> {
     #[allow(non_snake_case)]
     fn unpack(&self, th: &[f64]) -> Result<(K, DMatrix<f64>, DMatrix<f64>, f64), InputError> {
         let l = &self.layout;
@@ -222,20 +214,18 @@ impl<K: Kernel> Objective<'_, K> {
         };
         Ok((kern, A, B, sigma))
     }
+}
 
-    /// Returns (−log p, −∇θ log p).
+impl<K: Kernel> Objective for Likelihood<'_, K> {
+    /// `(−log p, −∇θ log p)`.
     #[allow(non_snake_case)]
-    fn eval(&self, th: &[f64]) -> (f64, Vec<f64>) {
-        const PENALTY: f64 = 1e30;
+    fn eval(&self, th: &[f64]) -> Evaluation {
         let l = &self.layout;
         let (n, p, k, d) = (l.n, l.p, self.k, self.d);
         if th.iter().any(|v| !v.is_finite() || v.abs() > 50.0) {
-            return (PENALTY, vec![0.0; th.len()]);
+            return Err(EvalFailure::OutOfRange);
         }
-        let (kern, A, B, sigma) = match self.unpack(th) {
-            Ok(v) => v,
-            Err(_) => return (PENALTY, vec![0.0; th.len()]),
-        };
+        let (kern, A, B, sigma) = self.unpack(th).map_err(|_| EvalFailure::InvalidHyper)?;
         // Gram matrix
         let z = |i: usize| &self.zs[i * d..(i + 1) * d];
         let u = |i: usize| &self.us[i * p..(i + 1) * p];
@@ -260,22 +250,20 @@ impl<K: Kernel> Objective<'_, K> {
             }
             g[(j, j)] += sigma * sigma;
         }
-        let factor = match CholFactor::factor_quiet(g.as_ref(), k) {
-            Ok(f) => f,
-            Err(_) => return (PENALTY, vec![0.0; th.len()]),
-        };
+        let factor = CholFactor::factor_quiet(g.as_ref(), k)
+            .map_err(|_| EvalFailure::NotPositiveDefinite)?;
         // α = G⁻¹ Rᵀ, S = G⁻¹
         let mut alpha = Mat::<f64>::from_fn(k, n, |j, i| self.resid[j * n + i]);
-        factor.solve_l_in_place(alpha.as_mut());
-        let beta = alpha.clone();
-        factor.solve_lt_in_place(alpha.as_mut());
-        let s = factor.inverse();
-        let qf = beta.transpose() * &beta;
+        factor.solve_l(alpha.as_mut());
+        let beta = with_faer(|| alpha.clone());
+        factor.solve_lt(alpha.as_mut());
+        let s = factor.inverse_mat();
+        let qf = with_faer(|| beta.transpose() * &beta);
         let Q = DMatrix::from_fn(n, n, |i, j| qf[(i, j)]);
-        let chol_a = match A.clone().cholesky() {
-            Some(c) => c,
-            None => return (PENALTY, vec![0.0; th.len()]),
-        };
+        let chol_a = A
+            .clone()
+            .cholesky()
+            .ok_or(EvalFailure::NotPositiveDefinite)?;
         let Ainv = chol_a.inverse();
         let logdet_a = 2.0 * chol_a.l().diagonal().iter().map(|v| v.ln()).sum::<f64>();
         let ll = -0.5
@@ -284,13 +272,11 @@ impl<K: Kernel> Objective<'_, K> {
                 + (&Ainv * &Q).trace()
                 + (n * k) as f64 * (2.0 * std::f64::consts::PI).ln());
         if !ll.is_finite() {
-            return (PENALTY, vec![0.0; th.len()]);
+            return Err(EvalFailure::NonFinite);
         }
         // Ḡ = −½ (n S − α A⁻¹ αᵀ)
         let ainv_f = Mat::<f64>::from_fn(n, n, |i, j| Ainv[(i, j)]);
-        let aa = &alpha * &ainv_f;
-        let mut gbar = &aa * alpha.transpose();
-        super::factor::clear_simd_state();
+        let mut gbar = with_faer(|| &(&alpha * &ainv_f) * alpha.transpose());
         for j in 0..k {
             for i in 0..k {
                 gbar[(i, j)] = -0.5 * (n as f64 * s[(i, j)] - gbar[(i, j)]);
@@ -359,64 +345,7 @@ impl<K: Kernel> Objective<'_, K> {
         for gi in grad.iter_mut() {
             *gi = -*gi;
         }
-        (-ll, grad)
-    }
-
-    fn cached(&self, th: &[f64]) -> (f64, Vec<f64>) {
-        let mut c = self.cache.lock().unwrap_or_else(|e| e.into_inner());
-        if let Some((t, f, g)) = &c.0 {
-            if t.as_slice() == th {
-                return (*f, g.clone());
-            }
-        }
-        let (f, g) = self.eval(th);
-        c.2 += 1;
-        if c.1.as_ref().is_none_or(|(_, bf)| f < *bf) {
-            c.1 = Some((th.to_vec(), f));
-        }
-        c.0 = Some((th.to_vec(), f, g.clone()));
-        (f, g)
-    }
-}
-
-struct ObjRef<'b, 'a, K: Kernel>(&'b Objective<'a, K>);
-
-impl<K: Kernel> CostFunction for ObjRef<'_, '_, K> {
-    type Param = Vec<f64>;
-    type Output = f64;
-    fn cost(&self, p: &Self::Param) -> Result<f64, argmin::core::Error> {
-        Ok(self.0.cached(p).0)
-    }
-}
-
-impl<K: Kernel> Gradient for ObjRef<'_, '_, K> {
-    type Param = Vec<f64>;
-    type Gradient = Vec<f64>;
-    fn gradient(&self, p: &Self::Param) -> Result<Vec<f64>, argmin::core::Error> {
-        Ok(self.0.cached(p).1)
-    }
-}
-
-/// Matches `M ≈ C Cᵀ + diag(v)` for initialisation: `C` small random, `v` the
-/// diagonal of `M` (minus the `C` part, floored).
-fn init_low_rank(
-    m: &DMatrix<f64>,
-    r: usize,
-    rng: &mut ChaCha8Rng,
-    out_c: &mut [f64],
-    out_logv: &mut [f64],
-) {
-    let dim = m.nrows();
-    for i in 0..dim {
-        let scale = 0.1 * m[(i, i)].abs().sqrt();
-        for q in 0..r {
-            let z: f64 = StandardNormal.sample(rng);
-            out_c[i * r + q] = scale * z;
-        }
-    }
-    for i in 0..dim {
-        let cc: f64 = (0..r).map(|q| out_c[i * r + q].powi(2)).sum();
-        out_logv[i] = (m[(i, i)] - cc).max(1e-3 * m[(i, i)].abs()).max(1e-12).ln();
+        Ok((-ll, grad))
     }
 }
 
@@ -434,8 +363,8 @@ pub fn fit<K: Kernel>(model: &mut Mvgp<K>, settings: &FitSettings) -> Result<Fit
     if k == 0 {
         return Err(GpError::NoData.into());
     }
-    let n = model.n();
-    let p = model.m() + 1;
+    let n = model.state_dim();
+    let p = model.control_dim() + 1;
     let d = model.input_map().output_dim(n);
     let initial_ll = model.log_marginal_likelihood();
     let kernel = model.hyper().kernel.clone();
@@ -510,18 +439,18 @@ pub fn fit<K: Kernel>(model: &mut Mvgp<K>, settings: &FitSettings) -> Result<Fit
         .ln();
     {
         let (cb, rest) = th0[layout.off_cb()..].split_at_mut(p * layout.rb);
-        init_low_rank(&b0, layout.rb, &mut rng, cb, &mut rest[..p]);
+        init_low_rank(&b0, layout.rb, false, &mut rng, cb, &mut rest[..p]);
     }
     if layout.learn_a {
         let mut logv = vec![0.0; n];
         let mut ca = vec![0.0; n * layout.ra];
-        init_low_rank(&a0, layout.ra, &mut rng, &mut ca, &mut logv);
+        init_low_rank(&a0, layout.ra, false, &mut rng, &mut ca, &mut logv);
         th0[layout.off_ca()..layout.off_va()].copy_from_slice(&ca);
         for i in 1..n {
             th0[layout.off_va() + i - 1] = logv[i] - logv[0];
         }
     }
-    let obj = Objective {
+    let harness = Harness::new(Likelihood {
         layout: layout.clone(),
         kernel: kernel_start,
         fixed_a: model.hyper().A.clone(),
@@ -530,53 +459,25 @@ pub fn fit<K: Kernel>(model: &mut Mvgp<K>, settings: &FitSettings) -> Result<Fit
         resid,
         k,
         d,
-        cache: Mutex::new((None, None, 0)),
+    });
+    // one run per start, ending when an iteration improves −log p by less
+    // than 1e-9 relative; a line-search failure near the optimum ends it too
+    let run = RunSettings {
+        max_iters: settings.max_iters,
+        stall_resumes: 0,
+        relative_cost_tolerance: Some(1e-9),
     };
-    let mut best: Option<(Vec<f64>, f64)> = None;
     let starts = 1 + settings.restarts;
-    for s in 0..starts {
+    let best = multi_start(&harness, starts, &run, |s| {
         let mut th = th0.clone();
         if s > 0 {
-            for v in th.iter_mut() {
-                let z: f64 = StandardNormal.sample(&mut rng);
-                *v += 0.5 * z;
-            }
+            perturb(&mut th, &mut rng);
         }
-        obj.cache.lock().unwrap_or_else(|e| e.into_inner()).1 = None;
-        // stop when an iteration improves −log p by less than 1e-9 relative
-        let f0 = obj.cached(&th).0.abs().max(1.0);
-        let solver = LBFGS::new(MoreThuenteLineSearch::new(), 10)
-            .with_tolerance_cost(1e-9 * f0)
-            .map_err(|e| GpError::Optimisation(e.to_string()))?;
-        let max_iters = settings.max_iters;
-        // A line-search failure near the optimum ends the run; the best point
-        // seen is kept in the cache either way.
-        let _ = Executor::new(ObjRef(&obj), solver)
-            .configure(|st| st.param(th).max_iters(max_iters))
-            .run();
-        let run_best = obj
-            .cache
-            .lock()
-            .unwrap_or_else(|e| e.into_inner())
-            .1
-            .clone();
-        if let Some((bt, bf)) = run_best {
-            if best.as_ref().is_none_or(|(_, f)| bf < *f) {
-                best = Some((bt, bf));
-            }
-        }
-    }
-    let evaluations = obj.cache.lock().unwrap_or_else(|e| e.into_inner()).2;
-    let (bt, bf) =
-        best.ok_or_else(|| GpError::Optimisation("no finite likelihood evaluated".into()))?;
-    if bf >= 1e29 {
-        return Err(GpError::Optimisation(
-            "no hyperparameters gave a positive-definite Gram matrix".into(),
-        )
-        .into());
-    }
-    let (kern, A, B, sigma) = obj.unpack(&bt)?;
-    drop(obj);
+        Ok::<_, Error>(StartPlan::at(th))
+    })?;
+    let evaluations = harness.evaluations();
+    let (kern, A, B, sigma) = harness.objective().unpack(&best.theta)?;
+    drop(harness);
     // report the equivalent model with tr A = n
     let c = A.trace() / n as f64;
     let hyper = MvgpHyper {
@@ -641,7 +542,7 @@ pub(crate) mod tests {
                 // exercise the noise floor's chain rule in one case
                 sigma_min: if n == 2 { 0.05 } else { 0.0 },
             };
-            let obj = Objective {
+            let obj = Likelihood {
                 layout: layout.clone(),
                 kernel,
                 fixed_a: DMatrix::identity(n, n),
@@ -650,19 +551,19 @@ pub(crate) mod tests {
                 resid: &resid,
                 k,
                 d: n,
-                cache: Mutex::new((None, None, 0)),
             };
+            let f = |th: &[f64]| obj.eval(th).unwrap();
             let th: Vec<f64> = (0..layout.len())
                 .map(|_| rng.random_range(-0.5..0.5))
                 .collect();
-            let (_, g) = obj.eval(&th);
+            let (_, g) = f(&th);
             let h = 1e-6;
             for i in 0..th.len() {
                 let mut tp = th.clone();
                 let mut tm = th.clone();
                 tp[i] += h;
                 tm[i] -= h;
-                let fd = (obj.eval(&tp).0 - obj.eval(&tm).0) / (2.0 * h);
+                let fd = (f(&tp).0 - f(&tm).0) / (2.0 * h);
                 assert!(
                     (fd - g[i]).abs() < 1e-5 * (1.0 + fd.abs()),
                     "n={n} m={m} param {i}: fd {fd} analytic {}",
@@ -686,7 +587,7 @@ pub(crate) mod tests {
             .unwrap();
             let u_only: Vec<f64> = us.chunks(p).flat_map(|u| u[1..].to_vec()).collect();
             model.set_data(&zs, &u_only, &resid).unwrap();
-            assert!((model.log_marginal_likelihood() + obj.eval(&th).0).abs() < 1e-8);
+            assert!((model.log_marginal_likelihood() + f(&th).0).abs() < 1e-8);
         }
     }
 }

@@ -22,6 +22,7 @@ use std::time::Instant;
 
 /// Which observations the model keeps as data arrive.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+#[cfg_attr(feature = "serde", derive(serde::Serialize, serde::Deserialize))]
 pub enum DataPolicy {
     /// Every observation (the cost of a step grows with the data).
     #[default]
@@ -38,6 +39,7 @@ pub enum DataPolicy {
 
 /// Outcome of a step's safety SOCP.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[cfg_attr(feature = "serde", derive(serde::Serialize, serde::Deserialize))]
 pub enum StepStatus {
     /// Solved to tolerance.
     Optimal,
@@ -60,6 +62,7 @@ impl StepStatus {
 
 /// Schedule and simulation settings of a closed-loop run.
 #[derive(Debug, Clone, PartialEq)]
+#[cfg_attr(feature = "serde", derive(serde::Serialize, serde::Deserialize))]
 pub struct LoopSettings {
     /// Control period τ (s).
     pub dt: f64,
@@ -304,16 +307,16 @@ impl<'a> ClosedLoop<'a> {
         settings: &LoopSettings,
     ) -> Result<Self, Error> {
         settings.validate()?;
-        let (n, m) = (truth.n(), truth.m());
+        let (n, m) = (truth.state_dim(), truth.control_dim());
         if x0.len() != n {
             return Err(InputError::shape("start", n, x0.len()).into());
         }
         crate::error::check_finite("start", x0)?;
-        if model.n() != n || model.m() != m {
+        if model.state_dim() != n || model.control_dim() != m {
             return Err(InputError::shape(
                 "model dimensions",
                 format!("n = {n}, m = {m}"),
-                format!("n = {}, m = {}", model.n(), model.m()),
+                format!("n = {}, m = {}", model.state_dim(), model.control_dim()),
             )
             .into());
         }
@@ -469,7 +472,7 @@ impl<'a> ClosedLoop<'a> {
 
     /// One step: control, hold, observation, learning; the step's record.
     fn advance(&mut self) -> Result<StepRecord, Error> {
-        let (n, k, t) = (self.truth.n(), self.k, self.time());
+        let (n, k, t) = (self.truth.state_dim(), self.k, self.time());
         let self_triggered = self.self_triggered();
         let horizon = self.horizon();
         self.reference.at(k, t, &self.x, &mut self.rng, &mut self.r);
@@ -535,7 +538,7 @@ impl<'a> ClosedLoop<'a> {
         let xdot: Vec<f64> = (0..n)
             .map(|i| {
                 let d = self.x[i] - x_prev[i];
-                let d = if self.truth.angles().contains(&i) {
+                let d = if self.truth.angle_indices().contains(&i) {
                     wrap_angle(d)
                 } else {
                     d

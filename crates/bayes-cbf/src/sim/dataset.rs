@@ -56,7 +56,7 @@ pub fn sample_uniform<R: Rng + ?Sized>(
     noise: f64,
     rng: &mut R,
 ) -> Result<Dataset, InputError> {
-    let (n, m) = (system.n(), system.m());
+    let (n, m) = (system.state_dim(), system.control_dim());
     for (name, v, d) in [
         ("x_lo", x_lo, n),
         ("x_hi", x_hi, n),
@@ -140,7 +140,7 @@ pub fn simulate_trajectory<R: Rng + ?Sized>(
     settings: SimSettings,
     rng: &mut R,
 ) -> Result<Dataset, InputError> {
-    let (n, m) = (system.n(), system.m());
+    let (n, m) = (system.state_dim(), system.control_dim());
     if x0.len() != n {
         return Err(InputError::shape("x0", n, x0.len()));
     }
@@ -172,7 +172,7 @@ pub fn simulate_trajectory<R: Rng + ?Sized>(
     }
     // forward differences (x_{j+1} − x_j)/dt, wrapped for angles: the held
     // control u_j acts over exactly that interval
-    let angles = system.angles();
+    let angles = system.angle_indices();
     let mut xd = Vec::with_capacity(k * n);
     for j in 0..k {
         let next = if j + 1 < k {

@@ -23,6 +23,7 @@ use rand_distr::{Distribution, StandardNormal};
 
 /// Settings of the zero-order-hold integrator.
 #[derive(Debug, Clone, Copy, PartialEq)]
+#[cfg_attr(feature = "serde", derive(serde::Serialize, serde::Deserialize))]
 pub struct SimSettings {
     /// Internal RK4 step (s). The hold interval is split into
     /// `ceil(interval / internal_step)` equal sub-steps.
@@ -82,8 +83,8 @@ pub struct Simulator<'a> {
 impl<'a> Simulator<'a> {
     /// A simulator for `system`.
     pub fn new(system: &'a dyn DynSystem, settings: SimSettings) -> Self {
-        let n = system.n();
-        let m = system.m();
+        let n = system.state_dim();
+        let m = system.control_dim();
         Self {
             system,
             settings,
@@ -110,9 +111,9 @@ impl<'a> Simulator<'a> {
         rng: &mut R,
         mut observer: impl FnMut(f64, &[f64]),
     ) {
-        let n = self.system.n();
+        let n = self.system.state_dim();
         assert_eq!(x.len(), n, "state length");
-        assert_eq!(u.len(), self.system.m(), "control length");
+        assert_eq!(u.len(), self.system.control_dim(), "control length");
         if interval <= 0.0 {
             return;
         }
@@ -128,7 +129,7 @@ impl<'a> Simulator<'a> {
                 }
             }
             if self.settings.wrap_angles {
-                for &a in self.system.angles() {
+                for &a in self.system.angle_indices() {
                     x[a] = wrap_angle(x[a]);
                 }
             }

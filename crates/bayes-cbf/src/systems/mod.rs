@@ -49,15 +49,15 @@ pub trait ControlAffine: Send + Sync {
 /// Object-safe view of a [`ControlAffine`] system, implemented for all of them.
 pub trait DynSystem: Send + Sync {
     /// State dimension `n`.
-    fn n(&self) -> usize;
+    fn state_dim(&self) -> usize;
     /// Control dimension `m`.
-    fn m(&self) -> usize;
+    fn control_dim(&self) -> usize;
     /// `vec F(x)` at a real point.
     fn eval_f64(&self, x: &[f64], out: &mut [f64]);
     /// `vec F(x)` on dual numbers (one directional derivative).
     fn eval_dual(&self, x: &[Dual64], out: &mut [Dual64]);
     /// Angle components.
-    fn angles(&self) -> &[usize];
+    fn angle_indices(&self) -> &[usize];
 
     /// Jacobian `∂ vec F / ∂x`, written column-major as `(n(1+m)) × n`
     /// (entry `(r, j)` at `r + n(1+m) j`), by `n` forward passes.
@@ -69,12 +69,10 @@ pub trait DynSystem: Send + Sync {
         scratch_x: &mut [Dual64],
         scratch_out: &mut [Dual64],
     ) {
-        let n = self.n();
-        let rows = n * (1 + self.m());
+        let n = self.state_dim();
+        let rows = n * (1 + self.control_dim());
         for j in 0..n {
-            for (i, s) in scratch_x.iter_mut().enumerate() {
-                *s = Dual64::new(x[i], if i == j { 1.0 } else { 0.0 });
-            }
+            crate::autodiff::seed_dual(x, j, scratch_x);
             self.eval_dual(scratch_x, scratch_out);
             for r in 0..rows {
                 jac[r + rows * j] = scratch_out[r].eps;
@@ -84,7 +82,7 @@ pub trait DynSystem: Send + Sync {
 
     /// `ẋ = F(x) u̲` for a real state and control (`u` without the leading 1).
     fn xdot(&self, x: &[f64], u: &[f64], f_buf: &mut [f64], out: &mut [f64]) {
-        let n = self.n();
+        let n = self.state_dim();
         self.eval_f64(x, f_buf);
         for i in 0..n {
             let mut v = f_buf[i];
@@ -97,11 +95,11 @@ pub trait DynSystem: Send + Sync {
 }
 
 impl<T: ControlAffine> DynSystem for T {
-    fn n(&self) -> usize {
-        self.state_dim()
+    fn state_dim(&self) -> usize {
+        ControlAffine::state_dim(self)
     }
-    fn m(&self) -> usize {
-        self.control_dim()
+    fn control_dim(&self) -> usize {
+        ControlAffine::control_dim(self)
     }
     fn eval_f64(&self, x: &[f64], out: &mut [f64]) {
         self.dynamics(x, out)
@@ -109,8 +107,8 @@ impl<T: ControlAffine> DynSystem for T {
     fn eval_dual(&self, x: &[Dual64], out: &mut [Dual64]) {
         self.dynamics(x, out)
     }
-    fn angles(&self) -> &[usize] {
-        self.angle_indices()
+    fn angle_indices(&self) -> &[usize] {
+        ControlAffine::angle_indices(self)
     }
 }
 

@@ -508,12 +508,12 @@ fn run_inner(
 /// not absorb never entered it), so it is rebuilt by the same O(k²) growth.
 fn replay_moments(s: &Setup, r: &LoopResult) -> Result<Vec<(f64, f64)>> {
     let fin = &r.model;
-    let (n, m) = (fin.n(), fin.m());
+    let (n, m) = (fin.state_dim(), fin.control_dim());
     let (xs, us, xd) = (fin.xs(), fin.controls(), fin.xdot());
     let mut model = s.model.clone();
     let mut ws = MomentWorkspace::new(&model);
     let mut mom = ConditionMoments::zeros(m);
-    let degree = s.barrier.degree().min(2);
+    let degree = s.barrier.relative_degree().min(2);
     let mut out = Vec::with_capacity(r.records.len());
     for rec in &r.records {
         while model.len() < rec.data_size {
@@ -653,15 +653,15 @@ mod tests {
             let mut hyper = s.model.hyper().clone();
             hyper.A *= 1e-12;
             let model = Mvgp::new(
-                s.model.n(),
-                s.model.m(),
+                s.model.state_dim(),
+                s.model.control_dim(),
                 hyper,
                 PriorMean::System(truth.clone()),
                 s.model.input_map().clone(),
             )
             .unwrap();
             let mut ws = MomentWorkspace::new(&model);
-            let mut mom = ConditionMoments::zeros(model.m());
+            let mut mom = ConditionMoments::zeros(model.control_dim());
             let cases: Vec<(Vec<f64>, Vec<f64>)> = match system {
                 System::Vehicle => vec![
                     (vec![-1.0, 0.3, 0.2], vec![1.0, 0.5]),
@@ -672,7 +672,7 @@ mod tests {
                 }
             };
             for (x, u) in cases {
-                ws.update(&model, &x, s.barrier.degree()).unwrap();
+                ws.update(&model, &x, s.barrier.relative_degree()).unwrap();
                 cbc_moments(&mut ws, s.barrier.as_ref(), &mut mom).unwrap();
                 let want = mom.mean(&u);
                 let got = condition(truth.as_ref(), s.barrier.as_ref(), &x, &u).unwrap();

@@ -139,7 +139,7 @@ pub(super) fn ratios(table: &[Row]) -> Vec<Value> {
     let mut out = Vec::new();
     for r in table.iter().filter(|r| r.kind == ModelKind::Mvgp) {
         if let Some(c) = find(table, r.system, r.k, ModelKind::Cogp, r.diag) {
-            let n = super::System::n(r.system) as f64;
+            let n = super::System::state_dim(r.system) as f64;
             out.push(json!({
                 "system": r.system.name(), "k": r.k, "variant": variant(r.diag),
                 "fit": num(c.fit.median / r.fit.median),

@@ -102,13 +102,13 @@ impl<K: Kernel> Mvgp<K> {
         if info.work.len() < k + 1 {
             info.work.resize(self.beta.nrows().max(k + 1), 0.0);
         }
-        let l = self.factor.l();
+        let l = self.factor.l_ref();
         let delta = l[(k, k)];
         for (i, w) in info.work[..k].iter_mut().enumerate() {
             *w = l[(k, i)];
         }
         // a = L⁻ᵀ l with the factor before the append
-        self.factor.solve_leading_lt_in_place(
+        self.factor.solve_leading_lt(
             k,
             MatMut::from_column_major_slice_mut(&mut info.work[..k], k, 1),
         );

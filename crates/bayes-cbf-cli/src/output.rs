@@ -1,0 +1,28 @@
+//! JSON results on stdout, or in a file written completely or not at all.
+
+use anyhow::{Context, Result};
+use bayes_cbf_scenario::io::write_atomic;
+use serde::Serialize;
+use std::io::Write;
+use std::path::PathBuf;
+
+/// Writes `value` as JSON (one line, or indented with `pretty`) and a final
+/// newline to `out`, or to stdout when `out` is `None`.
+pub fn emit<T: Serialize + ?Sized>(value: &T, out: &Option<PathBuf>, pretty: bool) -> Result<()> {
+    let mut json = if pretty {
+        serde_json::to_string_pretty(value)
+    } else {
+        serde_json::to_string(value)
+    }
+    .context("cannot serialise the output")?;
+    json.push('\n');
+    match out {
+        Some(p) => Ok(write_atomic(p, json.as_bytes())?),
+        None => {
+            let mut o = std::io::stdout().lock();
+            o.write_all(json.as_bytes())
+                .and_then(|()| o.flush())
+                .context("cannot write to stdout")
+        }
+    }
+}
