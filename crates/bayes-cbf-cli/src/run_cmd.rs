@@ -170,7 +170,7 @@ fn run_experiment(name: &str, out: &Path, args: &ExperimentArgs, sizes: &Sizes) 
     })?;
     bar.finish_and_clear();
     std::fs::create_dir_all(out)?;
-    write_json(&out.join("summary.json"), result.summary())?;
+    write_json(&out.join("summary.json"), &result.summary())?;
     for t in result.tables() {
         write_atomic(&out.join(&t.file), t.csv.as_bytes())?;
     }

@@ -133,7 +133,7 @@ fn every_experiment_reproduces_its_summary() {
             quick: *name != "pendulum-learning",
         };
         let r = experiments::run(name, &args).unwrap();
-        failures.extend(check(name, r.summary()));
+        failures.extend(check(name, &r.summary()));
     }
     assert!(failures.is_empty(), "{failures:#?}");
 }

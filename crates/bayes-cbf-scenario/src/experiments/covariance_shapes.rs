@@ -16,7 +16,7 @@ use crate::error::Result;
 use crate::workloads::ackermann_data;
 use bayes_cbf::gp::{DynamicsModel, InputMap};
 use nalgebra::DMatrix;
-use serde_json::json;
+use serde::Serialize;
 use std::time::Instant;
 
 /// Names of the columns of `F` for the Ackermann vehicle (`u = (v, ω)`).
@@ -37,6 +37,51 @@ pub struct ModelShapes {
     pub fit_s: f64,
 }
 
+/// One column's covariance block in the summary.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct ColumnCovariance {
+    /// Column name (`f`, `g_1 (v)`, `g_2 (ω)`).
+    pub column: &'static str,
+    /// Its trace.
+    pub trace: f64,
+    /// The `n × n` block, rows.
+    pub rows: Vec<Vec<f64>>,
+}
+
+/// One model's part of the summary.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct ModelSummary {
+    /// `MVGP` or `CoGP`.
+    pub model: &'static str,
+    /// Fit time (s).
+    pub fit_s: f64,
+    /// Log marginal likelihood of the fitted model.
+    pub log_marginal_likelihood: f64,
+    /// The covariance of each column of `F`.
+    pub column_covariances: Vec<ColumnCovariance>,
+    /// Largest Frobenius distance between two unit-trace blocks.
+    pub shape_spread: f64,
+}
+
+/// `summary.json` of `covariance-shapes`.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct Summary {
+    /// `covariance-shapes`.
+    pub scenario: &'static str,
+    /// Seed.
+    pub seed: u64,
+    /// Reduced run.
+    pub quick: bool,
+    /// Training points.
+    pub k: usize,
+    /// Where the covariances are taken.
+    pub x: [f64; 3],
+    /// What the kernel sees.
+    pub input_map: &'static str,
+    /// MVGP, then CoGP.
+    pub models: Vec<ModelSummary>,
+}
+
 /// The result of `covariance-shapes`.
 #[derive(Debug, Clone)]
 pub struct CovarianceShapes {
@@ -47,7 +92,7 @@ pub struct CovarianceShapes {
     /// MVGP, then CoGP.
     pub models: Vec<ModelShapes>,
     /// `summary.json`.
-    pub summary: serde_json::Value,
+    pub summary: Summary,
 }
 
 /// The `n × n` covariance block of column `c` in `Cov(vec F)` (column-major
@@ -87,21 +132,21 @@ pub fn run(args: &ExperimentArgs) -> Result<CovarianceShapes> {
         let (_, cov) = model.posterior_vec(&x_star)?;
         let blocks: Vec<DMatrix<f64>> = (0..COLUMNS.len()).map(|c| block(&cov, n, c)).collect();
         let spread = shape_spread(&blocks);
-        models.push(json!({
-            "model": kind.name(),
-            "fit_s": fit_s,
-            "log_marginal_likelihood": model.log_marginal_likelihood(),
-            "column_covariances": blocks
+        models.push(ModelSummary {
+            model: kind.name(),
+            fit_s,
+            log_marginal_likelihood: model.log_marginal_likelihood(),
+            column_covariances: blocks
                 .iter()
                 .zip(COLUMNS)
-                .map(|(b, name)| json!({
-                    "column": name,
-                    "trace": b.trace(),
-                    "rows": (0..n).map(|i| (0..n).map(|j| b[(i, j)]).collect::<Vec<_>>()).collect::<Vec<_>>(),
-                }))
-                .collect::<Vec<_>>(),
-            "shape_spread": spread,
-        }));
+                .map(|(b, column)| ColumnCovariance {
+                    column,
+                    trace: b.trace(),
+                    rows: (0..n).map(|i| (0..n).map(|j| b[(i, j)]).collect()).collect(),
+                })
+                .collect(),
+            shape_spread: spread,
+        });
         shapes.push(ModelShapes {
             kind,
             blocks,
@@ -109,15 +154,15 @@ pub fn run(args: &ExperimentArgs) -> Result<CovarianceShapes> {
             fit_s,
         });
     }
-    let summary = json!({
-        "scenario": "covariance-shapes",
-        "seed": args.seed,
-        "quick": args.quick,
-        "k": k,
-        "x": x_star,
-        "input_map": "theta only",
-        "models": models,
-    });
+    let summary = Summary {
+        scenario: "covariance-shapes",
+        seed: args.seed,
+        quick: args.quick,
+        k,
+        x: x_star,
+        input_map: "theta only",
+        models,
+    };
     Ok(CovarianceShapes {
         k,
         x: x_star,

@@ -135,14 +135,14 @@ pub enum ExperimentResult {
 
 impl ExperimentResult {
     /// `summary.json`: at least `scenario` (the experiment's name) and `seed`.
-    pub fn summary(&self) -> &serde_json::Value {
+    pub fn summary(&self) -> serde_json::Value {
         match self {
-            ExperimentResult::PendulumLearning(r) => &r.summary,
-            ExperimentResult::SpeedTest(r) => &r.summary,
-            ExperimentResult::CovarianceShapes(r) => &r.summary,
-            ExperimentResult::AckermannTriggering(r) => &r.summary,
-            ExperimentResult::Calibration(r) => &r.summary,
-            ExperimentResult::Soak(r) => &r.summary,
+            ExperimentResult::PendulumLearning(r) => r.summary.clone(),
+            ExperimentResult::SpeedTest(r) => r.summary.clone(),
+            ExperimentResult::CovarianceShapes(r) => json_of(&r.summary),
+            ExperimentResult::AckermannTriggering(r) => r.summary.clone(),
+            ExperimentResult::Calibration(r) => r.summary.clone(),
+            ExperimentResult::Soak(r) => json_of(&r.summary),
         }
     }
 
@@ -157,6 +157,11 @@ impl ExperimentResult {
             | ExperimentResult::Soak(_) => &[],
         }
     }
+}
+
+/// A typed summary as JSON (non-finite numbers become `null`).
+fn json_of<T: serde::Serialize>(summary: &T) -> serde_json::Value {
+    serde_json::to_value(summary).unwrap_or(serde_json::Value::Null)
 }
 
 /// Runs experiment `name` with `args` and default sizes.

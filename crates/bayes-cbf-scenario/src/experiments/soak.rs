@@ -27,7 +27,7 @@
 //! allocator settings the resident size creeps up by a few MB over a run
 //! without anything being kept (see `memory_kb.note` in `summary.json`).
 
-use super::{num, quantile, ExperimentArgs, Progress};
+use super::{quantile, ExperimentArgs, Progress};
 use crate::bail;
 use crate::error::{Context, Result};
 use bayes_cbf::barrier::{DynBarrier, PendulumSector};
@@ -40,7 +40,7 @@ use bayes_cbf::systems::{wrap_angle, Pendulum};
 use nalgebra::DMatrix;
 use rand::RngExt;
 use rand_chacha::ChaCha8Rng;
-use serde_json::{json, Value};
+use serde::Serialize;
 use std::f64::consts::PI;
 use std::sync::Arc;
 use std::time::Instant;
@@ -61,7 +61,102 @@ pub struct Soak {
     /// (and 1 if the final model answers with a non-finite value).
     pub non_finite: usize,
     /// `summary.json`.
-    pub summary: Value,
+    pub summary: Summary,
+}
+
+/// Median and 99th percentile (µs).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct P50P99 {
+    /// Median.
+    pub p50: f64,
+    /// 99th percentile.
+    pub p99: f64,
+}
+
+/// One tenth of the run.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct Tenth {
+    /// 1 to 10.
+    pub tenth: usize,
+    /// Steps done at its end.
+    pub steps_done: usize,
+    /// Observations in the model at its end.
+    pub model_observations: usize,
+    /// Control-step time over the tenth (µs).
+    pub control_step_us: P50P99,
+    /// Mean wall time per loop step (µs): control, simulation, update, refit.
+    pub loop_step_mean_us: f64,
+    /// Peak resident set size (kB), where available.
+    pub peak_rss_kb: Option<u64>,
+    /// Current resident set size (kB), where available.
+    pub rss_kb: Option<u64>,
+}
+
+/// Peak and current resident set size (kB).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct Memory {
+    /// `VmHWM`.
+    pub peak: Option<u64>,
+    /// `VmRSS`.
+    pub rss: Option<u64>,
+}
+
+/// Memory over the run.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct MemoryReport {
+    /// Before the first step.
+    pub start: Memory,
+    /// After the first tenth.
+    pub at_10_percent: Memory,
+    /// At half the run.
+    pub at_50_percent: Memory,
+    /// At the end.
+    pub at_100_percent: Memory,
+    /// Peak at the end minus peak after the first tenth (kB).
+    pub growth_after_first_tenth: Option<i64>,
+    /// Where the figures come from.
+    pub source: &'static str,
+    /// How to read them.
+    pub note: &'static str,
+}
+
+/// `summary.json` of `soak`.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct Summary {
+    /// `soak`.
+    pub scenario: &'static str,
+    /// Seed.
+    pub seed: u64,
+    /// Reduced run.
+    pub quick: bool,
+    /// Control steps.
+    pub steps: usize,
+    /// Sliding window.
+    pub window: usize,
+    /// The setup.
+    pub system: &'static str,
+    /// The learning schedule.
+    pub learning: &'static str,
+    /// Non-finite records (and the final model).
+    pub non_finite: usize,
+    /// Observations in the final model.
+    pub final_model_observations: usize,
+    /// Hyperparameter refits.
+    pub refits: usize,
+    /// Steps where some `h < 0` on the fine grid.
+    pub steps_with_h_violation: usize,
+    /// Smallest `h` over the run.
+    pub min_h: f64,
+    /// Steps whose SOCP was infeasible.
+    pub infeasible_steps: usize,
+    /// Memory.
+    pub memory_kb: MemoryReport,
+    /// Median control step in the last tenth over the first.
+    pub control_step_us_p50_ratio_last_to_first_tenth: f64,
+    /// Per tenth.
+    pub tenths: Vec<Tenth>,
+    /// Wall time (s).
+    pub wall_seconds: f64,
 }
 
 /// Default number of control steps.
@@ -202,58 +297,62 @@ pub fn run(
         }
         let wall = tenth_start.elapsed().as_secs_f64();
         let (hwm, rss) = memory_kb();
-        tenths.push(json!({
-            "tenth": tenth + 1,
-            "steps_done": done,
-            "model_observations": run.model().len(),
-            "control_step_us": {"p50": num(quantile(&times, 0.5)), "p99": num(quantile(&times, 0.99))},
-            "loop_step_mean_us": num(1e6 * wall / tenth_steps.max(1) as f64),
-            "peak_rss_kb": hwm,
-            "rss_kb": rss,
-        }));
+        tenths.push(Tenth {
+            tenth: tenth + 1,
+            steps_done: done,
+            model_observations: run.model().len(),
+            control_step_us: P50P99 {
+                p50: quantile(&times, 0.5),
+                p99: quantile(&times, 0.99),
+            },
+            loop_step_mean_us: 1e6 * wall / tenth_steps.max(1) as f64,
+            peak_rss_kb: hwm,
+            rss_kb: rss,
+        });
     }
     let wall = started.elapsed().as_secs_f64();
     // the final model must still answer with finite values
     let post = run.model().posterior(run.state())?;
     let final_finite = post.mean.iter().chain(post.B.iter()).all(|v| v.is_finite());
     non_finite += usize::from(!final_finite);
-    let at = |t: usize| tenths[t - 1].clone();
-    let p50 = |t: usize| {
-        tenths[t - 1]["control_step_us"]["p50"]
-            .as_f64()
-            .unwrap_or(f64::NAN)
+    let mem = |t: usize| Memory {
+        peak: tenths[t - 1].peak_rss_kb,
+        rss: tenths[t - 1].rss_kb,
     };
-    let hwm = |t: usize| tenths[t - 1]["peak_rss_kb"].as_u64();
-    let summary = json!({
-        "scenario": "soak",
-        "seed": args.seed,
-        "quick": args.quick,
-        "steps": steps,
-        "window": window,
-        "system": "pendulum m = l = 1, prior mean m = 1.5, l = 0.8, relative-degree-2 Bayes CBF p = 0.99, reference: PD into the unsafe sector plus uniform random torques in [-10, 10]",
-        "learning": "every step (O(k^2) growth), sliding window, refit at the end of every tenth",
-        "non_finite": non_finite,
-        "final_model_observations": run.model().len(),
-        "refits": refits,
-        "steps_with_h_violation": h_violations,
-        "min_h": num(min_h),
-        "infeasible_steps": infeasible,
-        "memory_kb": {
-            "start": {"peak": hwm_start, "rss": rss_start},
-            "at_10_percent": {"peak": hwm(1), "rss": at(1)["rss_kb"].clone()},
-            "at_50_percent": {"peak": hwm(5), "rss": at(5)["rss_kb"].clone()},
-            "at_100_percent": {"peak": hwm(10), "rss": at(10)["rss_kb"].clone()},
-            "growth_after_first_tenth": match (hwm(1), hwm(10)) {
-                (Some(a), Some(b)) => json!(b as i64 - a as i64),
-                _ => Value::Null,
+    let p50 = |t: usize| tenths[t - 1].control_step_us.p50;
+    let summary = Summary {
+        scenario: "soak",
+        seed: args.seed,
+        quick: args.quick,
+        steps,
+        window,
+        system: "pendulum m = l = 1, prior mean m = 1.5, l = 0.8, relative-degree-2 Bayes CBF p = 0.99, reference: PD into the unsafe sector plus uniform random torques in [-10, 10]",
+        learning: "every step (O(k^2) growth), sliding window, refit at the end of every tenth",
+        non_finite,
+        final_model_observations: run.model().len(),
+        refits,
+        steps_with_h_violation: h_violations,
+        min_h,
+        infeasible_steps: infeasible,
+        memory_kb: MemoryReport {
+            start: Memory {
+                peak: hwm_start,
+                rss: rss_start,
             },
-            "source": "VmHWM (peak) and VmRSS of /proc/self/status; null where unavailable",
-            "note": ALLOCATOR_NOTE,
+            at_10_percent: mem(1),
+            at_50_percent: mem(5),
+            at_100_percent: mem(10),
+            growth_after_first_tenth: match (mem(1).peak, mem(10).peak) {
+                (Some(a), Some(b)) => Some(b as i64 - a as i64),
+                _ => None,
+            },
+            source: "VmHWM (peak) and VmRSS of /proc/self/status; null where unavailable",
+            note: ALLOCATOR_NOTE,
         },
-        "control_step_us_p50_ratio_last_to_first_tenth": num(p50(10) / p50(1)),
-        "tenths": tenths,
-        "wall_seconds": num(wall),
-    });
+        control_step_us_p50_ratio_last_to_first_tenth: p50(10) / p50(1),
+        tenths,
+        wall_seconds: wall,
+    };
     Ok(Soak {
         non_finite,
         summary,
