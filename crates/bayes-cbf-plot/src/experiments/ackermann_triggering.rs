@@ -5,7 +5,7 @@
 
 use crate::plot::{render_png, Figure, Layer, Panel, PointShape};
 use crate::Result;
-use bayes_cbf_scenario::experiments::ackermann_triggering::AckermannTriggering;
+use bayes_cbf_scenario::experiments::ackermann_triggering::{AckermannTriggering, ZetaRun};
 use bayes_cbf_scenario::scenario::RunOutput;
 use std::path::{Path, PathBuf};
 
@@ -89,9 +89,13 @@ pub fn figures(r: &AckermannTriggering, dir: &Path) -> Result<Vec<PathBuf>> {
     render_png(&fig, &path)?;
     files.push(path);
 
-    let (dense, curve_a, curve_n) = (&r.dense_zeta, &r.curve_analytic, &r.curve_numerical);
-    let zs: Vec<f64> = r.sweep.iter().map(|s| s[0]).collect();
-    let col = |i: usize| -> Vec<f64> { r.sweep.iter().map(|s| s[i]).collect() };
+    let curve = &r.summary.tau_vs_zeta_on_self_triggered_data;
+    let dense: Vec<f64> = curve.iter().map(|c| c.zeta).collect();
+    let curve_a: Vec<f64> = curve.iter().map(|c| c.tau_analytic_median_s).collect();
+    let curve_n: Vec<f64> = curve.iter().map(|c| c.tau_numerical_median_s).collect();
+    let sweep = &r.summary.zeta_sweep;
+    let zs: Vec<f64> = sweep.iter().map(|s| s.zeta).collect();
+    let col = |f: fn(&ZetaRun) -> f64| -> Vec<f64> { sweep.iter().map(f).collect() };
     let mut zp = Panel::new(
         "Inter-trigger time against the margin ζ",
         "ζ",
@@ -110,7 +114,7 @@ pub fn figures(r: &AckermannTriggering, dir: &Path) -> Result<Vec<PathBuf>> {
         Layer::Scatter {
             name: Some("analytic, run at each ζ".into()),
             xs: zs.clone(),
-            ys: col(1),
+            ys: col(|s| s.tau_analytic_median_s),
             color: 0,
             size: 5,
             shape: PointShape::Circle,
@@ -118,7 +122,7 @@ pub fn figures(r: &AckermannTriggering, dir: &Path) -> Result<Vec<PathBuf>> {
         Layer::Scatter {
             name: Some("numerical, run at each ζ".into()),
             xs: zs.clone(),
-            ys: col(2),
+            ys: col(|s| s.tau_numerical_median_s),
             color: 1,
             size: 5,
             shape: PointShape::Circle,
@@ -127,8 +131,18 @@ pub fn figures(r: &AckermannTriggering, dir: &Path) -> Result<Vec<PathBuf>> {
     let mut gp = Panel::new("Runs at each ζ (fixed step, learning)", "ζ", "distance (m)");
     gp.log_x = true;
     gp.layers = vec![
-        Layer::line("final distance to goal", zs.clone(), col(4), 2),
-        Layer::line("closest obstacle distance", zs, col(3), 3),
+        Layer::line(
+            "final distance to goal",
+            zs.clone(),
+            col(|s| s.final_goal_distance.unwrap_or(f64::NAN)),
+            2,
+        ),
+        Layer::line(
+            "closest obstacle distance",
+            zs,
+            col(|s| s.min_obstacle_distance.unwrap_or(f64::NAN)),
+            3,
+        ),
     ];
     let fig = Figure {
         width: 1200,

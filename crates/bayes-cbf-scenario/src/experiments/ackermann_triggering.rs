@@ -19,10 +19,101 @@
 
 use super::ExperimentArgs;
 use crate::error::Result;
-use crate::scenario::{self, RunOutput};
+use crate::scenario::{self, RunOutput, TriggerSummary};
 use crate::stats;
 use bayes_cbf::control::{tau_relative_degree_one, tau_relative_degree_r};
-use serde_json::json;
+use serde::Serialize;
+
+/// One closed-loop run's part of the summary.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct RunOutcome {
+    /// Control computations.
+    pub triggers: usize,
+    /// Each control was held for `τ_k`.
+    pub self_triggered: bool,
+    /// Entered an obstacle.
+    pub collided: bool,
+    /// Every barrier stayed ≥ 0 on the fine grid.
+    pub safe: bool,
+    /// Minimum of each barrier.
+    pub min_barrier: Vec<f64>,
+    /// Closest signed distance to an obstacle.
+    pub min_obstacle_distance: Option<f64>,
+    /// Distance to the goal at the end.
+    pub final_goal_distance: Option<f64>,
+    /// Infeasible SOCPs.
+    pub infeasible_steps: usize,
+    /// `τ_k` and `L_f` statistics.
+    pub trigger: Option<TriggerSummary>,
+}
+
+impl RunOutcome {
+    fn of(o: &RunOutput) -> Self {
+        let s = &o.summary;
+        Self {
+            triggers: s.triggers,
+            self_triggered: s.self_triggered,
+            collided: s.collided,
+            safe: s.safe,
+            min_barrier: s.min_barrier.clone(),
+            min_obstacle_distance: s.min_obstacle_distance,
+            final_goal_distance: s.final_goal_distance,
+            infeasible_steps: s.infeasible_steps,
+            trigger: s.trigger.clone(),
+        }
+    }
+}
+
+/// A fixed-step run at one margin ζ, τ_k evaluated.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct ZetaRun {
+    /// The margin.
+    pub zeta: f64,
+    /// Median analytic `τ_k` over the run (s).
+    pub tau_analytic_median_s: f64,
+    /// Median numerical `τ_k` over the run (s).
+    pub tau_numerical_median_s: f64,
+    /// Closest obstacle distance.
+    pub min_obstacle_distance: Option<f64>,
+    /// Distance to the goal at the end.
+    pub final_goal_distance: Option<f64>,
+    /// Entered an obstacle.
+    pub collided: bool,
+}
+
+/// Median `τ_k` at one ζ on the self-triggered run's data.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct TauAtZeta {
+    /// The margin.
+    pub zeta: f64,
+    /// Median analytic `τ_k` (s).
+    pub tau_analytic_median_s: f64,
+    /// Median numerical `τ_k` (s).
+    pub tau_numerical_median_s: f64,
+}
+
+/// `summary.json` of `ackermann-triggering`.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct Summary {
+    /// `ackermann-triggering`.
+    pub scenario: &'static str,
+    /// Seed.
+    pub seed: u64,
+    /// Reduced run.
+    pub quick: bool,
+    /// Horizon of every run (s).
+    pub horizon_s: f64,
+    /// Time-triggered at `dt`, `τ_k` evaluated.
+    pub fixed_step: RunOutcome,
+    /// Held for the analytic `τ_k`.
+    pub self_triggered: RunOutcome,
+    /// Held for the numerical `τ_k`.
+    pub self_triggered_numerical: RunOutcome,
+    /// Fixed-step runs at each ζ.
+    pub zeta_sweep: Vec<ZetaRun>,
+    /// `τ_k` against ζ on the self-triggered run's data.
+    pub tau_vs_zeta_on_self_triggered_data: Vec<TauAtZeta>,
+}
 
 /// The result of `ackermann-triggering`.
 pub struct AckermannTriggering {
@@ -30,17 +121,8 @@ pub struct AckermannTriggering {
     /// `fixed-step`, `self-triggered`, `self-triggered-numerical`, then
     /// one `zeta-*` run per swept ζ.
     pub runs: Vec<(String, RunOutput)>,
-    /// The runs at each ζ: `(ζ, median analytic τ_k, median numerical
-    /// τ_k, closest obstacle distance, final goal distance)`.
-    pub sweep: Vec<[f64; 5]>,
-    /// ζ values of the τ–ζ curve on the self-triggered run's data.
-    pub dense_zeta: Vec<f64>,
-    /// Median analytic τ_k at each of [`Self::dense_zeta`].
-    pub curve_analytic: Vec<f64>,
-    /// Median numerical τ_k at each of [`Self::dense_zeta`].
-    pub curve_numerical: Vec<f64>,
-    /// `summary.json`.
-    pub summary: serde_json::Value,
+    /// `summary.json`: the runs' outcomes, the ζ sweep and the τ–ζ curve.
+    pub summary: Summary,
 }
 
 impl AckermannTriggering {
@@ -71,22 +153,6 @@ fn run_one(args: &ExperimentArgs, sets: &[String]) -> Result<RunOutput> {
     scenario::run_scenario(&sc, |_, _| {})
 }
 
-/// One run's part of the summary.
-fn run_summary(o: &RunOutput) -> serde_json::Value {
-    let s = serde_json::to_value(&o.summary).unwrap_or_default();
-    json!({
-        "triggers": s["triggers"],
-        "self_triggered": s["self_triggered"],
-        "collided": s["collided"],
-        "safe": s["safe"],
-        "min_barrier": s["min_barrier"],
-        "min_obstacle_distance": s["min_obstacle_distance"],
-        "final_goal_distance": s["final_goal_distance"],
-        "infeasible_steps": s["infeasible_steps"],
-        "trigger": s["trigger"],
-    })
-}
-
 /// Runs the experiment.
 pub fn run(args: &ExperimentArgs) -> Result<AckermannTriggering> {
     // fixed steps of 10 ms: refit every 40 steps (0.4 s, as the self-triggered run)
@@ -99,7 +165,6 @@ pub fn run(args: &ExperimentArgs) -> Result<AckermannTriggering> {
     let selfn = run_one(args, &["trigger.tau_from=\"numerical\"".into()])?;
     let zetas: &[f64] = if args.quick { &ZETAS[1..3] } else { ZETAS };
     let mut sweep = Vec::new();
-    let mut sweep_points = Vec::new();
     let mut zeta_runs = Vec::new();
     for &z in zetas {
         let o = run_one(
@@ -125,21 +190,14 @@ pub fn run(args: &ExperimentArgs) -> Result<AckermannTriggering> {
                 .collect::<Vec<_>>(),
         );
         let s = &o.summary;
-        sweep.push(json!({
-            "zeta": z,
-            "tau_analytic_median_s": tau_a,
-            "tau_numerical_median_s": tau_n,
-            "min_obstacle_distance": s.min_obstacle_distance,
-            "final_goal_distance": s.final_goal_distance,
-            "collided": s.collided,
-        }));
-        sweep_points.push([
-            z,
-            tau_a,
-            tau_n,
-            s.min_obstacle_distance.unwrap_or(f64::NAN),
-            s.final_goal_distance.unwrap_or(f64::NAN),
-        ]);
+        sweep.push(ZetaRun {
+            zeta: z,
+            tau_analytic_median_s: tau_a,
+            tau_numerical_median_s: tau_n,
+            min_obstacle_distance: s.min_obstacle_distance,
+            final_goal_distance: s.final_goal_distance,
+            collided: s.collided,
+        });
         zeta_runs.push((format!("zeta-{z}"), o));
     }
 
@@ -197,33 +255,30 @@ pub fn run(args: &ExperimentArgs) -> Result<AckermannTriggering> {
             .collect()
     };
     let (curve_a, curve_n) = (curve(false), curve(true));
-    let summary = json!({
-        "scenario": "ackermann-triggering",
-        "seed": args.seed,
-        "quick": args.quick,
-        "horizon_s": fixed.scenario.dt * fixed.scenario.steps as f64,
-        "fixed_step": run_summary(&fixed),
-        "self_triggered": run_summary(&selft),
-        "self_triggered_numerical": run_summary(&selfn),
-        "zeta_sweep": sweep,
-        "tau_vs_zeta_on_self_triggered_data": dense
+    let summary = Summary {
+        scenario: "ackermann-triggering",
+        seed: args.seed,
+        quick: args.quick,
+        horizon_s: fixed.scenario.dt * fixed.scenario.steps as f64,
+        fixed_step: RunOutcome::of(&fixed),
+        self_triggered: RunOutcome::of(&selft),
+        self_triggered_numerical: RunOutcome::of(&selfn),
+        zeta_sweep: sweep,
+        tau_vs_zeta_on_self_triggered_data: dense
             .iter()
             .zip(curve_a.iter().zip(&curve_n))
-            .map(|(z, (a, n))| json!({"zeta": z, "tau_analytic_median_s": a, "tau_numerical_median_s": n}))
-            .collect::<Vec<_>>(),
-    });
+            .map(|(&zeta, (&a, &n))| TauAtZeta {
+                zeta,
+                tau_analytic_median_s: a,
+                tau_numerical_median_s: n,
+            })
+            .collect(),
+    };
     let mut runs = vec![
         ("fixed-step".to_string(), fixed),
         ("self-triggered".to_string(), selft),
         ("self-triggered-numerical".to_string(), selfn),
     ];
     runs.extend(zeta_runs);
-    Ok(AckermannTriggering {
-        runs,
-        sweep: sweep_points,
-        dense_zeta: dense,
-        curve_analytic: curve_a,
-        curve_numerical: curve_n,
-        summary,
-    })
+    Ok(AckermannTriggering { runs, summary })
 }

@@ -142,7 +142,9 @@ pub fn run(args: &ExperimentArgs) -> Result<CovarianceShapes> {
                 .map(|(b, column)| ColumnCovariance {
                     column,
                     trace: b.trace(),
-                    rows: (0..n).map(|i| (0..n).map(|j| b[(i, j)]).collect()).collect(),
+                    rows: (0..n)
+                        .map(|i| (0..n).map(|j| b[(i, j)]).collect())
+                        .collect(),
                 })
                 .collect(),
             shape_spread: spread,

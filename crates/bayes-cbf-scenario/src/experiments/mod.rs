@@ -126,7 +126,7 @@ pub enum ExperimentResult {
     /// `covariance-shapes`.
     CovarianceShapes(covariance_shapes::CovarianceShapes),
     /// `ackermann-triggering`.
-    AckermannTriggering(ackermann_triggering::AckermannTriggering),
+    AckermannTriggering(Box<ackermann_triggering::AckermannTriggering>),
     /// `calibration`.
     Calibration(calibration::Calibration),
     /// `soak`.
@@ -140,7 +140,7 @@ impl ExperimentResult {
             ExperimentResult::PendulumLearning(r) => r.summary.clone(),
             ExperimentResult::SpeedTest(r) => r.summary.clone(),
             ExperimentResult::CovarianceShapes(r) => json_of(&r.summary),
-            ExperimentResult::AckermannTriggering(r) => r.summary.clone(),
+            ExperimentResult::AckermannTriggering(r) => json_of(&r.summary),
             ExperimentResult::Calibration(r) => r.summary.clone(),
             ExperimentResult::Soak(r) => json_of(&r.summary),
         }
@@ -194,7 +194,7 @@ pub fn run_sized(
         "pendulum-learning" => ExperimentResult::PendulumLearning(pendulum_learning::run(args)?),
         "speed-test" => ExperimentResult::SpeedTest(speed_test::run(args, progress)?),
         "ackermann-triggering" => {
-            ExperimentResult::AckermannTriggering(ackermann_triggering::run(args)?)
+            ExperimentResult::AckermannTriggering(Box::new(ackermann_triggering::run(args)?))
         }
         "covariance-shapes" => ExperimentResult::CovarianceShapes(covariance_shapes::run(args)?),
         "calibration" => {
