@@ -137,7 +137,7 @@ impl ExperimentResult {
     /// `summary.json`: at least `scenario` (the experiment's name) and `seed`.
     pub fn summary(&self) -> serde_json::Value {
         match self {
-            ExperimentResult::PendulumLearning(r) => r.summary.clone(),
+            ExperimentResult::PendulumLearning(r) => json_of(&r.summary),
             ExperimentResult::SpeedTest(r) => r.summary.clone(),
             ExperimentResult::CovarianceShapes(r) => json_of(&r.summary),
             ExperimentResult::AckermannTriggering(r) => json_of(&r.summary),

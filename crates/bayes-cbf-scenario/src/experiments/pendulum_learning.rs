@@ -35,7 +35,7 @@
 
 use super::{fit_settings, ExperimentArgs, TRAJECTORY_LEN};
 use super::{
-    linspace, new_model, num, pendulum_samples, random_split, variance_weighted, ModelKind, Table,
+    linspace, new_model, pendulum_samples, random_split, variance_weighted, ModelKind, Table,
     OMEGA_MAX, PENDULUM_DT,
 };
 use crate::csv_data::to_csv;
@@ -45,7 +45,7 @@ use bayes_cbf::sim::Dataset;
 use bayes_cbf::systems::{DynSystem, Pendulum};
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
-use serde_json::{json, Value};
+use serde::Serialize;
 use std::f64::consts::PI;
 use std::time::Instant;
 
@@ -65,6 +65,134 @@ pub const COMPONENTS: [(&str, &str); 4] = [
     ("g₂", "rad/s² per N·m"),
 ];
 
+/// Scores on the 20 × 20 grid.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+#[allow(non_snake_case)]
+pub struct GridScores {
+    /// Variance-weighted error (Eq. 33).
+    pub variance_weighted_error: f64,
+    /// Points whose covariance needed the extended jitter ladder.
+    pub extended_jitter_points: usize,
+    /// RMSE of `vec F`.
+    pub rmse_F: f64,
+    /// RMSE of `f`.
+    pub rmse_f: f64,
+    /// RMSE of `g`.
+    pub rmse_g: f64,
+}
+
+/// Scores on the held-out samples.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+#[allow(non_snake_case)]
+pub struct HeldoutScores {
+    /// Variance-weighted error (Eq. 33).
+    pub variance_weighted_error: f64,
+    /// Points whose covariance needed the extended jitter ladder.
+    pub extended_jitter_points: usize,
+    /// RMSE of `vec F`.
+    pub rmse_F: f64,
+    /// RMSE of `F(x)u̲`.
+    pub rmse_Fu: f64,
+    /// RMSE of `F(x)u̲` relative to its scale.
+    pub relative_rmse_Fu: f64,
+    /// Held-out samples.
+    pub points: usize,
+}
+
+/// One fitted model's part of the summary.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct ModelScores {
+    /// Fit time (s).
+    pub fit_seconds: f64,
+    /// Time to predict on the grid (s).
+    pub predict_grid_seconds: f64,
+    /// Log marginal likelihood at the fit's start.
+    pub log_likelihood_initial: f64,
+    /// Log marginal likelihood fitted.
+    pub log_likelihood: f64,
+    /// Likelihood evaluations.
+    pub evaluations: usize,
+    /// On the grid.
+    pub grid: GridScores,
+    /// Held out.
+    pub heldout: HeldoutScores,
+}
+
+/// The true system in the summary.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct SystemInfo {
+    /// `pendulum`.
+    #[serde(rename = "type")]
+    pub kind: &'static str,
+    /// Mass.
+    pub mass: f64,
+    /// Length.
+    pub length: f64,
+    /// Gravity.
+    pub gravity: f64,
+}
+
+/// The grid's box.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct GridBox {
+    /// Angle range.
+    pub theta: [f64; 2],
+    /// Angular velocity range.
+    pub omega: [f64; 2],
+}
+
+/// The files written.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct Files {
+    /// The figures.
+    pub plots: [&'static str; 3],
+    /// The samples.
+    pub trajectory: &'static str,
+    /// The grid.
+    pub grid: &'static str,
+}
+
+/// `summary.json` of `pendulum-learning`.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct Summary {
+    /// `pendulum-learning`.
+    pub scenario: &'static str,
+    /// Seed.
+    pub seed: u64,
+    /// The true system.
+    pub system: SystemInfo,
+    /// Step of the sampled trajectories (s).
+    pub dt: f64,
+    /// How the inputs were drawn.
+    pub inputs: &'static str,
+    /// Steps per trajectory.
+    pub trajectory_len: usize,
+    /// Training samples.
+    pub training_points: usize,
+    /// Held-out samples.
+    pub heldout_points: usize,
+    /// Grid size.
+    pub grid: [usize; 2],
+    /// Grid box.
+    pub grid_box: GridBox,
+    /// Kernel family.
+    pub kernel: &'static str,
+    /// Prior mean.
+    pub prior_mean: &'static str,
+    /// What the kernel sees.
+    pub input_map: &'static str,
+    /// How `ẋ` was measured.
+    pub xdot: &'static str,
+    /// Structure of the covariances.
+    pub covariances: &'static str,
+    /// L-BFGS iterations.
+    pub max_iters: u64,
+    /// `MVGP` and `CoGP`.
+    pub models: std::collections::BTreeMap<&'static str, ModelScores>,
+    /// The files written.
+    pub files: Files,
+}
+
 /// One fitted model's posterior on the grid and its scores.
 #[derive(Debug, Clone)]
 pub struct Fitted {
@@ -75,7 +203,7 @@ pub struct Fitted {
     /// Posterior standard deviations of `vec F`.
     pub std: Vec<[f64; 4]>,
     /// This model's part of the summary.
-    pub summary: Value,
+    pub summary: ModelScores,
 }
 
 /// The result of `pendulum-learning`.
@@ -92,7 +220,7 @@ pub struct PendulumLearning {
     /// MVGP, then CoGP.
     pub fitted: Vec<Fitted>,
     /// `summary.json`.
-    pub summary: Value,
+    pub summary: Summary,
     /// `trajectory.csv` and `grid.csv`.
     pub tables: Vec<Table>,
 }
@@ -148,28 +276,28 @@ fn fit_and_score(
     let rmse_held = metrics::rmse_f(model.as_ref(), &test.xs, &truth)?;
     let rmse_fu = metrics::rmse_fu(model.as_ref(), &test.xs, &test.us, &truth)?;
     let rel_fu = metrics::relative_rmse_fu(model.as_ref(), &test.xs, &test.us, &truth)?;
-    let summary = json!({
-        "fit_seconds": fit_seconds,
-        "predict_grid_seconds": predict_seconds,
-        "log_likelihood_initial": num(report.initial_log_likelihood),
-        "log_likelihood": num(model.log_marginal_likelihood()),
-        "evaluations": report.evaluations,
-        "grid": {
-            "variance_weighted_error": num(vwe_grid),
-            "extended_jitter_points": jit_grid,
-            "rmse_F": num(rmse_grid),
-            "rmse_f": num((ef / (2.0 * pts)).sqrt()),
-            "rmse_g": num((eg / (2.0 * pts)).sqrt()),
+    let summary = ModelScores {
+        fit_seconds,
+        predict_grid_seconds: predict_seconds,
+        log_likelihood_initial: report.initial_log_likelihood,
+        log_likelihood: model.log_marginal_likelihood(),
+        evaluations: report.evaluations,
+        grid: GridScores {
+            variance_weighted_error: vwe_grid,
+            extended_jitter_points: jit_grid,
+            rmse_F: rmse_grid,
+            rmse_f: (ef / (2.0 * pts)).sqrt(),
+            rmse_g: (eg / (2.0 * pts)).sqrt(),
         },
-        "heldout": {
-            "variance_weighted_error": num(vwe_held),
-            "extended_jitter_points": jit_held,
-            "rmse_F": num(rmse_held),
-            "rmse_Fu": num(rmse_fu),
-            "relative_rmse_Fu": num(rel_fu),
-            "points": test.len(),
+        heldout: HeldoutScores {
+            variance_weighted_error: vwe_held,
+            extended_jitter_points: jit_held,
+            rmse_F: rmse_held,
+            rmse_Fu: rmse_fu,
+            relative_rmse_Fu: rel_fu,
+            points: test.len(),
         },
-    });
+    };
     Ok(Fitted {
         kind,
         mean,
@@ -199,30 +327,42 @@ pub fn run(args: &ExperimentArgs) -> Result<PendulumLearning> {
     }
     let plots = ["pendulum_f.png", "pendulum_g.png", "pendulum_std.png"];
     let tables = tables(&data, &train, &grid_xs, &truth, &fitted);
-    let models: serde_json::Map<String, Value> = fitted
+    let models = fitted
         .iter()
-        .map(|m| (m.kind.name().to_string(), m.summary.clone()))
+        .map(|m| (m.kind.name(), m.summary.clone()))
         .collect();
-    let summary = json!({
-        "scenario": "pendulum-learning",
-        "seed": args.seed,
-        "system": {"type": "pendulum", "mass": pend.mass, "length": pend.length, "gravity": pend.gravity},
-        "dt": PENDULUM_DT,
-        "inputs": "u = m g sin(theta) * U(0.6, 1.4)",
-        "trajectory_len": TRAJECTORY_LEN,
-        "training_points": train.len(),
-        "heldout_points": test.len(),
-        "grid": [GRID, GRID],
-        "grid_box": {"theta": [-PI, PI], "omega": [-OMEGA_MAX, OMEGA_MAX]},
-        "kernel": "rbf",
-        "prior_mean": "zero",
-        "input_map": "identity: (theta, omega)",
-        "xdot": "finite differences at step midpoints + N(0, 0.01^2) noise",
-        "covariances": "full (MVGP: A, B; CoGP: Sigma, S)",
-        "max_iters": MAX_ITERS,
-        "models": models,
-        "files": {"plots": plots, "trajectory": "trajectory.csv", "grid": "grid.csv"},
-    });
+    let summary = Summary {
+        scenario: "pendulum-learning",
+        seed: args.seed,
+        system: SystemInfo {
+            kind: "pendulum",
+            mass: pend.mass,
+            length: pend.length,
+            gravity: pend.gravity,
+        },
+        dt: PENDULUM_DT,
+        inputs: "u = m g sin(theta) * U(0.6, 1.4)",
+        trajectory_len: TRAJECTORY_LEN,
+        training_points: train.len(),
+        heldout_points: test.len(),
+        grid: [GRID, GRID],
+        grid_box: GridBox {
+            theta: [-PI, PI],
+            omega: [-OMEGA_MAX, OMEGA_MAX],
+        },
+        kernel: "rbf",
+        prior_mean: "zero",
+        input_map: "identity: (theta, omega)",
+        xdot: "finite differences at step midpoints + N(0, 0.01^2) noise",
+        covariances: "full (MVGP: A, B; CoGP: Sigma, S)",
+        max_iters: MAX_ITERS,
+        models,
+        files: Files {
+            plots,
+            trajectory: "trajectory.csv",
+            grid: "grid.csv",
+        },
+    };
     Ok(PendulumLearning {
         thetas,
         omegas,
@@ -294,7 +434,7 @@ mod tests {
             quick: true,
         })
         .unwrap();
-        let s = &r.summary;
+        let s = serde_json::to_value(&r.summary).unwrap();
         assert_eq!(s["scenario"], "pendulum-learning");
         assert_eq!(s["seed"], 1);
         assert_eq!(
