@@ -26,15 +26,15 @@
 //! - `∂ log p/∂S = Σ_i Ḡ_ii`,
 //! - `∂ log p/∂ log θ = Σ_ij ⟨Ḡ_ij, P_i Σ P_jᵀ⟩ ∂k0_ij/∂ log θ`.
 
-use super::data::{check_batch, TrainingData};
+use super::data::{check_batch, check_state, TrainingData};
 use super::factor::CholFactor;
 use super::input_map::InputMap;
 use super::kernel::{Kernel, Rbf};
 use super::mvgp::check_spd;
 use super::prior::PriorMean;
 use super::simd::with_faer;
-use crate::error::{check_finite, Error, GpError, InputError};
-use faer::{Mat, Par};
+use crate::error::{Error, GpError, InputError};
+use faer::Mat;
 use nalgebra::DMatrix;
 use std::sync::OnceLock;
 
@@ -278,10 +278,7 @@ impl<K: Kernel> Cogp<K> {
     }
 
     fn check_x(&self, field: &str, x: &[f64]) -> Result<(), InputError> {
-        if x.len() != self.n {
-            return Err(InputError::shape(field, self.n, x.len()));
-        }
-        check_finite(field, x)
+        check_state(field, self.n, x)
     }
 
     fn mapped(&self, x: &[f64]) -> Vec<f64> {
@@ -458,19 +455,8 @@ pub(crate) fn lml_grad<K: Kernel>(
     let quad: f64 = (0..kn).map(|r| alpha[(r, 0)].powi(2)).sum();
     factor.solve_lt(alpha.as_mut());
     let ll = -0.5 * (quad + factor.log_det() + kn as f64 * (2.0 * std::f64::consts::PI).ln());
-    // Ḡ = ½ (α αᵀ − 𝐆⁻¹), with 𝐆⁻¹ = L⁻ᵀ L⁻¹ (lower triangle) by faer
-    let mut gbar = Mat::<f64>::zeros(kn, kn);
-    with_faer(|| {
-        use faer::dyn_stack::{MemBuffer, MemStack};
-        use faer::linalg::cholesky::llt::inverse;
-        let mut mem = MemBuffer::new(inverse::inverse_scratch::<f64>(kn, Par::Seq));
-        inverse::inverse(
-            gbar.as_mut(),
-            factor.l_ref(),
-            Par::Seq,
-            MemStack::new(&mut mem),
-        );
-    });
+    // Ḡ = ½ (α αᵀ − 𝐆⁻¹), with 𝐆⁻¹ = L⁻ᵀ L⁻¹
+    let mut gbar = factor.inverse_mat();
     for c in 0..kn {
         for r in c..kn {
             let v = 0.5 * (alpha[(r, 0)] * alpha[(c, 0)] - gbar[(r, c)]);

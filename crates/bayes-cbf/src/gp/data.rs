@@ -78,6 +78,14 @@ pub(crate) fn check_point(
     Ok(())
 }
 
+/// Checks a query state `x` of dimension `n`, named `field` in the errors.
+pub(crate) fn check_state(field: &str, n: usize, x: &[f64]) -> Result<(), InputError> {
+    if x.len() != n {
+        return Err(InputError::shape(field, n, x.len()));
+    }
+    check_finite(field, x)
+}
+
 impl TrainingData {
     /// Appends `x`, `z = φ(x)`, `u̲ = [1, u]` and `ẋ` (not the residual,
     /// which the model appends to `resid`).

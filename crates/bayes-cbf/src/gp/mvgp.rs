@@ -1,13 +1,13 @@
 //! Matrix-variate Gaussian process regression of `F(x) = [f(x) g(x)]`
 //! (paper, Sec. IV, Prop. 1).
 
-use super::data::{check_batch, check_point, TrainingData};
+use super::data::{check_batch, check_point, check_state, TrainingData};
 use super::factor::CholFactor;
 use super::input_map::InputMap;
 use super::kernel::{Kernel, Rbf};
 use super::prior::PriorMean;
 use super::simd::with_faer;
-use crate::error::{check_finite, Error, GpError, InputError};
+use crate::error::{Error, GpError, InputError};
 use faer::Mat;
 use nalgebra::DMatrix;
 use std::sync::OnceLock;
@@ -420,11 +420,8 @@ impl<K: Kernel> Mvgp<K> {
         }
     }
 
-    fn check_x(&self, x: &[f64]) -> Result<(), InputError> {
-        if x.len() != self.n {
-            return Err(InputError::shape("x", self.n, x.len()));
-        }
-        check_finite("x", x)
+    pub(crate) fn check_x(&self, x: &[f64]) -> Result<(), InputError> {
+        check_state("x", self.n, x)
     }
 
     /// Fills `ws.z`, `ws.kvec[..k]` and `ws.w[..k]` with `W = (𝓑(x)U̲)ᵀ`,
@@ -514,23 +511,7 @@ impl<K: Kernel> Mvgp<K> {
         self.fill_w(x, ws);
         let mut v = ws.w.as_mut().submatrix_mut(0, 0, k, p);
         self.factor.solve_l(v.as_mut());
-        let v = v.as_ref();
-        with_faer(|| {
-            for c in 0..p {
-                let vc = v.col(c);
-                for i in 0..n {
-                    let bc = self.beta.as_ref().col(i).subrows(0, k);
-                    out.mean[(i, c)] += bc.transpose() * vc;
-                }
-                for a in 0..=c {
-                    let s = v.col(a).transpose() * vc;
-                    out.B[(a, c)] -= s;
-                    if a != c {
-                        out.B[(c, a)] -= s;
-                    }
-                }
-            }
-        });
+        add_data_part(v.as_ref(), self.beta.as_ref(), &mut out.mean, &mut out.B);
         Ok(())
     }
 
@@ -657,4 +638,32 @@ impl<K: Kernel> Mvgp<K> {
     pub fn residuals(&self) -> &[f64] {
         &self.data.resid
     }
+}
+
+/// The data part of the posterior (Prop. 1) from `V = L⁻¹ W` (`k × q`,
+/// one column per column of the stacked mean) and `β = L⁻¹ Rᵀ` (rows
+/// `0..k` used): `mean += βᵀ V` (`n × q`) and `cov −= Vᵀ V` (`q × q`,
+/// both triangles).
+pub(crate) fn add_data_part(
+    v: faer::MatRef<'_, f64>,
+    beta: faer::MatRef<'_, f64>,
+    mean: &mut DMatrix<f64>,
+    cov: &mut DMatrix<f64>,
+) {
+    let (k, q, n) = (v.nrows(), v.ncols(), mean.nrows());
+    with_faer(|| {
+        for c in 0..q {
+            let vc = v.col(c);
+            for i in 0..n {
+                mean[(i, c)] += beta.col(i).subrows(0, k).transpose() * vc;
+            }
+            for a in 0..=c {
+                let s = v.col(a).transpose() * vc;
+                cov[(a, c)] -= s;
+                if a != c {
+                    cov[(c, a)] -= s;
+                }
+            }
+        }
+    });
 }
