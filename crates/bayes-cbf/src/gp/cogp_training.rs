@@ -363,6 +363,7 @@ pub fn fit_cogp<K: Kernel>(
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::gp::theta::random_training_rows;
     use crate::gp::Rbf;
     use rand::RngExt;
 
@@ -377,15 +378,7 @@ mod tests {
             (1, 2, Rank::Diagonal, Rank::Full),
         ] {
             let (k, p) = (8, m + 1);
-            let zs: Vec<f64> = (0..k * n).map(|_| rng.random_range(-1.0..1.0)).collect();
-            let us: Vec<f64> = (0..k)
-                .flat_map(|_| {
-                    let mut v = vec![1.0];
-                    v.extend((0..m).map(|_| rng.random_range(-1.0..1.0)));
-                    v
-                })
-                .collect();
-            let resid: Vec<f64> = (0..k * n).map(|_| rng.random_range(-1.0..1.0)).collect();
+            let (zs, us, resid) = random_training_rows(&mut rng, k, n, m);
             let kernel = Rbf::new(vec![0.8; n], 1.3).unwrap();
             let layout = Layout {
                 n,

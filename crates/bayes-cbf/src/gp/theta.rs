@@ -59,3 +59,26 @@ pub(crate) fn start_from_inputs(
         kh[si] = 0.0;
     }
 }
+
+/// Random training rows for gradient tests: mapped inputs `zs` (`k × n`,
+/// uniform on `[−1, 1)`), augmented controls `[1, u_j]` (`k × (1+m)`) and
+/// residuals (`k × n`), drawn in that order.
+#[cfg(test)]
+pub(crate) fn random_training_rows(
+    rng: &mut rand_chacha::ChaCha8Rng,
+    k: usize,
+    n: usize,
+    m: usize,
+) -> (Vec<f64>, Vec<f64>, Vec<f64>) {
+    use rand::RngExt;
+    let zs: Vec<f64> = (0..k * n).map(|_| rng.random_range(-1.0..1.0)).collect();
+    let us: Vec<f64> = (0..k)
+        .flat_map(|_| {
+            let mut v = vec![1.0];
+            v.extend((0..m).map(|_| rng.random_range(-1.0..1.0)));
+            v
+        })
+        .collect();
+    let resid: Vec<f64> = (0..k * n).map(|_| rng.random_range(-1.0..1.0)).collect();
+    (zs, us, resid)
+}

@@ -479,6 +479,7 @@ fn symmetrise(m: &DMatrix<f64>) -> DMatrix<f64> {
 #[cfg(test)]
 pub(crate) mod tests {
     use super::*;
+    use crate::gp::theta::random_training_rows;
     use crate::gp::{InputMap, PriorMean, Rbf};
 
     /// The analytic gradient of −log p against central finite differences.
@@ -493,15 +494,7 @@ pub(crate) mod tests {
         ] {
             let k = 15;
             let p = m + 1;
-            let zs: Vec<f64> = (0..k * n).map(|_| rng.random_range(-1.0..1.0)).collect();
-            let us: Vec<f64> = (0..k)
-                .flat_map(|_| {
-                    let mut v = vec![1.0];
-                    v.extend((0..m).map(|_| rng.random_range(-1.0..1.0)));
-                    v
-                })
-                .collect();
-            let resid: Vec<f64> = (0..k * n).map(|_| rng.random_range(-1.0..1.0)).collect();
+            let (zs, us, resid) = random_training_rows(&mut rng, k, n, m);
             let kernel = Rbf::new(vec![0.8; n], 1.0).unwrap();
             let layout = Layout {
                 n,
