@@ -4,6 +4,30 @@ use super::{validate_gains, Barrier};
 use crate::error::{check_finite, InputError};
 use num_dual::DualNum;
 
+/// The [`Barrier`] methods that return the stored relative degree and gains.
+macro_rules! order_and_gains {
+    () => {
+        fn relative_degree(&self) -> usize {
+            self.relative_degree
+        }
+        fn gains(&self) -> &[f64] {
+            &self.gains
+        }
+    };
+}
+
+/// Checks an obstacle radius: finite and positive.
+fn check_radius(radius: f64) -> Result<(), InputError> {
+    if !(radius.is_finite() && radius > 0.0) {
+        return Err(InputError::invalid(
+            "radius",
+            radius,
+            "must be finite and > 0",
+        ));
+    }
+    Ok(())
+}
+
 /// Unsafe angular sector of a pendulum (paper, Sec. VII-A):
 /// `h(x) = cos Δ − cos(θ − θ_c)` with `θ = x[0]`; unsafe when `|θ − θ_c| < Δ`.
 #[derive(Debug, Clone, PartialEq)]
@@ -45,12 +69,7 @@ impl Barrier for PendulumSector {
     fn h<D: DualNum<Primitive = f64> + Copy>(&self, x: &[D]) -> D {
         D::from(self.delta.cos()) - (x[0] - self.theta_c).cos()
     }
-    fn relative_degree(&self) -> usize {
-        self.relative_degree
-    }
-    fn gains(&self) -> &[f64] {
-        &self.gains
-    }
+    order_and_gains!();
     fn name(&self) -> &str {
         "pendulum_sector"
     }
@@ -84,13 +103,7 @@ impl CircleHeading {
         gains: Vec<f64>,
     ) -> Result<Self, InputError> {
         check_finite("center", &center)?;
-        if !(radius.is_finite() && radius > 0.0) {
-            return Err(InputError::invalid(
-                "radius",
-                radius,
-                "must be finite and > 0",
-            ));
-        }
+        check_radius(radius)?;
         check_finite("q1", &[q1])?;
         check_finite("q2", &[q2])?;
         validate_gains(relative_degree, &gains)?;
@@ -122,12 +135,7 @@ impl Barrier for CircleHeading {
         let phi = super::atan2(dy, dx);
         dist + (x[2] - phi).cos() * self.q2
     }
-    fn relative_degree(&self) -> usize {
-        self.relative_degree
-    }
-    fn gains(&self) -> &[f64] {
-        &self.gains
-    }
+    order_and_gains!();
     fn name(&self) -> &str {
         "circle_heading"
     }
@@ -168,13 +176,7 @@ impl Disc {
             }
         }
         check_finite("center", &center)?;
-        if !(radius.is_finite() && radius > 0.0) {
-            return Err(InputError::invalid(
-                "radius",
-                radius,
-                "must be finite and > 0",
-            ));
-        }
+        check_radius(radius)?;
         validate_gains(relative_degree, &gains)?;
         Ok(Self {
             n,
@@ -196,12 +198,7 @@ impl Barrier for Disc {
         let dy = x[self.indices[1]] - self.center[1];
         dx * dx + dy * dy - self.radius * self.radius
     }
-    fn relative_degree(&self) -> usize {
-        self.relative_degree
-    }
-    fn gains(&self) -> &[f64] {
-        &self.gains
-    }
+    order_and_gains!();
     fn name(&self) -> &str {
         "disc"
     }
@@ -255,12 +252,7 @@ impl Barrier for HalfSpace {
         }
         s
     }
-    fn relative_degree(&self) -> usize {
-        self.relative_degree
-    }
-    fn gains(&self) -> &[f64] {
-        &self.gains
-    }
+    order_and_gains!();
     fn name(&self) -> &str {
         "half_space"
     }

@@ -302,20 +302,11 @@ impl ConeProgram {
         if updated {
             return true;
         }
-        let a = CscMatrix::new(
-            rows,
-            nv,
-            self.a_pattern.0.clone(),
-            self.a_pattern.1.clone(),
-            self.a_nz.clone(),
-        );
-        let p = CscMatrix::new(
-            nv,
-            nv,
-            self.p_pattern.0.clone(),
-            self.p_pattern.1.clone(),
-            self.p_nz.clone(),
-        );
+        let csc = |nrows, (colptr, rowval): &(Vec<usize>, Vec<usize>), nz: &Vec<f64>| {
+            CscMatrix::new(nrows, nv, colptr.clone(), rowval.clone(), nz.clone())
+        };
+        let a = csc(rows, &self.a_pattern, &self.a_nz);
+        let p = csc(nv, &self.p_pattern, &self.p_nz);
         for (j, slot) in self.solvers.iter_mut().enumerate() {
             if j == i || slot.is_none() {
                 let settings = Self::settings(j == 1);

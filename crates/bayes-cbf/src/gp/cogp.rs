@@ -26,14 +26,15 @@
 //! - `∂ log p/∂S = Σ_i Ḡ_ii`,
 //! - `∂ log p/∂ log θ = Σ_ij ⟨Ḡ_ij, P_i Σ P_jᵀ⟩ ∂k0_ij/∂ log θ`.
 
+use super::data::{check_batch, check_state, TrainingData};
 use super::factor::CholFactor;
 use super::input_map::InputMap;
 use super::kernel::{Kernel, Rbf};
 use super::mvgp::check_spd;
 use super::prior::PriorMean;
 use super::simd::with_faer;
-use crate::error::{check_finite, Error, GpError, InputError};
-use faer::{Mat, Par};
+use crate::error::{Error, GpError, InputError};
+use faer::Mat;
 use nalgebra::DMatrix;
 use std::sync::OnceLock;
 
@@ -109,16 +110,9 @@ pub struct Cogp<K: Kernel = Rbf> {
     hyper: CogpHyper<K>,
     prior: PriorMean,
     input_map: InputMap,
-    /// Inputs `x_j`, row-major `k × n`.
-    xs: Vec<f64>,
-    /// Mapped inputs `z_j = φ(x_j)`, row-major `k × d`.
-    zs: Vec<f64>,
-    /// `u̲_j = [1, u_j]`, row-major `k × (1+m)`.
-    us: Vec<f64>,
-    /// `ẋ_j`, row-major `k × n`.
-    xdot: Vec<f64>,
-    /// `vec(Ẋ − 𝓜U̲)`: entry `j n + i` is `ẋ_ji − (M0(x_j) u̲_j)_i`.
-    resid: Vec<f64>,
+    /// Training data; its residuals are `vec(Ẋ − 𝓜U̲)`: entry `j n + i` is
+    /// `ẋ_ji − (M0(x_j) u̲_j)_i`.
+    data: TrainingData,
     /// `Σ P_jᵀ` (`n(1+m) × n`) per point: entry `(a, i)` at `j n²(1+m) + i n(1+m) + a`.
     su: Vec<f64>,
     factor: CholFactor,
@@ -145,11 +139,7 @@ impl<K: Kernel> Cogp<K> {
             hyper,
             prior,
             input_map,
-            xs: Vec::new(),
-            zs: Vec::new(),
-            us: Vec::new(),
-            xdot: Vec::new(),
-            resid: Vec::new(),
+            data: TrainingData::default(),
             su: Vec::new(),
             factor: CholFactor::default(),
             beta: Mat::zeros(0, 1),
@@ -167,11 +157,11 @@ impl<K: Kernel> Cogp<K> {
     }
     /// Number of observations `k` (the Gram matrix is `kn × kn`).
     pub fn len(&self) -> usize {
-        self.xs.len() / self.n
+        self.data.xs.len() / self.n
     }
     /// No observations.
     pub fn is_empty(&self) -> bool {
-        self.xs.is_empty()
+        self.data.xs.is_empty()
     }
     /// Hyperparameters.
     pub fn hyper(&self) -> &CogpHyper<K> {
@@ -191,23 +181,23 @@ impl<K: Kernel> Cogp<K> {
     }
     /// Training inputs (row-major `k × n`).
     pub fn xs(&self) -> &[f64] {
-        &self.xs
+        &self.data.xs
     }
     /// Training targets `ẋ` (row-major `k × n`).
     pub fn xdot(&self) -> &[f64] {
-        &self.xdot
+        &self.data.xdot
     }
     /// Mapped training inputs (row-major `k × d`).
     pub fn mapped_inputs(&self) -> &[f64] {
-        &self.zs
+        &self.data.zs
     }
     /// `u̲_j` rows (row-major `k × (1+m)`), with the leading 1.
     pub fn augmented_controls(&self) -> &[f64] {
-        &self.us
+        &self.data.us
     }
     /// `vec(Ẋ − 𝓜U̲)` (entry `j n + i`), i.e. row-major `k × n` residuals.
     pub fn residuals(&self) -> &[f64] {
-        &self.resid
+        &self.data.resid
     }
 
     /// Replaces the training data and factorises `𝐆` from scratch
@@ -216,51 +206,28 @@ impl<K: Kernel> Cogp<K> {
     /// any error the previous data and factor stay in place.
     pub fn set_data(&mut self, xs: &[f64], us: &[f64], xdot: &[f64]) -> Result<(), Error> {
         let (n, m) = (self.n, self.m);
-        let k = xs.len() / n;
-        if xs.len() != k * n || us.len() != k * m || xdot.len() != k * n {
-            return Err(InputError::shape(
-                "data",
-                format!("x: k×{n}, u: k×{m}, xdot: k×{n}"),
-                format!("{} x, {} u, {} xdot values", xs.len(), us.len(), xdot.len()),
-            )
-            .into());
-        }
-        for j in 0..k {
-            let (x, u, xd) = (
-                &xs[j * n..(j + 1) * n],
-                &us[j * m..(j + 1) * m],
-                &xdot[j * n..(j + 1) * n],
-            );
-            check_finite(&format!("x[{j}]"), x)?;
-            check_finite(&format!("u[{j}]"), u)?;
-            check_finite(&format!("xdot[{j}]"), xd)?;
-        }
-        let (p, d) = (m + 1, self.input_map.output_dim(n));
-        let mut zs = vec![0.0; k * d];
-        let mut ub = Vec::with_capacity(k * p);
-        let mut resid = Vec::with_capacity(k * n);
+        let k = check_batch(n, m, xs, us, xdot)?;
+        let p = m + 1;
+        let mut data = TrainingData::default();
         let mut m0 = vec![0.0; n * p];
         for j in 0..k {
             let x = &xs[j * n..(j + 1) * n];
-            self.input_map.apply(x, &mut zs[j * d..(j + 1) * d]);
-            ub.push(1.0);
-            ub.extend_from_slice(&us[j * m..(j + 1) * m]);
+            data.push(
+                x,
+                &us[j * m..(j + 1) * m],
+                &xdot[j * n..(j + 1) * n],
+                &self.input_map,
+            );
             self.prior.eval(x, &mut m0);
             for i in 0..n {
-                let pred: f64 = (0..p).map(|c| m0[i + n * c] * ub[j * p + c]).sum();
-                resid.push(xdot[j * n + i] - pred);
+                let pred: f64 = (0..p).map(|c| m0[i + n * c] * data.us[j * p + c]).sum();
+                data.resid.push(xdot[j * n + i] - pred);
             }
         }
-        let old = (
-            std::mem::replace(&mut self.xs, xs.to_vec()),
-            std::mem::replace(&mut self.xdot, xdot.to_vec()),
-            std::mem::replace(&mut self.zs, zs),
-            std::mem::replace(&mut self.us, ub),
-            std::mem::replace(&mut self.resid, resid),
-        );
+        let old = std::mem::replace(&mut self.data, data);
         if let Err(e) = self.refactor() {
             // keep the previous data, whose factor is still in place
-            (self.xs, self.xdot, self.zs, self.us, self.resid) = old;
+            self.data = old;
             return Err(e.into());
         }
         Ok(())
@@ -272,17 +239,17 @@ impl<K: Kernel> Cogp<K> {
     pub fn refactor(&mut self) -> Result<(), GpError> {
         let (n, p, k) = (self.n, self.m + 1, self.len());
         let d = self.input_map.output_dim(n);
-        let su = sigma_u(&self.hyper.Sigma, &self.us, n, p, k);
+        let su = sigma_u(&self.hyper.Sigma, &self.data.us, n, p, k);
         let g = gram(
             &self.hyper.kernel,
             &self.hyper.S,
             &su,
-            &self.zs,
-            &self.us,
+            &self.data.zs,
+            &self.data.us,
             (n, p, d, k),
         );
         let factor = CholFactor::factor(g.as_ref(), k * n)?;
-        let mut beta = Mat::<f64>::from_fn(k * n, 1, |r, _| self.resid[r]);
+        let mut beta = Mat::<f64>::from_fn(k * n, 1, |r, _| self.data.resid[r]);
         factor.solve_l(beta.as_mut());
         (self.su, self.factor, self.beta) = (su, factor, beta);
         self.alpha = OnceLock::new();
@@ -311,10 +278,7 @@ impl<K: Kernel> Cogp<K> {
     }
 
     fn check_x(&self, field: &str, x: &[f64]) -> Result<(), InputError> {
-        if x.len() != self.n {
-            return Err(InputError::shape(field, self.n, x.len()));
-        }
-        check_finite(field, x)
+        check_state(field, self.n, x)
     }
 
     fn mapped(&self, x: &[f64]) -> Vec<f64> {
@@ -336,7 +300,10 @@ impl<K: Kernel> Cogp<K> {
         let d = z.len();
         let mut w = Mat::<f64>::zeros(k * n, np);
         for j in 0..k {
-            let kv = self.hyper.kernel.value(z, &self.zs[j * d..(j + 1) * d]);
+            let kv = self
+                .hyper
+                .kernel
+                .value(z, &self.data.zs[j * d..(j + 1) * d]);
             let blk = &self.su[j * n * np..(j + 1) * n * np];
             for i in 0..n {
                 for a in 0..np {
@@ -360,7 +327,10 @@ impl<K: Kernel> Cogp<K> {
         let d = z.len();
         let alpha = self.alpha();
         for j in 0..self.len() {
-            let kv = self.hyper.kernel.value(&z, &self.zs[j * d..(j + 1) * d]);
+            let kv = self
+                .hyper
+                .kernel
+                .value(&z, &self.data.zs[j * d..(j + 1) * d]);
             let blk = &self.su[j * n * np..(j + 1) * n * np];
             for i in 0..n {
                 let w = kv * alpha[j * n + i];
@@ -485,19 +455,8 @@ pub(crate) fn lml_grad<K: Kernel>(
     let quad: f64 = (0..kn).map(|r| alpha[(r, 0)].powi(2)).sum();
     factor.solve_lt(alpha.as_mut());
     let ll = -0.5 * (quad + factor.log_det() + kn as f64 * (2.0 * std::f64::consts::PI).ln());
-    // Ḡ = ½ (α αᵀ − 𝐆⁻¹), with 𝐆⁻¹ = L⁻ᵀ L⁻¹ (lower triangle) by faer
-    let mut gbar = Mat::<f64>::zeros(kn, kn);
-    with_faer(|| {
-        use faer::dyn_stack::{MemBuffer, MemStack};
-        use faer::linalg::cholesky::llt::inverse;
-        let mut mem = MemBuffer::new(inverse::inverse_scratch::<f64>(kn, Par::Seq));
-        inverse::inverse(
-            gbar.as_mut(),
-            factor.l_ref(),
-            Par::Seq,
-            MemStack::new(&mut mem),
-        );
-    });
+    // Ḡ = ½ (α αᵀ − 𝐆⁻¹), with 𝐆⁻¹ = L⁻ᵀ L⁻¹
+    let mut gbar = factor.inverse_mat();
     for c in 0..kn {
         for r in c..kn {
             let v = 0.5 * (alpha[(r, 0)] * alpha[(c, 0)] - gbar[(r, c)]);

@@ -17,6 +17,7 @@ use super::optimise::{
     multi_start, perturb, prefit, EvalFailure, Evaluation, Harness, Objective, RunSettings,
     StartPlan,
 };
+use super::theta::{kernel_from_free, pack_free, start_from_inputs};
 use super::training::{FitReport, Rank};
 use crate::error::{Error, GpError, InputError};
 use nalgebra::DMatrix;
@@ -116,16 +117,7 @@ impl<K: Kernel> Likelihood<'_, K> {
     #[allow(non_snake_case)]
     fn unpack(&self, th: &[f64]) -> Result<(K, DMatrix<f64>, DMatrix<f64>), InputError> {
         let l = &self.layout;
-        let mut kern = self.kernel.clone();
-        let mut kh = kern.log_hyper();
-        let mut t = 0;
-        for (i, h) in kh.iter_mut().enumerate() {
-            if Some(i) != l.scale_idx {
-                *h = th[t];
-                t += 1;
-            }
-        }
-        kern.set_log_hyper(&kh)?;
+        let kern = kernel_from_free(&self.kernel, th, l.scale_idx)?;
         let Sigma = low_rank_plus_diag(
             &th[l.off_cs()..l.off_vs()],
             &th[l.off_vs()..l.off_cn()],
@@ -153,14 +145,7 @@ impl<K: Kernel> Likelihood<'_, K> {
     ) -> Vec<f64> {
         let l = &self.layout;
         let mut th = vec![0.0; l.len()];
-        let free = kern
-            .log_hyper()
-            .into_iter()
-            .enumerate()
-            .filter(|(i, _)| Some(*i) != l.scale_idx);
-        for (t, (_, h)) in free.enumerate() {
-            th[t] = h;
-        }
+        pack_free(&kern.log_hyper(), l.scale_idx, &mut th);
         let (cs, rest) = th[l.off_cs()..].split_at_mut(l.np * l.rs);
         let (vs, rest) = rest.split_at_mut(l.np);
         let (cn, vn) = rest.split_at_mut(l.n * l.rn);
@@ -189,13 +174,7 @@ impl<K: Kernel> Objective for Likelihood<'_, K> {
             return Err(EvalFailure::NonFinite);
         }
         let mut grad = vec![0.0; th.len()];
-        let mut t = 0;
-        for (i, a) in g.kernel_log_hyper.iter().enumerate() {
-            if Some(i) != l.scale_idx {
-                grad[t] = *a;
-                t += 1;
-            }
-        }
+        pack_free(&g.kernel_log_hyper, l.scale_idx, &mut grad);
         chain_low_rank(
             &g.Sigma,
             &th[l.off_cs()..l.off_vs()],
@@ -237,14 +216,7 @@ fn data_driven_start<K: Kernel>(
     );
     let mut kern = model.hyper().kernel.clone();
     let mut kh = kern.log_hyper();
-    for j in 0..d.min(kh.len()) {
-        let mean = (0..k).map(|i| zs[i * d + j]).sum::<f64>() / k as f64;
-        let var = (0..k).map(|i| (zs[i * d + j] - mean).powi(2)).sum::<f64>() / k as f64;
-        kh[j] = var.sqrt().max(1e-3).ln();
-    }
-    if let Some(si) = kern.scale_index() {
-        kh[si] = 0.0;
-    }
+    start_from_inputs(&mut kh, zs, k, d, kern.scale_index());
     kern.set_log_hyper(&kh)?;
     let mean_u2 = (us.iter().map(|v| v * v).sum::<f64>() / k as f64).max(1e-12);
     let r2: Vec<f64> = (0..n)
@@ -391,6 +363,7 @@ pub fn fit_cogp<K: Kernel>(
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::gp::theta::random_training_rows;
     use crate::gp::Rbf;
     use rand::RngExt;
 
@@ -405,15 +378,7 @@ mod tests {
             (1, 2, Rank::Diagonal, Rank::Full),
         ] {
             let (k, p) = (8, m + 1);
-            let zs: Vec<f64> = (0..k * n).map(|_| rng.random_range(-1.0..1.0)).collect();
-            let us: Vec<f64> = (0..k)
-                .flat_map(|_| {
-                    let mut v = vec![1.0];
-                    v.extend((0..m).map(|_| rng.random_range(-1.0..1.0)));
-                    v
-                })
-                .collect();
-            let resid: Vec<f64> = (0..k * n).map(|_| rng.random_range(-1.0..1.0)).collect();
+            let (zs, us, resid) = random_training_rows(&mut rng, k, n, m);
             let kernel = Rbf::new(vec![0.8; n], 1.3).unwrap();
             let layout = Layout {
                 n,

@@ -15,8 +15,7 @@
 //! the Lipschitz bound (Lemma 3) need.
 
 use super::kernel::Kernel;
-use super::mvgp::Mvgp;
-use super::simd::with_faer;
+use super::mvgp::{add_data_part, Mvgp};
 use crate::error::InputError;
 use faer::Mat;
 use nalgebra::DMatrix;
@@ -87,10 +86,7 @@ impl<K: Kernel> Mvgp<K> {
         let (n, m) = (self.state_dim(), self.control_dim());
         let p = m + 1;
         let pp = p * (1 + n);
-        if x.len() != n {
-            return Err(InputError::shape("x", n, x.len()));
-        }
-        crate::error::check_finite("x", x)?;
+        self.check_x(x)?;
         if out.mean.shape() != (n, pp) || out.c.shape() != (pp, pp) {
             *out = JointPosterior::zeros(n, m);
         }
@@ -183,23 +179,7 @@ impl<K: Kernel> Mvgp<K> {
         }
         let mut v = ws.omega.as_mut().submatrix_mut(0, 0, k, pp);
         self.factor().solve_l(v.as_mut());
-        let v = v.as_ref();
-        let beta = self.beta_mat();
-        with_faer(|| {
-            for q in 0..pp {
-                let vq = v.col(q);
-                for i in 0..n {
-                    out.mean[(i, q)] += beta.col(i).subrows(0, k).transpose() * vq;
-                }
-                for q2 in 0..=q {
-                    let s = v.col(q2).transpose() * vq;
-                    out.c[(q2, q)] -= s;
-                    if q2 != q {
-                        out.c[(q, q2)] -= s;
-                    }
-                }
-            }
-        });
+        add_data_part(v.as_ref(), self.beta_mat(), &mut out.mean, &mut out.c);
         Ok(())
     }
 

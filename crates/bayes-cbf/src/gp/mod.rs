@@ -3,6 +3,7 @@
 
 mod cogp;
 mod cogp_training;
+mod data;
 mod factor;
 mod input_map;
 mod joint;
@@ -15,6 +16,7 @@ mod mvgp;
 mod optimise;
 mod prior;
 mod simd;
+mod theta;
 mod training;
 
 pub use cogp::{Cogp, CogpGradient, CogpHyper, CogpPosterior};

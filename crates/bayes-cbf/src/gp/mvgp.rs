@@ -1,12 +1,13 @@
 //! Matrix-variate Gaussian process regression of `F(x) = [f(x) g(x)]`
 //! (paper, Sec. IV, Prop. 1).
 
+use super::data::{check_batch, check_point, check_state, TrainingData};
 use super::factor::CholFactor;
 use super::input_map::InputMap;
 use super::kernel::{Kernel, Rbf};
 use super::prior::PriorMean;
 use super::simd::with_faer;
-use crate::error::{check_finite, Error, GpError, InputError};
+use crate::error::{Error, GpError, InputError};
 use faer::Mat;
 use nalgebra::DMatrix;
 use std::sync::OnceLock;
@@ -147,16 +148,7 @@ pub struct Mvgp<K: Kernel = Rbf> {
     hyper: MvgpHyper<K>,
     prior: PriorMean,
     input_map: InputMap,
-    /// Inputs `x_j`, row-major `k × n`.
-    xs: Vec<f64>,
-    /// Mapped inputs `z_j = φ(x_j)`, row-major `k × d`.
-    zs: Vec<f64>,
-    /// `u̲_j = [1, u_j]`, row-major `k × (1+m)`.
-    us: Vec<f64>,
-    /// `ẋ_j`, row-major `k × n`.
-    xdot: Vec<f64>,
-    /// Residuals `r_j = ẋ_j − M0(x_j) u̲_j`, row-major `k × n`.
-    resid: Vec<f64>,
+    data: TrainingData,
     /// `B u̲_j`, row-major `k × (1+m)`.
     bu: Vec<f64>,
     factor: CholFactor,
@@ -186,11 +178,7 @@ impl<K: Kernel> Mvgp<K> {
             hyper,
             prior,
             input_map,
-            xs: Vec::new(),
-            zs: Vec::new(),
-            us: Vec::new(),
-            xdot: Vec::new(),
-            resid: Vec::new(),
+            data: TrainingData::default(),
             bu: Vec::new(),
             factor: CholFactor::default(),
             beta: Mat::zeros(0, n),
@@ -234,65 +222,40 @@ impl<K: Kernel> Mvgp<K> {
     }
     /// Training inputs (row-major `k × n`).
     pub fn xs(&self) -> &[f64] {
-        &self.xs
+        &self.data.xs
     }
     /// Training controls without the leading 1 (`k × m`), freshly collected.
     pub fn controls(&self) -> Vec<f64> {
         let p = self.m + 1;
-        self.us.chunks(p).flat_map(|u| u[1..].to_vec()).collect()
+        self.data
+            .us
+            .chunks(p)
+            .flat_map(|u| u[1..].to_vec())
+            .collect()
     }
     /// Training targets `ẋ` (row-major `k × n`).
     pub fn xdot(&self) -> &[f64] {
-        &self.xdot
-    }
-
-    fn validate_point(
-        &self,
-        x: &[f64],
-        u: &[f64],
-        xdot: &[f64],
-        j: usize,
-    ) -> Result<(), InputError> {
-        let (n, m) = (self.n, self.m);
-        if x.len() != n {
-            return Err(InputError::shape(&format!("x[{j}]"), n, x.len()));
-        }
-        if u.len() != m {
-            return Err(InputError::shape(&format!("u[{j}]"), m, u.len()));
-        }
-        if xdot.len() != n {
-            return Err(InputError::shape(&format!("xdot[{j}]"), n, xdot.len()));
-        }
-        check_finite(&format!("x[{j}]"), x)?;
-        check_finite(&format!("u[{j}]"), u)?;
-        check_finite(&format!("xdot[{j}]"), xdot)?;
-        Ok(())
+        &self.data.xdot
     }
 
     fn push_point(&mut self, x: &[f64], u: &[f64], xdot: &[f64]) {
         let (n, p) = (self.n, self.m + 1);
-        let d = self.input_map.output_dim(n);
-        self.xs.extend_from_slice(x);
-        let zoff = self.zs.len();
-        self.zs.resize(zoff + d, 0.0);
-        self.input_map.apply(x, &mut self.zs[zoff..]);
-        let uoff = self.us.len();
-        self.us.push(1.0);
-        self.us.extend_from_slice(u);
-        self.xdot.extend_from_slice(xdot);
+        let uoff = self.data.us.len();
+        self.data.push(x, u, xdot, &self.input_map);
+        let us = &self.data.us;
         let mut m0 = vec![0.0; n * p];
         self.prior.eval(x, &mut m0);
         for i in 0..n {
             let mut r = xdot[i];
             for c in 0..p {
-                r -= m0[i + n * c] * self.us[uoff + c];
+                r -= m0[i + n * c] * us[uoff + c];
             }
-            self.resid.push(r);
+            self.data.resid.push(r);
         }
         for a in 0..p {
             let mut s = 0.0;
             for c in 0..p {
-                s += self.hyper.B[(a, c)] * self.us[uoff + c];
+                s += self.hyper.B[(a, c)] * us[uoff + c];
             }
             self.bu.push(s);
         }
@@ -303,12 +266,12 @@ impl<K: Kernel> Mvgp<K> {
     fn gram_entry(&self, i: usize, j: usize) -> f64 {
         let p = self.m + 1;
         let d = self.input_map.output_dim(self.n);
-        let kv = self
-            .hyper
-            .kernel
-            .value(&self.zs[i * d..(i + 1) * d], &self.zs[j * d..(j + 1) * d]);
+        let kv = self.hyper.kernel.value(
+            &self.data.zs[i * d..(i + 1) * d],
+            &self.data.zs[j * d..(j + 1) * d],
+        );
         let ubu: f64 = (0..p)
-            .map(|c| self.us[i * p + c] * self.bu[j * p + c])
+            .map(|c| self.data.us[i * p + c] * self.bu[j * p + c])
             .sum();
         let mut g = ubu * kv;
         if i == j {
@@ -322,23 +285,7 @@ impl<K: Kernel> Mvgp<K> {
     /// `xs` is `k × n`, `us` is `k × m`, `xdot` is `k × n`, all row-major.
     pub fn set_data(&mut self, xs: &[f64], us: &[f64], xdot: &[f64]) -> Result<(), Error> {
         let (n, m) = (self.n, self.m);
-        let k = xs.len() / n;
-        if xs.len() != k * n || us.len() != k * m || xdot.len() != k * n {
-            return Err(InputError::shape(
-                "data",
-                format!("x: k×{n}, u: k×{m}, xdot: k×{n}"),
-                format!("{} x, {} u, {} xdot values", xs.len(), us.len(), xdot.len()),
-            )
-            .into());
-        }
-        for j in 0..k {
-            self.validate_point(
-                &xs[j * n..(j + 1) * n],
-                &us[j * m..(j + 1) * m],
-                &xdot[j * n..(j + 1) * n],
-                j,
-            )?;
-        }
+        let k = check_batch(n, m, xs, us, xdot)?;
         self.clear();
         for j in 0..k {
             self.push_point(
@@ -352,11 +299,7 @@ impl<K: Kernel> Mvgp<K> {
     }
 
     fn clear(&mut self) {
-        self.xs.clear();
-        self.zs.clear();
-        self.us.clear();
-        self.xdot.clear();
-        self.resid.clear();
+        self.data.clear();
         self.bu.clear();
         self.factor = CholFactor::default();
         self.beta = Mat::zeros(0, self.n);
@@ -366,7 +309,7 @@ impl<K: Kernel> Mvgp<K> {
 
     /// Recomputes the factor and `β` from the stored data (O(k³)).
     pub fn refactor(&mut self) -> Result<(), GpError> {
-        let k = self.xs.len() / self.n;
+        let k = self.data.xs.len() / self.n;
         let mut g = Mat::<f64>::zeros(k, k);
         for j in 0..k {
             for i in j..k {
@@ -378,7 +321,7 @@ impl<K: Kernel> Mvgp<K> {
         self.beta = Mat::zeros(cap, self.n);
         for j in 0..k {
             for i in 0..self.n {
-                self.beta[(j, i)] = self.resid[j * self.n + i];
+                self.beta[(j, i)] = self.data.resid[j * self.n + i];
             }
         }
         self.factor
@@ -393,7 +336,7 @@ impl<K: Kernel> Mvgp<K> {
     /// row (one triangular solve, O(k²); no refactorisation).
     pub fn add_observation(&mut self, x: &[f64], u: &[f64], xdot: &[f64]) -> Result<(), Error> {
         let k = self.len();
-        self.validate_point(x, u, xdot, k)?;
+        check_point(self.n, self.m, x, u, xdot, k)?;
         self.push_point(x, u, xdot);
         let n = self.n;
         let mut gcol = std::mem::take(&mut self.scratch);
@@ -422,7 +365,7 @@ impl<K: Kernel> Mvgp<K> {
         }
         let l = self.factor.l_ref();
         for i in 0..n {
-            let mut s = self.resid[k * n + i];
+            let mut s = self.data.resid[k * n + i];
             for j in 0..k {
                 s -= l[(k, j)] * self.beta[(j, i)];
             }
@@ -437,11 +380,7 @@ impl<K: Kernel> Mvgp<K> {
     fn pop_last_point(&mut self) {
         let (n, p) = (self.n, self.m + 1);
         let d = self.input_map.output_dim(n);
-        self.xs.truncate(self.xs.len() - n);
-        self.zs.truncate(self.zs.len() - d);
-        self.us.truncate(self.us.len() - p);
-        self.xdot.truncate(self.xdot.len() - n);
-        self.resid.truncate(self.resid.len() - n);
+        self.data.pop(n, p, d);
         self.bu.truncate(self.bu.len() - p);
     }
 
@@ -481,11 +420,8 @@ impl<K: Kernel> Mvgp<K> {
         }
     }
 
-    fn check_x(&self, x: &[f64]) -> Result<(), InputError> {
-        if x.len() != self.n {
-            return Err(InputError::shape("x", self.n, x.len()));
-        }
-        check_finite("x", x)
+    pub(crate) fn check_x(&self, x: &[f64]) -> Result<(), InputError> {
+        check_state("x", self.n, x)
     }
 
     /// Fills `ws.z`, `ws.kvec[..k]` and `ws.w[..k]` with `W = (𝓑(x)U̲)ᵀ`,
@@ -499,7 +435,10 @@ impl<K: Kernel> Mvgp<K> {
         }
         self.input_map.apply(x, &mut ws.z);
         for j in 0..k {
-            let kv = self.hyper.kernel.value(&ws.z, &self.zs[j * d..(j + 1) * d]);
+            let kv = self
+                .hyper
+                .kernel
+                .value(&ws.z, &self.data.zs[j * d..(j + 1) * d]);
             ws.kvec[j] = kv;
             for c in 0..p {
                 ws.w[(j, c)] = kv * self.bu[j * p + c];
@@ -572,23 +511,7 @@ impl<K: Kernel> Mvgp<K> {
         self.fill_w(x, ws);
         let mut v = ws.w.as_mut().submatrix_mut(0, 0, k, p);
         self.factor.solve_l(v.as_mut());
-        let v = v.as_ref();
-        with_faer(|| {
-            for c in 0..p {
-                let vc = v.col(c);
-                for i in 0..n {
-                    let bc = self.beta.as_ref().col(i).subrows(0, k);
-                    out.mean[(i, c)] += bc.transpose() * vc;
-                }
-                for a in 0..=c {
-                    let s = v.col(a).transpose() * vc;
-                    out.B[(a, c)] -= s;
-                    if a != c {
-                        out.B[(c, a)] -= s;
-                    }
-                }
-            }
-        });
+        add_data_part(v.as_ref(), self.beta.as_ref(), &mut out.mean, &mut out.B);
         Ok(())
     }
 
@@ -678,7 +601,7 @@ impl<K: Kernel> Mvgp<K> {
         for j in 0..self.len() {
             for a in 0..p {
                 self.bu[j * p + a] = (0..p)
-                    .map(|c| self.hyper.B[(a, c)] * self.us[j * p + c])
+                    .map(|c| self.hyper.B[(a, c)] * self.data.us[j * p + c])
                     .sum();
             }
         }
@@ -705,14 +628,42 @@ impl<K: Kernel> Mvgp<K> {
     }
     /// Mapped training inputs (row-major `k × d`).
     pub fn mapped_inputs(&self) -> &[f64] {
-        &self.zs
+        &self.data.zs
     }
     /// `u̲_j` rows (row-major `k × (1+m)`), with the leading 1.
     pub fn augmented_controls(&self) -> &[f64] {
-        &self.us
+        &self.data.us
     }
     /// Residuals `ẋ_j − M0(x_j) u̲_j` (row-major `k × n`).
     pub fn residuals(&self) -> &[f64] {
-        &self.resid
+        &self.data.resid
     }
+}
+
+/// The data part of the posterior (Prop. 1) from `V = L⁻¹ W` (`k × q`,
+/// one column per column of the stacked mean) and `β = L⁻¹ Rᵀ` (rows
+/// `0..k` used): `mean += βᵀ V` (`n × q`) and `cov −= Vᵀ V` (`q × q`,
+/// both triangles).
+pub(crate) fn add_data_part(
+    v: faer::MatRef<'_, f64>,
+    beta: faer::MatRef<'_, f64>,
+    mean: &mut DMatrix<f64>,
+    cov: &mut DMatrix<f64>,
+) {
+    let (k, q, n) = (v.nrows(), v.ncols(), mean.nrows());
+    with_faer(|| {
+        for c in 0..q {
+            let vc = v.col(c);
+            for i in 0..n {
+                mean[(i, c)] += beta.col(i).subrows(0, k).transpose() * vc;
+            }
+            for a in 0..=c {
+                let s = v.col(a).transpose() * vc;
+                cov[(a, c)] -= s;
+                if a != c {
+                    cov[(c, a)] -= s;
+                }
+            }
+        }
+    });
 }

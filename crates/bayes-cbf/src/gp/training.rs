@@ -27,6 +27,7 @@ use super::optimise::{
     multi_start, perturb, EvalFailure, Evaluation, Harness, Objective, RunSettings, StartPlan,
 };
 use super::simd::with_faer;
+use super::theta::{kernel_from_free, pack_free, start_from_inputs};
 use crate::error::{Error, GpError, InputError};
 use faer::Mat;
 use nalgebra::DMatrix;
@@ -188,16 +189,7 @@ impl<K: Kernel> Likelihood<'_, K> {
     #[allow(non_snake_case)]
     fn unpack(&self, th: &[f64]) -> Result<(K, DMatrix<f64>, DMatrix<f64>, f64), InputError> {
         let l = &self.layout;
-        let mut kern = self.kernel.clone();
-        let mut kh = kern.log_hyper();
-        let mut t = 0;
-        for (i, h) in kh.iter_mut().enumerate() {
-            if Some(i) != l.scale_idx {
-                *h = th[t];
-                t += 1;
-            }
-        }
-        kern.set_log_hyper(&kh)?;
+        let kern = kernel_from_free(&self.kernel, th, l.scale_idx)?;
         let sigma = l.sigma_min + th[l.off_sigma()].exp();
         let B = low_rank_plus_diag(
             &th[l.off_cb()..l.off_vb()],
@@ -298,13 +290,7 @@ impl<K: Kernel> Objective for Likelihood<'_, K> {
                 }
             }
         }
-        let mut t = 0;
-        for (i, a) in acc.iter().enumerate() {
-            if Some(i) != l.scale_idx {
-                grad[t] = *a;
-                t += 1;
-            }
-        }
+        pack_free(&acc, l.scale_idx, &mut grad);
         // σ = σ_min + e^θ: ∂G/∂θ = 2σ (σ − σ_min) I
         let tr_gbar: f64 = (0..k).map(|i| gbar[(i, i)]).sum();
         grad[l.off_sigma()] = 2.0 * sigma * (sigma - l.sigma_min) * tr_gbar;
@@ -392,23 +378,9 @@ pub fn fit<K: Kernel>(model: &mut Mvgp<K>, settings: &FitSettings) -> Result<Fit
     let mut th0 = vec![0.0; layout.len()];
     let mut kh = kernel.log_hyper();
     if !settings.warm_start {
-        // lengthscales: standard deviation of each kernel input (RBF layout)
-        for j in 0..d.min(kh.len()) {
-            let mean = (0..k).map(|i| zs[i * d + j]).sum::<f64>() / k as f64;
-            let var = (0..k).map(|i| (zs[i * d + j] - mean).powi(2)).sum::<f64>() / k as f64;
-            kh[j] = var.sqrt().max(1e-3).ln();
-        }
-        if let Some(si) = layout.scale_idx {
-            kh[si] = 0.0;
-        }
+        start_from_inputs(&mut kh, zs, k, d, layout.scale_idx);
     }
-    let mut t = 0;
-    for (i, h) in kh.iter().enumerate() {
-        if Some(i) != layout.scale_idx {
-            th0[t] = *h;
-            t += 1;
-        }
-    }
+    pack_free(&kh, layout.scale_idx, &mut th0);
     let kernel_start = {
         let mut kk = kernel.clone();
         kk.set_log_hyper(&kh)?;
@@ -507,6 +479,7 @@ fn symmetrise(m: &DMatrix<f64>) -> DMatrix<f64> {
 #[cfg(test)]
 pub(crate) mod tests {
     use super::*;
+    use crate::gp::theta::random_training_rows;
     use crate::gp::{InputMap, PriorMean, Rbf};
 
     /// The analytic gradient of −log p against central finite differences.
@@ -521,15 +494,7 @@ pub(crate) mod tests {
         ] {
             let k = 15;
             let p = m + 1;
-            let zs: Vec<f64> = (0..k * n).map(|_| rng.random_range(-1.0..1.0)).collect();
-            let us: Vec<f64> = (0..k)
-                .flat_map(|_| {
-                    let mut v = vec![1.0];
-                    v.extend((0..m).map(|_| rng.random_range(-1.0..1.0)));
-                    v
-                })
-                .collect();
-            let resid: Vec<f64> = (0..k * n).map(|_| rng.random_range(-1.0..1.0)).collect();
+            let (zs, us, resid) = random_training_rows(&mut rng, k, n, m);
             let kernel = Rbf::new(vec![0.8; n], 1.0).unwrap();
             let layout = Layout {
                 n,

@@ -180,11 +180,7 @@ impl<K: Kernel> Mvgp<K> {
             info.diag.remove(j);
             info.updates += 1;
         }
-        self.xs.drain(j * n..(j + 1) * n);
-        self.zs.drain(j * d..(j + 1) * d);
-        self.us.drain(j * p..(j + 1) * p);
-        self.xdot.drain(j * n..(j + 1) * n);
-        self.resid.drain(j * n..(j + 1) * n);
+        self.data.remove(j, n, p, d);
         self.bu.drain(j * p..(j + 1) * p);
         let t = k - 1 - j;
         if self.scratch.len() <= 4 * t {
