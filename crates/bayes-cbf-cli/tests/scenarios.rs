@@ -6,22 +6,12 @@ mod common;
 use common::{run_in, scratch_dir};
 use serde_json::Value;
 
-/// The built-in closed-loop scenarios (outcomes are checked in the
-/// scenario crate's `tests/outcomes.rs`).
-const SCENARIOS: [&str; 5] = [
-    "ackermann-mean-cbf",
-    "ackermann-bayes-cbf",
-    "ackermann-no-learning",
-    "ackermann-learning",
-    "pendulum-safe",
-];
-
 #[test]
 fn scenario_interface() {
     let dir = scratch_dir("scenarios_interface");
     let list = run_in(&dir, &["list"]);
     assert!(list.status.success());
-    for sc in SCENARIOS {
+    for (sc, _) in bayes_cbf_scenario::scenario::BUILTIN {
         assert!(list.stdout.contains(sc), "{}", list.stdout);
     }
     // --print-config gives a file that runs, with overrides applied
