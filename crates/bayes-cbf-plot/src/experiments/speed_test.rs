@@ -4,7 +4,7 @@
 
 use crate::plot::{render_png, Figure, Layer, LegendPos, Panel, BLACK, GREY};
 use crate::Result;
-use bayes_cbf_scenario::experiments::speed_test::{variant, Row, SpeedTest, Stats, System};
+use bayes_cbf_scenario::experiments::speed_test::{variant, Ratio, Row, SpeedTest, Stats, System};
 use bayes_cbf_scenario::experiments::ModelKind;
 use std::path::{Path, PathBuf};
 
@@ -23,10 +23,7 @@ fn style(kind: ModelKind, diag: bool) -> (usize, bool, String) {
 /// one row per system) and `speed_ratio.png` (CoGP/MVGP time ratios).
 pub fn figures(r: &SpeedTest, out: &Path) -> Result<Vec<PathBuf>> {
     let table = &r.table;
-    let empty = Vec::new();
-    let ratios = r.summary["time_ratio_cogp_over_mvgp"]
-        .as_array()
-        .unwrap_or(&empty);
+    let ratios = &r.summary.time_ratio_cogp_over_mvgp;
     let systems = [System::Pendulum, System::Ackermann];
     type Metric = (&'static str, &'static str, fn(&Row) -> Stats);
     let metrics: [Metric; 3] = [
@@ -106,16 +103,19 @@ pub fn figures(r: &SpeedTest, out: &Path) -> Result<Vec<PathBuf>> {
             "time ratio CoGP / MVGP",
         );
         (p.log_x, p.log_y, p.legend_pos) = (true, true, LegendPos::LowerRight);
-        for (diag, key, color) in [
-            (false, "fit", 0),
-            (true, "fit", 9),
-            (false, "per_evaluation", 2),
-            (false, "predict", 4),
-        ] {
+        type Pick = fn(&Ratio) -> f64;
+        let series: [(bool, &str, Pick, usize); 4] = [
+            (false, "fit", |r| r.fit, 0),
+            (true, "fit", |r| r.fit, 9),
+            (false, "per_evaluation", |r| r.per_evaluation, 2),
+            (false, "predict", |r| r.predict, 4),
+        ];
+        for (diag, key, pick, color) in series {
             let pts: Vec<(f64, f64)> = ratios
                 .iter()
-                .filter(|r| r["system"] == s.name() && r["variant"] == variant(diag))
-                .filter_map(|r| Some((r["k"].as_f64()?, r[key].as_f64()?)))
+                .filter(|r| r.system == s.name() && r.variant == variant(diag))
+                .map(|r| (r.k as f64, pick(r)))
+                .filter(|p| p.1.is_finite())
                 .collect();
             let name = format!("{} ({})", key.replace('_', " "), variant(diag));
             p.layers.push(Layer::Line {

@@ -138,7 +138,7 @@ impl ExperimentResult {
     pub fn summary(&self) -> serde_json::Value {
         match self {
             ExperimentResult::PendulumLearning(r) => json_of(&r.summary),
-            ExperimentResult::SpeedTest(r) => r.summary.clone(),
+            ExperimentResult::SpeedTest(r) => json_of(&r.summary),
             ExperimentResult::CovarianceShapes(r) => json_of(&r.summary),
             ExperimentResult::AckermannTriggering(r) => json_of(&r.summary),
             ExperimentResult::Calibration(r) => r.summary.clone(),

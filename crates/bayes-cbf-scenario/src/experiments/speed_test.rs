@@ -57,8 +57,8 @@
 //! per system with at most 10 iterations, for tests and smoke runs.
 
 use super::{
-    fit_settings, new_model, num, pendulum_samples, random_split, variance_weighted,
-    ExperimentArgs, ModelKind, Progress, Table, OMEGA_MAX,
+    fit_settings, new_model, pendulum_samples, random_split, variance_weighted, ExperimentArgs,
+    ModelKind, Progress, Table, OMEGA_MAX,
 };
 use crate::error::Result;
 use crate::workloads::ackermann_data;
@@ -68,21 +68,114 @@ use bayes_cbf::systems::{Ackermann, DynSystem, Pendulum};
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use rayon::prelude::*;
-use serde_json::{json, Value};
+use serde::Serialize;
 use std::f64::consts::PI;
 use std::sync::atomic::{AtomicUsize, Ordering};
 use std::time::Instant;
 
 mod report;
 
-pub use report::{Row, Stats};
+pub use report::{Machine, Ratio, Row, RowSummary, Stats};
+
+/// A fit that failed.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct Failure {
+    /// System.
+    pub system: &'static str,
+    /// Training points.
+    pub k: usize,
+    /// Repetition.
+    pub rep: usize,
+    /// Model.
+    pub model: &'static str,
+    /// `full` or `diag`.
+    pub variant: &'static str,
+    /// The error.
+    pub error: String,
+}
+
+/// Fit settings in the summary.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct FitInfo {
+    /// L-BFGS iterations per start.
+    pub max_iters: u64,
+    /// Restarts.
+    pub restarts: usize,
+    /// Why the cap is what it is.
+    pub iteration_cap_note: &'static str,
+}
+
+/// What the kernel sees, per system.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct InputMaps {
+    /// Pendulum.
+    pub pendulum: &'static str,
+    /// Ackermann vehicle.
+    pub ackermann: &'static str,
+}
+
+/// The files written.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct Files {
+    /// The figures.
+    pub plots: [&'static str; 2],
+    /// Every fit.
+    pub runs: &'static str,
+}
+
+/// `summary.json` of `speed-test`.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct Summary {
+    /// `speed-test`.
+    pub scenario: &'static str,
+    /// Seed.
+    pub seed: u64,
+    /// Reduced run.
+    pub quick: bool,
+    /// Repetitions per `(system, k)`.
+    pub repetitions: usize,
+    /// Data sizes per system.
+    pub ks: std::collections::BTreeMap<&'static str, Vec<usize>>,
+    /// The four models.
+    pub models: [&'static str; 4],
+    /// Kernel family.
+    pub kernel: &'static str,
+    /// Prior mean.
+    pub prior_mean: &'static str,
+    /// What the kernel sees.
+    pub input_map: InputMaps,
+    /// Held-out samples per repetition.
+    pub test_points: usize,
+    /// Prediction grid points.
+    pub grid_points: usize,
+    /// Fit settings.
+    pub fit_settings: FitInfo,
+    /// The machine.
+    pub machine: Machine,
+    /// Rayon threads.
+    pub threads: usize,
+    /// How to read the timings.
+    pub timing_note: &'static str,
+    /// Wall time (s).
+    pub wall_seconds: f64,
+    /// What the quantiles are.
+    pub quantiles: &'static str,
+    /// Medians and deciles per `(system, k, model, variant)`.
+    pub table: Vec<RowSummary>,
+    /// CoGP/MVGP time ratios.
+    pub time_ratio_cogp_over_mvgp: Vec<Ratio>,
+    /// Fits that failed.
+    pub failures: Vec<Failure>,
+    /// The files written.
+    pub files: Files,
+}
 
 /// The result of `speed-test`.
 pub struct SpeedTest {
     /// Medians and deciles per `(system, k, model, variant)`.
     pub table: Vec<Row>,
     /// `summary.json`.
-    pub summary: Value,
+    pub summary: Summary,
     /// `runs.csv`: every fit.
     pub tables: Vec<Table>,
 }
@@ -347,35 +440,52 @@ pub fn run(args: &ExperimentArgs, progress: &dyn Progress) -> Result<SpeedTest> 
     });
     let table = report::table(&outcomes);
     let ratios = report::ratios(&table);
-    let failures: Vec<Value> = outcomes
+    let failures = outcomes
         .iter()
-        .filter_map(|o| o.error.as_ref().map(|e| json!({"system": o.case.system.name(), "k": o.case.k, "rep": o.case.rep, "model": o.case.kind.name(), "variant": variant(o.case.diag), "error": e})))
+        .filter_map(|o| {
+            o.error.as_ref().map(|e| Failure {
+                system: o.case.system.name(),
+                k: o.case.k,
+                rep: o.case.rep,
+                model: o.case.kind.name(),
+                variant: variant(o.case.diag),
+                error: e.clone(),
+            })
+        })
         .collect();
-    let summary = json!({
-        "scenario": "speed-test",
-        "seed": args.seed,
-        "quick": args.quick,
-        "repetitions": plan.reps,
-        "ks": plan.ks.iter().map(|(s, k)| (s.name().to_string(), json!(k))).collect::<serde_json::Map<String, Value>>(),
-        "models": ["MVGP full", "MVGP diag", "CoGP full", "CoGP diag"],
-        "kernel": "rbf", "prior_mean": "zero",
-        "input_map": {"pendulum": "identity (theta, omega)", "ackermann": "theta only"},
-        "test_points": TEST_POINTS,
-        "grid_points": GRID * GRID,
-        "fit_settings": {
-            "max_iters": plan.max_iters, "restarts": 0,
-            "iteration_cap_note": report::ITERATION_NOTE,
+    let summary = Summary {
+        scenario: "speed-test",
+        seed: args.seed,
+        quick: args.quick,
+        repetitions: plan.reps,
+        ks: plan.ks.iter().map(|(s, k)| (s.name(), k.clone())).collect(),
+        models: ["MVGP full", "MVGP diag", "CoGP full", "CoGP diag"],
+        kernel: "rbf",
+        prior_mean: "zero",
+        input_map: InputMaps {
+            pendulum: "identity (theta, omega)",
+            ackermann: "theta only",
         },
-        "machine": report::machine(),
-        "threads": rayon::current_num_threads(),
-        "timing_note": report::TIMING_NOTE,
-        "wall_seconds": num(wall),
-        "quantiles": "median and 2nd-9th deciles (0.2 and 0.9 quantiles) over the repetitions",
-        "table": table.iter().map(report::Row::to_json).collect::<Vec<Value>>(),
-        "time_ratio_cogp_over_mvgp": ratios,
-        "failures": failures,
-        "files": {"plots": ["speed_test.png", "speed_ratio.png"], "runs": "runs.csv"},
-    });
+        test_points: TEST_POINTS,
+        grid_points: GRID * GRID,
+        fit_settings: FitInfo {
+            max_iters: plan.max_iters,
+            restarts: 0,
+            iteration_cap_note: report::ITERATION_NOTE,
+        },
+        machine: report::machine(),
+        threads: rayon::current_num_threads(),
+        timing_note: report::TIMING_NOTE,
+        wall_seconds: wall,
+        quantiles: "median and 2nd-9th deciles (0.2 and 0.9 quantiles) over the repetitions",
+        table: table.iter().map(Row::summary).collect(),
+        time_ratio_cogp_over_mvgp: ratios,
+        failures,
+        files: Files {
+            plots: ["speed_test.png", "speed_ratio.png"],
+            runs: "runs.csv",
+        },
+    };
     Ok(SpeedTest {
         table,
         summary,
@@ -406,7 +516,7 @@ mod tests {
             &|_, _| {},
         )
         .unwrap();
-        let s = &r.summary;
+        let s = serde_json::to_value(&r.summary).unwrap();
         assert_eq!(s["scenario"], "speed-test");
         let table = s["table"].as_array().unwrap();
         // 2 systems × 2 k × 2 models × 2 variants

@@ -3,8 +3,8 @@
 //! CSV.
 
 use super::{variant, Outcome, System, MAX_ITERS};
-use crate::experiments::{num, quantile, ModelKind, Table};
-use serde_json::{json, Value};
+use crate::experiments::{quantile, ModelKind, Table};
+use serde::Serialize;
 
 /// Why [`MAX_ITERS`] is what it is (copied into `summary.json`).
 pub(super) const ITERATION_NOTE: &str = "L-BFGS is capped at max_iters iterations per \
@@ -22,7 +22,7 @@ on a 2-vCPU machine, unevenly), so compare timings from RAYON_NUM_THREADS=1 runs
 errors do not depend on the thread count.";
 
 /// Median and 2nd/9th deciles of a sample.
-#[derive(Debug, Clone, Copy, PartialEq)]
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
 pub struct Stats {
     /// Median.
     pub median: f64,
@@ -39,9 +39,6 @@ impl Stats {
             d2: quantile(v, 0.2),
             d9: quantile(v, 0.9),
         }
-    }
-    fn to_json(self) -> Value {
-        json!({"median": num(self.median), "d2": num(self.d2), "d9": num(self.d9)})
     }
 }
 
@@ -76,18 +73,89 @@ pub struct Row {
     pub rmse: Stats,
 }
 
+/// A row as it appears in `summary.json`.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+#[allow(non_snake_case)]
+pub struct RowSummary {
+    /// System.
+    pub system: &'static str,
+    /// Training points.
+    pub k: usize,
+    /// Model.
+    pub model: &'static str,
+    /// `full` or `diag`.
+    pub variant: &'static str,
+    /// Repetitions that succeeded.
+    pub repetitions_ok: usize,
+    /// Repetitions that failed.
+    pub failures: usize,
+    /// Held-out points that needed extended jitter.
+    pub extended_jitter_points: usize,
+    /// Fit time (s).
+    pub fit_seconds: Stats,
+    /// Fit time per likelihood evaluation (s).
+    pub seconds_per_evaluation: Stats,
+    /// Likelihood evaluations per fit.
+    pub evaluations: Stats,
+    /// Time to predict on the grid (s).
+    pub predict_seconds: Stats,
+    /// Variance-weighted error (Eq. 33), held out.
+    pub variance_weighted_error: Stats,
+    /// RMSE of `F`, held out.
+    pub rmse_F: Stats,
+}
+
 impl Row {
     /// The row as it appears in `summary.json`.
-    pub fn to_json(&self) -> Value {
-        json!({
-            "system": self.system.name(), "k": self.k, "model": self.kind.name(),
-            "variant": variant(self.diag), "repetitions_ok": self.ok, "failures": self.failed,
-            "extended_jitter_points": self.extended_jitter,
-            "fit_seconds": self.fit.to_json(), "seconds_per_evaluation": self.per_eval.to_json(),
-            "evaluations": self.evaluations.to_json(), "predict_seconds": self.predict.to_json(),
-            "variance_weighted_error": self.vwe.to_json(), "rmse_F": self.rmse.to_json(),
-        })
+    pub fn summary(&self) -> RowSummary {
+        RowSummary {
+            system: self.system.name(),
+            k: self.k,
+            model: self.kind.name(),
+            variant: variant(self.diag),
+            repetitions_ok: self.ok,
+            failures: self.failed,
+            extended_jitter_points: self.extended_jitter,
+            fit_seconds: self.fit,
+            seconds_per_evaluation: self.per_eval,
+            evaluations: self.evaluations,
+            predict_seconds: self.predict,
+            variance_weighted_error: self.vwe,
+            rmse_F: self.rmse,
+        }
     }
+}
+
+/// CoGP/MVGP ratio of median times at one `(system, k, variant)`.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct Ratio {
+    /// System.
+    pub system: &'static str,
+    /// Training points.
+    pub k: usize,
+    /// `full` or `diag`.
+    pub variant: &'static str,
+    /// Fit time ratio.
+    pub fit: f64,
+    /// Time per likelihood evaluation ratio.
+    pub per_evaluation: f64,
+    /// Prediction time ratio.
+    pub predict: f64,
+    /// The factorisation-cost theory `n³`.
+    pub theory_n3: f64,
+}
+
+/// The machine, for the record.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct Machine {
+    /// CPU model.
+    pub cpu: String,
+    /// Cores available.
+    pub cores: usize,
+    /// Operating system.
+    pub os: &'static str,
+    /// L-BFGS cap of the full run.
+    pub max_iters_full_run: u64,
 }
 
 /// Groups `outcomes` (sorted by system, k, model, variant) into rows.
@@ -135,18 +203,20 @@ pub(super) fn find(
 
 /// CoGP/MVGP ratios of the median fit, per-evaluation and predict times
 /// per `(system, k, variant)`, with the factorisation-cost theory `n³`.
-pub(super) fn ratios(table: &[Row]) -> Vec<Value> {
+pub(super) fn ratios(table: &[Row]) -> Vec<Ratio> {
     let mut out = Vec::new();
     for r in table.iter().filter(|r| r.kind == ModelKind::Mvgp) {
         if let Some(c) = find(table, r.system, r.k, ModelKind::Cogp, r.diag) {
             let n = super::System::state_dim(r.system) as f64;
-            out.push(json!({
-                "system": r.system.name(), "k": r.k, "variant": variant(r.diag),
-                "fit": num(c.fit.median / r.fit.median),
-                "per_evaluation": num(c.per_eval.median / r.per_eval.median),
-                "predict": num(c.predict.median / r.predict.median),
-                "theory_n3": n * n * n,
-            }));
+            out.push(Ratio {
+                system: r.system.name(),
+                k: r.k,
+                variant: variant(r.diag),
+                fit: c.fit.median / r.fit.median,
+                per_evaluation: c.per_eval.median / r.per_eval.median,
+                predict: c.predict.median / r.predict.median,
+                theory_n3: n * n * n,
+            });
         }
     }
     out
@@ -183,7 +253,7 @@ pub(super) fn runs_csv(outcomes: &[Outcome]) -> Table {
 }
 
 /// CPU model and core count, for the record.
-pub(super) fn machine() -> Value {
+pub(super) fn machine() -> Machine {
     let cpu = std::fs::read_to_string("/proc/cpuinfo")
         .ok()
         .and_then(|t| {
@@ -196,5 +266,10 @@ pub(super) fn machine() -> Value {
     let cores = std::thread::available_parallelism()
         .map(|n| n.get())
         .unwrap_or(1);
-    json!({"cpu": cpu, "cores": cores, "os": std::env::consts::OS, "max_iters_full_run": MAX_ITERS})
+    Machine {
+        cpu,
+        cores,
+        os: std::env::consts::OS,
+        max_iters_full_run: MAX_ITERS,
+    }
 }
