@@ -277,6 +277,8 @@ pub struct ClosedLoop<'a> {
     monitors: &'a [Monitor],
     reference: &'a mut dyn Reference,
     settings: LoopSettings,
+    /// The integrator, its RK4 buffers reused at every step.
+    sim: Simulator<'a>,
     rng: ChaCha8Rng,
     trigger_rng: ChaCha8Rng,
     x: Vec<f64>,
@@ -335,6 +337,7 @@ impl<'a> ClosedLoop<'a> {
             monitors: &[],
             reference,
             settings: settings.clone(),
+            sim: Simulator::new(truth, settings.sim),
             rng: ChaCha8Rng::seed_from_u64(settings.seed),
             // a separate stream, so that evaluating τ_k leaves the run unchanged
             trigger_rng: ChaCha8Rng::seed_from_u64(settings.seed ^ 0x5e1f_7419_c0de_0001),
@@ -519,15 +522,15 @@ impl<'a> ClosedLoop<'a> {
         let mut mon_min: Vec<f64> = self.monitors.iter().map(|f| f(&self.x)).collect();
         let x_prev = self.x.clone();
         let (barriers, monitors) = (self.barriers, self.monitors);
-        let mut sim = Simulator::new(self.truth, self.settings.sim);
-        sim.step_with(&mut self.x, &self.out.u, hold, &mut self.rng, |_, xs| {
-            for (b, hm) in barriers.iter().zip(h_fine_min.iter_mut()) {
-                *hm = hm.min(b.value(xs));
-            }
-            for (f, mm) in monitors.iter().zip(mon_min.iter_mut()) {
-                *mm = mm.min(f(xs));
-            }
-        });
+        self.sim
+            .step_with(&mut self.x, &self.out.u, hold, &mut self.rng, |_, xs| {
+                for (b, hm) in barriers.iter().zip(h_fine_min.iter_mut()) {
+                    *hm = hm.min(b.value(xs));
+                }
+                for (f, mm) in monitors.iter().zip(mon_min.iter_mut()) {
+                    *mm = mm.min(f(xs));
+                }
+            });
         for (a, b) in self.min_barrier.iter_mut().zip(&h_fine_min) {
             *a = a.min(*b);
         }
