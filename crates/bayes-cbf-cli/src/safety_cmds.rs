@@ -1,15 +1,12 @@
 //! `bayes-cbf moments` and `bayes-cbf control` (interfaces.md).
 
 use anyhow::{bail, Context, Result};
-use bayes_cbf::barrier::{
-    cbc_moments, mc_cbc_moments, ConditionMoments, McSettings, MomentWorkspace,
-};
-use bayes_cbf::control::{
-    ControlOutput, ControlStatus, Fallback, SafetyController, SafetySettings,
-};
+use bayes_cbf::barrier::McSettings;
+use bayes_cbf::control::{Fallback, SafetySettings};
 use bayes_cbf_scenario::barrier_file::BarrierSpec;
 use bayes_cbf_scenario::model_file::ModelFile;
 use bayes_cbf_scenario::parse::parse_vector;
+use bayes_cbf_scenario::queries::{check_barrier, condition_moments, control_step};
 use clap::Args;
 use serde::Serialize;
 use std::path::PathBuf;
@@ -93,114 +90,30 @@ fn vector_of_len(name: &str, s: &str, len: usize, what: &str) -> Result<Vec<f64>
     Ok(v)
 }
 
-#[derive(Serialize)]
-struct MomentsOut {
-    relative_degree: usize,
-    mean: f64,
-    variance: f64,
-    h: f64,
-    e: Vec<f64>,
-    cov: Vec<Vec<f64>>,
-    /// "exact" (relative degree 1 and 2) or "monte_carlo".
-    method: &'static str,
-    #[serde(skip_serializing_if = "Option::is_none")]
-    samples: Option<usize>,
-    #[serde(skip_serializing_if = "Option::is_none")]
-    mean_se: Option<f64>,
-    #[serde(skip_serializing_if = "Option::is_none")]
-    variance_se: Option<f64>,
-}
-
 /// Runs `bayes-cbf moments`.
 pub fn run_moments(a: &MomentsArgs) -> Result<()> {
     let model = ModelFile::load(&a.model)?
         .to_model()
         .with_context(|| format!("model file '{}'", a.model.display()))?;
     let (_, barrier) = BarrierSpec::load(&a.barrier)?;
-    let (n, m) = (model.state_dim(), model.control_dim());
-    if barrier.state_dim() != n {
-        bail!(
-            "barrier '{}' is for state dimension {}, but the model's state_dim is {n}",
-            a.barrier.display(),
-            barrier.state_dim()
-        );
-    }
-    let x = vector_of_len("--x", &a.x, n, "state_dim")?;
-    let u = vector_of_len("--u", &a.u, m, "control_dim")?;
     let label = format!("barrier '{}'", a.barrier.display());
-    let (mom, method, samples, mean_se, variance_se) = if barrier.relative_degree() <= 2 {
-        let mut ws = MomentWorkspace::new(&model);
-        ws.update(&model, &x, barrier.relative_degree())
-            .context("--x")?;
-        let mut mom = ConditionMoments::zeros(m);
-        cbc_moments(&mut ws, barrier.as_ref(), &mut mom).with_context(|| label.clone())?;
-        (mom, "exact", None, None, None)
-    } else {
-        let settings = McSettings {
-            samples: a.samples,
-            step: a.step,
-            seed: a.seed,
-        };
-        let mc = mc_cbc_moments(&model, barrier.as_ref(), &x, &settings)
-            .map_err(|e| {
-                anyhow::anyhow!(
-                    "{}",
-                    e.to_string()
-                        .replace("invalid samples", "invalid --samples")
-                        .replace("invalid step", "invalid --step")
-                )
-            })
-            .with_context(|| label.clone())?;
-        let (se_m, se_v) = mc.standard_errors(&u);
-        (
-            mc.moments,
-            "monte_carlo",
-            Some(mc.samples),
-            Some(se_m),
-            Some(se_v),
-        )
+    check_barrier(&model, barrier.as_ref(), &label)?;
+    let x = vector_of_len("--x", &a.x, model.state_dim(), "state_dim")?;
+    let u = vector_of_len("--u", &a.u, model.control_dim(), "control_dim")?;
+    let mc = McSettings {
+        samples: a.samples,
+        step: a.step,
+        seed: a.seed,
     };
-    let cov = (0..m + 1)
-        .map(|i| mom.cov.row(i).iter().copied().collect())
-        .collect();
-    emit(
-        &MomentsOut {
-            relative_degree: mom.relative_degree,
-            mean: mom.mean(&u),
-            variance: mom.variance(&u),
-            h: mom.value,
-            e: mom.e.clone(),
-            cov,
-            method,
-            samples,
-            mean_se,
-            variance_se,
-        },
-        &a.out,
-    )
-}
-
-#[derive(Serialize)]
-struct ConstraintOut {
-    barrier: String,
-    relative_degree: usize,
-    mean: f64,
-    std: f64,
-    c: f64,
-    slack: f64,
-}
-
-#[derive(Serialize)]
-struct ControlOut {
-    status: &'static str,
-    u: Vec<f64>,
-    constraints: Vec<ConstraintOut>,
-    #[serde(skip_serializing_if = "Option::is_none")]
-    fallback: Option<&'static str>,
-    #[serde(skip_serializing_if = "Option::is_none")]
-    p_star: Option<f64>,
-    #[serde(skip_serializing_if = "Option::is_none")]
-    violated: Option<Vec<usize>>,
+    let report = condition_moments(&model, barrier.as_ref(), &label, &x, &u, &mc).map_err(|e| {
+        anyhow::anyhow!(
+            "{}",
+            e.to_string()
+                .replace("invalid samples", "invalid --samples")
+                .replace("invalid step", "invalid --step")
+        )
+    })?;
+    emit(&report, &a.out)
 }
 
 /// Runs `bayes-cbf control`.
@@ -212,14 +125,9 @@ pub fn run_control(a: &ControlArgs) -> Result<()> {
     let mut barriers = Vec::new();
     for path in &a.barriers {
         let (_, b) = BarrierSpec::load(path)?;
-        if b.state_dim() != n {
-            bail!(
-                "barrier '{}' is for state dimension {}, but the model's state_dim is {n}",
-                path.display(),
-                b.state_dim()
-            );
-        }
-        barriers.push(b);
+        let label = path.display().to_string();
+        check_barrier(&model, b.as_ref(), &format!("barrier '{label}'"))?;
+        barriers.push((label, b));
     }
     let x = vector_of_len("--x", &a.x, n, "state_dim")?;
     let u_ref = match &a.u_ref {
@@ -240,52 +148,10 @@ pub fn run_control(a: &ControlArgs) -> Result<()> {
         .map(|s| vector_of_len("--u-max", s, m, "control_dim"))
         .transpose()?;
     settings.fallback = Fallback::parse(&a.fallback).context("--fallback")?;
-    if a.probability < 0.5 && barriers.iter().any(|b| b.relative_degree() == 1) {
-        bail!(
-            "--probability = {}: must be ≥ 0.5 with relative-degree-1 barriers",
-            a.probability
-        );
-    }
-    let labels: Vec<String> = a.barriers.iter().map(|p| p.display().to_string()).collect();
-    let degrees: Vec<usize> = barriers.iter().map(|b| b.relative_degree()).collect();
-    let mut ctrl = SafetyController::new(n, m, barriers, None, settings)
+    let report = control_step(&model, barriers, settings, &x, &u_ref)
         .map_err(anyhow::Error::from)
         .map_err(|e| fix_field(e, "--"))?;
-    let mut out = ControlOutput::new(m, labels.len());
-    ctrl.step(&model, &x, &u_ref, None, &mut out)?;
-    let constraints = out
-        .constraints
-        .iter()
-        .zip(labels.iter().zip(&degrees))
-        .map(|(c, (l, r))| ConstraintOut {
-            barrier: l.clone(),
-            relative_degree: *r,
-            mean: c.mean,
-            std: c.std,
-            c: c.c,
-            slack: c.slack,
-        })
-        .collect();
-    let (status, fallback, p_star, violated) = match &out.status {
-        ControlStatus::Optimal | ControlStatus::AlmostOptimal => ("optimal", None, None, None),
-        ControlStatus::Infeasible(info) => (
-            "infeasible",
-            Some(info.fallback.name()),
-            info.p_star,
-            Some(info.violated.clone()),
-        ),
-    };
-    emit(
-        &ControlOut {
-            status,
-            u: out.u.clone(),
-            constraints,
-            fallback,
-            p_star,
-            violated,
-        },
-        &a.out,
-    )
+    emit(&report, &a.out)
 }
 
 /// Library field names (`probability`, `zeta`, `u_min[0]`) → CLI flags.

@@ -22,6 +22,7 @@ pub mod error;
 pub mod experiments;
 pub mod formats;
 pub mod io;
+pub mod queries;
 pub mod scenario;
 pub mod stats;
 pub mod workloads;

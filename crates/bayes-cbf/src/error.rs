@@ -27,6 +27,10 @@ pub enum InputError {
         /// Actual shape.
         got: String,
     },
+    /// A user function (a callback barrier's `h`, `∇h` or `∇²h`) failed or
+    /// returned a non-finite value; the message names the function.
+    #[error("{0}")]
+    Evaluation(String),
     /// A matrix that must be symmetric positive definite is not.
     #[error("{field} is not symmetric positive definite: {reason}")]
     NotPositiveDefinite {

@@ -1,14 +1,14 @@
 //! From a parsed [`Scenario`] to the library's objects, validating every
 //! field with errors that name it.
 
-use super::{ClfSpec, MatrixSpec, ReferenceSpec, Scenario};
+use super::{MatrixSpec, ReferenceSpec, Scenario};
 use crate::bail;
 use crate::barrier_file::BarrierSpec;
 use crate::error::{Context, Result};
 use crate::input_map_spec::to_input_map;
 use crate::parse::parse_rank;
 use crate::prior_spec::PriorSpec;
-use bayes_cbf::barrier::{AckermannClf, DynBarrier, DynLyapunov};
+use bayes_cbf::barrier::DynBarrier;
 use bayes_cbf::control::{
     Fallback, SafetyController, SafetySettings, SelfTriggered, TauSource, TriggerSettings,
 };
@@ -162,17 +162,7 @@ pub fn build(s: &Scenario) -> Result<Built> {
         }
         barriers.push(b);
     }
-    let clf: Option<Arc<dyn DynLyapunov>> = match &s.clf {
-        None => None,
-        Some(ClfSpec::Ackermann { w1, w2, gamma }) => {
-            if n != 3 {
-                bail!("clf: the ackermann CLF needs a 3-state system");
-            }
-            Some(Arc::new(
-                AckermannClf::new(*w1, *w2, *gamma).map_err(|e| crate::err!("clf: {e}"))?,
-            ))
-        }
-    };
+    let clf = s.clf.as_ref().map(|c| c.build(n)).transpose()?;
     // self-triggering
     let trigger = match &s.trigger {
         None => None,

@@ -14,8 +14,8 @@ mod run;
 
 pub use build::{build, Built};
 pub use run::{
-    run_scenario, trajectory_csv, Percentiles, RunOutput, RunSummary, Stats, TraceCov,
-    TriggerSummary,
+    run_scenario, trajectory_csv, Column, Percentiles, RunOutput, RunSummary, Stats, TraceCov,
+    Trajectory, TriggerSummary,
 };
 
 use crate::barrier_file::BarrierSpec;
@@ -279,6 +279,24 @@ pub enum ClfSpec {
         /// Decay rate γ_V.
         gamma: f64,
     },
+}
+
+impl ClfSpec {
+    /// Builds the library CLF for a system of `n` states, validating every
+    /// field.
+    pub fn build(&self, n: usize) -> Result<std::sync::Arc<dyn bayes_cbf::barrier::DynLyapunov>> {
+        match self {
+            ClfSpec::Ackermann { w1, w2, gamma } => {
+                if n != 3 {
+                    bail!("clf: the ackermann CLF needs a 3-state system");
+                }
+                Ok(std::sync::Arc::new(
+                    bayes_cbf::barrier::AckermannClf::new(*w1, *w2, *gamma)
+                        .map_err(|e| err!("clf: {e}"))?,
+                ))
+            }
+        }
+    }
 }
 
 /// The safety controller.

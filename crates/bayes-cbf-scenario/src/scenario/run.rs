@@ -6,7 +6,7 @@ use super::Scenario;
 use crate::error::{Context, Result};
 use crate::stats::quantile;
 use bayes_cbf::control::{TriggerReport, TriggerSettings};
-use bayes_cbf::sim::{ClosedLoop, LoopResult, Monitor, StepStatus};
+use bayes_cbf::sim::{ClosedLoop, LoopResult, Monitor, StepRecord, StepStatus};
 use serde::{Deserialize, Serialize};
 use std::sync::Arc;
 use std::time::Instant;
@@ -322,104 +322,156 @@ fn trigger_summary(ts: &TriggerSettings, r: &LoopResult) -> TriggerSummary {
     }
 }
 
-/// The trajectory table of a run (`trajectory.csv`): one row per step with
-/// time, state, control, reference, each barrier's value, fine-grid
-/// minimum and stochastic condition, the CLF slack, the posterior trace,
-/// solver status, `p*`, timing, data size, refits and hold, and the
-/// trigger's parts when self-triggering is evaluated.
-pub fn trajectory_csv(out: &RunOutput) -> String {
-    trajectory_table(&out.built, &out.result)
+/// One column of the trajectory table.
+#[derive(Debug, Clone, PartialEq)]
+pub enum Column {
+    /// Numbers; NaN where the value is absent (written as an empty field).
+    Numbers(Vec<f64>),
+    /// Words (the solver status).
+    Words(Vec<&'static str>),
 }
 
-fn trajectory_table(built: &Built, r: &LoopResult) -> String {
+/// The trajectory of a run as named columns, one row per step: time,
+/// state, control, reference, each barrier's value, fine-grid minimum and
+/// stochastic condition, the CLF slack, the posterior trace, solver status,
+/// `p*`, timing, data size, refits and hold, and the trigger's parts when
+/// self-triggering is evaluated (`trajectory.csv`, interfaces.md).
+#[derive(Debug, Clone, PartialEq)]
+pub struct Trajectory {
+    /// `(name, column)` in file order.
+    pub columns: Vec<(String, Column)>,
+}
+
+impl Trajectory {
+    /// The table of `out`.
+    pub fn of(out: &RunOutput) -> Self {
+        trajectory_columns(&out.built, &out.result)
+    }
+
+    /// CSV text: a header and one line per step; non-finite numbers are
+    /// written as empty fields.
+    pub fn to_csv(&self) -> String {
+        let rows = self
+            .columns
+            .first()
+            .map(|(_, c)| match c {
+                Column::Numbers(v) => v.len(),
+                Column::Words(v) => v.len(),
+            })
+            .unwrap_or(0);
+        let head: Vec<&str> = self.columns.iter().map(|(n, _)| n.as_str()).collect();
+        let mut out = head.join(",") + "\n";
+        for r in 0..rows {
+            for (i, (_, c)) in self.columns.iter().enumerate() {
+                if i > 0 {
+                    out.push(',');
+                }
+                match c {
+                    Column::Numbers(v) if v[r].is_finite() => out += &format!("{}", v[r]),
+                    Column::Numbers(_) => {}
+                    Column::Words(v) => out += v[r],
+                }
+            }
+            out.push('\n');
+        }
+        out
+    }
+}
+
+/// The trajectory table of a run (`trajectory.csv`).
+pub fn trajectory_csv(out: &RunOutput) -> String {
+    Trajectory::of(out).to_csv()
+}
+
+fn trajectory_columns(built: &Built, r: &LoopResult) -> Trajectory {
     let n = built.truth.state_dim();
     let m = built.truth.control_dim();
     let nb = built.barriers.len();
-    let mut head: Vec<String> = vec!["t".into()];
-    head.extend((1..=n).map(|i| format!("x{i}")));
-    head.extend((1..=m).map(|i| format!("u{i}")));
-    head.extend((1..=m).map(|i| format!("u_ref{i}")));
+    let recs = &r.records;
+    let col = |f: &dyn Fn(&StepRecord) -> f64| Column::Numbers(recs.iter().map(f).collect());
+    let absent = f64::NAN;
+    let mut columns: Vec<(String, Column)> = vec![("t".into(), col(&|rec| rec.t))];
+    for i in 0..n {
+        columns.push((format!("x{}", i + 1), col(&|rec| rec.x[i])));
+    }
+    for i in 0..m {
+        columns.push((format!("u{}", i + 1), col(&|rec| rec.u[i])));
+    }
+    for i in 0..m {
+        columns.push((format!("u_ref{}", i + 1), col(&|rec| rec.u_ref[i])));
+    }
     for i in 0..nb {
-        head.push(format!("h{i}"));
-        head.push(format!("h{i}_fine_min"));
-        head.push(format!("scbc{i}"));
+        columns.push((format!("h{i}"), col(&|rec| rec.h[i])));
+        columns.push((format!("h{i}_fine_min"), col(&|rec| rec.h_fine_min[i])));
+        columns.push((format!("scbc{i}"), col(&|rec| rec.scbc[i])));
     }
-    head.extend(
-        [
-            "sclc",
-            "trace_cov",
-            "status",
-            "p_star",
-            "control_us",
-            "data_size",
-            "refit",
-            "hold",
-        ]
-        .iter()
-        .map(|s| s.to_string()),
-    );
-    let with_trigger = built.loop_settings.trigger.is_some();
-    if with_trigger {
-        head.extend(
-            [
+    let status = Column::Words(recs.iter().map(|rec| rec.status.name()).collect());
+    let mut rest: Vec<(&str, Column)> = vec![
+        ("sclc", col(&|rec| rec.sclc.unwrap_or(absent))),
+        ("trace_cov", col(&|rec| rec.trace_cov)),
+        ("status", status),
+        ("p_star", col(&|rec| rec.p_star.unwrap_or(absent))),
+        ("control_us", col(&|rec| rec.control_us)),
+        ("data_size", col(&|rec| rec.data_size as f64)),
+        ("refit", col(&|rec| f64::from(u8::from(rec.refit)))),
+        ("hold", col(&|rec| rec.hold)),
+    ];
+    if built.loop_settings.trigger.is_some() {
+        rest.extend([
+            (
                 "lipschitz_analytic",
+                col(&|rec| {
+                    rec.trigger
+                        .as_ref()
+                        .map(|t| &t.lipschitz)
+                        .map_or(absent, |l| l.analytic)
+                }),
+            ),
+            (
                 "lipschitz_numerical",
+                col(&|rec| {
+                    rec.trigger
+                        .as_ref()
+                        .map(|t| &t.lipschitz)
+                        .and_then(|l| l.numerical)
+                        .unwrap_or(absent)
+                }),
+            ),
+            (
                 "tau_analytic",
+                col(&|rec| rec.trigger.as_ref().map_or(absent, |t| t.tau_analytic)),
+            ),
+            (
                 "tau_numerical",
+                col(&|rec| {
+                    rec.trigger
+                        .as_ref()
+                        .and_then(|t| t.tau_numerical)
+                        .unwrap_or(absent)
+                }),
+            ),
+            (
                 "l_h",
+                col(&|rec| {
+                    rec.trigger
+                        .as_ref()
+                        .map_or(absent, |t| t.l_h.iter().cloned().fold(0.0, f64::max))
+                }),
+            ),
+            (
                 "xdot_norm",
+                col(&|rec| rec.trigger.as_ref().map_or(absent, |t| t.xdot_norm)),
+            ),
+            (
                 "clamped",
-            ]
-            .iter()
-            .map(|s| s.to_string()),
-        );
+                col(&|rec| {
+                    rec.trigger
+                        .as_ref()
+                        .map_or(absent, |t| f64::from(u8::from(t.clamped_low)))
+                }),
+            ),
+        ]);
     }
-    let mut out = head.join(",") + "\n";
-    let f = |v: f64| {
-        if v.is_finite() {
-            format!("{v}")
-        } else {
-            String::new()
-        }
-    };
-    for rec in &r.records {
-        let mut row: Vec<String> = vec![f(rec.t)];
-        row.extend(rec.x.iter().map(|v| f(*v)));
-        row.extend(rec.u.iter().map(|v| f(*v)));
-        row.extend(rec.u_ref.iter().map(|v| f(*v)));
-        for i in 0..nb {
-            row.push(f(rec.h[i]));
-            row.push(f(rec.h_fine_min[i]));
-            row.push(f(rec.scbc[i]));
-        }
-        row.push(rec.sclc.map(f).unwrap_or_default());
-        row.push(f(rec.trace_cov));
-        row.push(rec.status.name().to_string());
-        row.push(rec.p_star.map(f).unwrap_or_default());
-        row.push(f(rec.control_us));
-        row.push(rec.data_size.to_string());
-        row.push(u8::from(rec.refit).to_string());
-        row.push(f(rec.hold));
-        if with_trigger {
-            let (l, t) = match &rec.trigger {
-                Some(t) => (Some(&t.lipschitz), Some(t)),
-                None => (None, None),
-            };
-            row.push(l.map(|l| f(l.analytic)).unwrap_or_default());
-            row.push(l.and_then(|l| l.numerical).map(f).unwrap_or_default());
-            row.push(t.map(|t| f(t.tau_analytic)).unwrap_or_default());
-            row.push(t.and_then(|t| t.tau_numerical).map(f).unwrap_or_default());
-            row.push(
-                t.map(|t| f(t.l_h.iter().cloned().fold(0.0, f64::max)))
-                    .unwrap_or_default(),
-            );
-            row.push(t.map(|t| f(t.xdot_norm)).unwrap_or_default());
-            row.push(
-                t.map(|t| u8::from(t.clamped_low).to_string())
-                    .unwrap_or_default(),
-            );
-        }
-        out += &(row.join(",") + "\n");
-    }
-    out
+    columns.extend(rest.into_iter().map(|(n, c)| (n.to_string(), c)));
+    Trajectory { columns }
 }

@@ -8,12 +8,14 @@
 //! for `∇²h`.
 
 mod builtins;
+mod callback;
 mod clf;
 mod condition;
 mod moments;
 mod monte_carlo;
 
 pub use builtins::{CircleHeading, Disc, HalfSpace, PendulumSector};
+pub use callback::{ArrayFn, CallbackBarrier, ValueFn};
 pub use clf::{AckermannClf, DynLyapunov, Lyapunov};
 pub use condition::true_condition;
 pub use moments::{cbc_moments, clc_moments, quantile_factor, ConditionMoments, MomentWorkspace};
@@ -100,6 +102,13 @@ pub trait DynBarrier: Send + Sync {
             }
         }
         h
+    }
+
+    /// The first failure of an evaluation since the last call, for barriers
+    /// whose evaluation can fail (callbacks: [`CallbackBarrier`]); `None`
+    /// for barriers written in Rust.
+    fn take_error(&self) -> Option<String> {
+        None
     }
 }
 

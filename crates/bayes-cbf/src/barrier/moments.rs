@@ -262,6 +262,29 @@ fn check_dims(ws: &MomentWorkspace, dim: usize, needs: usize) -> Result<(), Erro
     Ok(())
 }
 
+/// Rejects a failed or non-finite evaluation of `h`, `∇h` or `∇²h`, naming
+/// the barrier (a callback's own message first).
+fn check_evaluation(
+    barrier: &dyn DynBarrier,
+    h: f64,
+    grad: &[f64],
+    hess: &[f64],
+) -> Result<(), Error> {
+    if let Some(msg) = barrier.take_error() {
+        return Err(InputError::Evaluation(msg).into());
+    }
+    for (what, v) in [("h", std::slice::from_ref(&h)), ("∇h", grad), ("∇²h", hess)] {
+        if let Some(bad) = v.iter().find(|v| !v.is_finite()) {
+            return Err(InputError::Evaluation(format!(
+                "{what} of barrier '{}' is {bad} at x",
+                barrier.name()
+            ))
+            .into());
+        }
+    }
+    Ok(())
+}
+
 /// Moments of the barrier condition at the point of the last
 /// [`MomentWorkspace::update`]. Exact for relative degree 1 and 2.
 pub fn cbc_moments(
@@ -276,6 +299,7 @@ pub fn cbc_moments(
         1 => {
             check_dims(ws, barrier.state_dim(), 1)?;
             let h = barrier.gradient(&ws.x, &mut ws.grad, &mut ws.sd);
+            check_evaluation(barrier, h, &ws.grad, &[])?;
             rd1(ws, h, gains[0], out);
             out.value = h;
             out.relative_degree = 1;
@@ -283,6 +307,7 @@ pub fn cbc_moments(
         2 => {
             check_dims(ws, barrier.state_dim(), 2)?;
             let h = barrier.hessian(&ws.x, &mut ws.grad, &mut ws.hess, &mut ws.sh);
+            check_evaluation(barrier, h, &ws.grad, &ws.hess)?;
             rd2(ws, h, gains[0], gains[1], out);
             out.value = h;
             out.relative_degree = 2;

@@ -1,0 +1,196 @@
+//! numpy arrays in and out, and the library's errors as typed Python
+//! exceptions. No maths here: shapes, dtypes and names only.
+
+use numpy::ndarray::{ArrayD, IxDyn};
+use numpy::{IntoPyArray, PyArrayDyn, PyReadonlyArrayDyn, PyUntypedArrayMethods};
+use pyo3::exceptions::{PyOSError, PyValueError};
+use pyo3::prelude::*;
+use pyo3::types::PyDict;
+
+pyo3::create_exception!(
+    bayes_cbf,
+    InputError,
+    PyValueError,
+    "Bad input: a wrong shape, dtype or value, a malformed file or an unknown key. The message names the field."
+);
+pyo3::create_exception!(
+    bayes_cbf,
+    NumericalError,
+    pyo3::exceptions::PyRuntimeError,
+    "A numerical failure: a Gram matrix that cannot be factorised, an optimiser that fails."
+);
+
+/// An [`InputError`] with `msg`.
+pub fn input_err(msg: impl Into<String>) -> PyErr {
+    InputError::new_err(msg.into())
+}
+
+/// The Python exception of a scenario-layer error: bad input of any kind is
+/// [`InputError`], I/O is `OSError`, numerical failures [`NumericalError`].
+pub fn scenario_err(e: bayes_cbf_scenario::Error) -> PyErr {
+    use bayes_cbf_scenario::Error as E;
+    let msg = e.to_string();
+    match e.root() {
+        E::Io(_) => PyOSError::new_err(msg),
+        E::Core(bayes_cbf::Error::Gp(_)) => NumericalError::new_err(msg),
+        _ => InputError::new_err(msg),
+    }
+}
+
+/// The Python exception of a core-library error.
+pub fn core_err(e: impl Into<bayes_cbf::Error>) -> PyErr {
+    let e: bayes_cbf::Error = e.into();
+    match e {
+        bayes_cbf::Error::Input(i) => InputError::new_err(i.to_string()),
+        other => NumericalError::new_err(other.to_string()),
+    }
+}
+
+/// A float64 array of `obj` (numpy arrays of float64 as they are; lists and
+/// other numeric dtypes converted by `numpy.asarray`), with `ndim`
+/// dimensions. Errors name `field`.
+pub fn array<'py>(
+    obj: &Bound<'py, PyAny>,
+    field: &str,
+    ndim: usize,
+) -> PyResult<PyReadonlyArrayDyn<'py, f64>> {
+    let arr: PyReadonlyArrayDyn<'py, f64> = match obj.extract() {
+        Ok(a) => a,
+        Err(_) => {
+            let py = obj.py();
+            let np = py.import("numpy")?;
+            let kw = PyDict::new(py);
+            kw.set_item("dtype", "float64")?;
+            let conv = np
+                .call_method("asarray", (obj,), Some(&kw))
+                .map_err(|e| {
+                    input_err(format!(
+                        "{field}: expected an array of numbers (float64), got {} ({e})",
+                        type_name(obj)
+                    ))
+                })?;
+            conv.extract().map_err(|_| {
+                input_err(format!(
+                    "{field}: expected an array of numbers (float64), got {}",
+                    type_name(obj)
+                ))
+            })?
+        }
+    };
+    if arr.ndim() != ndim {
+        return Err(input_err(format!(
+            "{field}: expected a {ndim}-D array, got shape {:?}",
+            arr.shape()
+        )));
+    }
+    Ok(arr)
+}
+
+fn type_name(obj: &Bound<'_, PyAny>) -> String {
+    obj.get_type()
+        .name()
+        .map(|n| n.to_string())
+        .unwrap_or_else(|_| "an object".into())
+}
+
+/// The entries of `arr` in row-major (C) order: borrowed when the array is
+/// C-contiguous, copied otherwise.
+/// (`as_slice` alone would also accept Fortran-ordered arrays, whose memory
+/// order is column-major.)
+pub fn row_major<'a>(arr: &'a PyReadonlyArrayDyn<'_, f64>) -> std::borrow::Cow<'a, [f64]> {
+    match arr.as_slice() {
+        Ok(s) if arr.is_c_contiguous() => std::borrow::Cow::Borrowed(s),
+        _ => std::borrow::Cow::Owned(arr.as_array().iter().copied().collect()),
+    }
+}
+
+/// A vector of exactly `len` finite entries (`len = None`: any length).
+pub fn vector(obj: &Bound<'_, PyAny>, field: &str, len: Option<usize>) -> PyResult<Vec<f64>> {
+    let arr = array(obj, field, 1)?;
+    let v = row_major(&arr).into_owned();
+    if let Some(len) = len {
+        if v.len() != len {
+            return Err(input_err(format!(
+                "{field}: expected {len} entries, got {}",
+                v.len()
+            )));
+        }
+    }
+    check_finite(field, &v, 1)?;
+    Ok(v)
+}
+
+/// A `rows × cols` matrix (either may be `None`: any) as rows, entries
+/// finite. Returns the row-major entries and the shape.
+pub fn matrix(
+    obj: &Bound<'_, PyAny>,
+    field: &str,
+    rows: Option<usize>,
+    cols: Option<usize>,
+) -> PyResult<(Vec<f64>, usize, usize)> {
+    let arr = array(obj, field, 2)?;
+    let (r, c) = (arr.shape()[0], arr.shape()[1]);
+    if rows.is_some_and(|x| x != r) || cols.is_some_and(|x| x != c) {
+        let want = |d: Option<usize>| d.map_or("any".to_string(), |d| d.to_string());
+        return Err(input_err(format!(
+            "{field}: expected shape ({}, {}), got ({r}, {c})",
+            want(rows),
+            want(cols)
+        )));
+    }
+    let v = row_major(&arr).into_owned();
+    check_finite(field, &v, c)?;
+    Ok((v, r, c))
+}
+
+/// Rejects NaN and infinities, naming the entry (`field[i][j]` for rows of
+/// `cols`).
+pub fn check_finite(field: &str, v: &[f64], cols: usize) -> PyResult<()> {
+    if let Some(i) = v.iter().position(|x| !x.is_finite()) {
+        let at = if cols > 1 {
+            format!("[{}][{}]", i / cols, i % cols)
+        } else {
+            format!("[{i}]")
+        };
+        return Err(input_err(format!("{field}{at} = {} is not finite", v[i])));
+    }
+    Ok(())
+}
+
+/// Rows of a row-major matrix, for JSON.
+pub fn rows(v: &[f64], cols: usize) -> Vec<Vec<f64>> {
+    v.chunks(cols.max(1)).map(<[f64]>::to_vec).collect()
+}
+
+/// A numpy array of `shape` owning `data` (row-major), without a copy.
+pub fn to_numpy<'py>(
+    py: Python<'py>,
+    data: Vec<f64>,
+    shape: &[usize],
+) -> PyResult<Bound<'py, PyArrayDyn<f64>>> {
+    let a = ArrayD::from_shape_vec(IxDyn(shape), data)
+        .map_err(|e| NumericalError::new_err(format!("internal shape error: {e}")))?;
+    Ok(a.into_pyarray(py))
+}
+
+/// A numpy array of a nalgebra matrix, row-major.
+pub fn matrix_to_numpy<'py>(
+    py: Python<'py>,
+    m: &nalgebra::DMatrix<f64>,
+) -> PyResult<Bound<'py, PyArrayDyn<f64>>> {
+    let (r, c) = m.shape();
+    let mut v = Vec::with_capacity(r * c);
+    for i in 0..r {
+        v.extend(m.row(i).iter());
+    }
+    to_numpy(py, v, &[r, c])
+}
+
+/// Python JSON text of `obj` (a dict or list), for fields whose format is
+/// the model file's.
+pub fn json_of(obj: &Bound<'_, PyAny>, field: &str) -> PyResult<String> {
+    let json = obj.py().import("json")?;
+    json.call_method1("dumps", (obj,))
+        .and_then(|s| s.extract::<String>())
+        .map_err(|e| input_err(format!("{field}: not JSON-serialisable ({e})")))
+}

@@ -1,0 +1,32 @@
+//! The compiled module `bayes_cbf._core` of the Python package `bayes_cbf`.
+//!
+//! A thin wrapper: numpy arrays in and out, the library's errors as typed
+//! exceptions (`InputError`, a `ValueError` naming the field, and
+//! `NumericalError`), the GIL released during fits, runs and filter steps.
+//! Every computation is the core or scenario crate's.
+
+mod convert;
+mod models;
+mod safety;
+mod scenarios;
+
+use pyo3::prelude::*;
+
+/// `bayes_cbf._core`: see the package `bayes_cbf`.
+#[pymodule]
+fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
+    let py = m.py();
+    m.add("InputError", py.get_type::<convert::InputError>())?;
+    m.add("NumericalError", py.get_type::<convert::NumericalError>())?;
+    m.add_class::<models::PyMvgp>()?;
+    m.add_class::<models::PyCogp>()?;
+    m.add_class::<safety::PyBarrier>()?;
+    m.add_class::<safety::PyClf>()?;
+    m.add_class::<safety::PyFilterResult>()?;
+    m.add_class::<safety::PySafetyFilter>()?;
+    m.add_function(wrap_pyfunction!(safety::moments, m)?)?;
+    m.add_function(wrap_pyfunction!(scenarios::run_scenario, m)?)?;
+    m.add_function(wrap_pyfunction!(scenarios::list_scenarios, m)?)?;
+    m.add("__version__", env!("CARGO_PKG_VERSION"))?;
+    Ok(())
+}

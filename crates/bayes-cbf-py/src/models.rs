@@ -1,0 +1,533 @@
+//! `MVGP` and `CoGP`: thin wrappers over [`Mvgp`] and [`Cogp`], the model
+//! file (`model.json`) of the scenario crate, and the fits.
+
+use crate::convert::{
+    core_err, input_err, json_of, matrix, matrix_to_numpy, rows, scenario_err, to_numpy, vector,
+};
+use bayes_cbf::gp::{
+    fit, fit_cogp, Cogp, CogpFitSettings, CogpHyper, FitReport, FitSettings, Mvgp, Posterior, Rank,
+    Rbf,
+};
+use bayes_cbf_scenario::input_map_spec::{to_input_map, FeatureSpec};
+use bayes_cbf_scenario::io::write_atomic;
+use bayes_cbf_scenario::model_file::ModelFile;
+use bayes_cbf_scenario::parse::parse_rank;
+use bayes_cbf_scenario::prior_spec::PriorSpec;
+use numpy::PyArrayDyn;
+use pyo3::prelude::*;
+use pyo3::types::PyDict;
+use std::path::PathBuf;
+
+/// The prior mean from `None` or a dict in the model file's format.
+fn prior_of(obj: Option<&Bound<'_, PyAny>>) -> PyResult<PriorSpec> {
+    match obj {
+        None => Ok(PriorSpec::default()),
+        Some(o) if o.is_none() => Ok(PriorSpec::default()),
+        Some(o) => serde_json::from_str(&json_of(o, "prior_mean")?)
+            .map_err(|e| input_err(format!("prior_mean: {e}"))),
+    }
+}
+
+/// The input map from `None` or a list in the model file's format.
+fn input_map_of(obj: Option<&Bound<'_, PyAny>>) -> PyResult<Option<Vec<FeatureSpec>>> {
+    match obj {
+        None => Ok(None),
+        Some(o) if o.is_none() => Ok(None),
+        Some(o) => serde_json::from_str(&json_of(o, "input_map")?)
+            .map(Some)
+            .map_err(|e| input_err(format!("input_map: {e}"))),
+    }
+}
+
+/// A rank as given: `"full"`, `"diag"` or an integer.
+#[derive(FromPyObject)]
+pub enum RankArg {
+    /// An integer rank.
+    Int(i64),
+    /// `"full"` or `"diag"`.
+    Name(String),
+}
+
+impl RankArg {
+    fn full() -> Self {
+        RankArg::Name("full".into())
+    }
+}
+
+/// The rank named by `arg`, errors naming `field`.
+fn rank_of(arg: &RankArg, field: &str) -> PyResult<Rank> {
+    let text = match arg {
+        RankArg::Int(r) => r.to_string(),
+        RankArg::Name(s) => s.clone(),
+    };
+    parse_rank(field, &text).map_err(scenario_err)
+}
+
+/// Training data `(X, U, Xdot)` as row-major arrays, shapes checked.
+fn data_of(
+    x: &Bound<'_, PyAny>,
+    u: &Bound<'_, PyAny>,
+    xdot: &Bound<'_, PyAny>,
+    n: usize,
+    m: usize,
+) -> PyResult<(Vec<f64>, Vec<f64>, Vec<f64>)> {
+    let (xs, k, _) = matrix(x, "X", None, Some(n))?;
+    let (us, _, _) = matrix(u, "U", Some(k), Some(m))?;
+    let (xd, _, _) = matrix(xdot, "Xdot", Some(k), Some(n))?;
+    Ok((xs, us, xd))
+}
+
+fn report_dict<'py>(py: Python<'py>, r: &FitReport) -> PyResult<Bound<'py, PyDict>> {
+    let d = PyDict::new(py);
+    d.set_item("initial_log_likelihood", r.initial_log_likelihood)?;
+    d.set_item("log_likelihood", r.log_likelihood)?;
+    d.set_item("evaluations", r.evaluations)?;
+    d.set_item("starts", r.starts)?;
+    Ok(d)
+}
+
+/// Matrix-variate GP model of `F(x) = [f(x) g(x)]` (paper, Sec. IV):
+/// `vec F(x) ~ GP(vec M0(x), B k0(x, x') ⊗ A)`, noise `σ² A`.
+///
+/// `MVGP(state_dim, control_dim, lengthscales, A, B, noise_sigma,
+/// prior_mean=None, input_map=None, variance=1.0)`; `prior_mean` and
+/// `input_map` take the values of the model file (`model.json`).
+#[pyclass(name = "MVGP", module = "bayes_cbf")]
+pub struct PyMvgp {
+    pub(crate) model: Mvgp,
+    prior: PriorSpec,
+    /// Report of the last fit.
+    last_fit: Option<FitReport>,
+}
+
+impl PyMvgp {
+    fn from_file(file: &ModelFile) -> PyResult<Self> {
+        let model = file.to_model().map_err(scenario_err)?;
+        Ok(Self {
+            model,
+            prior: file.prior_mean.clone(),
+            last_fit: None,
+        })
+    }
+
+    fn file(&self) -> ModelFile {
+        ModelFile::from_model(&self.model, &self.prior)
+    }
+}
+
+#[pymethods]
+impl PyMvgp {
+    #[new]
+    #[pyo3(signature = (state_dim, control_dim, lengthscales, A, B, noise_sigma, prior_mean=None, input_map=None, variance=1.0))]
+    #[allow(non_snake_case, clippy::too_many_arguments)]
+    fn new(
+        state_dim: usize,
+        control_dim: usize,
+        lengthscales: &Bound<'_, PyAny>,
+        A: &Bound<'_, PyAny>,
+        B: &Bound<'_, PyAny>,
+        noise_sigma: f64,
+        prior_mean: Option<&Bound<'_, PyAny>>,
+        input_map: Option<&Bound<'_, PyAny>>,
+        variance: f64,
+    ) -> PyResult<Self> {
+        let (n, m) = (state_dim, control_dim);
+        let ls = vector(lengthscales, "lengthscales", None)?;
+        let (a, _, _) = matrix(A, "A", Some(n), Some(n))?;
+        let (b, _, _) = matrix(B, "B", Some(m + 1), Some(m + 1))?;
+        let file = ModelFile {
+            state_dim: n,
+            control_dim: m,
+            kernel: bayes_cbf_scenario::model_file::KernelSpec::Rbf {
+                lengthscales: ls,
+                variance,
+            },
+            A: rows(&a, n),
+            B: rows(&b, m + 1),
+            noise_sigma,
+            prior_mean: prior_of(prior_mean)?,
+            input_map: input_map_of(input_map)?,
+            data: Default::default(),
+        };
+        Self::from_file(&file)
+    }
+
+    /// Learns the hyperparameters by maximising the log marginal likelihood
+    /// (L-BFGS) on the data `X (k, n)`, `U (k, m)`, `Xdot (k, n)`, which
+    /// replace the model's data. Returns `self`.
+    #[pyo3(signature = (X, U, Xdot, rank_a=RankArg::full(), rank_b=RankArg::full(), max_iters=100, seed=0, restarts=0, sigma_min=0.0))]
+    #[allow(non_snake_case, clippy::too_many_arguments)]
+    fn fit<'py>(
+        mut slf: PyRefMut<'py, Self>,
+        X: &Bound<'py, PyAny>,
+        U: &Bound<'py, PyAny>,
+        Xdot: &Bound<'py, PyAny>,
+        rank_a: RankArg,
+        rank_b: RankArg,
+        max_iters: u64,
+        seed: u64,
+        restarts: usize,
+        sigma_min: f64,
+    ) -> PyResult<PyRefMut<'py, Self>> {
+        let py = X.py();
+        let (n, m) = (slf.model.state_dim(), slf.model.control_dim());
+        let (xs, us, xd) = data_of(X, U, Xdot, n, m)?;
+        let settings = FitSettings {
+            rank_a: rank_of(&rank_a, "rank_a")?,
+            rank_b: rank_of(&rank_b, "rank_b")?,
+            max_iters,
+            restarts,
+            seed,
+            sigma_min,
+            ..FitSettings::default()
+        };
+        settings.validate().map_err(core_err)?;
+        let model = &mut slf.model;
+        let report = py.detach(|| -> Result<FitReport, bayes_cbf::Error> {
+            model.set_data(&xs, &us, &xd)?;
+            fit(model, &settings)
+        });
+        let report = report.map_err(core_err)?;
+        slf.last_fit = Some(report);
+        Ok(slf)
+    }
+
+    /// Report of the last `fit` (`initial_log_likelihood`, `log_likelihood`,
+    /// `evaluations`, `starts`), or `None`.
+    #[getter]
+    fn fit_report<'py>(&self, py: Python<'py>) -> PyResult<Option<Bound<'py, PyDict>>> {
+        self.last_fit.as_ref().map(|r| report_dict(py, r)).transpose()
+    }
+
+    /// Posterior at the rows of `Xq (q, n)`: the means `M_k(x)` as
+    /// `(q, n, 1+m)` and `B_k(x, x)` as `(q, 1+m, 1+m)`, with
+    /// `Cov(vec F(x)) = B_k(x, x) ⊗ A` (paper, Prop. 1).
+    #[allow(non_snake_case)]
+    fn predict<'py>(
+        &self,
+        py: Python<'py>,
+        Xq: &Bound<'py, PyAny>,
+    ) -> PyResult<(Bound<'py, PyArrayDyn<f64>>, Bound<'py, PyArrayDyn<f64>>)> {
+        let (n, m) = (self.model.state_dim(), self.model.control_dim());
+        let p = m + 1;
+        let (xs, q, _) = matrix(Xq, "Xq", None, Some(n))?;
+        let model = &self.model;
+        let (means, bs) = py
+            .detach(|| -> Result<_, bayes_cbf::InputError> {
+                let mut ws = model.workspace();
+                let mut post = Posterior {
+                    mean: nalgebra::DMatrix::zeros(n, p),
+                    B: nalgebra::DMatrix::zeros(p, p),
+                };
+                let (mut means, mut bs) = (Vec::with_capacity(q * n * p), Vec::with_capacity(q * p * p));
+                for x in xs.chunks(n.max(1)).take(q) {
+                    model.posterior_into(x, &mut ws, &mut post)?;
+                    for i in 0..n {
+                        means.extend(post.mean.row(i).iter());
+                    }
+                    for i in 0..p {
+                        bs.extend(post.B.row(i).iter());
+                    }
+                }
+                Ok((means, bs))
+            })
+            .map_err(core_err)?;
+        Ok((to_numpy(py, means, &[q, n, p])?, to_numpy(py, bs, &[q, p, p])?))
+    }
+
+    /// Adds one observation `(x, u, ẋ)`: a rank-one extension of the factor,
+    /// O(k²).
+    fn add_observation(
+        &mut self,
+        x: &Bound<'_, PyAny>,
+        u: &Bound<'_, PyAny>,
+        xdot: &Bound<'_, PyAny>,
+    ) -> PyResult<()> {
+        let (n, m) = (self.model.state_dim(), self.model.control_dim());
+        let x = vector(x, "x", Some(n))?;
+        let u = vector(u, "u", Some(m))?;
+        let xd = vector(xdot, "xdot", Some(n))?;
+        self.model.add_observation(&x, &u, &xd).map_err(core_err)
+    }
+
+    /// Drops the oldest observation (sliding window), O(k²).
+    fn remove_oldest(&mut self) -> PyResult<()> {
+        if self.model.is_empty() {
+            return Err(input_err("remove_oldest: the model has no observations"));
+        }
+        self.model.remove_oldest();
+        Ok(())
+    }
+
+    /// `log p(Ẋ | X, U)` under the current hyperparameters.
+    fn log_marginal_likelihood(&self) -> f64 {
+        self.model.log_marginal_likelihood()
+    }
+
+    /// Writes the model file (`model.json`, the CLI's format) completely or
+    /// not at all.
+    fn save(&self, py: Python<'_>, path: PathBuf) -> PyResult<()> {
+        let text = self.file().to_json().map_err(scenario_err)?;
+        py.detach(|| write_atomic(&path, text.as_bytes()))
+            .map_err(scenario_err)
+    }
+
+    /// Reads a model file (`model.json`).
+    #[staticmethod]
+    fn load(py: Python<'_>, path: PathBuf) -> PyResult<Self> {
+        let file = py
+            .detach(|| ModelFile::load(&path))
+            .map_err(scenario_err)?;
+        Self::from_file(&file)
+    }
+
+    /// The model from model-file text.
+    #[staticmethod]
+    fn from_json(text: &str) -> PyResult<Self> {
+        let file = ModelFile::parse(text, "model").map_err(scenario_err)?;
+        Self::from_file(&file)
+    }
+
+    /// The model-file text (hyperparameters and data).
+    fn to_json(&self) -> PyResult<String> {
+        self.file().to_json().map_err(scenario_err)
+    }
+
+    /// State dimension `n`.
+    #[getter]
+    fn state_dim(&self) -> usize {
+        self.model.state_dim()
+    }
+    /// Control dimension `m`.
+    #[getter]
+    fn control_dim(&self) -> usize {
+        self.model.control_dim()
+    }
+    /// Row covariance `A` (`n × n`).
+    #[getter(A)]
+    fn a<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyArrayDyn<f64>>> {
+        matrix_to_numpy(py, &self.model.hyper().A)
+    }
+    /// Column covariance `B` (`(1+m) × (1+m)`).
+    #[getter(B)]
+    fn b<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyArrayDyn<f64>>> {
+        matrix_to_numpy(py, &self.model.hyper().B)
+    }
+    /// Kernel lengthscales.
+    #[getter]
+    fn lengthscales<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyArrayDyn<f64>>> {
+        let ls = self.model.hyper().kernel.lengthscales().to_vec();
+        let d = ls.len();
+        to_numpy(py, ls, &[d])
+    }
+    /// Kernel output scale.
+    #[getter]
+    fn variance(&self) -> f64 {
+        self.model.hyper().kernel.variance()
+    }
+    /// Noise scale `σ`.
+    #[getter]
+    fn noise_sigma(&self) -> f64 {
+        self.model.hyper().sigma
+    }
+    /// The training states `(k, n)`.
+    #[getter(X)]
+    fn x<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyArrayDyn<f64>>> {
+        let (k, n) = (self.model.len(), self.model.state_dim());
+        to_numpy(py, self.model.xs().to_vec(), &[k, n])
+    }
+    /// The training controls `(k, m)`.
+    #[getter(U)]
+    fn u<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyArrayDyn<f64>>> {
+        let (k, m) = (self.model.len(), self.model.control_dim());
+        to_numpy(py, self.model.controls(), &[k, m])
+    }
+    /// The training derivatives `(k, n)`.
+    #[getter(Xdot)]
+    fn xdot<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyArrayDyn<f64>>> {
+        let (k, n) = (self.model.len(), self.model.state_dim());
+        to_numpy(py, self.model.xdot().to_vec(), &[k, n])
+    }
+    fn __len__(&self) -> usize {
+        self.model.len()
+    }
+    fn __repr__(&self) -> String {
+        format!(
+            "MVGP(state_dim={}, control_dim={}, k={}, noise_sigma={:.4e})",
+            self.model.state_dim(),
+            self.model.control_dim(),
+            self.model.len(),
+            self.model.hyper().sigma
+        )
+    }
+}
+
+/// Coregionalisation GP baseline (paper, Appendix): `vec F(x) ~ GP(vec
+/// M0(x), k0(x, x') Σ)` with noise covariance `S`; fit and predict only
+/// (no online updates).
+///
+/// `CoGP(state_dim, control_dim, lengthscales, Sigma=None, S=None,
+/// prior_mean=None, input_map=None, variance=1.0)`; `Sigma` defaults to the
+/// identity of size `n(1+m)`, `S` to `0.01 I_n`.
+#[pyclass(name = "CoGP", module = "bayes_cbf")]
+pub struct PyCogp {
+    model: Cogp,
+    last_fit: Option<FitReport>,
+}
+
+#[pymethods]
+impl PyCogp {
+    #[new]
+    #[pyo3(signature = (state_dim, control_dim, lengthscales, Sigma=None, S=None, prior_mean=None, input_map=None, variance=1.0))]
+    #[allow(non_snake_case, clippy::too_many_arguments)]
+    fn new(
+        state_dim: usize,
+        control_dim: usize,
+        lengthscales: &Bound<'_, PyAny>,
+        Sigma: Option<&Bound<'_, PyAny>>,
+        S: Option<&Bound<'_, PyAny>>,
+        prior_mean: Option<&Bound<'_, PyAny>>,
+        input_map: Option<&Bound<'_, PyAny>>,
+        variance: f64,
+    ) -> PyResult<Self> {
+        let (n, m) = (state_dim, control_dim);
+        if n == 0 || m == 0 {
+            return Err(input_err(format!(
+                "state_dim = {n}, control_dim = {m}: both must be ≥ 1"
+            )));
+        }
+        let big = n * (m + 1);
+        let sq = |obj: Option<&Bound<'_, PyAny>>, field: &str, d: usize, default: f64| {
+            obj.filter(|o| !o.is_none())
+                .map(|o| {
+                    matrix(o, field, Some(d), Some(d))
+                        .map(|(v, _, _)| nalgebra::DMatrix::from_row_slice(d, d, &v))
+                })
+                .unwrap_or_else(|| Ok(nalgebra::DMatrix::identity(d, d) * default))
+        };
+        let hyper = CogpHyper {
+            kernel: Rbf::new(vector(lengthscales, "lengthscales", None)?, variance)
+                .map_err(core_err)?,
+            Sigma: sq(Sigma, "Sigma", big, 1.0)?,
+            S: sq(S, "S", n, 0.01)?,
+        };
+        let map = to_input_map(input_map_of(input_map)?.as_deref());
+        let prior = prior_of(prior_mean)?.to_prior();
+        let model = Cogp::new(n, m, hyper, prior, map).map_err(core_err)?;
+        Ok(Self {
+            model,
+            last_fit: None,
+        })
+    }
+
+    /// Learns `Σ`, `S` and the kernel on `X (k, n)`, `U (k, m)`,
+    /// `Xdot (k, n)`, which replace the model's data. Returns `self`.
+    #[pyo3(signature = (X, U, Xdot, rank_sigma=RankArg::full(), rank_s=RankArg::full(), max_iters=100, seed=0, restarts=0))]
+    #[allow(non_snake_case, clippy::too_many_arguments)]
+    fn fit<'py>(
+        mut slf: PyRefMut<'py, Self>,
+        X: &Bound<'py, PyAny>,
+        U: &Bound<'py, PyAny>,
+        Xdot: &Bound<'py, PyAny>,
+        rank_sigma: RankArg,
+        rank_s: RankArg,
+        max_iters: u64,
+        seed: u64,
+        restarts: usize,
+    ) -> PyResult<PyRefMut<'py, Self>> {
+        let py = X.py();
+        let (n, m) = (slf.model.state_dim(), slf.model.control_dim());
+        let (xs, us, xd) = data_of(X, U, Xdot, n, m)?;
+        let settings = CogpFitSettings {
+            rank_sigma: rank_of(&rank_sigma, "rank_sigma")?,
+            rank_s: rank_of(&rank_s, "rank_s")?,
+            max_iters,
+            restarts,
+            seed,
+            ..CogpFitSettings::default()
+        };
+        settings.validate().map_err(core_err)?;
+        let model = &mut slf.model;
+        let report = py
+            .detach(|| -> Result<FitReport, bayes_cbf::Error> {
+                model.set_data(&xs, &us, &xd)?;
+                fit_cogp(model, &settings)
+            })
+            .map_err(core_err)?;
+        slf.last_fit = Some(report);
+        Ok(slf)
+    }
+
+    /// Report of the last `fit`, or `None`.
+    #[getter]
+    fn fit_report<'py>(&self, py: Python<'py>) -> PyResult<Option<Bound<'py, PyDict>>> {
+        self.last_fit.as_ref().map(|r| report_dict(py, r)).transpose()
+    }
+
+    /// Posterior at the rows of `Xq (q, n)`: the means `(q, n, 1+m)` and the
+    /// full covariances of `vec F(x)` (column-major vec), `(q, n(1+m), n(1+m))`.
+    #[allow(non_snake_case)]
+    fn predict<'py>(
+        &self,
+        py: Python<'py>,
+        Xq: &Bound<'py, PyAny>,
+    ) -> PyResult<(Bound<'py, PyArrayDyn<f64>>, Bound<'py, PyArrayDyn<f64>>)> {
+        let (n, m) = (self.model.state_dim(), self.model.control_dim());
+        let (p, big) = (m + 1, n * (m + 1));
+        let (xs, q, _) = matrix(Xq, "Xq", None, Some(n))?;
+        let model = &self.model;
+        let (means, covs) = py
+            .detach(|| -> Result<_, bayes_cbf::InputError> {
+                let (mut means, mut covs) = (Vec::with_capacity(q * n * p), Vec::with_capacity(q * big * big));
+                for x in xs.chunks(n).take(q) {
+                    let post = model.posterior(x)?;
+                    for i in 0..n {
+                        means.extend(post.mean.row(i).iter());
+                    }
+                    for i in 0..big {
+                        covs.extend(post.cov.row(i).iter());
+                    }
+                }
+                Ok((means, covs))
+            })
+            .map_err(core_err)?;
+        Ok((to_numpy(py, means, &[q, n, p])?, to_numpy(py, covs, &[q, big, big])?))
+    }
+
+    /// `log p(Ẋ | X, U)` under the current hyperparameters.
+    fn log_marginal_likelihood(&self) -> f64 {
+        self.model.log_marginal_likelihood()
+    }
+
+    /// State dimension `n`.
+    #[getter]
+    fn state_dim(&self) -> usize {
+        self.model.state_dim()
+    }
+    /// Control dimension `m`.
+    #[getter]
+    fn control_dim(&self) -> usize {
+        self.model.control_dim()
+    }
+    /// Output covariance `Σ` (`n(1+m)` square).
+    #[getter(Sigma)]
+    fn sigma<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyArrayDyn<f64>>> {
+        matrix_to_numpy(py, &self.model.hyper().Sigma)
+    }
+    /// Noise covariance `S` (`n × n`).
+    #[getter(S)]
+    fn s<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyArrayDyn<f64>>> {
+        matrix_to_numpy(py, &self.model.hyper().S)
+    }
+    fn __len__(&self) -> usize {
+        self.model.len()
+    }
+    fn __repr__(&self) -> String {
+        format!(
+            "CoGP(state_dim={}, control_dim={}, k={})",
+            self.model.state_dim(),
+            self.model.control_dim(),
+            self.model.len()
+        )
+    }
+}

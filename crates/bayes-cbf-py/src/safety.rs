@@ -1,0 +1,589 @@
+//! `Barrier`, `CLF`, `moments` and `SafetyFilter`: wrappers over the
+//! barrier files of the scenario crate, [`CallbackBarrier`] and the
+//! library's [`SafetyController`].
+
+use crate::convert::{core_err, input_err, matrix, scenario_err, to_numpy, vector};
+use crate::models::PyMvgp;
+use bayes_cbf::barrier::{ArrayFn, CallbackBarrier, DynBarrier, DynLyapunov, McSettings, ValueFn};
+use bayes_cbf::control::{ControlOutput, Fallback, SafetyController, SafetySettings};
+use bayes_cbf_scenario::barrier_file::BarrierSpec;
+use bayes_cbf_scenario::queries::{check_barrier, condition_moments, ControlReport};
+use bayes_cbf_scenario::scenario::ClfSpec;
+use numpy::{PyArray1, PyArrayDyn};
+use pyo3::prelude::*;
+use pyo3::types::PyDict;
+use std::path::PathBuf;
+use std::sync::Arc;
+use std::time::Instant;
+
+/// A control barrier function: the safe set is `{x : h(x) ≥ 0}`.
+///
+/// Built from a barrier file (`Barrier.from_json`, `Barrier.load`, the
+/// built-in constructors) or from Python callbacks (`Barrier.callback`).
+#[pyclass(name = "Barrier", module = "bayes_cbf", frozen)]
+pub struct PyBarrier {
+    pub(crate) barrier: Arc<dyn DynBarrier>,
+    /// The barrier-file description, for barriers built from one.
+    spec: Option<BarrierSpec>,
+    pub(crate) label: String,
+}
+
+/// Calls `f(x)` in Python with `x` as a numpy array.
+fn call_py<'py>(py: Python<'py>, f: &Py<PyAny>, x: &[f64]) -> Result<Bound<'py, PyAny>, String> {
+    f.bind(py)
+        .call1((PyArray1::from_slice(py, x),))
+        .map_err(|e| e.to_string())
+}
+
+#[pymethods]
+impl PyBarrier {
+    /// A barrier from barrier-file JSON text (interfaces.md).
+    #[staticmethod]
+    fn from_json(text: &str) -> PyResult<Self> {
+        Self::of_spec(BarrierSpec::parse(text, "barrier").map_err(scenario_err)?)
+    }
+
+    /// Reads a barrier file.
+    #[staticmethod]
+    fn load(path: PathBuf) -> PyResult<Self> {
+        let (spec, barrier) = BarrierSpec::load(&path).map_err(scenario_err)?;
+        Ok(Self {
+            barrier,
+            spec: Some(spec),
+            label: path.display().to_string(),
+        })
+    }
+
+    /// `h = cos(δ) − cos(θ − θ_c)`: keeps the pendulum angle out of the
+    /// sector of half-width `delta` around `theta_c` (paper, Sec. VII-A).
+    #[staticmethod]
+    #[pyo3(signature = (theta_c, delta, relative_degree=2, alpha=None, k_alpha=None))]
+    fn pendulum_sector(
+        theta_c: f64,
+        delta: f64,
+        relative_degree: usize,
+        alpha: Option<f64>,
+        k_alpha: Option<Vec<f64>>,
+    ) -> PyResult<Self> {
+        Self::of_spec(BarrierSpec::PendulumSector {
+            theta_c,
+            delta,
+            relative_degree,
+            alpha,
+            k_alpha,
+        })
+    }
+
+    /// The Ackermann obstacle barrier with heading term (paper, Sec. VII-B).
+    #[staticmethod]
+    #[pyo3(signature = (center, radius, q1, q2, relative_degree=1, alpha=None, k_alpha=None))]
+    fn circle_heading(
+        center: [f64; 2],
+        radius: f64,
+        q1: f64,
+        q2: f64,
+        relative_degree: usize,
+        alpha: Option<f64>,
+        k_alpha: Option<Vec<f64>>,
+    ) -> PyResult<Self> {
+        Self::of_spec(BarrierSpec::CircleHeading {
+            center,
+            radius,
+            q1,
+            q2,
+            relative_degree,
+            alpha,
+            k_alpha,
+        })
+    }
+
+    /// `h = ‖x[indices] − center‖² − radius²`: stay out of a disc.
+    #[staticmethod]
+    #[pyo3(signature = (state_dim, indices, center, radius, relative_degree=1, alpha=None, k_alpha=None))]
+    #[allow(clippy::too_many_arguments)]
+    fn disc(
+        state_dim: usize,
+        indices: [usize; 2],
+        center: [f64; 2],
+        radius: f64,
+        relative_degree: usize,
+        alpha: Option<f64>,
+        k_alpha: Option<Vec<f64>>,
+    ) -> PyResult<Self> {
+        Self::of_spec(BarrierSpec::Disc {
+            state_dim,
+            indices,
+            center,
+            radius,
+            relative_degree,
+            alpha,
+            k_alpha,
+        })
+    }
+
+    /// `h = normalᵀx − offset`: stay in a half-space.
+    #[staticmethod]
+    #[pyo3(signature = (normal, offset, relative_degree=1, alpha=None, k_alpha=None))]
+    fn half_space(
+        normal: Vec<f64>,
+        offset: f64,
+        relative_degree: usize,
+        alpha: Option<f64>,
+        k_alpha: Option<Vec<f64>>,
+    ) -> PyResult<Self> {
+        Self::of_spec(BarrierSpec::HalfSpace {
+            normal,
+            offset,
+            relative_degree,
+            alpha,
+            k_alpha,
+        })
+    }
+
+    /// A barrier written in Python: `h(x) -> float`, `grad(x) -> (n,)` and,
+    /// for relative degree 2 (or self-triggering), `hess(x) -> (n, n)`.
+    /// Dual numbers follow from them by the chain rule, so the moments are
+    /// those of a built-in barrier with the same derivatives. `alpha` is the
+    /// class-K gain for relative degree 1, `k_alpha` the gains for relative
+    /// degree ≥ 2. Check the derivatives with `bayes_cbf.check_derivatives`.
+    #[staticmethod]
+    #[pyo3(signature = (h, grad, hess=None, state_dim=2, relative_degree=1, alpha=1.0, k_alpha=None, name="callback"))]
+    #[allow(clippy::too_many_arguments)]
+    fn callback(
+        h: Py<PyAny>,
+        grad: Py<PyAny>,
+        hess: Option<Py<PyAny>>,
+        state_dim: usize,
+        relative_degree: usize,
+        alpha: f64,
+        k_alpha: Option<Vec<f64>>,
+        name: &str,
+    ) -> PyResult<Self> {
+        Python::attach(|py| -> PyResult<()> {
+            for (field, f) in [("h", Some(&h)), ("grad", Some(&grad)), ("hess", hess.as_ref())] {
+                if let Some(f) = f {
+                    if !f.bind(py).is_callable() {
+                        return Err(input_err(format!("{field}: expected a callable")));
+                    }
+                }
+            }
+            Ok(())
+        })?;
+        let gains = match (relative_degree, k_alpha) {
+            (1, None) => vec![alpha],
+            (_, Some(k)) => k,
+            (r, None) => {
+                return Err(input_err(format!(
+                    "k_alpha: {r} gains are required for relative_degree {r}"
+                )))
+            }
+        };
+        let n = state_dim;
+        let hf: ValueFn = Box::new(move |x: &[f64]| {
+            Python::attach(|py| {
+                call_py(py, &h, x)?
+                    .extract::<f64>()
+                    .map_err(|e| format!("h must return a float ({e})"))
+            })
+        });
+        let array_fn = |f: Py<PyAny>, what: &'static str, len: usize| -> ArrayFn {
+            Box::new(move |x: &[f64], out: &mut [f64]| {
+                Python::attach(|py| {
+                    let r = call_py(py, &f, x)?;
+                    let v = crate::convert::array(&r, what, if what == "hess" { 2 } else { 1 })
+                        .map_err(|e| e.to_string())?;
+                    let flat = crate::convert::row_major(&v);
+                    if flat.len() != len {
+                        return Err(format!(
+                            "{what} returned {} entries, expected {len}",
+                            flat.len()
+                        ));
+                    }
+                    out.copy_from_slice(&flat);
+                    Ok(())
+                })
+            })
+        };
+        let gf = array_fn(grad, "grad", n);
+        let hsf = hess.map(|f| array_fn(f, "hess", n * n));
+        let b = CallbackBarrier::new(name, n, relative_degree, gains, hf, gf, hsf)
+            .map_err(core_err)?;
+        Ok(Self {
+            barrier: Arc::new(b),
+            spec: None,
+            label: name.to_string(),
+        })
+    }
+
+    /// `h(x)`.
+    fn value(&self, py: Python<'_>, x: &Bound<'_, PyAny>) -> PyResult<f64> {
+        let x = vector(x, "x", Some(self.barrier.state_dim()))?;
+        let b = &self.barrier;
+        let v = py.detach(|| b.value(&x));
+        self.check(v)
+    }
+
+    /// `∇h(x)` by automatic differentiation (or the callback).
+    fn gradient<'py>(
+        &self,
+        py: Python<'py>,
+        x: &Bound<'py, PyAny>,
+    ) -> PyResult<Bound<'py, PyArrayDyn<f64>>> {
+        let n = self.barrier.state_dim();
+        let x = vector(x, "x", Some(n))?;
+        let b = &self.barrier;
+        let (h, g) = py.detach(|| {
+            let mut g = vec![0.0; n];
+            let mut scratch = vec![num_dual::Dual64::from(0.0); n];
+            (b.gradient(&x, &mut g, &mut scratch), g)
+        });
+        self.check(h)?;
+        to_numpy(py, g, &[n])
+    }
+
+    /// `∇²h(x)` by automatic differentiation (or the callback).
+    fn hessian<'py>(
+        &self,
+        py: Python<'py>,
+        x: &Bound<'py, PyAny>,
+    ) -> PyResult<Bound<'py, PyArrayDyn<f64>>> {
+        let n = self.barrier.state_dim();
+        let x = vector(x, "x", Some(n))?;
+        let b = &self.barrier;
+        let (h, hs) = py.detach(|| {
+            let (mut g, mut hs) = (vec![0.0; n], vec![0.0; n * n]);
+            let mut scratch = vec![num_dual::HyperDual64::from(0.0); n];
+            (b.hessian(&x, &mut g, &mut hs, &mut scratch), hs)
+        });
+        self.check(h)?;
+        to_numpy(py, hs, &[n, n])
+    }
+
+    /// State dimension `n`.
+    #[getter]
+    fn state_dim(&self) -> usize {
+        self.barrier.state_dim()
+    }
+    /// Relative degree `r`.
+    #[getter]
+    fn relative_degree(&self) -> usize {
+        self.barrier.relative_degree()
+    }
+    /// Class-K gains (`[α]` or `k_α`).
+    #[getter]
+    fn gains(&self) -> Vec<f64> {
+        self.barrier.gains().to_vec()
+    }
+    /// Name in reports.
+    #[getter]
+    fn name(&self) -> String {
+        self.label.clone()
+    }
+    /// The barrier-file JSON, or `None` for a callback barrier.
+    fn to_json(&self) -> PyResult<Option<String>> {
+        self.spec
+            .as_ref()
+            .map(|s| serde_json::to_string(s).map_err(|e| input_err(e.to_string())))
+            .transpose()
+    }
+    fn __repr__(&self) -> String {
+        format!(
+            "Barrier('{}', state_dim={}, relative_degree={})",
+            self.label,
+            self.barrier.state_dim(),
+            self.barrier.relative_degree()
+        )
+    }
+}
+
+impl PyBarrier {
+    /// The barrier a barrier-file description builds (fields validated).
+    fn of_spec(spec: BarrierSpec) -> PyResult<Self> {
+        let barrier = spec.build().map_err(scenario_err)?;
+        let label = barrier.name().to_string();
+        Ok(Self {
+            barrier,
+            spec: Some(spec),
+            label,
+        })
+    }
+
+    /// Turns a callback's recorded failure or a non-finite value into an
+    /// [`crate::convert::InputError`].
+    fn check(&self, v: f64) -> PyResult<f64> {
+        if let Some(e) = self.barrier.take_error() {
+            return Err(input_err(format!("barrier '{}': {e}", self.label)));
+        }
+        if !v.is_finite() {
+            return Err(input_err(format!("barrier '{}': h = {v} is not finite", self.label)));
+        }
+        Ok(v)
+    }
+}
+
+/// A control Lyapunov function for the filter's CLF constraint (paper,
+/// Eq. 21), from its JSON description (`{"type": "ackermann", "w1": ...,
+/// "w2": ..., "gamma": ...}`, the scenario file's `[clf]`).
+#[pyclass(name = "CLF", module = "bayes_cbf", frozen)]
+pub struct PyClf {
+    spec: ClfSpec,
+}
+
+#[pymethods]
+impl PyClf {
+    /// A CLF from JSON text.
+    #[staticmethod]
+    fn from_json(text: &str) -> PyResult<Self> {
+        let spec: ClfSpec = serde_json::from_str(text).map_err(|e| input_err(format!("clf: {e}")))?;
+        Ok(Self { spec })
+    }
+    /// `V = w1/2 ρ² + w2 (1 − cos α)` for the Ackermann vehicle (paper,
+    /// Sec. VII-B), decay rate `gamma`.
+    #[staticmethod]
+    fn ackermann(w1: f64, w2: f64, gamma: f64) -> Self {
+        Self {
+            spec: ClfSpec::Ackermann { w1, w2, gamma },
+        }
+    }
+    fn __repr__(&self) -> String {
+        format!("CLF({:?})", self.spec)
+    }
+}
+
+/// Moments of the barrier condition `CBC(x, u)` under the model's
+/// posterior: `(mean, variance)`. Exact for relative degree 1 and 2 (paper,
+/// Lemma 2 and Thm. 2), Monte Carlo (`samples`, `step`, `seed`) beyond.
+#[pyfunction]
+#[pyo3(signature = (model, barrier, x, u, samples=20_000, step=1e-2, seed=0))]
+#[allow(clippy::too_many_arguments)]
+pub fn moments(
+    py: Python<'_>,
+    model: &Bound<'_, PyMvgp>,
+    barrier: &Bound<'_, PyBarrier>,
+    x: &Bound<'_, PyAny>,
+    u: &Bound<'_, PyAny>,
+    samples: usize,
+    step: f64,
+    seed: u64,
+) -> PyResult<(f64, f64)> {
+    let model = model.borrow();
+    let b = barrier.get();
+    let x = vector(x, "x", Some(model.model.state_dim()))?;
+    let u = vector(u, "u", Some(model.model.control_dim()))?;
+    let mc = McSettings {
+        samples,
+        step,
+        seed,
+    };
+    let m = &model.model;
+    let r = py
+        .detach(|| condition_moments(m, b.barrier.as_ref(), &format!("barrier '{}'", b.label), &x, &u, &mc))
+        .map_err(scenario_err)?;
+    Ok((r.mean, r.variance))
+}
+
+/// The result of one filter step.
+#[pyclass(name = "FilterResult", module = "bayes_cbf", frozen, get_all)]
+pub struct PyFilterResult {
+    /// The control to apply.
+    u: Py<PyArrayDyn<f64>>,
+    /// `"optimal"` or `"infeasible"`.
+    status: &'static str,
+    /// Largest probability at which the barrier constraints are feasible
+    /// (infeasible steps), else `None`.
+    p_star: Option<f64>,
+    /// The fallback that produced `u` (infeasible steps), else `None`.
+    fallback: Option<&'static str>,
+    /// Barriers violated at the fallback control (infeasible steps).
+    violated: Option<Vec<usize>>,
+    /// One dict per barrier: `barrier`, `relative_degree`, `mean`, `std`,
+    /// `c`, `slack`.
+    constraints: Py<PyAny>,
+    /// Wall time of the step in µs.
+    solve_time_us: f64,
+}
+
+#[pymethods]
+impl PyFilterResult {
+    fn __repr__(&self, py: Python<'_>) -> String {
+        format!(
+            "FilterResult(status='{}', u={}, p_star={:?})",
+            self.status,
+            self.u.bind(py),
+            self.p_star
+        )
+    }
+}
+
+/// The chance-constrained safety filter (paper, Eq. 21 / Sec. V): at each
+/// call, the control closest to `u_ref` (in `R`) whose barrier conditions
+/// hold with probability `probability` under the model's posterior.
+///
+/// The filter reads the model at every call, so observations added to it
+/// (`MVGP.add_observation`) take effect at the next step.
+#[pyclass(name = "SafetyFilter", module = "bayes_cbf")]
+pub struct PySafetyFilter {
+    model: Py<PyMvgp>,
+    ctrl: SafetyController,
+    out: ControlOutput,
+    labels: Vec<String>,
+    degrees: Vec<usize>,
+    x: Vec<f64>,
+    u_ref: Vec<f64>,
+    xd: Vec<f64>,
+    xd_dot: Vec<f64>,
+}
+
+#[pymethods]
+impl PySafetyFilter {
+    #[new]
+    #[pyo3(signature = (model, barriers, clf=None, probability=0.99, zeta=0.0, u_min=None, u_max=None, R=None, fallback="max_margin", clf_weight=1.0))]
+    #[allow(non_snake_case, clippy::too_many_arguments)]
+    fn new(
+        model: Bound<'_, PyMvgp>,
+        barriers: Vec<Bound<'_, PyBarrier>>,
+        clf: Option<Bound<'_, PyClf>>,
+        probability: f64,
+        zeta: f64,
+        u_min: Option<&Bound<'_, PyAny>>,
+        u_max: Option<&Bound<'_, PyAny>>,
+        R: Option<&Bound<'_, PyAny>>,
+        fallback: &str,
+        clf_weight: f64,
+    ) -> PyResult<Self> {
+        let (n, m) = {
+            let mm = model.borrow();
+            (mm.model.state_dim(), mm.model.control_dim())
+        };
+        let mut bs: Vec<Arc<dyn DynBarrier>> = Vec::new();
+        let mut labels = Vec::new();
+        {
+            let mm = model.borrow();
+            for (i, b) in barriers.iter().enumerate() {
+                let b = b.get();
+                check_barrier(&mm.model, b.barrier.as_ref(), &format!("barriers[{i}] ('{}')", b.label))
+                    .map_err(scenario_err)?;
+                bs.push(b.barrier.clone());
+                labels.push(b.label.clone());
+            }
+        }
+        let clf: Option<Arc<dyn DynLyapunov>> = clf
+            .map(|c| c.get().spec.build(n))
+            .transpose()
+            .map_err(scenario_err)?;
+        let mut settings = SafetySettings::new(m);
+        settings.probability = probability;
+        settings.zeta = zeta;
+        settings.lambda = clf_weight;
+        settings.u_min = u_min.map(|v| vector(v, "u_min", Some(m))).transpose()?;
+        settings.u_max = u_max.map(|v| vector(v, "u_max", Some(m))).transpose()?;
+        if let Some(r) = R {
+            let (v, _, _) = matrix(r, "R", Some(m), Some(m))?;
+            settings.r = nalgebra::DMatrix::from_row_slice(m, m, &v);
+        }
+        settings.fallback = Fallback::parse(fallback).map_err(core_err)?;
+        let degrees = bs.iter().map(|b| b.relative_degree()).collect();
+        let nb = bs.len();
+        let ctrl = SafetyController::new(n, m, bs, clf, settings).map_err(core_err)?;
+        Ok(Self {
+            model: model.unbind(),
+            ctrl,
+            out: ControlOutput::new(m, nb),
+            labels,
+            degrees,
+            x: vec![0.0; n],
+            u_ref: vec![0.0; m],
+            xd: vec![0.0; n],
+            xd_dot: vec![0.0; n],
+        })
+    }
+
+    /// One filter step at state `x` around the reference control `u_ref`;
+    /// `x_d`, `xdot_d` are the CLF's reference state and its derivative
+    /// (zeros if absent). Infeasibility is a status, never an exception.
+    #[pyo3(signature = (x, u_ref, x_d=None, xdot_d=None))]
+    fn filter(
+        &mut self,
+        py: Python<'_>,
+        x: &Bound<'_, PyAny>,
+        u_ref: &Bound<'_, PyAny>,
+        x_d: Option<&Bound<'_, PyAny>>,
+        xdot_d: Option<&Bound<'_, PyAny>>,
+    ) -> PyResult<PyFilterResult> {
+        let started = Instant::now();
+        copy_into(x, "x", &mut self.x)?;
+        copy_into(u_ref, "u_ref", &mut self.u_ref)?;
+        let with_ref = x_d.is_some() || xdot_d.is_some();
+        if let Some(v) = x_d {
+            copy_into(v, "x_d", &mut self.xd)?;
+        }
+        if let Some(v) = xdot_d {
+            copy_into(v, "xdot_d", &mut self.xd_dot)?;
+        }
+        let model = self.model.bind(py).borrow();
+        let m = &model.model;
+        let Self {
+            ctrl,
+            out,
+            x,
+            u_ref,
+            xd,
+            xd_dot,
+            ..
+        } = self;
+        let reference = with_ref.then_some((xd.as_slice(), xd_dot.as_slice()));
+        py.detach(|| ctrl.step(m, x, u_ref, reference, out))
+            .map_err(core_err)?;
+        let report = ControlReport::from_output(&self.out, &self.labels, &self.degrees);
+        let constraints = pyo3::types::PyList::empty(py);
+        for c in &report.constraints {
+            let d = PyDict::new(py);
+            d.set_item("barrier", &c.barrier)?;
+            d.set_item("relative_degree", c.relative_degree)?;
+            d.set_item("mean", c.mean)?;
+            d.set_item("std", c.std)?;
+            d.set_item("c", c.c)?;
+            d.set_item("slack", c.slack)?;
+            constraints.append(d)?;
+        }
+        let n_u = report.u.len();
+        let u = to_numpy(py, report.u, &[n_u])?.unbind();
+        Ok(PyFilterResult {
+            u,
+            status: report.status,
+            p_star: report.p_star,
+            fallback: report.fallback,
+            violated: report.violated,
+            constraints: constraints.into_any().unbind(),
+            solve_time_us: started.elapsed().as_secs_f64() * 1e6,
+        })
+    }
+
+    /// The model the filter reads at every step.
+    #[getter]
+    fn model(&self, py: Python<'_>) -> Py<PyMvgp> {
+        self.model.clone_ref(py)
+    }
+
+    /// The barriers' names, in constraint order.
+    #[getter]
+    fn barrier_names(&self) -> Vec<String> {
+        self.labels.clone()
+    }
+}
+
+/// Copies a 1-D array of exactly `out.len()` finite entries into `out`.
+fn copy_into(obj: &Bound<'_, PyAny>, field: &str, out: &mut [f64]) -> PyResult<()> {
+    let arr = crate::convert::array(obj, field, 1)?;
+    let v = crate::convert::row_major(&arr);
+    if v.len() != out.len() {
+        return Err(input_err(format!(
+            "{field}: expected {} entries, got {}",
+            out.len(),
+            v.len()
+        )));
+    }
+    crate::convert::check_finite(field, &v, 1)?;
+    out.copy_from_slice(&v);
+    Ok(())
+}

@@ -1,0 +1,72 @@
+//! `run_scenario` and `list_scenarios`: the scenario crate's closed-loop
+//! runs, the same as `bayes-cbf run`.
+
+use crate::convert::{input_err, scenario_err, to_numpy};
+use bayes_cbf_scenario::scenario::{self, run_scenario as run, Column, Trajectory, BUILTIN};
+use pyo3::prelude::*;
+use pyo3::types::{PyDict, PyList};
+
+/// Runs a scenario (a built-in name or a TOML file) and returns its
+/// summary as a dict (the keys of `summary.json`) plus `"trajectory"`: a
+/// dict of the columns of `trajectory.csv` (numpy arrays; NaN where the CSV
+/// is empty; `status` a list of strings). `overrides` maps dotted keys to
+/// values, as `--set key=value`.
+#[pyfunction]
+#[pyo3(signature = (name, seed=None, overrides=None))]
+pub fn run_scenario<'py>(
+    py: Python<'py>,
+    name: &str,
+    seed: Option<u64>,
+    overrides: Option<&Bound<'py, PyDict>>,
+) -> PyResult<Bound<'py, PyDict>> {
+    let mut sets = Vec::new();
+    if let Some(o) = overrides {
+        let json = py.import("json")?;
+        for (k, v) in o.iter() {
+            let key: String = k
+                .extract()
+                .map_err(|_| input_err("overrides: keys must be strings such as 'controller.probability'"))?;
+            if v.is_none() {
+                return Err(input_err(format!("overrides['{key}']: None is not a value")));
+            }
+            let value: String = json
+                .call_method1("dumps", (v,))
+                .and_then(|s| s.extract())
+                .map_err(|e| input_err(format!("overrides['{key}']: {e}")))?;
+            sets.push(format!("{key}={value}"));
+        }
+    }
+    if let Some(s) = seed {
+        sets.push(format!("seed={s}"));
+    }
+    let (output, summary_json) = py
+        .detach(|| -> bayes_cbf_scenario::Result<_> {
+            let (sc, _) = scenario::load(name, &sets)?;
+            let out = run(&sc, |_, _| {})?;
+            let json = serde_json::to_string(&out.summary)?;
+            Ok((Trajectory::of(&out), json))
+        })
+        .map_err(scenario_err)?;
+    let summary = py
+        .import("json")?
+        .call_method1("loads", (summary_json,))?
+        .cast_into::<PyDict>()?;
+    let traj = PyDict::new(py);
+    for (name, col) in output.columns {
+        match col {
+            Column::Numbers(v) => {
+                let len = v.len();
+                traj.set_item(name, to_numpy(py, v, &[len])?)?
+            }
+            Column::Words(v) => traj.set_item(name, PyList::new(py, v)?)?,
+        }
+    }
+    summary.set_item("trajectory", traj)?;
+    Ok(summary)
+}
+
+/// The built-in scenarios' names.
+#[pyfunction]
+pub fn list_scenarios() -> Vec<&'static str> {
+    BUILTIN.iter().map(|(n, _)| *n).collect()
+}

@@ -1,0 +1,222 @@
+//! Barriers given by callbacks for `h`, `∇h` and (optionally) `∇²h`, such
+//! as a barrier written in Python.
+//!
+//! The library evaluates barriers on dual numbers (module docs of
+//! [`crate::barrier`]). A callback barrier is not generic over them, so its
+//! dual values follow from the value, gradient and Hessian by the chain rule:
+//! for `x = x₀ + ε₁a + ε₂b + ε₁ε₂c` (hyper-dual, `ε₁² = ε₂² = 0`),
+//!
+//! `h(x) = h(x₀) + ε₁ ∇hᵀa + ε₂ ∇hᵀb + ε₁ε₂ (aᵀ∇²h b + ∇hᵀc)`,
+//!
+//! and for `x = x₀ + εv` (dual), `h(x) = h(x₀) + ε ∇hᵀv`. These are the
+//! first and second-order Taylor expansions, exact on (hyper-)dual numbers.
+//!
+//! These evaluations allocate a few vectors of length `n` and `n²`; a
+//! callback (into Python, say) costs far more.
+//!
+//! Callbacks may fail (a Python exception) or return non-finite values.
+//! [`DynBarrier`] methods are infallible, so the first failure is kept and
+//! reported by [`DynBarrier::take_error`]; [`super::cbc_moments`] checks it
+//! after every evaluation and returns it as an [`crate::InputError`].
+
+use super::DynBarrier;
+use num_dual::{Dual64, HyperDual64};
+use std::sync::Mutex;
+
+/// `h(x)`, or a message saying why it could not be evaluated.
+pub type ValueFn = Box<dyn Fn(&[f64]) -> Result<f64, String> + Send + Sync>;
+/// Writes `∇h(x)` (length `n`) or `∇²h(x)` (row-major `n × n`) into the
+/// slice, or returns a message saying why it could not.
+pub type ArrayFn = Box<dyn Fn(&[f64], &mut [f64]) -> Result<(), String> + Send + Sync>;
+
+/// A barrier from callbacks for `h`, `∇h` and optionally `∇²h`.
+///
+/// Relative degree 2 needs `∇²h` (the condition contains
+/// `∇(L_f h) = ∇²h f + J_fᵀ ∇h`); without it, an evaluation that needs it
+/// fails with a message naming `hess`.
+pub struct CallbackBarrier {
+    n: usize,
+    relative_degree: usize,
+    gains: Vec<f64>,
+    name: String,
+    h: ValueFn,
+    grad: ArrayFn,
+    hess: Option<ArrayFn>,
+    error: Mutex<Option<String>>,
+}
+
+impl std::fmt::Debug for CallbackBarrier {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("CallbackBarrier")
+            .field("name", &self.name)
+            .field("state_dim", &self.n)
+            .field("relative_degree", &self.relative_degree)
+            .field("gains", &self.gains)
+            .field("hess", &self.hess.is_some())
+            .finish()
+    }
+}
+
+impl CallbackBarrier {
+    /// A barrier on `state_dim` states with the given relative degree and
+    /// class-K gains (`[α]` for relative degree 1, `k_α` otherwise; checked
+    /// by [`super::validate_gains`]).
+    pub fn new(
+        name: &str,
+        state_dim: usize,
+        relative_degree: usize,
+        gains: Vec<f64>,
+        h: ValueFn,
+        grad: ArrayFn,
+        hess: Option<ArrayFn>,
+    ) -> Result<Self, crate::InputError> {
+        if state_dim == 0 {
+            return Err(crate::InputError::invalid("state_dim", 0.0, "must be ≥ 1"));
+        }
+        super::validate_gains(relative_degree, &gains)?;
+        if relative_degree >= 2 && hess.is_none() {
+            return Err(crate::InputError::Invalid {
+                field: "hess".into(),
+                value: "None".into(),
+                reason: format!(
+                    "relative degree {relative_degree} needs the Hessian of h (the condition contains ∇²h f)"
+                ),
+            });
+        }
+        Ok(Self {
+            n: state_dim,
+            relative_degree,
+            gains,
+            name: name.to_string(),
+            h,
+            grad,
+            hess,
+            error: Mutex::new(None),
+        })
+    }
+
+    fn fail(&self, msg: String) {
+        let mut e = self.error.lock().unwrap_or_else(|p| p.into_inner());
+        if e.is_none() {
+            *e = Some(msg);
+        }
+    }
+
+    /// `h(x)`, recording a failure and returning NaN.
+    fn eval_h(&self, x: &[f64]) -> f64 {
+        match (self.h)(x) {
+            Ok(v) if v.is_finite() => v,
+            Ok(v) => {
+                self.fail(format!("h returned {v} at x = {x:?}"));
+                f64::NAN
+            }
+            Err(e) => {
+                self.fail(format!("h failed at x = {x:?}: {e}"));
+                f64::NAN
+            }
+        }
+    }
+
+    /// Fills `out` by `f` (named `what`), recording a failure (NaN-filled).
+    fn eval_array(&self, what: &str, f: &ArrayFn, x: &[f64], out: &mut [f64]) -> bool {
+        let r = f(x, out);
+        let msg = match r {
+            Err(e) => Some(format!("{what} failed at x = {x:?}: {e}")),
+            Ok(()) => out
+                .iter()
+                .position(|v| !v.is_finite())
+                .map(|i| format!("{what} returned {} in entry {i} at x = {x:?}", out[i])),
+        };
+        match msg {
+            Some(m) => {
+                self.fail(m);
+                out.fill(f64::NAN);
+                false
+            }
+            None => true,
+        }
+    }
+
+    fn eval_grad(&self, x: &[f64], out: &mut [f64]) {
+        self.eval_array("grad", &self.grad, x, out);
+    }
+
+    fn eval_hess(&self, x: &[f64], out: &mut [f64]) {
+        match &self.hess {
+            Some(f) => {
+                self.eval_array("hess", f, x, out);
+            }
+            None => {
+                self.fail(
+                    "hess is required here (second derivatives of h), but none was given".into(),
+                );
+                out.fill(f64::NAN);
+            }
+        }
+    }
+}
+
+impl DynBarrier for CallbackBarrier {
+    fn state_dim(&self) -> usize {
+        self.n
+    }
+    fn value(&self, x: &[f64]) -> f64 {
+        self.eval_h(x)
+    }
+    fn value_dual(&self, x: &[Dual64]) -> Dual64 {
+        let x0: Vec<f64> = x.iter().map(|v| v.re).collect();
+        let h = self.eval_h(&x0);
+        let mut g = vec![0.0; self.n];
+        self.eval_grad(&x0, &mut g);
+        let d: f64 = g.iter().zip(x).map(|(g, xi)| g * xi.eps).sum();
+        Dual64::new(h, d)
+    }
+    fn value_hyper(&self, x: &[HyperDual64]) -> HyperDual64 {
+        let n = self.n;
+        let x0: Vec<f64> = x.iter().map(|v| v.re).collect();
+        let h = self.eval_h(&x0);
+        let (mut g, mut hs) = (vec![0.0; n], vec![0.0; n * n]);
+        self.eval_grad(&x0, &mut g);
+        self.eval_hess(&x0, &mut hs);
+        let (mut d1, mut d2, mut d12) = (0.0, 0.0, 0.0);
+        for i in 0..n {
+            d1 += g[i] * x[i].eps1;
+            d2 += g[i] * x[i].eps2;
+            d12 += g[i] * x[i].eps1eps2;
+            for j in 0..n {
+                d12 += x[i].eps1 * hs[i * n + j] * x[j].eps2;
+            }
+        }
+        HyperDual64::new(h, d1, d2, d12)
+    }
+    fn relative_degree(&self) -> usize {
+        self.relative_degree
+    }
+    fn gains(&self) -> &[f64] {
+        &self.gains
+    }
+    fn name(&self) -> &str {
+        &self.name
+    }
+    /// One call each of `h` and `∇h` (instead of `n` dual passes).
+    fn gradient(&self, x: &[f64], grad: &mut [f64], _scratch: &mut [Dual64]) -> f64 {
+        self.eval_grad(x, &mut grad[..self.n]);
+        self.eval_h(x)
+    }
+    /// One call each of `h`, `∇h` and `∇²h`.
+    fn hessian(
+        &self,
+        x: &[f64],
+        grad: &mut [f64],
+        hess: &mut [f64],
+        _scratch: &mut [HyperDual64],
+    ) -> f64 {
+        let n = self.n;
+        self.eval_grad(x, &mut grad[..n]);
+        self.eval_hess(x, &mut hess[..n * n]);
+        self.eval_h(x)
+    }
+    fn take_error(&self) -> Option<String> {
+        self.error.lock().unwrap_or_else(|p| p.into_inner()).take()
+    }
+}

@@ -1,0 +1,197 @@
+"""Bad input raises a typed exception naming the field; the interpreter
+survives. Constructors are fuzzed with hypothesis."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+import bayes_cbf as bc
+from conftest import pendulum_data
+
+I2 = np.eye(2)
+
+
+def mvgp(**kw):
+    args = dict(state_dim=2, control_dim=1, lengthscales=[1.0, 1.0], A=I2, B=I2, noise_sigma=0.1)
+    args.update(kw)
+    return bc.MVGP(**args)
+
+
+@pytest.fixture(scope="module")
+def model():
+    X, U, Xdot = pendulum_data(30, seed=3)
+    return mvgp().fit(X, U, Xdot, max_iters=10)
+
+
+@pytest.fixture(scope="module")
+def barrier():
+    return bc.Barrier.half_space([0.0, 1.0], -2.0, alpha=1.0)
+
+
+X, U, XD = pendulum_data(10, seed=4)
+NAN2 = np.array([np.nan, 0.0])
+
+# (label, thunk, field named in the message)
+CONSTRUCTOR_CASES = [
+    ("A wrong shape", lambda: mvgp(A=np.eye(3)), "A"),
+    ("B wrong shape", lambda: mvgp(B=np.eye(3)), "B"),
+    ("A not PD", lambda: mvgp(A=np.array([[1.0, 2.0], [2.0, 1.0]])), "A"),
+    ("B not PD", lambda: mvgp(B=-I2), "B"),
+    ("A with NaN", lambda: mvgp(A=np.array([[np.nan, 0], [0, 1.0]])), "A"),
+    ("A strings", lambda: mvgp(A=[["a", "b"], ["c", "d"]]), "A"),
+    ("A 1-D", lambda: mvgp(A=np.ones(4)), "A"),
+    ("lengthscales count", lambda: mvgp(lengthscales=[1.0]), "lengthscales"),
+    ("lengthscale negative", lambda: mvgp(lengthscales=[1.0, -1.0]), "lengthscale"),
+    ("noise_sigma zero", lambda: mvgp(noise_sigma=0.0), "noise_sigma"),
+    ("noise_sigma NaN", lambda: mvgp(noise_sigma=float("nan")), "noise_sigma"),
+    ("state_dim zero", lambda: mvgp(state_dim=0, A=np.zeros((0, 0)), lengthscales=[]), "state_dim"),
+    ("prior unknown type", lambda: mvgp(prior_mean={"type": "rocket"}), "prior_mean"),
+    ("prior unknown key", lambda: mvgp(prior_mean={"type": "pendulum", "mass": 1, "length": 1,
+                                                    "gravity": 10, "colour": 3}), "colour"),
+    ("input map bad index", lambda: mvgp(input_map=[5], lengthscales=[1.0]), "input_map"),
+    ("CoGP Sigma shape", lambda: bc.CoGP(2, 1, [1.0, 1.0], Sigma=np.eye(3)), "Sigma"),
+    ("CoGP S not PD", lambda: bc.CoGP(2, 1, [1.0, 1.0], S=-I2), "S"),
+    ("model json unknown key", lambda: bc.MVGP.from_json(json.dumps({"state_dim": 1, "junk": 1})), "junk"),
+    ("model json malformed", lambda: bc.MVGP.from_json("{not json"), "model"),
+    ("barrier unknown type", lambda: bc.Barrier.from_json('{"type": "torus"}'), "torus"),
+    ("barrier unknown key", lambda: bc.Barrier.from_json(
+        '{"type": "half_space", "normal": [1], "offset": 0, "relative_degree": 1, "alpha": 1, "beta": 2}'), "beta"),
+    ("barrier missing gains", lambda: bc.Barrier.pendulum_sector(0.0, 0.3, relative_degree=2), "k_alpha"),
+    ("barrier negative gain", lambda: bc.Barrier.half_space([1.0], 0.0, alpha=-1.0), "alpha"),
+    ("callback not callable", lambda: bc.Barrier.callback(3, lambda x: x), "h"),
+    ("callback rd2 without hess", lambda: bc.Barrier.callback(
+        lambda x: 1.0, lambda x: x, state_dim=2, relative_degree=2, k_alpha=[1.0, 1.0]), "hess"),
+    ("clf unknown type", lambda: bc.CLF.from_json('{"type": "quadratic"}'), "clf"),
+]
+
+
+def model_cases(model, barrier):
+    return [
+        ("fit X wrong width", lambda: mvgp().fit(X[:, :1], U, XD), "X"),
+        ("fit U wrong rows", lambda: mvgp().fit(X, U[:5], XD), "U"),
+        ("fit Xdot NaN", lambda: mvgp().fit(X, U, np.where(XD > 0, np.nan, XD)), "Xdot"),
+        ("fit rank", lambda: mvgp().fit(X, U, XD, rank_a="half"), "rank_a"),
+        ("fit rank negative", lambda: mvgp().fit(X, U, XD, rank_b=-1), "rank_b"),
+        ("fit X object dtype", lambda: mvgp().fit(np.array([[object()] * 2] * 10), U, XD), "X"),
+        ("predict wrong width", lambda: model.predict(np.zeros((3, 3))), "Xq"),
+        ("predict 1-D", lambda: model.predict(np.zeros(2)), "Xq"),
+        ("predict NaN", lambda: model.predict(np.array([[np.nan, 0.0]])), "Xq"),
+        ("add_observation x length", lambda: model.add_observation(np.zeros(3), [0.0], np.zeros(2)), "x"),
+        ("add_observation NaN u", lambda: model.add_observation(np.zeros(2), [np.nan], np.zeros(2)), "u"),
+        ("remove from empty", lambda: mvgp().remove_oldest(), "remove_oldest"),
+        ("moments x length", lambda: bc.moments(model, barrier, np.zeros(3), [0.0]), "x"),
+        ("moments u NaN", lambda: bc.moments(model, barrier, np.zeros(2), [np.inf]), "u"),
+        ("moments barrier dim", lambda: bc.moments(
+            model, bc.Barrier.half_space([1.0, 0.0, 0.0], 0.0, alpha=1.0), np.zeros(2), [0.0]), "state dimension"),
+        ("filter p = 1", lambda: bc.SafetyFilter(model, [barrier], probability=1.0), "probability"),
+        ("filter p = 0", lambda: bc.SafetyFilter(model, [barrier], probability=0.0), "probability"),
+        ("filter p < 0.5 rd1", lambda: bc.SafetyFilter(model, [barrier], probability=0.3), "probability"),
+        ("filter zeta negative", lambda: bc.SafetyFilter(model, [barrier], zeta=-1.0), "zeta"),
+        ("filter R shape", lambda: bc.SafetyFilter(model, [barrier], R=np.eye(2)), "R"),
+        ("filter R singular", lambda: bc.SafetyFilter(model, [barrier], R=np.zeros((1, 1))), "R"),
+        ("filter one bound", lambda: bc.SafetyFilter(model, [barrier], u_min=[-1.0]), "u_min"),
+        ("filter bound length", lambda: bc.SafetyFilter(model, [barrier], u_min=[-1.0, 0], u_max=[1.0]), "u_min"),
+        ("filter fallback", lambda: bc.SafetyFilter(model, [barrier], fallback="pray"), "fallback"),
+        ("filter clf dims", lambda: bc.SafetyFilter(model, [barrier], clf=bc.CLF.ackermann(1, 1, 1)), "clf"),
+        ("filter x NaN", lambda: bc.SafetyFilter(model, [barrier]).filter(NAN2, [0.0]), "x"),
+        ("filter u_ref length", lambda: bc.SafetyFilter(model, [barrier]).filter(np.zeros(2), [0.0, 1.0]), "u_ref"),
+        ("filter x strings", lambda: bc.SafetyFilter(model, [barrier]).filter(["a", "b"], [0.0]), "x"),
+        ("barrier value length", lambda: barrier.value(np.zeros(5)), "x"),
+        ("check_derivatives no points", lambda: bc.check_derivatives(lambda x: 0.0, lambda x: x), "state_dim"),
+    ]
+
+
+@pytest.mark.parametrize("label,thunk,field", CONSTRUCTOR_CASES, ids=[c[0] for c in CONSTRUCTOR_CASES])
+def test_constructor_bad_input(label, thunk, field):
+    with pytest.raises(bc.InputError) as e:
+        thunk()
+    assert field in str(e.value), f"{label}: {e.value}"
+    assert isinstance(e.value, ValueError)
+
+
+def test_method_bad_inputs(model, barrier):
+    cases = model_cases(model, barrier)
+    assert len(CONSTRUCTOR_CASES) + len(cases) >= 30
+    for label, thunk, field in cases:
+        with pytest.raises(bc.InputError) as e:
+            thunk()
+        assert field in str(e.value), f"{label}: {e.value}"
+    # the model is unchanged and usable after all that
+    assert len(model) == 30
+    assert np.isfinite(model.log_marginal_likelihood())
+
+
+def test_non_contiguous_arrays_are_read_correctly(model):
+    xs = np.asfortranarray(np.array([[0.1, 0.2], [0.3, -0.4], [1.0, 2.0]]))
+    strided = np.zeros((3, 4))
+    strided[:, ::2] = xs
+    view = strided[:, ::2]
+    assert not view.flags["C_CONTIGUOUS"]
+    for a, b in zip(model.predict(np.ascontiguousarray(xs)), model.predict(view)):
+        np.testing.assert_array_equal(a, b)
+    a, b = model.predict(xs)
+    np.testing.assert_array_equal(a, model.predict(np.ascontiguousarray(xs))[0])
+    np.testing.assert_array_equal(b, model.predict(np.ascontiguousarray(xs))[1])
+
+
+def test_integer_and_list_inputs_are_converted(model):
+    m1 = model.predict(np.array([[0, 1]]))
+    m2 = model.predict([[0.0, 1.0]])
+    np.testing.assert_array_equal(m1[0], m2[0])
+
+
+def test_infeasible_is_a_status_not_an_exception(model):
+    # keep x2 ≥ 5 while x2 = 0 and |u| ≤ 1e-3: impossible
+    b = bc.Barrier.half_space([0.0, 1.0], 5.0, alpha=10.0)
+    res = bc.SafetyFilter(model, [b], probability=0.9, u_min=[-1e-3], u_max=[1e-3]).filter(
+        np.zeros(2), [0.0])
+    assert res.status == "infeasible"
+    assert res.fallback == "max_margin"
+    assert np.all(np.abs(res.u) <= 1e-3 + 1e-9)
+
+
+finite = st.floats(-1e3, 1e3, allow_nan=False)
+anything = st.one_of(st.floats(allow_nan=True, allow_infinity=True), st.integers(-5, 5),
+                     st.text(max_size=3), st.none(), st.lists(finite, max_size=4))
+
+
+@settings(max_examples=150, deadline=None)
+@given(n=st.integers(0, 3), m=st.integers(0, 2), ls=st.lists(anything, max_size=4),
+       a=anything, b=anything, sigma=anything)
+def test_fuzz_mvgp_constructor(n, m, ls, a, b, sigma):
+    try:
+        model = bc.MVGP(n, m, ls, a, b, sigma)
+    except (bc.InputError, TypeError):
+        return
+    assert model.state_dim == n and model.control_dim == m
+
+
+@settings(max_examples=150, deadline=None)
+@given(text=st.one_of(st.text(max_size=40), st.dictionaries(
+    st.sampled_from(["type", "normal", "offset", "relative_degree", "alpha", "k_alpha", "theta_c",
+                     "delta", "junk"]),
+    st.one_of(finite, st.integers(-2, 3), st.sampled_from(["half_space", "pendulum_sector", "disc"]),
+              st.lists(finite, max_size=3)), max_size=6).map(json.dumps)))
+def test_fuzz_barrier_json(text):
+    try:
+        b = bc.Barrier.from_json(text)
+    except bc.InputError:
+        return
+    assert b.relative_degree >= 1
+
+
+@settings(max_examples=100, deadline=None)
+@given(p=anything, zeta=anything, lo=anything, hi=anything, fallback=st.text(max_size=12))
+def test_fuzz_filter_constructor(model, barrier, p, zeta, lo, hi, fallback):
+    try:
+        f = bc.SafetyFilter(model, [barrier], probability=p, zeta=zeta, u_min=lo, u_max=hi,
+                            fallback=fallback)
+    except (bc.InputError, TypeError):
+        return
+    res = f.filter(np.zeros(2), [0.0])
+    assert res.status in ("optimal", "infeasible")

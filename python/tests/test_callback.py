@@ -1,0 +1,82 @@
+"""Barriers written in Python give the built-ins' moments and controls."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import bayes_cbf as bc
+from conftest import pendulum_data
+
+
+def sector_callbacks(theta_c: float, delta: float):
+    """h = cos(delta) - cos(theta - theta_c), written by hand."""
+    def h(x):
+        return np.cos(delta) - np.cos(x[0] - theta_c)
+
+    def grad(x):
+        return np.array([np.sin(x[0] - theta_c), 0.0])
+
+    def hess(x):
+        return np.array([[np.cos(x[0] - theta_c), 0.0], [0.0, 0.0]])
+
+    return h, grad, hess
+
+
+@pytest.fixture(scope="module")
+def model():
+    X, U, Xdot = pendulum_data(40, seed=2)
+    return bc.MVGP(2, 1, [1.0, 1.0], np.eye(2), np.eye(2), 0.1).fit(X, U, Xdot, max_iters=30)
+
+
+@pytest.mark.parametrize("degree", [1, 2])
+def test_callback_moments_equal_the_builtin(model, degree):
+    kw = {"alpha": 2.0} if degree == 1 else {"k_alpha": [1.0, 3.0]}
+    builtin = bc.Barrier.pendulum_sector(0.7854, 0.3927, relative_degree=degree, **kw)
+    h, g, H = sector_callbacks(0.7854, 0.3927)
+    cb = bc.Barrier.callback(h, g, H, state_dim=2, relative_degree=degree, **kw)
+    rng = np.random.default_rng(0)
+    for _ in range(5):
+        x, u = rng.uniform(-3, 3, 2), rng.uniform(-5, 5, 1)
+        m1, v1 = bc.moments(model, builtin, x, u)
+        m2, v2 = bc.moments(model, cb, x, u)
+        assert abs(m1 - m2) <= 1e-10 * max(1, abs(m1))
+        assert abs(v1 - v2) <= 1e-10 * max(1, abs(v1))
+        np.testing.assert_allclose(cb.gradient(x), builtin.gradient(x), atol=1e-12)
+        np.testing.assert_allclose(cb.hessian(x), builtin.hessian(x), atol=1e-12)
+
+
+def test_callback_controls_equal_the_builtin(model):
+    builtin = bc.Barrier.pendulum_sector(0.7854, 0.3927, relative_degree=2, k_alpha=[1.0, 3.0])
+    h, g, H = sector_callbacks(0.7854, 0.3927)
+    cb = bc.Barrier.callback(h, g, H, state_dim=2, relative_degree=2, k_alpha=[1.0, 3.0])
+    f1 = bc.SafetyFilter(model, [builtin], probability=0.95, u_min=[-10.0], u_max=[10.0])
+    f2 = bc.SafetyFilter(model, [cb], probability=0.95, u_min=[-10.0], u_max=[10.0])
+    for x in ([0.2, 1.0], [1.3, -2.0], [0.5, 0.5]):
+        r1, r2 = f1.filter(np.array(x), [5.0]), f2.filter(np.array(x), [5.0])
+        assert r1.status == r2.status
+        np.testing.assert_allclose(r1.u, r2.u, atol=1e-8)
+
+
+def test_check_derivatives_accepts_right_and_rejects_wrong():
+    h, g, H = sector_callbacks(0.3, 0.2)
+    assert bc.check_derivatives(h, g, H, state_dim=2)["ok"]
+    wrong = bc.check_derivatives(h, lambda x: 2 * g(x), H, state_dim=2)
+    assert not wrong["ok"] and wrong["grad_error"] > 1e-3
+    wrong_h = bc.check_derivatives(h, g, lambda x: H(x).T * 0.5, state_dim=2)
+    assert not wrong_h["ok"] and wrong_h["hess_error"] > 1e-3
+
+
+def test_a_raising_callback_is_an_input_error_naming_it(model):
+    cb = bc.Barrier.callback(lambda x: 1.0 / 0.0, lambda x: np.zeros(2), state_dim=2)
+    with pytest.raises(bc.InputError, match="h failed.*ZeroDivisionError"):
+        bc.moments(model, cb, np.zeros(2), np.zeros(1))
+    nan = bc.Barrier.callback(lambda x: 1.0, lambda x: np.array([np.nan, 0.0]), state_dim=2)
+    with pytest.raises(bc.InputError, match="grad returned NaN"):
+        bc.moments(model, nan, np.zeros(2), np.zeros(1))
+    filt = bc.SafetyFilter(model, [nan], probability=0.9)
+    with pytest.raises(bc.InputError, match="grad"):
+        filt.filter(np.zeros(2), np.zeros(1))
+    # the barrier recovers once its callbacks behave
+    assert bc.moments(model, bc.Barrier.callback(
+        lambda x: 1.0, lambda x: np.zeros(2), state_dim=2), np.zeros(2), np.zeros(1))[0] > 0

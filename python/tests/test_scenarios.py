@@ -1,0 +1,53 @@
+"""`run_scenario` equals `bayes-cbf run`."""
+
+from __future__ import annotations
+
+import csv
+import json
+
+import numpy as np
+
+import bayes_cbf as bc
+from conftest import run_cli
+
+TIMING = {"wall_time_s", "control_step_us"}
+
+
+def strip(summary: dict) -> dict:
+    return {k: v for k, v in summary.items() if k not in TIMING and k != "trajectory"}
+
+
+def test_list_scenarios_has_the_builtins():
+    names = bc.list_scenarios()
+    assert "pendulum-safe" in names and "ackermann-bayes-cbf" in names
+
+
+def test_run_scenario_equals_the_cli(cli, tmp_path):
+    ours = bc.run_scenario("pendulum-safe", seed=3,
+                           overrides={"controller.probability": 0.9, "steps": 150})
+    run_cli(cli, "run", "pendulum-safe", "--seed", "3", "--set", "controller.probability=0.9",
+            "--set", "steps=150", "--out", str(tmp_path))
+    theirs = json.loads((tmp_path / "summary.json").read_text())
+    assert strip(ours) == strip(theirs)
+    with open(tmp_path / "trajectory.csv") as f:
+        rows = list(csv.DictReader(f))
+    traj = ours["trajectory"]
+    assert list(traj) == list(rows[0])
+    assert len(traj["t"]) == len(rows) == 150
+    for name, col in traj.items():
+        if name == "control_us":
+            continue
+        if name == "status":
+            assert col == [r[name] for r in rows]
+            continue
+        want = np.array([float(r[name]) if r[name] else np.nan for r in rows])
+        np.testing.assert_array_equal(col, want, err_msg=name)
+
+
+def test_run_scenario_rejects_bad_overrides():
+    import pytest
+
+    with pytest.raises(bc.InputError, match="nosuchkey"):
+        bc.run_scenario("pendulum-safe", overrides={"nosuchkey": 1})
+    with pytest.raises(bc.InputError, match="unknown scenario"):
+        bc.run_scenario("no-such-scenario")
