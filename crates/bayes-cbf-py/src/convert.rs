@@ -61,14 +61,12 @@ pub fn array<'py>(
             let np = py.import("numpy")?;
             let kw = PyDict::new(py);
             kw.set_item("dtype", "float64")?;
-            let conv = np
-                .call_method("asarray", (obj,), Some(&kw))
-                .map_err(|e| {
-                    input_err(format!(
-                        "{field}: expected an array of numbers (float64), got {} ({e})",
-                        type_name(obj)
-                    ))
-                })?;
+            let conv = np.call_method("asarray", (obj,), Some(&kw)).map_err(|e| {
+                input_err(format!(
+                    "{field}: expected an array of numbers (float64), got {} ({e})",
+                    type_name(obj)
+                ))
+            })?;
             conv.extract().map_err(|_| {
                 input_err(format!(
                     "{field}: expected an array of numbers (float64), got {}",

@@ -196,7 +196,10 @@ impl PyMvgp {
     /// `evaluations`, `starts`), or `None`.
     #[getter]
     fn fit_report<'py>(&self, py: Python<'py>) -> PyResult<Option<Bound<'py, PyDict>>> {
-        self.last_fit.as_ref().map(|r| report_dict(py, r)).transpose()
+        self.last_fit
+            .as_ref()
+            .map(|r| report_dict(py, r))
+            .transpose()
     }
 
     /// Posterior at the rows of `Xq (q, n)`: the means `M_k(x)` as
@@ -219,7 +222,8 @@ impl PyMvgp {
                     mean: nalgebra::DMatrix::zeros(n, p),
                     B: nalgebra::DMatrix::zeros(p, p),
                 };
-                let (mut means, mut bs) = (Vec::with_capacity(q * n * p), Vec::with_capacity(q * p * p));
+                let (mut means, mut bs) =
+                    (Vec::with_capacity(q * n * p), Vec::with_capacity(q * p * p));
                 for x in xs.chunks(n.max(1)).take(q) {
                     model.posterior_into(x, &mut ws, &mut post)?;
                     for i in 0..n {
@@ -232,7 +236,10 @@ impl PyMvgp {
                 Ok((means, bs))
             })
             .map_err(core_err)?;
-        Ok((to_numpy(py, means, &[q, n, p])?, to_numpy(py, bs, &[q, p, p])?))
+        Ok((
+            to_numpy(py, means, &[q, n, p])?,
+            to_numpy(py, bs, &[q, p, p])?,
+        ))
     }
 
     /// Adds one observation `(x, u, ẋ)`: a rank-one extension of the factor,
@@ -275,9 +282,7 @@ impl PyMvgp {
     /// Reads a model file (`model.json`).
     #[staticmethod]
     fn load(py: Python<'_>, path: PathBuf) -> PyResult<Self> {
-        let file = py
-            .detach(|| ModelFile::load(&path))
-            .map_err(scenario_err)?;
+        let file = py.detach(|| ModelFile::load(&path)).map_err(scenario_err)?;
         Self::from_file(&file)
     }
 
@@ -461,7 +466,10 @@ impl PyCogp {
     /// Report of the last `fit`, or `None`.
     #[getter]
     fn fit_report<'py>(&self, py: Python<'py>) -> PyResult<Option<Bound<'py, PyDict>>> {
-        self.last_fit.as_ref().map(|r| report_dict(py, r)).transpose()
+        self.last_fit
+            .as_ref()
+            .map(|r| report_dict(py, r))
+            .transpose()
     }
 
     /// Posterior at the rows of `Xq (q, n)`: the means `(q, n, 1+m)` and the
@@ -478,7 +486,10 @@ impl PyCogp {
         let model = &self.model;
         let (means, covs) = py
             .detach(|| -> Result<_, bayes_cbf::InputError> {
-                let (mut means, mut covs) = (Vec::with_capacity(q * n * p), Vec::with_capacity(q * big * big));
+                let (mut means, mut covs) = (
+                    Vec::with_capacity(q * n * p),
+                    Vec::with_capacity(q * big * big),
+                );
                 for x in xs.chunks(n).take(q) {
                     let post = model.posterior(x)?;
                     for i in 0..n {
@@ -491,7 +502,10 @@ impl PyCogp {
                 Ok((means, covs))
             })
             .map_err(core_err)?;
-        Ok((to_numpy(py, means, &[q, n, p])?, to_numpy(py, covs, &[q, big, big])?))
+        Ok((
+            to_numpy(py, means, &[q, n, p])?,
+            to_numpy(py, covs, &[q, big, big])?,
+        ))
     }
 
     /// `log p(Ẋ | X, U)` under the current hyperparameters.

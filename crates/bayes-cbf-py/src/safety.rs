@@ -160,7 +160,11 @@ impl PyBarrier {
         name: &str,
     ) -> PyResult<Self> {
         Python::attach(|py| -> PyResult<()> {
-            for (field, f) in [("h", Some(&h)), ("grad", Some(&grad)), ("hess", hess.as_ref())] {
+            for (field, f) in [
+                ("h", Some(&h)),
+                ("grad", Some(&grad)),
+                ("hess", hess.as_ref()),
+            ] {
                 if let Some(f) = f {
                     if !f.bind(py).is_callable() {
                         return Err(input_err(format!("{field}: expected a callable")));
@@ -206,8 +210,8 @@ impl PyBarrier {
         };
         let gf = array_fn(grad, "grad", n);
         let hsf = hess.map(|f| array_fn(f, "hess", n * n));
-        let b = CallbackBarrier::new(name, n, relative_degree, gains, hf, gf, hsf)
-            .map_err(core_err)?;
+        let b =
+            CallbackBarrier::new(name, n, relative_degree, gains, hf, gf, hsf).map_err(core_err)?;
         Ok(Self {
             barrier: Arc::new(b),
             spec: None,
@@ -315,7 +319,10 @@ impl PyBarrier {
             return Err(input_err(format!("barrier '{}': {e}", self.label)));
         }
         if !v.is_finite() {
-            return Err(input_err(format!("barrier '{}': h = {v} is not finite", self.label)));
+            return Err(input_err(format!(
+                "barrier '{}': h = {v} is not finite",
+                self.label
+            )));
         }
         Ok(v)
     }
@@ -334,7 +341,8 @@ impl PyClf {
     /// A CLF from JSON text.
     #[staticmethod]
     fn from_json(text: &str) -> PyResult<Self> {
-        let spec: ClfSpec = serde_json::from_str(text).map_err(|e| input_err(format!("clf: {e}")))?;
+        let spec: ClfSpec =
+            serde_json::from_str(text).map_err(|e| input_err(format!("clf: {e}")))?;
         Ok(Self { spec })
     }
     /// `V = w1/2 ρ² + w2 (1 − cos α)` for the Ackermann vehicle (paper,
@@ -377,7 +385,16 @@ pub fn moments(
     };
     let m = &model.model;
     let r = py
-        .detach(|| condition_moments(m, b.barrier.as_ref(), &format!("barrier '{}'", b.label), &x, &u, &mc))
+        .detach(|| {
+            condition_moments(
+                m,
+                b.barrier.as_ref(),
+                &format!("barrier '{}'", b.label),
+                &x,
+                &u,
+                &mc,
+            )
+        })
         .map_err(scenario_err)?;
     Ok((r.mean, r.variance))
 }
@@ -461,8 +478,12 @@ impl PySafetyFilter {
             let mm = model.borrow();
             for (i, b) in barriers.iter().enumerate() {
                 let b = b.get();
-                check_barrier(&mm.model, b.barrier.as_ref(), &format!("barriers[{i}] ('{}')", b.label))
-                    .map_err(scenario_err)?;
+                check_barrier(
+                    &mm.model,
+                    b.barrier.as_ref(),
+                    &format!("barriers[{i}] ('{}')", b.label),
+                )
+                .map_err(scenario_err)?;
                 bs.push(b.barrier.clone());
                 labels.push(b.label.clone());
             }

@@ -23,11 +23,13 @@ pub fn run_scenario<'py>(
     if let Some(o) = overrides {
         let json = py.import("json")?;
         for (k, v) in o.iter() {
-            let key: String = k
-                .extract()
-                .map_err(|_| input_err("overrides: keys must be strings such as 'controller.probability'"))?;
+            let key: String = k.extract().map_err(|_| {
+                input_err("overrides: keys must be strings such as 'controller.probability'")
+            })?;
             if v.is_none() {
-                return Err(input_err(format!("overrides['{key}']: None is not a value")));
+                return Err(input_err(format!(
+                    "overrides['{key}']: None is not a value"
+                )));
             }
             let value: String = json
                 .call_method1("dumps", (v,))

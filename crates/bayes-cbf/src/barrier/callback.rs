@@ -220,3 +220,100 @@ impl DynBarrier for CallbackBarrier {
         self.error.lock().unwrap_or_else(|p| p.into_inner()).take()
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::barrier::Disc;
+
+    /// `h = ‖x[0:2] − c‖² − r²` on 3 states with hand-written derivatives.
+    fn disc_callback(c: [f64; 2], r: f64, hess: bool) -> CallbackBarrier {
+        let h: ValueFn =
+            Box::new(move |x| Ok((x[0] - c[0]).powi(2) + (x[1] - c[1]).powi(2) - r * r));
+        let g: ArrayFn = Box::new(move |x, out| {
+            out.copy_from_slice(&[2.0 * (x[0] - c[0]), 2.0 * (x[1] - c[1]), 0.0]);
+            Ok(())
+        });
+        let hs: ArrayFn = Box::new(|_, out| {
+            out.fill(0.0);
+            out[0] = 2.0;
+            out[4] = 2.0;
+            Ok(())
+        });
+        CallbackBarrier::new("disc", 3, 2, vec![1.0, 2.0], h, g, hess.then_some(hs)).unwrap()
+    }
+
+    #[test]
+    fn chain_rule_matches_automatic_differentiation() {
+        let (c, r) = ([0.3, -0.7], 0.5);
+        let cb = disc_callback(c, r, true);
+        let ad = Disc::new(3, [0, 1], c, r, 2, vec![1.0, 2.0]).unwrap();
+        let x = [1.1, 0.4, -2.0];
+        // arbitrary (non-unit) dual directions
+        let (a, b, cc) = ([0.3, -1.2, 0.7], [2.0, 0.1, -0.4], [0.5, 0.25, -1.0]);
+        let xd: Vec<Dual64> = (0..3).map(|i| Dual64::new(x[i], a[i])).collect();
+        let (v1, v2) = (cb.value_dual(&xd), DynBarrier::value_dual(&ad, &xd));
+        assert!((v1.re - v2.re).abs() < 1e-14 && (v1.eps - v2.eps).abs() < 1e-13);
+        let xh: Vec<HyperDual64> = (0..3)
+            .map(|i| HyperDual64::new(x[i], a[i], b[i], cc[i]))
+            .collect();
+        let (w1, w2) = (cb.value_hyper(&xh), DynBarrier::value_hyper(&ad, &xh));
+        for (p, q) in [
+            (w1.re, w2.re),
+            (w1.eps1, w2.eps1),
+            (w1.eps2, w2.eps2),
+            (w1.eps1eps2, w2.eps1eps2),
+        ] {
+            assert!((p - q).abs() < 1e-13, "{w1:?} vs {w2:?}");
+        }
+        assert!(cb.take_error().is_none());
+        assert_eq!(w1.re, cb.value(&x));
+    }
+
+    #[test]
+    fn failures_are_recorded_once_and_taken() {
+        let h: ValueFn = Box::new(|x| {
+            if x[0] > 0.0 {
+                Err("boom".into())
+            } else {
+                Ok(f64::INFINITY)
+            }
+        });
+        let g: ArrayFn = Box::new(|_, out| {
+            out.fill(0.0);
+            Ok(())
+        });
+        let cb = CallbackBarrier::new("bad", 1, 1, vec![1.0], h, g, None).unwrap();
+        assert!(cb.value(&[1.0]).is_nan());
+        assert!(cb.value(&[-1.0]).is_nan());
+        let e = cb.take_error().unwrap();
+        assert!(e.starts_with("h failed") && e.contains("boom"), "{e}");
+        assert!(cb.value(&[-1.0]).is_nan());
+        assert!(cb.take_error().unwrap().contains("h returned inf"));
+        assert!(cb.take_error().is_none());
+        // no Hessian: a second-order evaluation fails naming hess
+        let _ = cb.value_hyper(&[HyperDual64::new(-1.0, 1.0, 1.0, 0.0)]);
+        let _ = cb.take_error();
+        let mut grad = [0.0];
+        let mut hess = [0.0];
+        cb.hessian(&[-1.0], &mut grad, &mut hess, &mut []);
+        // the first failure wins: the missing Hessian comes before h
+        assert!(cb.take_error().unwrap().contains("hess is required"));
+        let ok_h: ValueFn = Box::new(|_| Ok(1.0));
+        let ok_g: ArrayFn = Box::new(|_, out| {
+            out.fill(0.0);
+            Ok(())
+        });
+        let no_hess = CallbackBarrier::new("c", 1, 1, vec![1.0], ok_h, ok_g, None).unwrap();
+        no_hess.hessian(&[0.0], &mut grad, &mut hess, &mut []);
+        assert!(no_hess.take_error().unwrap().contains("hess is required"));
+    }
+
+    #[test]
+    fn relative_degree_two_needs_a_hessian() {
+        let h: ValueFn = Box::new(|_| Ok(0.0));
+        let g: ArrayFn = Box::new(|_, _| Ok(()));
+        let e = CallbackBarrier::new("c", 2, 2, vec![1.0, 1.0], h, g, None).unwrap_err();
+        assert!(e.to_string().contains("hess"), "{e}");
+    }
+}

@@ -1,0 +1,251 @@
+"""Type stubs of the compiled module bayes_cbf._core."""
+
+from os import PathLike
+from typing import Any, Literal, Optional, Sequence, Union
+
+import numpy as np
+import numpy.typing as npt
+
+ArrayLike = npt.ArrayLike
+F64 = npt.NDArray[np.float64]
+Rank = Union[Literal["full", "diag"], int]
+Path = Union[str, PathLike[str]]
+
+__version__: str
+
+class InputError(ValueError):
+    """Bad input; the message names the field."""
+
+class NumericalError(RuntimeError):
+    """A numerical failure (factorisation, optimiser)."""
+
+class MVGP:
+    """Matrix-variate GP of F(x) = [f(x) g(x)]: vec F ~ GP(vec M0, B k0 ⊗ A), noise σ² A."""
+
+    def __init__(
+        self,
+        state_dim: int,
+        control_dim: int,
+        lengthscales: ArrayLike,
+        A: ArrayLike,
+        B: ArrayLike,
+        noise_sigma: float,
+        prior_mean: Optional[dict[str, Any]] = None,
+        input_map: Optional[list[Any]] = None,
+        variance: float = 1.0,
+    ) -> None: ...
+    def fit(
+        self,
+        X: ArrayLike,
+        U: ArrayLike,
+        Xdot: ArrayLike,
+        rank_a: Rank = "full",
+        rank_b: Rank = "full",
+        max_iters: int = 100,
+        seed: int = 0,
+        restarts: int = 0,
+        sigma_min: float = 0.0,
+    ) -> "MVGP":
+        """Learns the hyperparameters on (X, U, Xdot), which replace the data; returns self."""
+    @property
+    def fit_report(self) -> Optional[dict[str, float]]: ...
+    def predict(self, Xq: ArrayLike) -> tuple[F64, F64]:
+        """Means (q, n, 1+m) and B_k(x, x) (q, 1+m, 1+m); Cov(vec F(x)) = B_k ⊗ A."""
+    def add_observation(self, x: ArrayLike, u: ArrayLike, xdot: ArrayLike) -> None: ...
+    def remove_oldest(self) -> None: ...
+    def log_marginal_likelihood(self) -> float: ...
+    def save(self, path: Path) -> None: ...
+    @staticmethod
+    def load(path: Path) -> "MVGP": ...
+    @staticmethod
+    def from_json(text: str) -> "MVGP": ...
+    def to_json(self) -> str: ...
+    @property
+    def state_dim(self) -> int: ...
+    @property
+    def control_dim(self) -> int: ...
+    @property
+    def A(self) -> F64: ...
+    @property
+    def B(self) -> F64: ...
+    @property
+    def lengthscales(self) -> F64: ...
+    @property
+    def variance(self) -> float: ...
+    @property
+    def noise_sigma(self) -> float: ...
+    @property
+    def X(self) -> F64: ...
+    @property
+    def U(self) -> F64: ...
+    @property
+    def Xdot(self) -> F64: ...
+    def __len__(self) -> int: ...
+
+class CoGP:
+    """Coregionalisation GP baseline: vec F ~ GP(vec M0, k0 Σ), noise S."""
+
+    def __init__(
+        self,
+        state_dim: int,
+        control_dim: int,
+        lengthscales: ArrayLike,
+        Sigma: Optional[ArrayLike] = None,
+        S: Optional[ArrayLike] = None,
+        prior_mean: Optional[dict[str, Any]] = None,
+        input_map: Optional[list[Any]] = None,
+        variance: float = 1.0,
+    ) -> None: ...
+    def fit(
+        self,
+        X: ArrayLike,
+        U: ArrayLike,
+        Xdot: ArrayLike,
+        rank_sigma: Rank = "full",
+        rank_s: Rank = "full",
+        max_iters: int = 100,
+        seed: int = 0,
+        restarts: int = 0,
+    ) -> "CoGP": ...
+    @property
+    def fit_report(self) -> Optional[dict[str, float]]: ...
+    def predict(self, Xq: ArrayLike) -> tuple[F64, F64]:
+        """Means (q, n, 1+m) and covariances of vec F(x) (q, n(1+m), n(1+m))."""
+    def log_marginal_likelihood(self) -> float: ...
+    @property
+    def state_dim(self) -> int: ...
+    @property
+    def control_dim(self) -> int: ...
+    @property
+    def Sigma(self) -> F64: ...
+    @property
+    def S(self) -> F64: ...
+    def __len__(self) -> int: ...
+
+class Barrier:
+    """A control barrier function; the safe set is {x : h(x) >= 0}."""
+
+    @staticmethod
+    def from_json(text: str) -> "Barrier": ...
+    @staticmethod
+    def load(path: Path) -> "Barrier": ...
+    @staticmethod
+    def pendulum_sector(
+        theta_c: float,
+        delta: float,
+        relative_degree: int = 2,
+        alpha: Optional[float] = None,
+        k_alpha: Optional[Sequence[float]] = None,
+    ) -> "Barrier": ...
+    @staticmethod
+    def circle_heading(
+        center: Sequence[float],
+        radius: float,
+        q1: float,
+        q2: float,
+        relative_degree: int = 1,
+        alpha: Optional[float] = None,
+        k_alpha: Optional[Sequence[float]] = None,
+    ) -> "Barrier": ...
+    @staticmethod
+    def disc(
+        state_dim: int,
+        indices: Sequence[int],
+        center: Sequence[float],
+        radius: float,
+        relative_degree: int = 1,
+        alpha: Optional[float] = None,
+        k_alpha: Optional[Sequence[float]] = None,
+    ) -> "Barrier": ...
+    @staticmethod
+    def half_space(
+        normal: Sequence[float],
+        offset: float,
+        relative_degree: int = 1,
+        alpha: Optional[float] = None,
+        k_alpha: Optional[Sequence[float]] = None,
+    ) -> "Barrier": ...
+    @staticmethod
+    def callback(
+        h: Any,
+        grad: Any,
+        hess: Any = None,
+        state_dim: int = 2,
+        relative_degree: int = 1,
+        alpha: float = 1.0,
+        k_alpha: Optional[Sequence[float]] = None,
+        name: str = "callback",
+    ) -> "Barrier": ...
+    def value(self, x: ArrayLike) -> float: ...
+    def gradient(self, x: ArrayLike) -> F64: ...
+    def hessian(self, x: ArrayLike) -> F64: ...
+    @property
+    def state_dim(self) -> int: ...
+    @property
+    def relative_degree(self) -> int: ...
+    @property
+    def gains(self) -> list[float]: ...
+    @property
+    def name(self) -> str: ...
+    def to_json(self) -> Optional[str]: ...
+
+class CLF:
+    """A control Lyapunov function for the filter's CLF constraint."""
+
+    @staticmethod
+    def from_json(text: str) -> "CLF": ...
+    @staticmethod
+    def ackermann(w1: float, w2: float, gamma: float) -> "CLF": ...
+
+class FilterResult:
+    u: F64
+    status: Literal["optimal", "infeasible"]
+    p_star: Optional[float]
+    fallback: Optional[str]
+    violated: Optional[list[int]]
+    constraints: list[dict[str, Any]]
+    solve_time_us: float
+
+class SafetyFilter:
+    """The chance-constrained CBF(-CLF) SOCP safety filter."""
+
+    def __init__(
+        self,
+        model: MVGP,
+        barriers: Sequence[Barrier],
+        clf: Optional[CLF] = None,
+        probability: float = 0.99,
+        zeta: float = 0.0,
+        u_min: Optional[ArrayLike] = None,
+        u_max: Optional[ArrayLike] = None,
+        R: Optional[ArrayLike] = None,
+        fallback: Literal["max_margin", "brake", "hold", "relax"] = "max_margin",
+        clf_weight: float = 1.0,
+    ) -> None: ...
+    def filter(
+        self,
+        x: ArrayLike,
+        u_ref: ArrayLike,
+        x_d: Optional[ArrayLike] = None,
+        xdot_d: Optional[ArrayLike] = None,
+    ) -> FilterResult: ...
+    @property
+    def model(self) -> MVGP: ...
+    @property
+    def barrier_names(self) -> list[str]: ...
+
+def moments(
+    model: MVGP,
+    barrier: Barrier,
+    x: ArrayLike,
+    u: ArrayLike,
+    samples: int = 20000,
+    step: float = 1e-2,
+    seed: int = 0,
+) -> tuple[float, float]:
+    """(mean, variance) of the barrier condition at (x, u)."""
+
+def run_scenario(
+    name: str, seed: Optional[int] = None, overrides: Optional[dict[str, Any]] = None
+) -> dict[str, Any]: ...
+def list_scenarios() -> list[str]: ...

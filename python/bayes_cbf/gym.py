@@ -1,0 +1,177 @@
+"""A safety filter for any continuous-action gymnasium environment.
+
+:class:`SafetyFilterWrapper` passes every action of the wrapped policy
+through a :class:`bayes_cbf.SafetyFilter`, learns the dynamics online from
+the observed transitions (the filter's MVGP gains one observation per step,
+in O(k^2)), and records barrier values, violations and infeasible steps.
+
+The learning labels: a transition ``x_k -> x_{k+1}`` over ``dt`` under the
+held control ``u_k`` gives the derivative estimate ``(x_{k+1} - x_k) / dt``
+(angles wrapped), labelled at the midpoint ``(x_k + x_{k+1}) / 2``: the
+central difference is exact to O(dt^2) there, where a label at ``x_k`` is
+biased by O(dt).
+"""
+
+from __future__ import annotations
+
+from typing import Any, Callable, Optional, Sequence
+
+import numpy as np
+
+try:
+    import gymnasium as gym
+except ImportError as e:  # pragma: no cover - exercised only without gymnasium
+    raise ImportError(
+        "bayes_cbf.gym needs gymnasium: pip install 'bayes_cbf[gym]'"
+    ) from e
+
+from ._core import InputError, SafetyFilter
+
+
+class SafetyFilterWrapper(gym.Wrapper):
+    """Filters every action of ``env`` through ``filter``.
+
+    Parameters
+    ----------
+    env:
+        A gymnasium environment with a ``Box`` action space of the filter
+        model's control dimension.
+    filter:
+        The :class:`bayes_cbf.SafetyFilter`; its model (``filter.model``)
+        is the one that learns.
+    state_from_obs:
+        Maps an observation to the state ``x`` of the model, ``(n,)``.
+    learn:
+        Add one observation per step to the model.
+    dt:
+        Control period in seconds; default ``env.unwrapped.dt``.
+    angle_indices:
+        State indices that are angles: their differences are wrapped to
+        ``[-pi, pi)`` when estimating derivatives.
+    max_data:
+        Keep at most this many observations (oldest dropped first).
+    refit_every:
+        Refit the hyperparameters on the model's data every this many steps
+        (0: never).
+    barriers_for_log:
+        Barriers whose values are logged; default: none (``info`` then has
+        only the filter's outcome). Pass the filter's barriers to record
+        violations.
+
+    ``info`` of each step gains ``filter_status``, ``p_star``, ``u_ref``,
+    ``u_applied`` and, with ``barriers_for_log``, ``barrier_values`` (at the
+    new state) and ``violation``. :attr:`episode_stats` sums them over the
+    episode.
+    """
+
+    def __init__(
+        self,
+        env: gym.Env,
+        filter: SafetyFilter,
+        state_from_obs: Callable[[Any], np.ndarray],
+        learn: bool = True,
+        dt: Optional[float] = None,
+        angle_indices: Sequence[int] = (),
+        max_data: int = 500,
+        refit_every: int = 0,
+        barriers_for_log: Sequence[Any] = (),
+    ):
+        super().__init__(env)
+        if not isinstance(env.action_space, gym.spaces.Box):
+            raise InputError("env: the action space must be a gymnasium.spaces.Box")
+        self.filter = filter
+        self.model = filter.model
+        if env.action_space.shape != (self.model.control_dim,):
+            raise InputError(
+                f"env: action shape {env.action_space.shape} != (control_dim,) = "
+                f"({self.model.control_dim},)"
+            )
+        self.state_from_obs = state_from_obs
+        self.learn = learn
+        dt = dt if dt is not None else getattr(env.unwrapped, "dt", None)
+        if dt is None or not np.isfinite(dt) or dt <= 0:
+            raise InputError("dt: give the control period (the environment has no positive dt)")
+        self.dt = float(dt)
+        n = self.model.state_dim
+        for i in angle_indices:
+            if not 0 <= i < n:
+                raise InputError(f"angle_indices: {i} is not a state index (state_dim = {n})")
+        self.angle_indices = list(angle_indices)
+        if max_data < 1:
+            raise InputError("max_data: must be >= 1")
+        self.max_data = int(max_data)
+        self.refit_every = int(refit_every)
+        self.barriers_for_log = list(barriers_for_log)
+        self._low = np.asarray(env.action_space.low, dtype=np.float64)
+        self._high = np.asarray(env.action_space.high, dtype=np.float64)
+        self._x: Optional[np.ndarray] = None
+        self._steps = 0
+        self.episode_stats: dict = {}
+
+    def _state(self, obs) -> np.ndarray:
+        x = np.asarray(self.state_from_obs(obs), dtype=np.float64).reshape(-1)
+        if x.shape != (self.model.state_dim,) or not np.all(np.isfinite(x)):
+            raise InputError(
+                f"state_from_obs: returned {x!r}, expected {self.model.state_dim} finite values"
+            )
+        return x
+
+    def reset(self, **kwargs):
+        obs, info = self.env.reset(**kwargs)
+        self._x = self._state(obs)
+        self.episode_stats = {
+            "steps": 0,
+            "return": 0.0,
+            "infeasible_steps": 0,
+            "violation_steps": 0,
+            "min_barrier": float("inf"),
+        }
+        self._log_barriers(self._x)
+        return obs, info
+
+    def _log_barriers(self, x: np.ndarray) -> list:
+        values = [b.value(x) for b in self.barriers_for_log]
+        if values:
+            self.episode_stats["min_barrier"] = min(self.episode_stats["min_barrier"], min(values))
+        return values
+
+    def step(self, action):
+        if self._x is None:
+            raise InputError("step: call reset() first")
+        u_ref = np.asarray(action, dtype=np.float64).reshape(-1)
+        res = self.filter.filter(self._x, u_ref)
+        u = np.clip(res.u, self._low, self._high)
+        obs, reward, terminated, truncated, info = self.env.step(u.astype(self.action_space.dtype))
+        x_new = self._state(obs)
+        if self.learn:
+            self._observe(self._x, u, x_new)
+        self._x = x_new
+        values = self._log_barriers(x_new)
+        st = self.episode_stats
+        st["steps"] += 1
+        st["return"] += float(reward)
+        st["infeasible_steps"] += res.status == "infeasible"
+        violated = bool(values) and min(values) < 0
+        st["violation_steps"] += violated
+        info = dict(info)
+        info.update(
+            filter_status=res.status,
+            p_star=res.p_star,
+            u_ref=u_ref,
+            u_applied=u,
+            barrier_values=values,
+            violation=violated,
+        )
+        return obs, reward, terminated, truncated, info
+
+    def _observe(self, x: np.ndarray, u: np.ndarray, x_new: np.ndarray) -> None:
+        dx = x_new - x
+        for i in self.angle_indices:
+            dx[i] = (dx[i] + np.pi) % (2 * np.pi) - np.pi
+        mid = x + 0.5 * dx
+        self.model.add_observation(mid, u, dx / self.dt)
+        while len(self.model) > self.max_data:
+            self.model.remove_oldest()
+        self._steps += 1
+        if self.refit_every and self._steps % self.refit_every == 0 and len(self.model) >= 10:
+            self.model.fit(self.model.X, self.model.U, self.model.Xdot, max_iters=30)

@@ -1,0 +1,75 @@
+"""The gymnasium wrapper on a short seeded run of Pendulum-v1."""
+
+from __future__ import annotations
+
+import gymnasium as gym
+import numpy as np
+import pytest
+
+import bayes_cbf as bc
+from bayes_cbf.gym import SafetyFilterWrapper
+
+
+def make(learn=True, seed=0):
+    model = bc.MVGP(2, 1, [1.0, 1.0, 3.0], np.diag([0.01, 25.0]), np.eye(2), 0.05,
+                    prior_mean={"type": "pendulum", "mass": 1.0, "length": 1.0, "gravity": 10.0},
+                    input_map=[{"cos": 0}, {"sin": 0}, 1])
+    b = bc.Barrier.half_space([0.0, -1.0], -6.0, alpha=2.0)  # phi_dot <= 6
+    filt = bc.SafetyFilter(model, [b], probability=0.9, u_min=[-2.0], u_max=[2.0])
+    env = gym.make("Pendulum-v1")
+    w = SafetyFilterWrapper(
+        env, filt, lambda o: np.array([np.arctan2(-o[1], -o[0]), o[2]]), learn=learn,
+        angle_indices=[0], max_data=50, barriers_for_log=[b])
+    return w, model
+
+
+def run(w, seed, steps=60):
+    rng = np.random.default_rng(seed)
+    obs, _ = w.reset(seed=seed)
+    infos = []
+    for _ in range(steps):
+        obs, r, term, trunc, info = w.step(rng.uniform(-2, 2, 1))
+        infos.append(info)
+    return infos
+
+
+def test_wrapper_learns_filters_and_records():
+    w, model = make()
+    infos = run(w, seed=1)
+    assert len(model) == 50  # the window
+    st = w.episode_stats
+    assert st["steps"] == 60 and np.isfinite(st["return"]) and np.isfinite(st["min_barrier"])
+    for info in infos:
+        assert info["filter_status"] in ("optimal", "infeasible")
+        assert np.all(np.abs(info["u_applied"]) <= 2.0)
+        assert len(info["barrier_values"]) == 1
+    assert st["violation_steps"] == sum(i["violation"] for i in infos)
+    # the learned model predicts the true acceleration's input gain (3) well
+    mean, _ = model.predict(np.array([[0.3, 0.0]]))
+    assert abs(mean[0, 1, 1] - 3.0) < 1.0
+
+
+def test_wrapper_is_deterministic_given_seeds():
+    a = [i["u_applied"][0] for i in run(make()[0], seed=5, steps=30)]
+    b = [i["u_applied"][0] for i in run(make()[0], seed=5, steps=30)]
+    assert a == b
+
+
+def test_without_learning_the_model_is_untouched():
+    w, model = make(learn=False)
+    run(w, seed=2, steps=20)
+    assert len(model) == 0
+
+
+def test_wrapper_rejects_bad_setups():
+    w, _ = make()
+    with pytest.raises(bc.InputError, match="reset"):
+        w.step(np.zeros(1))
+    model = bc.MVGP(2, 2, [1.0, 1.0], np.eye(2), np.eye(3), 0.1)
+    filt = bc.SafetyFilter(model, [bc.Barrier.half_space([1.0, 0.0], 0.0, alpha=1.0)])
+    with pytest.raises(bc.InputError, match="action shape"):
+        SafetyFilterWrapper(gym.make("Pendulum-v1"), filt, lambda o: o[:2])
+    w2, _ = make()
+    w2.state_from_obs = lambda o: np.array([np.nan, 0.0])
+    with pytest.raises(bc.InputError, match="state_from_obs"):
+        w2.reset(seed=0)
