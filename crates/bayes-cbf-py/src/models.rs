@@ -242,6 +242,42 @@ impl PyMvgp {
         ))
     }
 
+    /// Median wall time (s) of the library computing the posterior at every
+    /// row of `Xq` into reused buffers, timed in Rust over `repeats` runs:
+    /// the reference for `predict`'s overhead (`benchmarks/overhead.py`).
+    #[pyo3(signature = (Xq, repeats=5))]
+    #[allow(non_snake_case)]
+    fn rust_predict_time_s(
+        &self,
+        py: Python<'_>,
+        Xq: &Bound<'_, PyAny>,
+        repeats: usize,
+    ) -> PyResult<f64> {
+        let (n, m) = (self.model.state_dim(), self.model.control_dim());
+        let p = m + 1;
+        let (xs, _, _) = matrix(Xq, "Xq", None, Some(n))?;
+        let model = &self.model;
+        py.detach(|| -> Result<f64, bayes_cbf::InputError> {
+            let mut ws = model.workspace();
+            let mut post = Posterior {
+                mean: nalgebra::DMatrix::zeros(n, p),
+                B: nalgebra::DMatrix::zeros(p, p),
+            };
+            let mut times = Vec::new();
+            for _ in 0..repeats.max(1) {
+                let t = std::time::Instant::now();
+                for x in xs.chunks(n) {
+                    model.posterior_into(x, &mut ws, &mut post)?;
+                }
+                std::hint::black_box(&post);
+                times.push(t.elapsed().as_secs_f64());
+            }
+            times.sort_by(f64::total_cmp);
+            Ok(times[times.len() / 2])
+        })
+        .map_err(core_err)
+    }
+
     /// Adds one observation `(x, u, ẋ)`: a rank-one extension of the factor,
     /// O(k²).
     fn add_observation(

@@ -7,7 +7,7 @@ use crate::models::PyMvgp;
 use bayes_cbf::barrier::{ArrayFn, CallbackBarrier, DynBarrier, DynLyapunov, McSettings, ValueFn};
 use bayes_cbf::control::{ControlOutput, Fallback, SafetyController, SafetySettings};
 use bayes_cbf_scenario::barrier_file::BarrierSpec;
-use bayes_cbf_scenario::queries::{check_barrier, condition_moments, ControlReport};
+use bayes_cbf_scenario::queries::{check_barrier, condition_moments, status_parts};
 use bayes_cbf_scenario::scenario::ClfSpec;
 use numpy::{PyArray1, PyArrayDyn};
 use pyo3::prelude::*;
@@ -400,28 +400,68 @@ pub fn moments(
 }
 
 /// The result of one filter step.
-#[pyclass(name = "FilterResult", module = "bayes_cbf", frozen, get_all)]
+#[pyclass(name = "FilterResult", module = "bayes_cbf", frozen)]
 pub struct PyFilterResult {
-    /// The control to apply.
-    u: Py<PyArrayDyn<f64>>,
-    /// `"optimal"` or `"infeasible"`.
+    u: Py<PyArray1<f64>>,
     status: &'static str,
-    /// Largest probability at which the barrier constraints are feasible
-    /// (infeasible steps), else `None`.
     p_star: Option<f64>,
-    /// The fallback that produced `u` (infeasible steps), else `None`.
     fallback: Option<&'static str>,
-    /// Barriers violated at the fallback control (infeasible steps).
     violated: Option<Vec<usize>>,
-    /// One dict per barrier: `barrier`, `relative_degree`, `mean`, `std`,
-    /// `c`, `slack`.
-    constraints: Py<PyAny>,
-    /// Wall time of the step in µs.
+    /// Per barrier: name, relative degree and the library's report.
+    reports: Vec<(String, usize, bayes_cbf::control::ConstraintReport)>,
     solve_time_us: f64,
 }
 
 #[pymethods]
 impl PyFilterResult {
+    /// The control to apply.
+    #[getter]
+    fn u(&self, py: Python<'_>) -> Py<PyArray1<f64>> {
+        self.u.clone_ref(py)
+    }
+    /// `"optimal"` or `"infeasible"`.
+    #[getter]
+    fn status(&self) -> &'static str {
+        self.status
+    }
+    /// Largest probability at which the barrier constraints are feasible
+    /// (infeasible steps), else `None`.
+    #[getter]
+    fn p_star(&self) -> Option<f64> {
+        self.p_star
+    }
+    /// The fallback that produced `u` (infeasible steps), else `None`.
+    #[getter]
+    fn fallback(&self) -> Option<&'static str> {
+        self.fallback
+    }
+    /// Barriers violated at the fallback control (infeasible steps).
+    #[getter]
+    fn violated(&self) -> Option<Vec<usize>> {
+        self.violated.clone()
+    }
+    /// One dict per barrier: `barrier`, `relative_degree`, `mean`, `std`,
+    /// `c` and `slack` (`mean − ζ − c·std`, ≥ 0 when met).
+    #[getter]
+    fn constraints<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, pyo3::types::PyList>> {
+        let list = pyo3::types::PyList::empty(py);
+        for (name, r, c) in &self.reports {
+            let d = PyDict::new(py);
+            d.set_item("barrier", name)?;
+            d.set_item("relative_degree", r)?;
+            d.set_item("mean", c.mean)?;
+            d.set_item("std", c.std)?;
+            d.set_item("c", c.c)?;
+            d.set_item("slack", c.slack)?;
+            list.append(d)?;
+        }
+        Ok(list)
+    }
+    /// Wall time of the whole call in µs (conversions included).
+    #[getter]
+    fn solve_time_us(&self) -> f64 {
+        self.solve_time_us
+    }
     fn __repr__(&self, py: Python<'_>) -> String {
         format!(
             "FilterResult(status='{}', u={}, p_star={:?})",
@@ -555,29 +595,59 @@ impl PySafetyFilter {
         let reference = with_ref.then_some((xd.as_slice(), xd_dot.as_slice()));
         py.detach(|| ctrl.step(m, x, u_ref, reference, out))
             .map_err(core_err)?;
-        let report = ControlReport::from_output(&self.out, &self.labels, &self.degrees);
-        let constraints = pyo3::types::PyList::empty(py);
-        for c in &report.constraints {
-            let d = PyDict::new(py);
-            d.set_item("barrier", &c.barrier)?;
-            d.set_item("relative_degree", c.relative_degree)?;
-            d.set_item("mean", c.mean)?;
-            d.set_item("std", c.std)?;
-            d.set_item("c", c.c)?;
-            d.set_item("slack", c.slack)?;
-            constraints.append(d)?;
-        }
-        let n_u = report.u.len();
-        let u = to_numpy(py, report.u, &[n_u])?.unbind();
+        let (status, fallback, p_star, violated) = status_parts(&self.out);
+        let reports = self
+            .labels
+            .iter()
+            .zip(&self.degrees)
+            .zip(&self.out.constraints)
+            .map(|((l, r), c)| (l.clone(), *r, *c))
+            .collect();
+        let u = PyArray1::from_slice(py, &self.out.u).unbind();
         Ok(PyFilterResult {
             u,
-            status: report.status,
-            p_star: report.p_star,
-            fallback: report.fallback,
-            violated: report.violated,
-            constraints: constraints.into_any().unbind(),
+            status,
+            p_star,
+            fallback,
+            violated,
+            reports,
             solve_time_us: started.elapsed().as_secs_f64() * 1e6,
         })
+    }
+
+    /// Median wall time (µs) of the library's filter step at `(x, u_ref)`,
+    /// timed in Rust over `repeats` steps without crossing into Python: the
+    /// reference for the binding's overhead (`benchmarks/overhead.py`).
+    #[pyo3(signature = (x, u_ref, repeats=1000))]
+    fn rust_step_time_us(
+        &mut self,
+        py: Python<'_>,
+        x: &Bound<'_, PyAny>,
+        u_ref: &Bound<'_, PyAny>,
+        repeats: usize,
+    ) -> PyResult<f64> {
+        copy_into(x, "x", &mut self.x)?;
+        copy_into(u_ref, "u_ref", &mut self.u_ref)?;
+        let model = self.model.bind(py).borrow();
+        let m = &model.model;
+        let Self {
+            ctrl,
+            out,
+            x,
+            u_ref,
+            ..
+        } = self;
+        py.detach(|| {
+            let mut times = Vec::with_capacity(repeats.max(1));
+            for _ in 0..repeats.max(1) {
+                let t = Instant::now();
+                ctrl.step(m, x, u_ref, None, out)?;
+                times.push(t.elapsed().as_secs_f64() * 1e6);
+            }
+            times.sort_by(f64::total_cmp);
+            Ok(times[times.len() / 2])
+        })
+        .map_err(|e: bayes_cbf::Error| core_err(e))
     }
 
     /// The model the filter reads at every step.

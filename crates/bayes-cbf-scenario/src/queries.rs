@@ -171,15 +171,7 @@ impl ControlReport {
                 slack: c.slack,
             })
             .collect();
-        let (status, fallback, p_star, violated) = match &out.status {
-            ControlStatus::Optimal | ControlStatus::AlmostOptimal => ("optimal", None, None, None),
-            ControlStatus::Infeasible(info) => (
-                "infeasible",
-                Some(info.fallback.name()),
-                info.p_star,
-                Some(info.violated.clone()),
-            ),
-        };
+        let (status, fallback, p_star, violated) = status_parts(out);
         ControlReport {
             status,
             u: out.u.clone(),
@@ -188,6 +180,28 @@ impl ControlReport {
             p_star,
             violated,
         }
+    }
+}
+
+/// The outcome of a step as reported: status name, fallback name, `p*` and
+/// the violated barriers (the last three only when infeasible).
+#[allow(clippy::type_complexity)]
+pub fn status_parts(
+    out: &ControlOutput,
+) -> (
+    &'static str,
+    Option<&'static str>,
+    Option<f64>,
+    Option<Vec<usize>>,
+) {
+    match &out.status {
+        ControlStatus::Optimal | ControlStatus::AlmostOptimal => ("optimal", None, None, None),
+        ControlStatus::Infeasible(info) => (
+            "infeasible",
+            Some(info.fallback.name()),
+            info.p_star,
+            Some(info.violated.clone()),
+        ),
     }
 }
 
