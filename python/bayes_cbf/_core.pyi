@@ -33,6 +33,7 @@ class MVGP:
         prior_mean: Optional[dict[str, Any]] = None,
         input_map: Optional[list[Any]] = None,
         variance: float = 1.0,
+        known_rows: Optional[Sequence[int]] = None,
     ) -> None: ...
     def fit(
         self,
@@ -68,6 +69,8 @@ class MVGP:
     def A(self) -> F64: ...
     @property
     def B(self) -> F64: ...
+    @property
+    def known_rows(self) -> list[int]: ...
     @property
     def lengthscales(self) -> F64: ...
     @property

@@ -7,9 +7,12 @@ in O(k^2)), and records barrier values, violations and infeasible steps.
 
 The learning labels: a transition ``x_k -> x_{k+1}`` over ``dt`` under the
 held control ``u_k`` gives the derivative estimate ``(x_{k+1} - x_k) / dt``
-(angles wrapped), labelled at the midpoint ``(x_k + x_{k+1}) / 2``: the
-central difference is exact to O(dt^2) there, where a label at ``x_k`` is
-biased by O(dt).
+(angles wrapped). For a continuous-time system sampled with a zero-order
+hold, label it at the midpoint ``(x_k + x_{k+1}) / 2`` (``label_at=
+"midpoint"``, the default): the central difference is exact to O(dt^2)
+there, where a label at ``x_k`` is biased by O(dt). For an environment that
+integrates with forward Euler (``x_{k+1} = x_k + dt F(x_k) u_k``), the label
+at the start (``label_at="start"``) is exact.
 """
 
 from __future__ import annotations
@@ -53,6 +56,9 @@ class SafetyFilterWrapper(gym.Wrapper):
     refit_every:
         Refit the hyperparameters on the model's data every this many steps
         (0: never).
+    label_at:
+        ``"midpoint"`` or ``"start"``: where the derivative estimate of a
+        transition is labelled (module docs).
     barriers_for_log:
         Barriers whose values are logged; default: none (``info`` then has
         only the filter's outcome). Pass the filter's barriers to record
@@ -74,6 +80,7 @@ class SafetyFilterWrapper(gym.Wrapper):
         angle_indices: Sequence[int] = (),
         max_data: int = 500,
         refit_every: int = 0,
+        label_at: str = "midpoint",
         barriers_for_log: Sequence[Any] = (),
     ):
         super().__init__(env)
@@ -101,6 +108,9 @@ class SafetyFilterWrapper(gym.Wrapper):
             raise InputError("max_data: must be >= 1")
         self.max_data = int(max_data)
         self.refit_every = int(refit_every)
+        if label_at not in ("midpoint", "start"):
+            raise InputError(f"label_at: {label_at!r}, expected 'midpoint' or 'start'")
+        self.label_at = label_at
         self.barriers_for_log = list(barriers_for_log)
         self._low = np.asarray(env.action_space.low, dtype=np.float64)
         self._high = np.asarray(env.action_space.high, dtype=np.float64)
@@ -168,8 +178,8 @@ class SafetyFilterWrapper(gym.Wrapper):
         dx = x_new - x
         for i in self.angle_indices:
             dx[i] = (dx[i] + np.pi) % (2 * np.pi) - np.pi
-        mid = x + 0.5 * dx
-        self.model.add_observation(mid, u, dx / self.dt)
+        at = x + 0.5 * dx if self.label_at == "midpoint" else x
+        self.model.add_observation(at, u, dx / self.dt)
         while len(self.model) > self.max_data:
             self.model.remove_oldest()
         self._steps += 1

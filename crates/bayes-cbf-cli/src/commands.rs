@@ -68,6 +68,10 @@ pub struct FitArgs {
     /// the whole state.
     #[arg(long, value_name = "I,J", allow_hyphen_values = true)]
     pub input_map: Option<String>,
+    /// Rows of F known exactly from the prior mean (comma-separated, e.g. 0
+    /// for the pendulum's θ̇ = ω); only the others are learned.
+    #[arg(long, value_name = "I,J")]
+    pub known_rows: Option<String>,
 }
 
 /// Options of `bayes-cbf predict`.
@@ -147,6 +151,10 @@ pub fn run_fit(a: &FitArgs) -> Result<()> {
     };
     let ds = read_dataset(&a.data, layout, n, m, &angles)?;
     let mut model = initial_model(n, m, &prior, input_map)?;
+    if let Some(rows) = &a.known_rows {
+        let rows = parse_indices("--known-rows", rows, n)?;
+        model = model.with_known_rows(&rows).context("--known-rows")?;
+    }
     model
         .set_data(&ds.xs, &ds.us, &ds.xdot)
         .context("training data")?;

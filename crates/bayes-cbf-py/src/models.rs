@@ -90,8 +90,10 @@ fn report_dict<'py>(py: Python<'py>, r: &FitReport) -> PyResult<Bound<'py, PyDic
 /// `vec F(x) ~ GP(vec M0(x), B k0(x, x') ⊗ A)`, noise `σ² A`.
 ///
 /// `MVGP(state_dim, control_dim, lengthscales, A, B, noise_sigma,
-/// prior_mean=None, input_map=None, variance=1.0)`; `prior_mean` and
-/// `input_map` take the values of the model file (`model.json`).
+/// prior_mean=None, input_map=None, variance=1.0, known_rows=None)`;
+/// `prior_mean` and `input_map` take the values of the model file
+/// (`model.json`); `known_rows` lists rows of `F` known exactly from the
+/// prior mean (only the others are learned).
 #[pyclass(name = "MVGP", module = "bayes_cbf")]
 pub struct PyMvgp {
     pub(crate) model: Mvgp,
@@ -118,7 +120,7 @@ impl PyMvgp {
 #[pymethods]
 impl PyMvgp {
     #[new]
-    #[pyo3(signature = (state_dim, control_dim, lengthscales, A, B, noise_sigma, prior_mean=None, input_map=None, variance=1.0))]
+    #[pyo3(signature = (state_dim, control_dim, lengthscales, A, B, noise_sigma, prior_mean=None, input_map=None, variance=1.0, known_rows=None))]
     #[allow(non_snake_case, clippy::too_many_arguments)]
     fn new(
         state_dim: usize,
@@ -130,6 +132,7 @@ impl PyMvgp {
         prior_mean: Option<&Bound<'_, PyAny>>,
         input_map: Option<&Bound<'_, PyAny>>,
         variance: f64,
+        known_rows: Option<Vec<usize>>,
     ) -> PyResult<Self> {
         let (n, m) = (state_dim, control_dim);
         let ls = vector(lengthscales, "lengthscales", None)?;
@@ -147,6 +150,7 @@ impl PyMvgp {
             noise_sigma,
             prior_mean: prior_of(prior_mean)?,
             input_map: input_map_of(input_map)?,
+            known_rows: known_rows.unwrap_or_default(),
             data: Default::default(),
         };
         Self::from_file(&file)
@@ -360,6 +364,11 @@ impl PyMvgp {
         let ls = self.model.hyper().kernel.lengthscales().to_vec();
         let d = ls.len();
         to_numpy(py, ls, &[d])
+    }
+    /// Rows of `F` known exactly from the prior mean.
+    #[getter]
+    fn known_rows(&self) -> Vec<usize> {
+        self.model.known_rows().to_vec()
     }
     /// Kernel output scale.
     #[getter]

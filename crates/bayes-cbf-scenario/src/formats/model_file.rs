@@ -65,6 +65,10 @@ pub struct ModelFile {
     /// features (identity when absent).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub input_map: Option<Vec<FeatureSpec>>,
+    /// Rows of `F` known exactly from the prior mean (only the others are
+    /// learned; `Mvgp::with_known_rows`).
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub known_rows: Vec<usize>,
     /// Training data (may be empty: the prior only).
     #[serde(default)]
     pub data: DataSpec,
@@ -84,8 +88,9 @@ fn check_field(key: &str, v: &Value) -> Result<(), String> {
         "prior_mean" => de::<PriorSpec>(v),
         "input_map" => de::<Option<Vec<FeatureSpec>>>(v),
         "data" => de::<DataSpec>(v),
+        "known_rows" => de::<Vec<usize>>(v),
         _ => Err(format!(
-            "unknown key \"{key}\" (expected state_dim, control_dim, kernel, A, B, noise_sigma, prior_mean, input_map, data)"
+            "unknown key \"{key}\" (expected state_dim, control_dim, kernel, A, B, noise_sigma, prior_mean, input_map, known_rows, data)"
         )),
     }
 }
@@ -213,6 +218,9 @@ impl ModelFile {
             sigma: self.noise_sigma,
         };
         let mut model = Mvgp::new(n, m, hyper, self.prior_mean.to_prior(), input_map)?;
+        if !self.known_rows.is_empty() {
+            model = model.with_known_rows(&self.known_rows)?;
+        }
         let (xs, us, xdot) = self.flat_data()?;
         if !xs.is_empty() {
             model.set_data(&xs, &us, &xdot)?;
@@ -275,6 +283,7 @@ impl ModelFile {
             noise_sigma: h.sigma,
             prior_mean: prior.clone(),
             input_map,
+            known_rows: model.known_rows().to_vec(),
             data: DataSpec {
                 x: rows(model.xs(), n),
                 u: rows(&controls, m),

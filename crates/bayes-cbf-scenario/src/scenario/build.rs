@@ -138,7 +138,12 @@ pub fn build(s: &Scenario) -> Result<Built> {
             );
         }
     }
-    let model = Mvgp::new(n, m, hyper, prior, input_map).map_err(|e| crate::err!("gp: {e}"))?;
+    let mut model = Mvgp::new(n, m, hyper, prior, input_map).map_err(|e| crate::err!("gp: {e}"))?;
+    if !s.gp.known_rows.is_empty() {
+        model = model
+            .with_known_rows(&s.gp.known_rows)
+            .map_err(|e| crate::err!("gp: {e}"))?;
+    }
     // barriers and obstacles
     let mut barriers = Vec::new();
     let mut obstacles = Vec::new();

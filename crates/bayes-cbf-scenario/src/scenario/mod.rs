@@ -212,6 +212,10 @@ pub struct GpSpec {
     pub b: MatrixSpec,
     /// Noise scale σ (noise covariance σ²A).
     pub noise_sigma: f64,
+    /// Rows of `F` known exactly from the prior mean (e.g. `[0]` for a
+    /// pendulum's `θ̇ = ω`); only the others are learned.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub known_rows: Vec<usize>,
 }
 
 fn one() -> f64 {

@@ -213,7 +213,7 @@ impl MomentWorkspace {
             self.level = 1;
         }
         self.x.copy_from_slice(x);
-        self.a_mat.copy_from(&model.hyper().A);
+        self.a_mat.copy_from(model.row_cov());
         Ok(())
     }
 

@@ -156,7 +156,7 @@ pub fn mc_cbc_moments<K: Kernel>(
     let eig = nalgebra::SymmetricEigen::new(chat);
     let sqrt_c =
         &eig.eigenvectors * DMatrix::from_diagonal(&eig.eigenvalues.map(|l| l.max(0.0).sqrt())); // Ĉ = S Sᵀ
-    let (la, _) = model.hyper().cholesky_factors()?;
+    let la = model.row_cov_factor()?;
     let centre_f = pts_f
         .iter()
         .position(|o| o.iter().all(|&d| d == 0))

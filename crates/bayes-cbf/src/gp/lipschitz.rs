@@ -464,7 +464,7 @@ impl Mvgp<Rbf> {
         let r = sides.iter().map(|w| w * w).sum::<f64>().sqrt();
         let log_term = (2.0 * (2.0 * (n * n) as f64 / settings.delta_l).ln()).sqrt();
         let dudley = 12.0 * (6.0 * n as f64).sqrt();
-        let a = &hyper.A;
+        let a = self.row_cov();
         let mut kernel_lipschitz = vec![0.0; n];
         let mut sigma_entries = vec![0.0; n * n];
         let mut analytic_entries = vec![0.0; n * n];
@@ -490,7 +490,7 @@ impl Mvgp<Rbf> {
         let (numerical, numerical_entries) = if settings.samples == 0 {
             (None, Vec::new())
         } else {
-            let (la, _) = hyper.cholesky_factors()?;
+            let la = self.row_cov_factor()?;
             let lh: Vec<DMatrix<f64>> = moments
                 .iter()
                 .map(|nm| psd_sqrt(&DMatrix::from_row_slice(n, n, &nm.h)))

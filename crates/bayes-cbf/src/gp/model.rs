@@ -138,7 +138,7 @@ impl<K: Kernel> DynamicsModel for Mvgp<K> {
     /// `(M_k(x), B_k(x, x) ⊗ A)`.
     fn posterior_vec(&self, x: &[f64]) -> Result<(DMatrix<f64>, DMatrix<f64>), InputError> {
         let post = self.posterior(x)?;
-        let cov = post.B.kronecker(&self.hyper().A);
+        let cov = post.B.kronecker(self.row_cov());
         Ok((post.mean, cov))
     }
     fn posterior_mean(&self, x: &[f64]) -> Result<DMatrix<f64>, InputError> {

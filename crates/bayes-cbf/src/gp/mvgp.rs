@@ -159,6 +159,11 @@ pub struct Mvgp<K: Kernel = Rbf> {
     scratch: Vec<f64>,
     /// `diag(G⁻¹)` for the budget policy, maintained once requested.
     info: budget::InfoTracker,
+    /// Rows of `F` known exactly from the prior mean (not learned).
+    known: Vec<usize>,
+    /// `A` with the known rows and columns zeroed: the row covariance of
+    /// the model (`Cov(vec F(x)) = B_k(x, x) ⊗ row_cov`).
+    row_cov: DMatrix<f64>,
 }
 
 impl<K: Kernel> Mvgp<K> {
@@ -172,6 +177,7 @@ impl<K: Kernel> Mvgp<K> {
     ) -> Result<Self, InputError> {
         super::prior::check_model_dims(n, m, &input_map, &prior)?;
         hyper.validate(n, m, input_map.output_dim(n))?;
+        let row_cov = hyper.A.clone();
         Ok(Self {
             n,
             m,
@@ -185,7 +191,104 @@ impl<K: Kernel> Mvgp<K> {
             alpha: OnceLock::new(),
             scratch: Vec::new(),
             info: budget::InfoTracker::default(),
+            known: Vec::new(),
+            row_cov,
         })
+    }
+
+    /// Declares the rows of `F` in `rows` known exactly from the prior mean
+    /// (partially known dynamics, e.g. a kinematic row `θ̇ = ω`): their
+    /// posterior is the prior mean with zero variance, and only the other
+    /// rows are learned.
+    ///
+    /// Since the posterior mean `M_k = M0 + R G⁻¹ 𝓑U̲ᵀ` does not involve `A`
+    /// and the covariance is `B_k ⊗ A`, this is the MVGP whose `A` has
+    /// zero rows and columns at the known rows: their residuals are set to
+    /// zero (the label is the prior's value), their variance is zero, and
+    /// the likelihood is that of the learned rows alone (`A` restricted to
+    /// them). `A`'s entries on known rows are kept but unused.
+    ///
+    /// Refactorises the data, if any (O(k³)).
+    pub fn with_known_rows(mut self, rows: &[usize]) -> Result<Self, Error> {
+        let mut known = rows.to_vec();
+        known.sort_unstable();
+        known.dedup();
+        if known.len() != rows.len() {
+            return Err(
+                InputError::invalid("known_rows", f64::NAN, "rows must be distinct").into(),
+            );
+        }
+        if let Some(&r) = known.iter().find(|&&r| r >= self.n) {
+            return Err(InputError::invalid(
+                "known_rows",
+                r as f64,
+                &format!("is not a row of F (state_dim = {})", self.n),
+            )
+            .into());
+        }
+        if known.len() == self.n {
+            return Err(InputError::invalid(
+                "known_rows",
+                known.len() as f64,
+                "every row is known: nothing is left to learn",
+            )
+            .into());
+        }
+        self.known = known;
+        self.update_row_cov();
+        if !self.is_empty() {
+            let (xs, xdot) = (self.data.xs.clone(), self.data.xdot.clone());
+            let us = self.controls();
+            self.set_data(&xs, &us, &xdot)?;
+        }
+        Ok(self)
+    }
+
+    /// Rows of `F` known exactly (sorted).
+    pub fn known_rows(&self) -> &[usize] {
+        &self.known
+    }
+
+    /// Rows of `F` that are learned (sorted).
+    pub fn learned_rows(&self) -> Vec<usize> {
+        (0..self.n).filter(|i| !self.known.contains(i)).collect()
+    }
+
+    /// The row covariance of the model: `A` with known rows and columns
+    /// zeroed, so that `Cov(vec F(x)) = B_k(x, x) ⊗ row_cov()`.
+    pub fn row_cov(&self) -> &DMatrix<f64> {
+        &self.row_cov
+    }
+
+    /// A factor `L` with `L Lᵀ = row_cov()`: the Cholesky factor of `A`
+    /// restricted to the learned rows, zero on the known rows (for drawing
+    /// `F`).
+    pub fn row_cov_factor(&self) -> Result<DMatrix<f64>, InputError> {
+        let rows = self.learned_rows();
+        let r = rows.len();
+        let a = DMatrix::from_fn(r, r, |i, j| self.hyper.A[(rows[i], rows[j])]);
+        let l = a
+            .cholesky()
+            .ok_or_else(|| InputError::NotPositiveDefinite {
+                field: "A".into(),
+                reason: "the learned rows' block has no Cholesky factor".into(),
+            })?
+            .l();
+        let mut full = DMatrix::zeros(self.n, self.n);
+        for (i, &ri) in rows.iter().enumerate() {
+            for (j, &rj) in rows.iter().enumerate() {
+                full[(ri, rj)] = l[(i, j)];
+            }
+        }
+        Ok(full)
+    }
+
+    fn update_row_cov(&mut self) {
+        self.row_cov.copy_from(&self.hyper.A);
+        for &r in &self.known {
+            self.row_cov.row_mut(r).fill(0.0);
+            self.row_cov.column_mut(r).fill(0.0);
+        }
     }
 
     /// State dimension `n`.
@@ -249,6 +352,10 @@ impl<K: Kernel> Mvgp<K> {
             let mut r = xdot[i];
             for c in 0..p {
                 r -= m0[i + n * c] * us[uoff + c];
+            }
+            // known rows: the label is the prior's value
+            if self.known.contains(&i) {
+                r = 0.0;
             }
             self.data.resid.push(r);
         }
@@ -559,26 +666,31 @@ impl<K: Kernel> Mvgp<K> {
 
     /// Exact log marginal likelihood of the stored data:
     /// `vec Ẋ ~ N(vec(𝓜U̲), (K + σ²I) ⊗ A)`,
-    /// `log p = −½ [n log|G| + k log|A| + tr(A⁻¹ R G⁻¹ Rᵀ) + nk log 2π]`.
+    /// `log p = −½ [n log|G| + k log|A| + tr(A⁻¹ R G⁻¹ Rᵀ) + nk log 2π]`;
+    /// with known rows, `n`, `A` and `R` are those of the learned rows.
     pub fn log_marginal_likelihood(&self) -> f64 {
         let (n, k) = (self.n, self.len());
         if k == 0 {
             return 0.0;
         }
-        // R G^{-1} R^T = βᵀ β
+        // R G^{-1} R^T = βᵀ β, on the learned rows (module docs of
+        // with_known_rows)
+        let rows = self.learned_rows();
+        let r = rows.len();
         let b = self.beta.as_ref().submatrix(0, 0, k, n);
         let q = with_faer(|| b.transpose() * b);
-        let qn = DMatrix::from_fn(n, n, |i, j| q[(i, j)]);
-        let chol_a = match self.hyper.A.clone().cholesky() {
+        let qn = DMatrix::from_fn(r, r, |i, j| q[(rows[i], rows[j])]);
+        let a = DMatrix::from_fn(r, r, |i, j| self.hyper.A[(rows[i], rows[j])]);
+        let chol_a = match a.cholesky() {
             Some(c) => c,
             None => return f64::NEG_INFINITY,
         };
         let logdet_a = 2.0 * chol_a.l().diagonal().iter().map(|v| v.ln()).sum::<f64>();
         let tr = (chol_a.inverse() * qn).trace();
-        -0.5 * (n as f64 * self.factor.log_det()
+        -0.5 * (r as f64 * self.factor.log_det()
             + k as f64 * logdet_a
             + tr
-            + (n * k) as f64 * (2.0 * std::f64::consts::PI).ln())
+            + (r * k) as f64 * (2.0 * std::f64::consts::PI).ln())
     }
 
     /// Replaces the hyperparameters (validated) and refactorises; on error
@@ -593,6 +705,7 @@ impl<K: Kernel> Mvgp<K> {
             self.update_bu();
             return Err(e.into());
         }
+        self.update_row_cov();
         Ok(())
     }
 

@@ -349,9 +349,14 @@ pub fn fit<K: Kernel>(model: &mut Mvgp<K>, settings: &FitSettings) -> Result<Fit
     if k == 0 {
         return Err(GpError::NoData.into());
     }
-    let n = model.state_dim();
+    let n_state = model.state_dim();
     let p = model.control_dim() + 1;
-    let d = model.input_map().output_dim(n);
+    let d = model.input_map().output_dim(n_state);
+    // with known rows, only the learned rows enter the likelihood (their
+    // residuals and A's block on them; Mvgp::with_known_rows)
+    let rows = model.learned_rows();
+    let n = rows.len();
+    let a_learned = DMatrix::from_fn(n, n, |i, j| model.hyper().A[(rows[i], rows[j])]);
     let initial_ll = model.log_marginal_likelihood();
     let kernel = model.hyper().kernel.clone();
     let layout = Layout {
@@ -366,7 +371,15 @@ pub fn fit<K: Kernel>(model: &mut Mvgp<K>, settings: &FitSettings) -> Result<Fit
     };
     let mut rng = ChaCha8Rng::seed_from_u64(settings.seed);
     // data-driven initial point
-    let resid = model.residuals();
+    let all_resid = model.residuals();
+    let resid: Vec<f64> = if n == n_state {
+        all_resid.to_vec()
+    } else {
+        (0..k)
+            .flat_map(|j| rows.iter().map(move |&i| all_resid[j * n_state + i]))
+            .collect()
+    };
+    let resid = resid.as_slice();
     let us = model.augmented_controls();
     let zs = model.mapped_inputs();
     let mean_r2 = (resid.iter().map(|r| r * r).sum::<f64>() / resid.len() as f64).max(1e-12);
@@ -392,9 +405,9 @@ pub fn fit<K: Kernel>(model: &mut Mvgp<K>, settings: &FitSettings) -> Result<Fit
             .scale_index()
             .map(|i| kh[i].exp())
             .unwrap_or(1.0);
-        let c = h.A[(0, 0)];
+        let c = a_learned[(0, 0)];
         (
-            h.A.clone() / c,
+            a_learned.clone() / c,
             &h.B * (c * s / s.max(1e-300)),
             h.sigma * c.sqrt(),
         )
@@ -425,7 +438,7 @@ pub fn fit<K: Kernel>(model: &mut Mvgp<K>, settings: &FitSettings) -> Result<Fit
     let harness = Harness::new(Likelihood {
         layout: layout.clone(),
         kernel: kernel_start,
-        fixed_a: model.hyper().A.clone(),
+        fixed_a: a_learned.clone(),
         zs,
         us,
         resid,
@@ -450,18 +463,25 @@ pub fn fit<K: Kernel>(model: &mut Mvgp<K>, settings: &FitSettings) -> Result<Fit
     let evaluations = harness.evaluations();
     let (kern, A, B, sigma) = harness.objective().unpack(&best.theta)?;
     drop(harness);
-    // report the equivalent model with tr A = n
+    // report the equivalent model with tr A = n (over the learned rows)
     let c = A.trace() / n as f64;
+    let mut full_a = model.hyper().A.clone();
+    for (i, &ri) in rows.iter().enumerate() {
+        for j in 0..n_state {
+            if !rows.contains(&j) {
+                full_a[(ri, j)] = 0.0;
+                full_a[(j, ri)] = 0.0;
+            }
+        }
+        for (j, &rj) in rows.iter().enumerate() {
+            full_a[(ri, rj)] = A[(i, j)] / c;
+        }
+    }
     let hyper = MvgpHyper {
         kernel: kern,
-        A: A / c,
-        B: B * c,
+        A: symmetrise(&full_a),
+        B: symmetrise(&(B * c)),
         sigma: sigma * c.sqrt(),
-    };
-    let hyper = MvgpHyper {
-        A: symmetrise(&hyper.A),
-        B: symmetrise(&hyper.B),
-        ..hyper
     };
     model.set_hyper(hyper)?;
     Ok(FitReport {

@@ -515,7 +515,7 @@ impl<'a> ClosedLoop<'a> {
         let trace_cov = self
             .controller
             .workspace()
-            .map(|ws| ws.posterior().B.trace() * self.model.hyper().A.trace())
+            .map(|ws| ws.posterior().B.trace() * self.model.row_cov().trace())
             .unwrap_or(f64::NAN);
         let h: Vec<f64> = self.barriers.iter().map(|b| b.value(&self.x)).collect();
         let mut h_fine_min = h.clone();
