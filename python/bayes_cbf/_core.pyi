@@ -72,6 +72,9 @@ class MVGP:
     @property
     def known_rows(self) -> list[int]: ...
     @property
+    def row_cov(self) -> F64:
+        """A with the known rows and columns zeroed: Cov(vec F(x)) = B_k(x, x) ⊗ row_cov."""
+    @property
     def lengthscales(self) -> F64: ...
     @property
     def variance(self) -> float: ...

@@ -353,6 +353,12 @@ impl PyMvgp {
     fn a<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyArrayDyn<f64>>> {
         matrix_to_numpy(py, &self.model.hyper().A)
     }
+    /// The row covariance of the posterior, `A` with the known rows and
+    /// columns zeroed: `Cov(vec F(x)) = B_k(x, x) ⊗ row_cov`.
+    #[getter]
+    fn row_cov<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyArrayDyn<f64>>> {
+        matrix_to_numpy(py, self.model.row_cov())
+    }
     /// Column covariance `B` (`(1+m) × (1+m)`).
     #[getter(B)]
     fn b<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyArrayDyn<f64>>> {

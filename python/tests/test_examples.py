@@ -1,0 +1,29 @@
+"""The examples run end to end (short)."""
+
+from __future__ import annotations
+
+import json
+import pathlib
+import runpy
+import subprocess
+import sys
+
+ROOT = pathlib.Path(__file__).resolve().parents[2]
+
+
+def test_fit_predict_filter_runs(capsys):
+    runpy.run_path(str(ROOT / "examples" / "fit_predict_filter.py"), run_name="__main__")
+    out = capsys.readouterr().out
+    assert "derivatives: True" in out and "FilterResult" in out
+
+
+def test_gym_pendulum_runs(tmp_path):
+    out = tmp_path / "gym.json"
+    subprocess.run([sys.executable, str(ROOT / "examples" / "gym_pendulum.py"), "--episodes", "2",
+                    "--policy", "swing-up", "--seed", "7", "--out", str(out)], check=True,
+                   capture_output=True)
+    result = json.loads(out.read_text())
+    rows = {r["controller"]: r for r in result["rows"]}
+    assert set(rows) == {"unfiltered", "mean-cbf", "bayes-cbf", "bayes-cbf-zero-prior"}
+    assert rows["unfiltered"]["episodes_with_h_below_0"] == 2
+    assert 1.0 < result["integrator_energy_rise"] < 3.0
