@@ -2,7 +2,8 @@
 //! file (`model.json`) of the scenario crate, and the fits.
 
 use crate::convert::{
-    core_err, input_err, json_of, matrix, matrix_to_numpy, rows, scenario_err, to_numpy, vector,
+    array, check_finite, core_err, input_err, json_of, matrix, matrix_to_numpy, row_major, rows,
+    scenario_err, to_numpy, vector,
 };
 use bayes_cbf::gp::{
     fit, fit_cogp, Cogp, CogpFitSettings, CogpHyper, FitReport, FitSettings, Mvgp, Posterior, Rank,
@@ -14,6 +15,7 @@ use bayes_cbf_scenario::model_file::ModelFile;
 use bayes_cbf_scenario::parse::parse_rank;
 use bayes_cbf_scenario::prior_spec::PriorSpec;
 use numpy::PyArrayDyn;
+use numpy::PyUntypedArrayMethods;
 use pyo3::prelude::*;
 use pyo3::types::PyDict;
 use std::path::PathBuf;
@@ -217,7 +219,18 @@ impl PyMvgp {
     ) -> PyResult<(Bound<'py, PyArrayDyn<f64>>, Bound<'py, PyArrayDyn<f64>>)> {
         let (n, m) = (self.model.state_dim(), self.model.control_dim());
         let p = m + 1;
-        let (xs, q, _) = matrix(Xq, "Xq", None, Some(n))?;
+        // borrowed from numpy when C-contiguous (no copy)
+        let arr = array(Xq, "Xq", 2)?;
+        let q = arr.shape()[0];
+        if arr.shape()[1] != n {
+            return Err(input_err(format!(
+                "Xq: expected shape (any, {n}), got ({q}, {})",
+                arr.shape()[1]
+            )));
+        }
+        let xs = row_major(&arr);
+        check_finite("Xq", &xs, n)?;
+        let xs: &[f64] = &xs;
         let model = &self.model;
         let (means, bs) = py
             .detach(|| -> Result<_, bayes_cbf::InputError> {
