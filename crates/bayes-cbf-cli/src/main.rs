@@ -12,6 +12,7 @@ mod logger;
 mod output;
 mod run_cmd;
 mod safety_cmds;
+mod sweep_cmd;
 
 use clap::{Parser, Subcommand};
 use std::process::ExitCode;
@@ -43,6 +44,9 @@ enum Command {
     Control(safety_cmds::ControlArgs),
     /// Run a built-in scenario or experiment, or a scenario TOML file.
     Run(run_cmd::RunArgs),
+    /// Combine the shards of a seed sweep or of calibration (directories
+    /// written with --shard I/N) into the unsharded result.
+    Merge(sweep_cmd::MergeArgs),
     /// List the built-in scenarios and experiments.
     List,
     /// Time the real workloads (control step, update, prediction, fits, streams) as JSON.
@@ -95,6 +99,7 @@ fn main() -> ExitCode {
         Some(Command::Moments(a)) => safety_cmds::run_moments(a),
         Some(Command::Run(a)) => run_cmd::run(a),
         Some(Command::List) => run_cmd::list(),
+        Some(Command::Merge(a)) => sweep_cmd::run_merge(a),
         Some(Command::Bench(a)) => bench::run_bench(a),
         Some(Command::Control(a)) => safety_cmds::run_control(a),
         None => run_cmd::default_job(),

@@ -40,10 +40,19 @@ pub struct RunArgs {
     /// Sliding window (observations kept) of `soak` (default 500).
     #[arg(long, allow_hyphen_values = true)]
     pub window: Option<usize>,
+    /// Run the scenario once per seed, A..B (B excluded) or A..=B, in
+    /// parallel: writes sweep.csv (one row per seed) and
+    /// sweep_summary.json (outcome counts with Wilson intervals).
+    #[arg(long, value_name = "A..B")]
+    pub seeds: Option<String>,
+    /// Run only shard I of N (from 0) of a seed sweep or of calibration;
+    /// combine the shards' directories with `bayes-cbf merge`.
+    #[arg(long, value_name = "I/N")]
+    pub shard: Option<String>,
 }
 
 /// A progress bar on stderr when it is a terminal outside CI, else hidden.
-fn progress_bar(what: &str, unit: &str) -> ProgressBar {
+pub fn progress_bar(what: &str, unit: &str) -> ProgressBar {
     if std::io::stderr().is_terminal() && std::env::var_os("CI").is_none() {
         let style = ProgressStyle::with_template(&format!(
             "{what} {{elapsed_precise}} [{{bar:40}}] {{pos}}/{{len}} {unit}, ETA {{eta}}"
@@ -68,6 +77,23 @@ pub fn run(a: &RunArgs) -> Result<()> {
             .out
             .clone()
             .unwrap_or_else(|| PathBuf::from("runs").join(name));
+        if a.seeds.is_some() {
+            anyhow::bail!(
+                "--seeds applies to closed-loop scenarios, not to the experiment '{name}'"
+            );
+        }
+        let args = ExperimentArgs {
+            seed: a.seed.unwrap_or(0),
+            quick: a.quick,
+        };
+        if let Some(shard) = &a.shard {
+            if *name != "calibration" {
+                anyhow::bail!(
+                    "--shard applies to calibration and to seed sweeps (--seeds), not to '{name}'"
+                );
+            }
+            return crate::sweep_cmd::run_calibration_shard(&args, a.episodes, shard, &out);
+        }
         return run_experiment(
             name,
             &out,
@@ -87,6 +113,20 @@ pub fn run(a: &RunArgs) -> Result<()> {
             "--episodes, --steps and --window apply to the experiments calibration and soak, not to the scenario '{}'",
             a.scenario
         );
+    }
+    if let Some(seeds) = &a.seeds {
+        if a.seed.is_some() || a.print_config {
+            anyhow::bail!("--seeds runs many seeds: drop --seed and --print-config");
+        }
+        let (sc, _) = scenario::load(&a.scenario, &a.sets)?;
+        let out = a
+            .out
+            .clone()
+            .unwrap_or_else(|| PathBuf::from("runs").join(format!("{}-seeds", sc.name)));
+        return crate::sweep_cmd::run_sweep(&a.scenario, &a.sets, seeds, a.shard.as_deref(), &out);
+    }
+    if a.shard.is_some() {
+        anyhow::bail!("--shard applies to seed sweeps (--seeds) and calibration");
     }
     let mut sets = a.sets.clone();
     if let Some(seed) = a.seed {
@@ -169,18 +209,23 @@ fn run_experiment(name: &str, out: &Path, args: &ExperimentArgs, sizes: &Sizes) 
         experiments::run_sized(name, args, sizes, &progress)
     })?;
     bar.finish_and_clear();
+    write_experiment(name, &result, out)
+}
+
+/// Writes an experiment's summary, tables and figures into `out`.
+pub fn write_experiment(name: &str, result: &ExperimentResult, out: &Path) -> Result<()> {
     std::fs::create_dir_all(out)?;
     write_json(&out.join("summary.json"), &result.summary())?;
     for t in result.tables() {
         write_atomic(&out.join(&t.file), t.csv.as_bytes())?;
     }
-    if let ExperimentResult::AckermannTriggering(r) = &result {
+    if let ExperimentResult::AckermannTriggering(r) = result {
         for (dir, o) in &r.runs {
             write_run(o, &out.join(dir))?;
         }
     }
-    let figures = experiment_figures(&result, out)?;
-    match &result {
+    let figures = experiment_figures(result, out)?;
+    match result {
         ExperimentResult::Calibration(r) => eprint!("{}", r.console_table),
         ExperimentResult::Soak(r) if r.non_finite > 0 => anyhow::bail!(
             "soak: {} step(s) produced non-finite values (see {})",

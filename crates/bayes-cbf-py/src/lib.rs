@@ -9,6 +9,7 @@ mod convert;
 mod models;
 mod safety;
 mod scenarios;
+mod sweeps;
 
 use pyo3::prelude::*;
 
@@ -27,6 +28,16 @@ fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(safety::moments, m)?)?;
     m.add_function(wrap_pyfunction!(scenarios::run_scenario, m)?)?;
     m.add_function(wrap_pyfunction!(scenarios::list_scenarios, m)?)?;
+    for f in [
+        wrap_pyfunction!(sweeps::check_scenario, m)?,
+        wrap_pyfunction!(sweeps::sweep_meta, m)?,
+        wrap_pyfunction!(sweeps::sweep_shard, m)?,
+        wrap_pyfunction!(sweeps::sweep_merge, m)?,
+        wrap_pyfunction!(sweeps::calibration_shard, m)?,
+        wrap_pyfunction!(sweeps::calibration_merge, m)?,
+    ] {
+        m.add_function(f)?;
+    }
     m.add("__version__", env!("CARGO_PKG_VERSION"))?;
     Ok(())
 }

@@ -19,12 +19,14 @@
 
 pub mod bench;
 pub mod error;
+pub mod exact;
 pub mod experiments;
 pub mod formats;
 pub mod io;
 pub mod queries;
 pub mod scenario;
 pub mod stats;
+pub mod sweep;
 pub mod workloads;
 
 #[cfg(test)]

@@ -69,7 +69,9 @@ pub(crate) const PROCESS_NOISE_MIS: f64 = 0.01;
 pub(crate) const ACTIVE_SLACK: f64 = 1e-5;
 
 /// The two systems.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord)]
+#[derive(
+    Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord, serde::Serialize, serde::Deserialize,
+)]
 pub(crate) enum System {
     /// Ackermann vehicle (Eq. 32), relative-degree-1 obstacle barrier.
     Vehicle,
@@ -87,7 +89,9 @@ impl System {
 }
 
 /// Well-specified or mis-specified truth.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord)]
+#[derive(
+    Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord, serde::Serialize, serde::Deserialize,
+)]
 pub(crate) enum TruthKind {
     /// A draw of the model's own GP prior; no process noise.
     WellSpecified,
@@ -406,11 +410,12 @@ pub(crate) fn controller(
 }
 
 /// What one episode of one controller showed.
-#[derive(Debug, Clone, PartialEq, Default)]
+#[derive(Debug, Clone, PartialEq, Default, serde::Serialize, serde::Deserialize)]
 pub(crate) struct EpisodeStats {
     /// Control steps run.
     pub steps: usize,
     /// `min h` over the fine grid of the whole episode.
+    #[serde(with = "crate::exact")]
     pub min_h: f64,
     /// Steps whose fine grid has `h < 0`.
     pub steps_h_violated: usize,
@@ -430,6 +435,7 @@ pub(crate) struct EpisodeStats {
     /// out).
     pub z: [ZStats; 2],
     /// Closest distance to the obstacle (vehicle).
+    #[serde(with = "crate::exact::option")]
     pub min_distance: Option<f64>,
     /// Goal reached (vehicle: within [`GOAL_TOL`] at some step).
     pub goal_reached: Option<bool>,
@@ -542,14 +548,17 @@ pub(crate) const NORMAL_QUANTILES: [(f64, f64); 4] = [
 /// Summary of standardised conditions `z = (C_true − E[C]) / √Var[C]`: a
 /// calibrated Gaussian predictive distribution gives mean 0, variance 1 and
 /// `P(z < Φ⁻¹(q)) = q`.
-#[derive(Debug, Clone, Copy, PartialEq, Default)]
+#[derive(Debug, Clone, Copy, PartialEq, Default, serde::Serialize, serde::Deserialize)]
 pub(crate) struct ZStats {
     pub n: usize,
+    #[serde(with = "crate::exact")]
     pub sum: f64,
+    #[serde(with = "crate::exact")]
     pub sum2: f64,
     /// Counts below each of [`NORMAL_QUANTILES`].
     pub below: [usize; 4],
     /// `Σ Φ(−E[C]/√Var[C])`: the violations the model expects.
+    #[serde(with = "crate::exact")]
     pub expected: f64,
 }
 

@@ -68,6 +68,7 @@ mod stats;
 use super::{ExperimentArgs, Progress, Table};
 use crate::bail;
 use crate::error::Result;
+use crate::sweep::Shard;
 use episode::{run_episode, ControllerKind, EpisodeStats, System, TruthKind, CONTROLLERS};
 use rayon::prelude::*;
 use std::sync::atomic::{AtomicUsize, Ordering};
@@ -76,6 +77,7 @@ use std::time::Instant;
 pub use report::{Cell, Series, FLOOR};
 
 /// The result of `calibration`.
+#[derive(Debug, Clone, PartialEq)]
 pub struct Calibration {
     /// The plotted rates, one cell per (system, truth).
     pub cells: Vec<Cell>,
@@ -127,7 +129,7 @@ impl Plan {
 }
 
 /// One closed-loop run.
-#[derive(Debug, Clone, Copy, PartialEq)]
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
 pub(crate) struct Task {
     pub system: System,
     pub steps: usize,
@@ -171,12 +173,29 @@ fn tasks(plan: &Plan) -> Vec<Task> {
 
 /// Runs every task of `plan` (in parallel) and returns the results in task
 /// order.
+#[cfg(test)]
 pub(crate) fn run_tasks(
     plan: &Plan,
     seed: u64,
     progress: &dyn Progress,
 ) -> Vec<(Task, EpisodeStats)> {
-    let all = tasks(plan);
+    run_shard_tasks(plan, seed, Shard::WHOLE, progress)
+}
+
+/// Runs the tasks of `plan` that belong to `shard` (by position in task
+/// order), in parallel, and returns them in task order.
+fn run_shard_tasks(
+    plan: &Plan,
+    seed: u64,
+    shard: Shard,
+    progress: &dyn Progress,
+) -> Vec<(Task, EpisodeStats)> {
+    let all: Vec<Task> = tasks(plan)
+        .into_iter()
+        .enumerate()
+        .filter(|(i, _)| shard.owns(*i))
+        .map(|(_, t)| t)
+        .collect();
     let done = AtomicUsize::new(0);
     all.par_iter()
         .map(|t| {
@@ -188,25 +207,126 @@ pub(crate) fn run_tasks(
         .collect()
 }
 
+/// The results of one shard of a calibration run (`part.json`): merged
+/// with the other shards by [`merge`], they give exactly the unsharded run.
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct CalibrationPart {
+    /// `--seed`.
+    pub seed: u64,
+    /// `--quick`.
+    pub quick: bool,
+    /// Episodes per (system, truth).
+    pub episodes: usize,
+    /// This shard.
+    pub shard: Shard,
+    /// Wall time of this shard (s).
+    pub wall_time_s: f64,
+    results: Vec<(Task, EpisodeStats)>,
+}
+
+/// Runs shard `shard` of the experiment (every task whose position in the
+/// task order belongs to it).
+pub fn run_shard(
+    args: &ExperimentArgs,
+    episodes: Option<usize>,
+    shard: Shard,
+    progress: &dyn Progress,
+) -> Result<CalibrationPart> {
+    let plan = Plan::new(args.quick, episodes)?;
+    faer::set_global_parallelism(faer::Par::Seq);
+    let start = Instant::now();
+    let results = run_shard_tasks(&plan, args.seed, shard, progress);
+    Ok(CalibrationPart {
+        seed: args.seed,
+        quick: args.quick,
+        episodes: plan.episodes,
+        shard,
+        wall_time_s: start.elapsed().as_secs_f64(),
+        results,
+    })
+}
+
+/// Merges the shards of one calibration run into its result: checks that
+/// they share seed, size and split and are each present once, restores
+/// the task order and computes the tables and summary from all tasks (the
+/// wall time is the sum of the shards').
+pub fn merge(parts: Vec<CalibrationPart>) -> Result<Calibration> {
+    let Some(first) = parts.first() else {
+        bail!("merge: no shards given");
+    };
+    let (seed, quick, episodes, count) =
+        (first.seed, first.quick, first.episodes, first.shard.count);
+    let mut seen = vec![false; count];
+    for p in &parts {
+        if (p.seed, p.quick, p.episodes) != (seed, quick, episodes) {
+            bail!(
+                "merge: shard {}/{} is of another run (seed {}, quick {}, episodes {}) than shard {}/{count} (seed {seed}, quick {quick}, episodes {episodes})",
+                p.shard.index, p.shard.count, p.seed, p.quick, p.episodes, first.shard.index
+            );
+        }
+        if p.shard.count != count {
+            bail!(
+                "merge: shard {}/{} does not belong to a split into {count}",
+                p.shard.index,
+                p.shard.count
+            );
+        }
+        if std::mem::replace(&mut seen[p.shard.index], true) {
+            bail!("merge: shard {}/{count} is given twice", p.shard.index);
+        }
+    }
+    let missing: Vec<String> = (0..count)
+        .filter(|&i| !seen[i])
+        .map(|i| format!("{i}/{count}"))
+        .collect();
+    if !missing.is_empty() {
+        bail!("merge: missing shard(s) {}", missing.join(", "));
+    }
+    let plan = Plan::new(quick, Some(episodes))?;
+    let order = tasks(&plan);
+    let mut slots: Vec<Option<EpisodeStats>> = vec![None; order.len()];
+    let mut wall = 0.0;
+    for p in parts {
+        wall += p.wall_time_s;
+        let mut mine = (0..order.len()).filter(|i| p.shard.owns(*i));
+        for (t, s) in p.results {
+            match mine.next() {
+                Some(i) if order[i] == t => slots[i] = Some(s),
+                _ => bail!(
+                    "merge: shard {}/{count} holds a task out of its order ({t:?}); the file is not a shard of this run",
+                    p.shard.index
+                ),
+            }
+        }
+        if mine.next().is_some() {
+            bail!("merge: shard {}/{count} is incomplete", p.shard.index);
+        }
+    }
+    let results: Vec<(Task, EpisodeStats)> = order
+        .into_iter()
+        .zip(slots)
+        .map(|(t, s)| s.map(|s| (t, s)))
+        .collect::<Option<_>>()
+        .ok_or_else(|| crate::err!("merge: a task has no result"))?;
+    let args = ExperimentArgs { seed, quick };
+    let rows = report::tables(&plan, &results);
+    Ok(Calibration {
+        cells: report::plot_cells(&rows),
+        console_table: report::console_table(&rows),
+        summary: report::summary(&args, &plan, &rows, &results, wall),
+        tables: vec![report::episodes_csv(&results)],
+    })
+}
+
 /// Runs the experiment with `episodes` per (system, truth) (see the module
-/// docs), reporting each finished episode.
+/// docs), reporting each finished episode: the one-shard run, merged.
 pub fn run(
     args: &ExperimentArgs,
     episodes: Option<usize>,
     progress: &dyn Progress,
 ) -> Result<Calibration> {
-    let plan = Plan::new(args.quick, episodes)?;
-    faer::set_global_parallelism(faer::Par::Seq);
-    let start = Instant::now();
-    let results = run_tasks(&plan, args.seed, progress);
-    let wall = start.elapsed().as_secs_f64();
-    let rows = report::tables(&plan, &results);
-    Ok(Calibration {
-        cells: report::plot_cells(&rows),
-        console_table: report::console_table(&rows),
-        summary: report::summary(args, &plan, &rows, &results, wall),
-        tables: vec![report::episodes_csv(&results)],
-    })
+    merge(vec![run_shard(args, episodes, Shard::WHOLE, progress)?])
 }
 
 #[cfg(test)]

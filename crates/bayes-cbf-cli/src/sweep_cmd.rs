@@ -1,0 +1,165 @@
+//! Seed sweeps (`run NAME --seeds A..B`), shards (`--shard I/N`) and
+//! `bayes-cbf merge`.
+
+use crate::run_cmd::{progress_bar, write_experiment};
+use anyhow::{bail, Context, Result};
+use bayes_cbf_scenario::experiments::calibration::{self, CalibrationPart};
+use bayes_cbf_scenario::experiments::{ExperimentArgs, ExperimentResult};
+use bayes_cbf_scenario::io::{write_atomic, write_json};
+use bayes_cbf_scenario::sweep::{
+    merge_sweeps, parse_rows_csv, rows_csv, run_seeds, summarise, SeedRange, Shard, SweepMeta,
+};
+use clap::Args;
+use std::path::{Path, PathBuf};
+
+/// Distance to the goal that counts as reached in a sweep's summary (m).
+pub const GOAL_TOLERANCE: f64 = 1.0;
+
+/// Arguments of `bayes-cbf merge`.
+#[derive(Debug, Args)]
+pub struct MergeArgs {
+    /// Output directories of the shards (each written by `--shard I/N`).
+    #[arg(required = true)]
+    pub dirs: Vec<PathBuf>,
+    /// Where to write the merged result (default: the first directory's
+    /// parent, `merged`).
+    #[arg(long)]
+    pub out: Option<PathBuf>,
+}
+
+/// Runs a seed sweep of `scenario` into `out`.
+pub fn run_sweep(
+    scenario: &str,
+    sets: &[String],
+    seeds: &str,
+    shard: Option<&str>,
+    out: &Path,
+) -> Result<()> {
+    let meta = SweepMeta {
+        scenario: scenario.to_string(),
+        sets: sets.to_vec(),
+        seeds: seeds.parse::<SeedRange>()?,
+        shard: shard
+            .map(str::parse::<Shard>)
+            .transpose()?
+            .unwrap_or(Shard::WHOLE),
+        goal_tolerance: GOAL_TOLERANCE,
+    };
+    let bar = progress_bar(&format!("{scenario} seeds"), "runs");
+    let rows = run_seeds(&meta, &|done, total| {
+        bar.set_length(total as u64);
+        bar.set_position(done as u64);
+    })?;
+    bar.finish_and_clear();
+    std::fs::create_dir_all(out)?;
+    write_atomic(&out.join("sweep.csv"), rows_csv(&rows).as_bytes())?;
+    write_json(&out.join("shard.json"), &meta)?;
+    let mut files = "sweep.csv, shard.json".to_string();
+    if meta.shard == Shard::WHOLE {
+        let summary = summarise(&meta, &rows);
+        write_json(&out.join("sweep_summary.json"), &summary)?;
+        files += ", sweep_summary.json";
+        eprintln!(
+            "{scenario}: {} seeds, safe {}/{}, no infeasible step {}/{}{}",
+            summary.episodes,
+            summary.safe.count,
+            summary.episodes,
+            summary.no_infeasible_step.count,
+            summary.episodes,
+            summary
+                .goal_reached
+                .as_ref()
+                .map(|g| format!(", goal reached {}/{}", g.count, g.of))
+                .unwrap_or_default()
+        );
+    }
+    eprintln!("wrote {}: {files}", out.display());
+    Ok(())
+}
+
+/// Runs shard `shard` of `calibration` into `out` (`part.json`).
+pub fn run_calibration_shard(
+    args: &ExperimentArgs,
+    episodes: Option<usize>,
+    shard: &str,
+    out: &Path,
+) -> Result<()> {
+    let shard: Shard = shard.parse()?;
+    let bar = progress_bar("calibration shard", "episodes");
+    let part = calibration::run_shard(args, episodes, shard, &|done: usize, total: usize| {
+        bar.set_length(total as u64);
+        bar.set_position(done as u64);
+    })?;
+    bar.finish_and_clear();
+    std::fs::create_dir_all(out)?;
+    write_json(&out.join("part.json"), &part)?;
+    eprintln!(
+        "calibration shard {}/{}: wrote {}: part.json (merge the shards with `bayes-cbf merge`)",
+        shard.index,
+        shard.count,
+        out.display()
+    );
+    Ok(())
+}
+
+fn read(path: &Path) -> Result<String> {
+    std::fs::read_to_string(path).with_context(|| format!("cannot read '{}'", path.display()))
+}
+
+/// Runs `bayes-cbf merge`.
+pub fn run_merge(a: &MergeArgs) -> Result<()> {
+    let out = a
+        .out
+        .clone()
+        .unwrap_or_else(|| a.dirs[0].parent().unwrap_or(Path::new(".")).join("merged"));
+    let calib = a
+        .dirs
+        .iter()
+        .filter(|d| d.join("part.json").is_file())
+        .count();
+    let sweeps = a
+        .dirs
+        .iter()
+        .filter(|d| d.join("shard.json").is_file())
+        .count();
+    if calib == a.dirs.len() {
+        let mut parts = Vec::new();
+        for d in &a.dirs {
+            let p = d.join("part.json");
+            let part: CalibrationPart = serde_json::from_str(&read(&p)?)
+                .with_context(|| format!("'{}' is not a calibration shard", p.display()))?;
+            parts.push(part);
+        }
+        let result = ExperimentResult::Calibration(calibration::merge(parts)?);
+        write_experiment("calibration", &result, &out)
+    } else if sweeps == a.dirs.len() {
+        let mut parts = Vec::new();
+        for d in &a.dirs {
+            let m = d.join("shard.json");
+            let meta: SweepMeta = serde_json::from_str(&read(&m)?)
+                .with_context(|| format!("'{}' is not a sweep shard", m.display()))?;
+            let csv = d.join("sweep.csv");
+            let rows = parse_rows_csv(&read(&csv)?, &csv.display().to_string())?;
+            parts.push((meta, rows));
+        }
+        let (meta, rows) = merge_sweeps(parts)?;
+        let summary = summarise(&meta, &rows);
+        std::fs::create_dir_all(&out)?;
+        write_atomic(&out.join("sweep.csv"), rows_csv(&rows).as_bytes())?;
+        write_json(&out.join("shard.json"), &meta)?;
+        write_json(&out.join("sweep_summary.json"), &summary)?;
+        eprintln!(
+            "merged {} shards of {} ({} seeds): wrote {}: sweep.csv, shard.json, sweep_summary.json",
+            a.dirs.len(),
+            meta.scenario,
+            rows.len(),
+            out.display()
+        );
+        Ok(())
+    } else {
+        bail!(
+            "merge: every directory must hold a calibration shard (part.json) or every one a sweep shard (shard.json and sweep.csv); got {calib} and {sweeps} of {}",
+            a.dirs.len()
+        )
+    }
+}

@@ -1,0 +1,117 @@
+//! Shards of seed sweeps and of `calibration`, and their merge: the
+//! scenario crate's functions, for `bayes_cbf.sweep` to run as Ray tasks.
+//! Shards travel as text (JSON and CSV) so that any executor can move them.
+
+use crate::convert::{input_err, scenario_err};
+use bayes_cbf_scenario::experiments::calibration::{self, CalibrationPart};
+use bayes_cbf_scenario::experiments::ExperimentArgs;
+use bayes_cbf_scenario::sweep::{
+    merge_sweeps, parse_rows_csv, rows_csv, run_seeds, summarise, SeedRange, Shard, SweepMeta,
+};
+use pyo3::prelude::*;
+
+fn shard(index: usize, count: usize) -> PyResult<Shard> {
+    format!("{index}/{count}").parse().map_err(scenario_err)
+}
+
+/// The description (JSON) of shard `index/count` of a sweep of `scenario`
+/// over seeds `start..end` with `sets` (`key=value` overrides).
+#[pyfunction]
+#[pyo3(signature = (scenario, start, end, sets, index=0, count=1, goal_tolerance=1.0))]
+pub fn sweep_meta(
+    scenario: &str,
+    start: u64,
+    end: u64,
+    sets: Vec<String>,
+    index: usize,
+    count: usize,
+    goal_tolerance: f64,
+) -> PyResult<String> {
+    let seeds: SeedRange = format!("{start}..{end}").parse().map_err(scenario_err)?;
+    let meta = SweepMeta {
+        scenario: scenario.to_string(),
+        sets,
+        seeds,
+        shard: shard(index, count)?,
+        goal_tolerance,
+    };
+    serde_json::to_string(&meta).map_err(|e| input_err(e.to_string()))
+}
+
+fn parse_meta(text: &str) -> PyResult<SweepMeta> {
+    serde_json::from_str(text).map_err(|e| input_err(format!("sweep shard description: {e}")))
+}
+
+/// Loads scenario `name` with `sets` (`key=value`), raising `InputError`
+/// if it or an override is bad.
+#[pyfunction]
+pub fn check_scenario(name: &str, sets: Vec<String>) -> PyResult<()> {
+    bayes_cbf_scenario::scenario::load(name, &sets)
+        .map(|_| ())
+        .map_err(scenario_err)
+}
+
+/// Runs the shard described by `meta` (JSON) and returns its rows as CSV
+/// (`sweep.csv`).
+#[pyfunction]
+pub fn sweep_shard(py: Python<'_>, meta: &str) -> PyResult<String> {
+    let meta = parse_meta(meta)?;
+    let rows = py
+        .detach(|| run_seeds(&meta, &|_, _| {}))
+        .map_err(scenario_err)?;
+    Ok(rows_csv(&rows))
+}
+
+/// Merges shards `(meta JSON, rows CSV)` into the whole sweep: returns the
+/// summary (`sweep_summary.json`) and the rows (`sweep.csv`).
+#[pyfunction]
+pub fn sweep_merge(parts: Vec<(String, String)>) -> PyResult<(String, String)> {
+    let mut ps = Vec::new();
+    for (i, (m, csv)) in parts.iter().enumerate() {
+        let rows = parse_rows_csv(csv, &format!("shard {i}")).map_err(scenario_err)?;
+        ps.push((parse_meta(m)?, rows));
+    }
+    let (meta, rows) = merge_sweeps(ps).map_err(scenario_err)?;
+    let summary = summarise(&meta, &rows);
+    let json = serde_json::to_string(&summary).map_err(|e| input_err(e.to_string()))?;
+    Ok((json, rows_csv(&rows)))
+}
+
+/// Runs shard `index/count` of `calibration` and returns it (`part.json`).
+#[pyfunction]
+#[pyo3(signature = (seed=0, quick=false, episodes=None, index=0, count=1))]
+pub fn calibration_shard(
+    py: Python<'_>,
+    seed: u64,
+    quick: bool,
+    episodes: Option<usize>,
+    index: usize,
+    count: usize,
+) -> PyResult<String> {
+    let s = shard(index, count)?;
+    let args = ExperimentArgs { seed, quick };
+    let part = py
+        .detach(|| calibration::run_shard(&args, episodes, s, &|_: usize, _: usize| {}))
+        .map_err(scenario_err)?;
+    serde_json::to_string(&part).map_err(|e| input_err(e.to_string()))
+}
+
+/// Merges calibration shards (`part.json` texts) and returns the summary
+/// (`summary.json`) and the episode table (`episodes.csv`).
+#[pyfunction]
+pub fn calibration_merge(py: Python<'_>, parts: Vec<String>) -> PyResult<(String, String)> {
+    let mut ps = Vec::new();
+    for (i, p) in parts.iter().enumerate() {
+        let part: CalibrationPart = serde_json::from_str(p)
+            .map_err(|e| input_err(format!("calibration shard {i}: {e}")))?;
+        ps.push(part);
+    }
+    let merged = py.detach(|| calibration::merge(ps)).map_err(scenario_err)?;
+    let csv = merged
+        .tables
+        .first()
+        .map(|t| t.csv.clone())
+        .unwrap_or_default();
+    let json = serde_json::to_string(&merged.summary).map_err(|e| input_err(e.to_string()))?;
+    Ok((json, csv))
+}

@@ -1,0 +1,482 @@
+//! Monte Carlo sweeps: one scenario over a range of seeds, split into shards
+//! that any scheduler can run, and merged back into exactly the result of
+//! the unsharded sweep.
+//!
+//! A sweep runs [`run_scenario`] once per seed (in parallel on rayon; each
+//! run depends only on its seed, so the rows do not depend on the thread
+//! count) and keeps one [`SweepRow`] per seed. Shard `I/N` runs the seeds
+//! at positions `I, I + N, I + 2N, …` of the range. [`merge_sweeps`] checks
+//! that the shards describe the same sweep and cover it exactly once, sorts
+//! the rows by seed and recomputes the summary from them, so that sharded
+//! and unsharded sweeps give the same counts and statistics to the bit
+//! (timings aside).
+//!
+//! Rows travel as CSV (`sweep.csv`): Rust prints the shortest decimal that
+//! parses back to the same `f64`, and parses correctly rounded, so the
+//! round trip is exact.
+
+use crate::error::{Context, Result};
+use crate::scenario::{self, run_scenario};
+use crate::stats::wilson;
+use crate::{bail, err};
+use rayon::prelude::*;
+use serde::{Deserialize, Serialize};
+use std::str::FromStr;
+use std::sync::atomic::{AtomicUsize, Ordering};
+
+/// A range of seeds: `A..B` (B excluded) or `A..=B` (B included).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+pub struct SeedRange {
+    /// First seed.
+    pub start: u64,
+    /// One past the last seed.
+    pub end: u64,
+}
+
+impl FromStr for SeedRange {
+    type Err = crate::Error;
+    fn from_str(s: &str) -> Result<Self> {
+        let bad = || err!("--seeds '{s}': expected A..B (B excluded) or A..=B, e.g. 0..100");
+        let (a, b, inclusive) = if let Some((a, b)) = s.split_once("..=") {
+            (a, b, true)
+        } else if let Some((a, b)) = s.split_once("..") {
+            (a, b, false)
+        } else {
+            return Err(bad());
+        };
+        let a: u64 = a.trim().parse().map_err(|_| bad())?;
+        let b: u64 = b.trim().parse().map_err(|_| bad())?;
+        let end = if inclusive {
+            b.checked_add(1).ok_or_else(bad)?
+        } else {
+            b
+        };
+        if end <= a {
+            bail!("--seeds '{s}': the range is empty");
+        }
+        Ok(SeedRange { start: a, end })
+    }
+}
+
+impl SeedRange {
+    /// The seeds, in order.
+    pub fn seeds(&self) -> Vec<u64> {
+        (self.start..self.end).collect()
+    }
+    /// Number of seeds.
+    pub fn len(&self) -> usize {
+        (self.end - self.start) as usize
+    }
+    /// True if the range holds no seed.
+    pub fn is_empty(&self) -> bool {
+        self.end <= self.start
+    }
+}
+
+/// Shard `index` of `count` (`--shard I/N`, `0 ≤ I < N`): the items at
+/// positions `I, I + N, I + 2N, …`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Shard {
+    /// This shard, from 0.
+    pub index: usize,
+    /// Number of shards.
+    pub count: usize,
+}
+
+impl Shard {
+    /// The whole run as one shard.
+    pub const WHOLE: Shard = Shard { index: 0, count: 1 };
+
+    /// Whether the item at `position` belongs to this shard.
+    pub fn owns(&self, position: usize) -> bool {
+        position % self.count == self.index
+    }
+}
+
+impl FromStr for Shard {
+    type Err = crate::Error;
+    fn from_str(s: &str) -> Result<Self> {
+        let bad = |why: &str| err!("--shard '{s}': {why}");
+        let (i, n) = s
+            .split_once('/')
+            .ok_or_else(|| bad("expected I/N, e.g. 0/4 for the first of four shards"))?;
+        let index: usize = i.trim().parse().map_err(|_| bad("I is not a number"))?;
+        let count: usize = n.trim().parse().map_err(|_| bad("N is not a number"))?;
+        if count == 0 {
+            return Err(bad("N must be ≥ 1"));
+        }
+        if index >= count {
+            return Err(bad("I must be < N (shards are numbered from 0)"));
+        }
+        Ok(Shard { index, count })
+    }
+}
+
+/// One seed of a sweep.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct SweepRow {
+    /// The seed.
+    pub seed: u64,
+    /// Every barrier stayed ≥ 0 on the fine grid.
+    pub safe: bool,
+    /// Entered an obstacle (scenarios with obstacles) or a barrier went
+    /// negative.
+    pub collided: bool,
+    /// Smallest barrier value over the run (all barriers).
+    pub min_barrier: f64,
+    /// Steps whose SOCP was infeasible.
+    pub infeasible_steps: usize,
+    /// Distance to the goal at the end (NaN without a goal).
+    pub goal_distance: f64,
+    /// Median control step (µs).
+    pub control_step_us: f64,
+    /// Wall time of the run (s).
+    pub wall_time_s: f64,
+}
+
+const HEADER: &str =
+    "seed,safe,collided,min_barrier,infeasible_steps,goal_distance,control_step_us,wall_time_s";
+
+/// `sweep.csv`: a header and one line per row.
+pub fn rows_csv(rows: &[SweepRow]) -> String {
+    let mut s = String::from(HEADER);
+    s.push('\n');
+    for r in rows {
+        s += &format!(
+            "{},{},{},{},{},{},{},{}\n",
+            r.seed,
+            u8::from(r.safe),
+            u8::from(r.collided),
+            r.min_barrier,
+            r.infeasible_steps,
+            r.goal_distance,
+            r.control_step_us,
+            r.wall_time_s
+        );
+    }
+    s
+}
+
+/// Parses `sweep.csv` (`name` labels errors).
+pub fn parse_rows_csv(text: &str, name: &str) -> Result<Vec<SweepRow>> {
+    let mut lines = text.lines();
+    if lines.next().map(str::trim) != Some(HEADER) {
+        bail!("{name}: expected the header '{HEADER}'");
+    }
+    let mut rows = Vec::new();
+    for (i, line) in lines.enumerate() {
+        let at = || format!("{name} line {}", i + 2);
+        let f: Vec<&str> = line.split(',').collect();
+        if f.len() != 8 {
+            bail!("{}: expected 8 fields, got {}", at(), f.len());
+        }
+        let num = |j: usize| -> Result<f64> {
+            f[j].parse::<f64>()
+                .map_err(|_| err!("{}: field {} = '{}' is not a number", at(), j + 1, f[j]))
+        };
+        let int = |j: usize| -> Result<u64> {
+            f[j].parse::<u64>()
+                .map_err(|_| err!("{}: field {} = '{}' is not an integer", at(), j + 1, f[j]))
+        };
+        rows.push(SweepRow {
+            seed: int(0)?,
+            safe: int(1)? == 1,
+            collided: int(2)? == 1,
+            min_barrier: num(3)?,
+            infeasible_steps: int(4)? as usize,
+            goal_distance: num(5)?,
+            control_step_us: num(6)?,
+            wall_time_s: num(7)?,
+        });
+    }
+    Ok(rows)
+}
+
+/// What a sweep is: the scenario with its overrides and the seed range,
+/// and which shard of it a file holds (`shard.json`).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SweepMeta {
+    /// Scenario name or path.
+    pub scenario: String,
+    /// `--set` overrides, in order.
+    pub sets: Vec<String>,
+    /// The whole sweep's seeds.
+    pub seeds: SeedRange,
+    /// The shard this file holds.
+    pub shard: Shard,
+    /// Goal tolerance of the `goal_reached` count (m).
+    pub goal_tolerance: f64,
+}
+
+/// Runs the seeds of `meta.shard` (in parallel) and returns their rows in
+/// seed order; `progress(done, total)` after each run.
+pub fn run_seeds(
+    meta: &SweepMeta,
+    progress: &(dyn Fn(usize, usize) + Sync),
+) -> Result<Vec<SweepRow>> {
+    let seeds: Vec<u64> = meta
+        .seeds
+        .seeds()
+        .into_iter()
+        .enumerate()
+        .filter(|(i, _)| meta.shard.owns(*i))
+        .map(|(_, s)| s)
+        .collect();
+    // check the scenario once before fanning out
+    scenario::load(&meta.scenario, &meta.sets)?;
+    let done = AtomicUsize::new(0);
+    let total = seeds.len();
+    seeds
+        .par_iter()
+        .map(|&seed| {
+            let mut sets = meta.sets.clone();
+            sets.push(format!("seed={seed}"));
+            let (sc, _) = scenario::load(&meta.scenario, &sets)?;
+            let out = run_scenario(&sc, |_, _| {}).with_context(|| format!("seed {seed}"))?;
+            let s = &out.summary;
+            progress(done.fetch_add(1, Ordering::Relaxed) + 1, total);
+            Ok(SweepRow {
+                seed,
+                safe: s.safe,
+                collided: s.collided,
+                min_barrier: s.min_barrier.iter().cloned().fold(f64::INFINITY, f64::min),
+                infeasible_steps: s.infeasible_steps,
+                goal_distance: s.final_goal_distance.unwrap_or(f64::NAN),
+                control_step_us: s.control_step_us.p50,
+                wall_time_s: s.wall_time_s,
+            })
+        })
+        .collect()
+}
+
+/// A count of episodes with an outcome, its rate and the 95 % Wilson
+/// score interval of the rate.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Count {
+    /// Episodes with the outcome.
+    pub count: usize,
+    /// Episodes.
+    pub of: usize,
+    /// `count / of`.
+    pub rate: f64,
+    /// 95 % Wilson score interval of the rate.
+    pub wilson_95: [f64; 2],
+}
+
+impl Count {
+    /// `count` of `of` with its Wilson interval.
+    pub fn new(count: usize, of: usize) -> Self {
+        let (lo, hi) = wilson(count, of);
+        Count {
+            count,
+            of,
+            rate: count as f64 / of.max(1) as f64,
+            wilson_95: [lo, hi],
+        }
+    }
+}
+
+/// The outcome counts of a sweep (`sweep_summary.json`).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct SweepSummary {
+    /// Scenario name or path.
+    pub scenario: String,
+    /// `--set` overrides.
+    pub sets: Vec<String>,
+    /// Seeds run.
+    pub seeds: SeedRange,
+    /// Episodes.
+    pub episodes: usize,
+    /// Episodes whose barriers stayed ≥ 0.
+    pub safe: Count,
+    /// Episodes that entered no obstacle.
+    pub collision_free: Count,
+    /// Episodes without an infeasible step.
+    pub no_infeasible_step: Count,
+    /// Episodes that ended within `goal_tolerance` of the goal (scenarios
+    /// with a goal).
+    pub goal_reached: Option<Count>,
+    /// The tolerance of `goal_reached` (m).
+    pub goal_tolerance: f64,
+    /// Smallest barrier value over all episodes.
+    pub min_barrier: f64,
+    /// Seeds whose barriers went negative.
+    pub unsafe_seeds: Vec<u64>,
+    /// Infeasible steps over all episodes.
+    pub infeasible_steps: usize,
+    /// Timing (not part of the bit-for-bit comparison of merged shards).
+    pub timing: SweepTiming,
+}
+
+/// Timing of a sweep.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct SweepTiming {
+    /// Sum of the episodes' wall times (s): the CPU time of the sweep.
+    pub episode_seconds: f64,
+    /// Episodes per second per core (`episodes / episode_seconds`).
+    pub episodes_per_core_second: f64,
+    /// Median of the episodes' median control steps (µs).
+    pub control_step_us_median: f64,
+}
+
+/// The summary of `rows` (sorted by seed).
+pub fn summarise(meta: &SweepMeta, rows: &[SweepRow]) -> SweepSummary {
+    let n = rows.len();
+    let count = |f: &dyn Fn(&SweepRow) -> bool| Count::new(rows.iter().filter(|r| f(r)).count(), n);
+    let has_goal = rows.iter().any(|r| !r.goal_distance.is_nan());
+    let secs: f64 = rows.iter().map(|r| r.wall_time_s).sum();
+    let mut steps: Vec<f64> = rows.iter().map(|r| r.control_step_us).collect();
+    steps.sort_by(f64::total_cmp);
+    SweepSummary {
+        scenario: meta.scenario.clone(),
+        sets: meta.sets.clone(),
+        seeds: meta.seeds,
+        episodes: n,
+        safe: count(&|r| r.safe),
+        collision_free: count(&|r| !r.collided),
+        no_infeasible_step: count(&|r| r.infeasible_steps == 0),
+        goal_reached: has_goal.then(|| count(&|r| r.goal_distance <= meta.goal_tolerance)),
+        goal_tolerance: meta.goal_tolerance,
+        min_barrier: rows
+            .iter()
+            .map(|r| r.min_barrier)
+            .fold(f64::INFINITY, f64::min),
+        unsafe_seeds: rows.iter().filter(|r| !r.safe).map(|r| r.seed).collect(),
+        infeasible_steps: rows.iter().map(|r| r.infeasible_steps).sum(),
+        timing: SweepTiming {
+            episode_seconds: secs,
+            episodes_per_core_second: n as f64 / secs.max(f64::MIN_POSITIVE),
+            control_step_us_median: steps.get(n / 2).copied().unwrap_or(f64::NAN),
+        },
+    }
+}
+
+/// Checks that shards `parts` (each: its meta and rows) are the shards of
+/// one sweep, each present once, and returns the whole sweep's meta and its
+/// rows sorted by seed.
+pub fn merge_sweeps(parts: Vec<(SweepMeta, Vec<SweepRow>)>) -> Result<(SweepMeta, Vec<SweepRow>)> {
+    let Some((first, _)) = parts.first() else {
+        bail!("merge: no shards given");
+    };
+    let whole = SweepMeta {
+        shard: Shard::WHOLE,
+        ..first.clone()
+    };
+    let count = first.shard.count;
+    let mut seen = vec![false; count];
+    for (m, _) in &parts {
+        let same = SweepMeta {
+            shard: Shard::WHOLE,
+            ..m.clone()
+        };
+        if same != whole {
+            bail!(
+                "merge: shard {}/{} is of another sweep ({} {:?} seeds {}..{}) than shard {}/{} ({} {:?} seeds {}..{})",
+                m.shard.index, m.shard.count, m.scenario, m.sets, m.seeds.start, m.seeds.end,
+                first.shard.index, count, first.scenario, first.sets, first.seeds.start, first.seeds.end
+            );
+        }
+        if m.shard.count != count {
+            bail!(
+                "merge: shard {}/{} does not belong to a split into {count}",
+                m.shard.index,
+                m.shard.count
+            );
+        }
+        if std::mem::replace(&mut seen[m.shard.index], true) {
+            bail!("merge: shard {}/{count} is given twice", m.shard.index);
+        }
+    }
+    let missing: Vec<String> = (0..count)
+        .filter(|&i| !seen[i])
+        .map(|i| format!("{i}/{count}"))
+        .collect();
+    if !missing.is_empty() {
+        bail!("merge: missing shard(s) {}", missing.join(", "));
+    }
+    let mut rows: Vec<SweepRow> = Vec::with_capacity(whole.seeds.len());
+    for (m, r) in parts {
+        for row in &r {
+            let pos = row.seed.checked_sub(m.seeds.start).map(|p| p as usize);
+            if row.seed >= m.seeds.end || !pos.is_some_and(|p| m.shard.owns(p)) {
+                bail!(
+                    "merge: shard {}/{} holds seed {}, which is not one of its seeds",
+                    m.shard.index,
+                    m.shard.count,
+                    row.seed
+                );
+            }
+        }
+        rows.extend(r);
+    }
+    rows.sort_by_key(|r| r.seed);
+    if rows.len() != whole.seeds.len() || rows.windows(2).any(|w| w[0].seed == w[1].seed) {
+        bail!(
+            "merge: the shards hold {} rows for {} seeds (a shard is incomplete or duplicated)",
+            rows.len(),
+            whole.seeds.len()
+        );
+    }
+    Ok((whole, rows))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn seed_ranges_and_shards_parse_or_name_the_option() {
+        assert_eq!(
+            "3..7".parse::<SeedRange>().unwrap().seeds(),
+            vec![3, 4, 5, 6]
+        );
+        assert_eq!("3..=7".parse::<SeedRange>().unwrap().len(), 5);
+        for bad in ["7..3", "3..3", "a..4", "5", ""] {
+            let e = bad.parse::<SeedRange>().unwrap_err().to_string();
+            assert!(e.contains("--seeds"), "{bad}: {e}");
+        }
+        assert_eq!(
+            "1/3".parse::<Shard>().unwrap(),
+            Shard { index: 1, count: 3 }
+        );
+        for bad in ["0/0", "3/2", "2/2", "1", "x/2", "-1/2"] {
+            let e = bad.parse::<Shard>().unwrap_err().to_string();
+            assert!(e.contains("--shard"), "{bad}: {e}");
+        }
+    }
+
+    #[test]
+    fn csv_round_trip_is_exact() {
+        let rows = vec![
+            SweepRow {
+                seed: 4,
+                safe: true,
+                collided: false,
+                min_barrier: 0.1 + 0.2,
+                infeasible_steps: 3,
+                goal_distance: f64::NAN,
+                control_step_us: 1.0 / 3.0,
+                wall_time_s: 1e-300,
+            },
+            SweepRow {
+                seed: 9,
+                safe: false,
+                collided: true,
+                min_barrier: -f64::INFINITY,
+                infeasible_steps: 0,
+                goal_distance: 2.5e17,
+                control_step_us: 7.0,
+                wall_time_s: 0.0,
+            },
+        ];
+        let back = parse_rows_csv(&rows_csv(&rows), "x").unwrap();
+        for (a, b) in rows.iter().zip(&back) {
+            assert_eq!(a.min_barrier.to_bits(), b.min_barrier.to_bits());
+            assert_eq!(a.goal_distance.is_nan(), b.goal_distance.is_nan());
+            assert_eq!(a.control_step_us.to_bits(), b.control_step_us.to_bits());
+            assert_eq!((a.seed, a.safe, a.collided), (b.seed, b.safe, b.collided));
+        }
+        assert!(parse_rows_csv("seed\n", "x").is_err());
+    }
+}

@@ -1,0 +1,158 @@
+//! Sharded and merged runs equal the unsharded run: calibration and seed
+//! sweeps, through their text forms (part.json, sweep.csv), and bad shard
+//! sets are errors.
+
+use bayes_cbf_scenario::experiments::calibration::{self, CalibrationPart};
+use bayes_cbf_scenario::experiments::ExperimentArgs;
+use bayes_cbf_scenario::sweep::{
+    merge_sweeps, parse_rows_csv, rows_csv, run_seeds, summarise, Shard, SweepMeta, SweepRow,
+};
+
+fn without_timing(mut v: serde_json::Value) -> serde_json::Value {
+    let o = v.as_object_mut().unwrap();
+    o.remove("wall_seconds");
+    o.remove("threads");
+    o.remove("timing");
+    v
+}
+
+#[test]
+fn calibration_shards_merge_into_the_unsharded_run() {
+    let args = ExperimentArgs {
+        seed: 11,
+        quick: true,
+    };
+    let whole = calibration::run(&args, Some(1), &|_: usize, _: usize| {}).unwrap();
+    let parts: Vec<CalibrationPart> = [2, 0, 1]
+        .iter()
+        .map(|&i| {
+            let p = calibration::run_shard(
+                &args,
+                Some(1),
+                Shard { index: i, count: 3 },
+                &|_: usize, _: usize| {},
+            )
+            .unwrap();
+            // through the file format
+            serde_json::from_str(&serde_json::to_string(&p).unwrap()).unwrap()
+        })
+        .collect();
+    let merged = calibration::merge(parts.clone()).unwrap();
+    assert_eq!(
+        without_timing(merged.summary.clone()),
+        without_timing(whole.summary.clone())
+    );
+    assert_eq!(merged.tables[0].csv, whole.tables[0].csv);
+    assert_eq!(merged.console_table, whole.console_table);
+
+    // missing, duplicated and foreign shards
+    let e = calibration::merge(parts[..2].to_vec())
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("missing shard(s) 1/3"), "{e}");
+    let e = calibration::merge(vec![parts[0].clone(), parts[0].clone(), parts[1].clone()])
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("given twice"), "{e}");
+    let other = calibration::run_shard(
+        &ExperimentArgs {
+            seed: 12,
+            quick: true,
+        },
+        Some(1),
+        Shard { index: 1, count: 3 },
+        &|_: usize, _: usize| {},
+    )
+    .unwrap();
+    let e = calibration::merge(vec![parts[0].clone(), parts[1].clone(), other])
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("another run"), "{e}");
+    assert!(calibration::merge(vec![]).is_err());
+}
+
+fn meta(shard: Shard) -> SweepMeta {
+    SweepMeta {
+        scenario: "pendulum-safe".into(),
+        sets: vec!["steps=40".into()],
+        seeds: "3..8".parse().unwrap(),
+        shard,
+        goal_tolerance: 1.0,
+    }
+}
+
+fn strip(rows: &[SweepRow]) -> Vec<(u64, bool, bool, u64, usize)> {
+    rows.iter()
+        .map(|r| {
+            (
+                r.seed,
+                r.safe,
+                r.collided,
+                r.min_barrier.to_bits(),
+                r.infeasible_steps,
+            )
+        })
+        .collect()
+}
+
+#[test]
+fn sweep_shards_merge_into_the_unsharded_sweep() {
+    let whole_meta = meta(Shard::WHOLE);
+    let whole = run_seeds(&whole_meta, &|_, _| {}).unwrap();
+    assert_eq!(
+        whole.iter().map(|r| r.seed).collect::<Vec<_>>(),
+        vec![3, 4, 5, 6, 7]
+    );
+    let parts: Vec<(SweepMeta, Vec<SweepRow>)> = (0..2)
+        .rev()
+        .map(|i| {
+            let m = meta(Shard { index: i, count: 2 });
+            let rows = run_seeds(&m, &|_, _| {}).unwrap();
+            (m, parse_rows_csv(&rows_csv(&rows), "shard").unwrap())
+        })
+        .collect();
+    let (m, rows) = merge_sweeps(parts.clone()).unwrap();
+    assert_eq!(m, whole_meta);
+    assert_eq!(strip(&rows), strip(&whole));
+    let (a, b) = (summarise(&m, &rows), summarise(&whole_meta, &whole));
+    assert_eq!(
+        without_timing(serde_json::to_value(&a).unwrap()),
+        without_timing(serde_json::to_value(&b).unwrap())
+    );
+    assert_eq!(a.episodes, 5);
+
+    let e = merge_sweeps(parts[..1].to_vec()).unwrap_err().to_string();
+    assert!(e.contains("missing shard(s) 0/2"), "{e}");
+    let e = merge_sweeps(vec![parts[0].clone(), parts[0].clone()])
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("given twice"), "{e}");
+    let mut foreign = parts[1].clone();
+    foreign.0.sets = vec!["steps=41".into()];
+    let e = merge_sweeps(vec![parts[0].clone(), foreign])
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("another sweep"), "{e}");
+    let mut wrong = parts[1].clone();
+    wrong.1[0].seed = 4; // shard 0/2 owns 3, 5, 7
+    let e = merge_sweeps(vec![parts[0].clone(), wrong])
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("not one of its seeds"), "{e}");
+}
+
+#[test]
+fn sweep_rows_do_not_depend_on_the_thread_count() {
+    let m = meta(Shard::WHOLE);
+    let one = rayon::ThreadPoolBuilder::new()
+        .num_threads(1)
+        .build()
+        .unwrap()
+        .install(|| run_seeds(&m, &|_, _| {}).unwrap());
+    let two = rayon::ThreadPoolBuilder::new()
+        .num_threads(2)
+        .build()
+        .unwrap()
+        .install(|| run_seeds(&m, &|_, _| {}).unwrap());
+    assert_eq!(strip(&one), strip(&two));
+}

@@ -1,0 +1,160 @@
+"""Monte Carlo sweeps on Ray: seed sweeps of any scenario and the
+``calibration`` experiment, split into shards that run as Ray tasks on a
+local Ray or a cluster.
+
+Each shard is the one ``bayes-cbf run ... --shard I/N`` runs; the shards are
+merged by the same library code as ``bayes-cbf merge``, so a sweep returns
+exactly the summary of the unsharded CLI run (counts and statistics to the
+bit; timings differ). Ray is an optional extra: ``pip install '.[ray]'``.
+
+Local (uses the cores of this machine)::
+
+    from bayes_cbf import sweep
+    summary = sweep.seeds("pendulum-safe", range(0, 200))
+    cal = sweep.calibration(episodes=200, seed=0)
+
+On a cluster, start Ray there (``ray start --head`` on one node,
+``ray start --address=HEAD:6379`` on the others) and pass its address
+(``address="auto"`` from a node of the cluster, or ``"ray://HEAD:10001"``
+from outside)::
+
+    summary = sweep.seeds("pendulum-safe", range(0, 100_000), address="auto", shards=512)
+"""
+
+from __future__ import annotations
+
+import json
+from typing import Any, Iterable, Optional
+
+from . import _core
+from ._core import InputError
+
+_RAY_MISSING = "bayes_cbf.sweep needs Ray: pip install 'bayes_cbf[ray]' (or pip install ray)"
+
+
+def _ray():
+    try:
+        import ray
+    except ImportError as e:  # pragma: no cover - exercised only without Ray
+        raise ImportError(_RAY_MISSING) from e
+    return ray
+
+
+def _init(address: Optional[str], num_cpus: Optional[int]):
+    ray = _ray()
+    if not ray.is_initialized():
+        kw: dict[str, Any] = {"ignore_reinit_error": True, "log_to_driver": False}
+        if address is not None:
+            kw["address"] = address
+        elif num_cpus is not None:
+            kw["num_cpus"] = num_cpus
+        ray.init(**kw)
+    return ray
+
+
+def _shard_count(ray, shards: Optional[int], items: int) -> int:
+    if shards is None:
+        shards = int(ray.cluster_resources().get("CPU", 1))
+    if not isinstance(shards, int) or shards < 1:
+        raise InputError(f"shards: {shards!r}, must be an integer >= 1")
+    return max(1, min(shards, items))
+
+
+# one core per task: the shard runs its episodes in sequence and Ray runs as
+# many shards at once as there are cores
+_ENV = {"env_vars": {"RAYON_NUM_THREADS": "1"}}
+
+
+def _sweep_task(meta: str) -> str:
+    return _core.sweep_shard(meta)
+
+
+def _calibration_task(seed: int, quick: bool, episodes: Optional[int], i: int, n: int) -> str:
+    return _core.calibration_shard(seed, quick, episodes, i, n)
+
+
+def _sets(overrides: Optional[dict]) -> list[str]:
+    if overrides is None:
+        return []
+    if not isinstance(overrides, dict):
+        raise InputError("overrides: expected a dict such as {'controller.probability': 0.9}")
+    out = []
+    for k, v in overrides.items():
+        if not isinstance(k, str):
+            raise InputError(f"overrides: key {k!r} is not a string")
+        if v is None:
+            raise InputError(f"overrides['{k}']: None is not a value")
+        out.append(f"{k}={json.dumps(v)}")
+    return out
+
+
+def _seed_range(seeds: Iterable[int]) -> tuple[int, int]:
+    if isinstance(seeds, range):
+        if seeds.step != 1 or len(seeds) == 0:
+            raise InputError("seeds: expected a non-empty range with step 1, e.g. range(0, 100)")
+        return seeds.start, seeds.stop
+    s = sorted(int(x) for x in seeds)
+    if not s or s != list(range(s[0], s[-1] + 1)):
+        raise InputError("seeds: expected consecutive seeds, e.g. range(0, 100)")
+    return s[0], s[-1] + 1
+
+
+def seeds(
+    scenario: str,
+    seeds: Iterable[int],
+    overrides: Optional[dict] = None,
+    shards: Optional[int] = None,
+    address: Optional[str] = None,
+    num_cpus: Optional[int] = None,
+    rows: bool = False,
+) -> dict:
+    """Runs ``scenario`` once per seed as Ray tasks and returns the summary
+    of ``bayes-cbf run SCENARIO --seeds A..B`` (``sweep_summary.json``): the
+    count of each outcome with its Wilson interval.
+
+    ``shards`` tasks (default: the cluster's CPUs) each run every
+    ``shards``-th seed. ``address`` selects a Ray cluster (default: start or
+    reuse a local Ray with ``num_cpus``). With ``rows=True`` the summary
+    gains ``"rows"``, the text of ``sweep.csv``.
+    """
+    start, end = _seed_range(seeds)
+    sets = _sets(overrides)
+    ray = _init(address, num_cpus)
+    n = _shard_count(ray, shards, end - start)
+    metas = [_core.sweep_meta(scenario, start, end, sets, i, n) for i in range(n)]
+    # fail fast on a bad scenario or override, before any task runs
+    _core.check_scenario(scenario, sets)
+    task = ray.remote(num_cpus=1)(_sweep_task).options(runtime_env=_ENV)
+    csvs = ray.get([task.remote(m) for m in metas])
+    summary_json, csv = _core.sweep_merge(list(zip(metas, csvs)))
+    summary = json.loads(summary_json)
+    if rows:
+        summary["rows"] = csv
+    return summary
+
+
+def calibration(
+    episodes: Optional[int] = None,
+    seed: int = 0,
+    quick: bool = False,
+    shards: Optional[int] = None,
+    address: Optional[str] = None,
+    num_cpus: Optional[int] = None,
+) -> dict:
+    """Runs ``bayes-cbf run calibration`` as Ray tasks and returns its
+    ``summary.json`` (as a dict; ``"episodes_csv"`` holds ``episodes.csv``).
+
+    ``episodes`` per (system, truth) (default 200, or 12 with ``quick``),
+    ``seed`` as ``--seed``; ``shards``, ``address`` and ``num_cpus`` as in
+    :func:`seeds`.
+    """
+    if episodes is not None and (not isinstance(episodes, int) or episodes < 1):
+        raise InputError(f"episodes: {episodes!r}, must be an integer >= 1")
+    ray = _init(address, num_cpus)
+    n = _shard_count(ray, shards, 10**9)
+    task = ray.remote(num_cpus=1)(_calibration_task).options(runtime_env=_ENV)
+    parts = ray.get([task.remote(seed, quick, episodes, i, n) for i in range(n)])
+    summary_json, csv = _core.calibration_merge(parts)
+    summary = json.loads(summary_json)
+    summary["episodes_csv"] = csv
+    return summary

@@ -1,0 +1,59 @@
+"""Sweeps on a local Ray (num_cpus=2) equal the CLI's unsharded runs."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+import bayes_cbf as bc
+
+ray = pytest.importorskip("ray")
+from bayes_cbf import sweep  # noqa: E402
+from conftest import run_cli  # noqa: E402
+
+
+@pytest.fixture(scope="module", autouse=True)
+def local_ray():
+    ray.init(num_cpus=2, ignore_reinit_error=True, log_to_driver=False)
+    yield
+    ray.shutdown()
+
+
+def drop(d: dict, *keys: str) -> dict:
+    return {k: v for k, v in d.items() if k not in keys}
+
+
+def test_seed_sweep_on_ray_equals_the_cli(cli, tmp_path):
+    run_cli(cli, "run", "pendulum-safe", "--seeds", "2..7", "--set", "steps=40",
+            "--out", str(tmp_path))
+    theirs = json.loads((tmp_path / "sweep_summary.json").read_text())
+    ours = sweep.seeds("pendulum-safe", range(2, 7), overrides={"steps": 40}, shards=3, rows=True)
+    assert drop(ours, "timing", "rows") == drop(theirs, "timing")
+    assert ours["episodes"] == 5
+    csv_ours = [line.split(",")[:6] for line in ours["rows"].splitlines()]
+    csv_theirs = [line.split(",")[:6] for line in (tmp_path / "sweep.csv").read_text().splitlines()]
+    assert csv_ours == csv_theirs
+
+
+def test_calibration_on_ray_equals_the_cli(cli, tmp_path):
+    run_cli(cli, "run", "calibration", "--quick", "--episodes", "1", "--seed", "3",
+            "--out", str(tmp_path))
+    theirs = json.loads((tmp_path / "summary.json").read_text())
+    ours = sweep.calibration(episodes=1, seed=3, quick=True, shards=2)
+    assert drop(ours, "wall_seconds", "threads", "episodes_csv") == drop(
+        theirs, "wall_seconds", "threads")
+    assert ours["episodes_csv"] == (tmp_path / "episodes.csv").read_text()
+
+
+def test_bad_sweeps_are_input_errors():
+    with pytest.raises(bc.InputError, match="shards"):
+        sweep.seeds("pendulum-safe", range(0, 3), shards=0)
+    with pytest.raises(bc.InputError, match="seeds"):
+        sweep.seeds("pendulum-safe", [0, 2, 5])
+    with pytest.raises(bc.InputError, match="unknown scenario"):
+        sweep.seeds("no-such-scenario", range(0, 3))
+    with pytest.raises(bc.InputError, match="nosuchkey"):
+        sweep.seeds("pendulum-safe", range(0, 3), overrides={"nosuchkey": 1})
+    with pytest.raises(bc.InputError, match="episodes"):
+        sweep.calibration(episodes=0)
