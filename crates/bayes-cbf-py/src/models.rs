@@ -20,6 +20,9 @@ use pyo3::prelude::*;
 use pyo3::types::PyDict;
 use std::path::PathBuf;
 
+/// Two numpy arrays (the posterior means and covariances of `predict`).
+type ArrayPair<'py> = (Bound<'py, PyArrayDyn<f64>>, Bound<'py, PyArrayDyn<f64>>);
+
 /// The prior mean from `None` or a dict in the model file's format.
 fn prior_of(obj: Option<&Bound<'_, PyAny>>) -> PyResult<PriorSpec> {
     match obj {
@@ -212,11 +215,7 @@ impl PyMvgp {
     /// `(q, n, 1+m)` and `B_k(x, x)` as `(q, 1+m, 1+m)`, with
     /// `Cov(vec F(x)) = B_k(x, x) ⊗ A` (paper, Prop. 1).
     #[allow(non_snake_case)]
-    fn predict<'py>(
-        &self,
-        py: Python<'py>,
-        Xq: &Bound<'py, PyAny>,
-    ) -> PyResult<(Bound<'py, PyArrayDyn<f64>>, Bound<'py, PyArrayDyn<f64>>)> {
+    fn predict<'py>(&self, py: Python<'py>, Xq: &Bound<'py, PyAny>) -> PyResult<ArrayPair<'py>> {
         let (n, m) = (self.model.state_dim(), self.model.control_dim());
         let p = m + 1;
         // borrowed from numpy when C-contiguous (no copy)
@@ -539,11 +538,7 @@ impl PyCogp {
     /// Posterior at the rows of `Xq (q, n)`: the means `(q, n, 1+m)` and the
     /// full covariances of `vec F(x)` (column-major vec), `(q, n(1+m), n(1+m))`.
     #[allow(non_snake_case)]
-    fn predict<'py>(
-        &self,
-        py: Python<'py>,
-        Xq: &Bound<'py, PyAny>,
-    ) -> PyResult<(Bound<'py, PyArrayDyn<f64>>, Bound<'py, PyArrayDyn<f64>>)> {
+    fn predict<'py>(&self, py: Python<'py>, Xq: &Bound<'py, PyAny>) -> PyResult<ArrayPair<'py>> {
         let (n, m) = (self.model.state_dim(), self.model.control_dim());
         let (p, big) = (m + 1, n * (m + 1));
         let (xs, q, _) = matrix(Xq, "Xq", None, Some(n))?;

@@ -164,7 +164,12 @@ pub fn atan2<D: DualNum<Primitive = f64> + Copy>(y: D, x: D) -> D {
 }
 
 /// Checks a relative degree and its gains: `r ≥ 1`, `r` gains for `r ≥ 2`
-/// (one for `r = 1`), all finite and `≥ 0`.
+/// (one for `r = 1`), all finite and `≥ 0`; for `r ≥ 2`, the gains must
+/// make `sʳ + k_α(r−1) sʳ⁻¹ + … + k_α1 s + k_α0` Hurwitz (every root in the
+/// open left half-plane), else `h^(r) = −Σ k_αi h^(i)`, the boundary of the
+/// condition, does not bring `h` back and `CBC⁽ʳ⁾ ≥ 0` does not keep
+/// `h ≥ 0` (paper, Def. 4; exponential CBFs). `k_α0 = 0` is the first
+/// failure: `s = 0` is a root.
 pub fn validate_gains(r: usize, gains: &[f64]) -> Result<(), InputError> {
     if r == 0 {
         return Err(InputError::invalid("relative_degree", 0.0, "must be ≥ 1"));
@@ -184,12 +189,109 @@ pub fn validate_gains(r: usize, gains: &[f64]) -> Result<(), InputError> {
             return Err(InputError::invalid(&field, *g, "must be finite and ≥ 0"));
         }
     }
+    if r >= 2 && !is_hurwitz(gains) {
+        return Err(InputError::Invalid {
+            field: "k_alpha".into(),
+            value: format!("{gains:?}"),
+            reason: format!(
+                "the polynomial s^{r} + Σ k_alpha[i] s^i is not Hurwitz, so CBC ≥ 0 does not keep h ≥ 0 (every k_alpha[i] must be > 0{})",
+                if r >= 3 { ", and the Routh–Hurwitz conditions hold" } else { "" }
+            ),
+        });
+    }
     Ok(())
+}
+
+/// Whether `sʳ + k[r−1] sʳ⁻¹ + … + k[0]` (monic, `r = k.len()`) has every
+/// root in the open left half-plane: the first column of its Routh array
+/// is positive.
+pub fn is_hurwitz(k: &[f64]) -> bool {
+    let r = k.len();
+    let pos = |v: f64| v.is_finite() && v > 0.0;
+    // closed forms for the common degrees, without allocation (the control
+    // loop checks the gains at every step)
+    match *k {
+        [k0] => return pos(k0),
+        [k0, k1] => return pos(k0) && pos(k1),
+        [k0, k1, k2] => return pos(k0) && pos(k1) && pos(k2) && k2 * k1 > k0,
+        _ => {}
+    }
+    // coefficients from the highest power: 1, k[r−1], …, k[0]
+    let c: Vec<f64> = std::iter::once(1.0)
+        .chain(k.iter().rev().copied())
+        .collect();
+    if c.iter().any(|v| !(v.is_finite() && *v > 0.0)) {
+        return false;
+    }
+    let width = r / 2 + 1;
+    let row = |start: usize| -> Vec<f64> {
+        (0..width)
+            .map(|j| c.get(start + 2 * j).copied().unwrap_or(0.0))
+            .collect()
+    };
+    let (mut a, mut b) = (row(0), row(1));
+    for _ in 0..r {
+        if b[0].is_nan() || b[0] <= 0.0 {
+            return false;
+        }
+        let next: Vec<f64> = (0..width)
+            .map(|j| {
+                let a1 = a.get(j + 1).copied().unwrap_or(0.0);
+                let b1 = b.get(j + 1).copied().unwrap_or(0.0);
+                (b[0] * a1 - a[0] * b1) / b[0]
+            })
+            .collect();
+        // a zero row before row r (roots symmetric about the origin) fails
+        // the check of the next round
+        a = std::mem::replace(&mut b, next);
+    }
+    true
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn hurwitz_test_matches_the_roots() {
+        // (s + 1)(s + 2) = s² + 3s + 2; (s + 1)³ = s³ + 3s² + 3s + 1
+        assert!(is_hurwitz(&[2.0, 3.0]));
+        assert!(is_hurwitz(&[1.0, 3.0, 3.0]));
+        // s² + 0 s + 1: roots ±i; s²: double root 0; s² − s + 1 is excluded by sign
+        assert!(!is_hurwitz(&[1.0, 0.0]));
+        assert!(!is_hurwitz(&[0.0, 3.0]));
+        // s³ + s² + s + 2: Routh 1·1 < 2, two roots in the right half-plane
+        assert!(!is_hurwitz(&[2.0, 1.0, 1.0]));
+        // s³ + 2s² + 2s + 2: 2·2 > 2, Hurwitz (roots −1.54, −0.23 ± 1.12i)
+        assert!(is_hurwitz(&[2.0, 2.0, 2.0]));
+        // (s + 1)⁴ = s⁴ + 4s³ + 6s² + 4s + 1, and (s² + 1)(s + 1)² loses it
+        assert!(is_hurwitz(&[1.0, 4.0, 6.0, 4.0]));
+        assert!(!is_hurwitz(&[1.0, 2.0, 2.0, 2.0]));
+        assert!(is_hurwitz(&[5.0]));
+        // against the roots of random cubics by brute force
+        let mut seed = 7u64;
+        let mut next = || {
+            seed = seed
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            (seed >> 11) as f64 / (1u64 << 53) as f64 * 4.0
+        };
+        for _ in 0..2000 {
+            let k = [next(), next(), next()];
+            let m = nalgebra::Matrix3::new(-k[2], -k[1], -k[0], 1.0, 0.0, 0.0, 0.0, 1.0, 0.0);
+            let stable = m.complex_eigenvalues().iter().all(|z| z.re < -1e-9);
+            let marginal = m.complex_eigenvalues().iter().any(|z| z.re.abs() <= 1e-9);
+            if !marginal {
+                assert_eq!(is_hurwitz(&k), stable, "{k:?}");
+            }
+        }
+        assert!(validate_gains(2, &[0.0, 3.0])
+            .unwrap_err()
+            .to_string()
+            .contains("Hurwitz"));
+        assert!(validate_gains(2, &[1.0, 3.0]).is_ok());
+        assert!(validate_gains(1, &[0.0]).is_ok());
+    }
 
     #[test]
     fn atan2_values_and_derivatives_everywhere_but_the_origin() {
