@@ -40,6 +40,18 @@ impl ControlAffine for TripleIntegrator {
 
 #[test]
 fn relative_degree_two_matches_exact_moments() {
+    check_relative_degree_two(&[]);
+}
+
+/// With the kinematic row known (`θ̇ = ω` from the prior, zero variance),
+/// the exact moments through the joint posterior of `F` and its Jacobian
+/// still match Monte Carlo over draws of `F`.
+#[test]
+fn relative_degree_two_with_a_known_row_matches_monte_carlo() {
+    check_relative_degree_two(&[0]);
+}
+
+fn check_relative_degree_two(known: &[usize]) {
     let mut rng = ChaCha8Rng::seed_from_u64(12);
     let hyper = MvgpHyper {
         kernel: Rbf::new(vec![1.2, 1.2], 1.0).unwrap(),
@@ -47,7 +59,16 @@ fn relative_degree_two_matches_exact_moments() {
         B: random_spd(2, &mut rng),
         sigma: 0.3,
     };
-    let mut model = Mvgp::new(2, 1, hyper, PriorMean::Zero, InputMap::Identity).unwrap();
+    // with a known row, the pendulum prior supplies it (θ̇ = ω)
+    let prior = if known.is_empty() {
+        PriorMean::Zero
+    } else {
+        PriorMean::System(std::sync::Arc::new(bayes_cbf::systems::Pendulum::default()))
+    };
+    let mut model = Mvgp::new(2, 1, hyper, prior, InputMap::Identity)
+        .unwrap()
+        .with_known_rows(known)
+        .unwrap();
     let xs: Vec<f64> = (0..20).map(|_| rng.random_range(-1.5..1.5)).collect();
     let us: Vec<f64> = (0..10).map(|_| rng.random_range(-1.0..1.0)).collect();
     let xd: Vec<f64> = (0..20).map(|_| rng.random_range(-1.0..1.0)).collect();
@@ -76,6 +97,12 @@ fn relative_degree_two_matches_exact_moments() {
     )
     .unwrap();
     assert_eq!(mc.samples, 40_000);
+    if known == [0] {
+        // the known row has zero variance, so L_g h = h'(θ) g_0 = 0 exactly
+        // and the control enters only through ∇(L_f h)ᵀ g
+        assert!(model.row_cov().row(0).iter().all(|v| *v == 0.0));
+        assert!(exact.variance(&[1.0]) > 1e-6, "{}", exact.variance(&[1.0]));
+    }
     for u in [[-1.0], [0.0], [0.7]] {
         let (se_m, se_v) = mc.standard_errors(&u);
         let (em, ev) = (exact.mean(&u), exact.variance(&u));
