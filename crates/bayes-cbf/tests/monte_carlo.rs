@@ -102,6 +102,10 @@ fn check_relative_degree_two(known: &[usize]) {
         // and the control enters only through ∇(L_f h)ᵀ g
         assert!(model.row_cov().row(0).iter().all(|v| *v == 0.0));
         assert!(exact.variance(&[1.0]) > 1e-6, "{}", exact.variance(&[1.0]));
+        assert_eq!(bayes_cbf::barrier::unmodelled_lgh_std(&ws), 0.0);
+    } else {
+        // a full A leaves L_g h random, which the warning reports
+        assert!(bayes_cbf::barrier::unmodelled_lgh_std(&ws) > 1e-3);
     }
     for u in [[-1.0], [0.0], [0.7]] {
         let (se_m, se_v) = mc.standard_errors(&u);

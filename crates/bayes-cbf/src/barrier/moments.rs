@@ -262,6 +262,46 @@ fn check_dims(ws: &MomentWorkspace, dim: usize, needs: usize) -> Result<(), Erro
     Ok(())
 }
 
+/// Standard deviation, per unit of control, of `L_g h · u = ∇hᵀ g(x) u`
+/// under the posterior at the last update point: `√(∇hᵀ A ∇h · max_c
+/// B_k,cc)` over the control columns `c ≥ 1` (`A` the model's row
+/// covariance). A relative-degree-2 condition assumes `L_g h = 0`; when the
+/// model leaves `g`'s rows that `∇h` sees uncertain (e.g. a kinematic row
+/// that is not declared known), this term is random and ignored. Call after
+/// [`cbc_moments`] (which sets `∇h`).
+pub fn unmodelled_lgh_std(ws: &MomentWorkspace) -> f64 {
+    let n = ws.x.len();
+    let mut q = 0.0;
+    for i in 0..n {
+        for j in 0..n {
+            q += ws.grad[i] * ws.a_mat[(i, j)] * ws.grad[j];
+        }
+    }
+    let p = ws.post.B.nrows();
+    let b = (1..p).map(|c| ws.post.B[(c, c)]).fold(0.0, f64::max);
+    (q.max(0.0) * b.max(0.0)).sqrt()
+}
+
+/// Warns once per process when a relative-degree-2 barrier sees an
+/// `L_g h · u` whose spread is more than a tenth of the condition's own
+/// (per unit control): the guarantee of the condition does not cover it.
+fn warn_unmodelled_lgh(ws: &MomentWorkspace, barrier: &dyn DynBarrier, out: &ConditionMoments) {
+    use std::sync::atomic::{AtomicBool, Ordering};
+    static WARNED: AtomicBool = AtomicBool::new(false);
+    if WARNED.load(Ordering::Relaxed) {
+        return;
+    }
+    let s = unmodelled_lgh_std(ws);
+    let p = out.cov.nrows();
+    let own = (0..p).map(|c| out.cov[(c, c)]).fold(0.0, f64::max).sqrt();
+    if s > 0.1 * own.max(1e-12) && !WARNED.swap(true, Ordering::Relaxed) {
+        log::warn!(
+            "barrier '{}' has relative degree 2, but the model leaves L_g h · u uncertain (std {s:.3e} per unit u, against {own:.3e} for the enforced condition): the condition assumes L_g h = 0 and does not cover it; declare the rows of F known from the prior (gp.known_rows) or use relative degree 1",
+            barrier.name()
+        );
+    }
+}
+
 /// Rejects a failed or non-finite evaluation of `h`, `∇h` or `∇²h`, naming
 /// the barrier (a callback's own message first).
 fn check_evaluation(
@@ -309,6 +349,7 @@ pub fn cbc_moments(
             let h = barrier.hessian(&ws.x, &mut ws.grad, &mut ws.hess, &mut ws.sh);
             check_evaluation(barrier, h, &ws.grad, &ws.hess)?;
             rd2(ws, h, gains[0], gains[1], out);
+            warn_unmodelled_lgh(ws, barrier, out);
             out.value = h;
             out.relative_degree = 2;
         }
