@@ -537,7 +537,10 @@ impl<'a> ClosedLoop<'a> {
         for (a, b) in self.min_monitor.iter_mut().zip(&mon_min) {
             *a = a.min(*b);
         }
-        // the measurement: forward difference of the observed states
+        // the measurement: the difference quotient of the observed states
+        // over the hold, labelled at the midpoint of the step, where it is
+        // the derivative up to O(τ²) (at x_prev it is biased by τ/2 · ẍ)
+        let mut mid = x_prev.clone();
         let xdot: Vec<f64> = (0..n)
             .map(|i| {
                 let d = self.x[i] - x_prev[i];
@@ -546,11 +549,12 @@ impl<'a> ClosedLoop<'a> {
                 } else {
                     d
                 };
+                mid[i] += 0.5 * d;
                 let e: f64 = StandardNormal.sample(&mut self.rng);
                 d / hold + self.settings.xdot_noise * e
             })
             .collect();
-        self.buffer.push((x_prev.clone(), self.out.u.clone(), xdot));
+        self.buffer.push((mid, self.out.u.clone(), xdot));
         self.learn(k);
         let refit = self.refit(k);
         let rec = StepRecord {

@@ -151,6 +151,32 @@ impl<P: ControlAffine> GpSample<P> {
         })
     }
 
+    /// Makes the rows of `F` in `rows` the prior mean's exactly: a draw of
+    /// the structured prior of [`crate::gp::Mvgp::with_known_rows`], whose
+    /// `A` has zero rows and columns there. The other rows keep their
+    /// distribution (their coefficients `L_A[L,:] Ξ L_Bᵀ` have covariance
+    /// `A_LL`).
+    pub fn with_known_rows(mut self, rows: &[usize]) -> Result<Self, InputError> {
+        if let Some(&i) = rows.iter().find(|&&i| i >= self.n) {
+            return Err(InputError::invalid(
+                "known_rows",
+                i as f64,
+                &format!("is not a row of F (state_dim = {})", self.n),
+            ));
+        }
+        let np = self.n * (self.m + 1);
+        for coef in [&mut self.cos_coef, &mut self.sin_coef] {
+            for feature in coef.chunks_mut(np) {
+                for c in 0..=self.m {
+                    for &i in rows {
+                        feature[i + self.n * c] = 0.0;
+                    }
+                }
+            }
+        }
+        Ok(self)
+    }
+
     /// Sets the angle components (wrapped by the simulator), e.g. for a
     /// zero prior mean.
     pub fn with_angles(mut self, angles: Vec<usize>) -> Result<Self, InputError> {
