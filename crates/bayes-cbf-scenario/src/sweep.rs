@@ -352,6 +352,36 @@ pub fn summarise(meta: &SweepMeta, rows: &[SweepRow]) -> SweepSummary {
     }
 }
 
+/// Checks that `shards` split one run into the same number of shards and
+/// hold each shard exactly once; returns that number.
+pub fn check_shard_set(shards: impl IntoIterator<Item = Shard>) -> Result<usize> {
+    let shards: Vec<Shard> = shards.into_iter().collect();
+    let Some(count) = shards.first().map(|s| s.count) else {
+        bail!("merge: no shards given");
+    };
+    let mut seen = vec![false; count];
+    for s in &shards {
+        if s.count != count {
+            bail!(
+                "merge: shard {}/{} does not belong to a split into {count}",
+                s.index,
+                s.count
+            );
+        }
+        if std::mem::replace(&mut seen[s.index], true) {
+            bail!("merge: shard {}/{count} is given twice", s.index);
+        }
+    }
+    let missing: Vec<String> = (0..count)
+        .filter(|&i| !seen[i])
+        .map(|i| format!("{i}/{count}"))
+        .collect();
+    if !missing.is_empty() {
+        bail!("merge: missing shard(s) {}", missing.join(", "));
+    }
+    Ok(count)
+}
+
 /// Checks that shards `parts` (each: its meta and rows) are the shards of
 /// one sweep, each present once, and returns the whole sweep's meta and its
 /// rows sorted by seed.
@@ -363,8 +393,6 @@ pub fn merge_sweeps(parts: Vec<(SweepMeta, Vec<SweepRow>)>) -> Result<(SweepMeta
         shard: Shard::WHOLE,
         ..first.clone()
     };
-    let count = first.shard.count;
-    let mut seen = vec![false; count];
     for (m, _) in &parts {
         let same = SweepMeta {
             shard: Shard::WHOLE,
@@ -374,27 +402,11 @@ pub fn merge_sweeps(parts: Vec<(SweepMeta, Vec<SweepRow>)>) -> Result<(SweepMeta
             bail!(
                 "merge: shard {}/{} is of another sweep ({} {:?} seeds {}..{}) than shard {}/{} ({} {:?} seeds {}..{})",
                 m.shard.index, m.shard.count, m.scenario, m.sets, m.seeds.start, m.seeds.end,
-                first.shard.index, count, first.scenario, first.sets, first.seeds.start, first.seeds.end
+                first.shard.index, first.shard.count, first.scenario, first.sets, first.seeds.start, first.seeds.end
             );
         }
-        if m.shard.count != count {
-            bail!(
-                "merge: shard {}/{} does not belong to a split into {count}",
-                m.shard.index,
-                m.shard.count
-            );
-        }
-        if std::mem::replace(&mut seen[m.shard.index], true) {
-            bail!("merge: shard {}/{count} is given twice", m.shard.index);
-        }
     }
-    let missing: Vec<String> = (0..count)
-        .filter(|&i| !seen[i])
-        .map(|i| format!("{i}/{count}"))
-        .collect();
-    if !missing.is_empty() {
-        bail!("merge: missing shard(s) {}", missing.join(", "));
-    }
+    check_shard_set(parts.iter().map(|(m, _)| m.shard))?;
     let mut rows: Vec<SweepRow> = Vec::with_capacity(whole.seeds.len());
     for (m, r) in parts {
         for row in &r {

@@ -68,7 +68,7 @@ mod stats;
 use super::{ExperimentArgs, Progress, Table};
 use crate::bail;
 use crate::error::Result;
-use crate::sweep::Shard;
+use crate::sweep::{check_shard_set, Shard};
 use episode::{run_episode, ControllerKind, EpisodeStats, System, TruthKind, CONTROLLERS};
 use rayon::prelude::*;
 use std::sync::atomic::{AtomicUsize, Ordering};
@@ -255,34 +255,16 @@ pub fn merge(parts: Vec<CalibrationPart>) -> Result<Calibration> {
     let Some(first) = parts.first() else {
         bail!("merge: no shards given");
     };
-    let (seed, quick, episodes, count) =
-        (first.seed, first.quick, first.episodes, first.shard.count);
-    let mut seen = vec![false; count];
+    let (seed, quick, episodes) = (first.seed, first.quick, first.episodes);
     for p in &parts {
         if (p.seed, p.quick, p.episodes) != (seed, quick, episodes) {
             bail!(
-                "merge: shard {}/{} is of another run (seed {}, quick {}, episodes {}) than shard {}/{count} (seed {seed}, quick {quick}, episodes {episodes})",
-                p.shard.index, p.shard.count, p.seed, p.quick, p.episodes, first.shard.index
+                "merge: shard {}/{} is of another run (seed {}, quick {}, episodes {}) than shard {}/{} (seed {seed}, quick {quick}, episodes {episodes})",
+                p.shard.index, p.shard.count, p.seed, p.quick, p.episodes, first.shard.index, first.shard.count
             );
         }
-        if p.shard.count != count {
-            bail!(
-                "merge: shard {}/{} does not belong to a split into {count}",
-                p.shard.index,
-                p.shard.count
-            );
-        }
-        if std::mem::replace(&mut seen[p.shard.index], true) {
-            bail!("merge: shard {}/{count} is given twice", p.shard.index);
-        }
     }
-    let missing: Vec<String> = (0..count)
-        .filter(|&i| !seen[i])
-        .map(|i| format!("{i}/{count}"))
-        .collect();
-    if !missing.is_empty() {
-        bail!("merge: missing shard(s) {}", missing.join(", "));
-    }
+    let count = check_shard_set(parts.iter().map(|p| p.shard))?;
     let plan = Plan::new(quick, Some(episodes))?;
     let order = tasks(&plan);
     let mut slots: Vec<Option<EpisodeStats>> = vec![None; order.len()];
