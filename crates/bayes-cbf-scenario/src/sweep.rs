@@ -65,7 +65,7 @@ impl SeedRange {
     }
     /// Number of seeds.
     pub fn len(&self) -> usize {
-        (self.end - self.start) as usize
+        self.end.saturating_sub(self.start) as usize
     }
     /// True if the range holds no seed.
     pub fn is_empty(&self) -> bool {
@@ -87,9 +87,23 @@ impl Shard {
     /// The whole run as one shard.
     pub const WHOLE: Shard = Shard { index: 0, count: 1 };
 
-    /// Whether the item at `position` belongs to this shard.
+    /// Whether the item at `position` belongs to this shard (never, for an
+    /// invalid shard).
     pub fn owns(&self, position: usize) -> bool {
-        position % self.count == self.index
+        self.count > 0 && position % self.count == self.index
+    }
+
+    /// Checks `1 ≤ count` and `index < count` (a shard read from a file may
+    /// violate them).
+    pub fn validate(&self) -> Result<()> {
+        if self.count == 0 || self.index >= self.count {
+            bail!(
+                "shard {}/{}: expected I/N with 0 ≤ I < N",
+                self.index,
+                self.count
+            );
+        }
+        Ok(())
     }
 }
 
@@ -215,6 +229,14 @@ pub fn run_seeds(
     meta: &SweepMeta,
     progress: &(dyn Fn(usize, usize) + Sync),
 ) -> Result<Vec<SweepRow>> {
+    meta.shard.validate()?;
+    if meta.seeds.is_empty() {
+        bail!(
+            "seeds {}..{}: the range is empty",
+            meta.seeds.start,
+            meta.seeds.end
+        );
+    }
     let seeds: Vec<u64> = meta
         .seeds
         .seeds()
@@ -361,6 +383,7 @@ pub fn check_shard_set(shards: impl IntoIterator<Item = Shard>) -> Result<usize>
     };
     let mut seen = vec![false; count];
     for s in &shards {
+        s.validate()?;
         if s.count != count {
             bail!(
                 "merge: shard {}/{} does not belong to a split into {count}",
@@ -407,6 +430,13 @@ pub fn merge_sweeps(parts: Vec<(SweepMeta, Vec<SweepRow>)>) -> Result<(SweepMeta
         }
     }
     check_shard_set(parts.iter().map(|(m, _)| m.shard))?;
+    if whole.seeds.is_empty() {
+        bail!(
+            "merge: the shards' seed range {}..{} is empty",
+            whole.seeds.start,
+            whole.seeds.end
+        );
+    }
     let mut rows: Vec<SweepRow> = Vec::with_capacity(whole.seeds.len());
     for (m, r) in parts {
         for row in &r {
@@ -456,6 +486,21 @@ mod tests {
             let e = bad.parse::<Shard>().unwrap_err().to_string();
             assert!(e.contains("--shard"), "{bad}: {e}");
         }
+        // shards read from files are validated where they are used
+        assert!(check_shard_set([Shard { index: 0, count: 0 }]).is_err());
+        assert!(check_shard_set([Shard { index: 2, count: 2 }]).is_err());
+        assert!(!Shard { index: 0, count: 0 }.owns(0));
+        let mut bad = SweepMeta {
+            scenario: "pendulum-safe".into(),
+            sets: vec![],
+            seeds: "0..2".parse().unwrap(),
+            shard: Shard { index: 3, count: 2 },
+            goal_tolerance: 1.0,
+        };
+        assert!(run_seeds(&bad, &|_, _| {}).is_err());
+        bad.shard = Shard::WHOLE;
+        bad.seeds = SeedRange { start: 4, end: 4 };
+        assert!(run_seeds(&bad, &|_, _| {}).is_err());
     }
 
     #[test]

@@ -233,6 +233,7 @@ pub fn run_shard(
     shard: Shard,
     progress: &dyn Progress,
 ) -> Result<CalibrationPart> {
+    shard.validate()?;
     let plan = Plan::new(args.quick, episodes)?;
     faer::set_global_parallelism(faer::Par::Seq);
     let start = Instant::now();
