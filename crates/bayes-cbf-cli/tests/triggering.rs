@@ -29,6 +29,11 @@ fn csv(path: &Path) -> (Vec<String>, Vec<Vec<String>>) {
     (head, rows)
 }
 
+fn column_words(head: &[String], rows: &[Vec<String>], name: &str) -> Vec<String> {
+    let i = head.iter().position(|h| h == name).expect(name);
+    rows.iter().map(|r| r[i].clone()).collect()
+}
+
 fn column(head: &[String], rows: &[Vec<String>], name: &str) -> Vec<f64> {
     let i = head.iter().position(|h| h == name).expect(name);
     rows.iter()
@@ -84,7 +89,39 @@ fn ackermann_triggering_quick() {
                 "{sub} row {k}: {n} > {a}"
             );
         }
-        assert!(ta.iter().all(|t| *t > 0.0));
+        // τ_k recomputed from its reported parts: the corrected Prop. 3 for
+        // each barrier (relative degree 1, α = 5 in the scenario) with its
+        // certified margin, then the cuboid time
+        let tau_c = column(&head, &rows, "tau_cuboid");
+        let xdot = column(&head, &rows, "xdot_norm");
+        let status = column_words(&head, &rows, "status");
+        for k in 0..rows.len() {
+            let l = la[k];
+            let by_barriers = (0..2)
+                .map(|i| {
+                    let part = |name: &str| column(&head, &rows, &format!("{name}{i}"))[k];
+                    let (lh, lg, m) = (part("l_h"), part("l_grad_h"), part("margin"));
+                    let a = m.max(0.0) / ((lh * (l + 5.0) + lg * xdot[k]) * xdot[k]);
+                    (l * a).ln_1p() / l
+                })
+                .fold(f64::INFINITY, f64::min);
+            let want = by_barriers.min(tau_c[k]);
+            assert!(
+                (ta[k] - want).abs() <= 1e-9 * want.max(1e-12),
+                "{sub} row {k}: τ {} vs {want}",
+                ta[k]
+            );
+            assert!(ta[k] >= 0.0);
+            if self_triggered && k + 1 < rows.len() {
+                // the hold: the clamp of τ_k, or τ_min after an infeasible SOCP
+                let want_hold = if status[k] == "infeasible" {
+                    1e-3
+                } else {
+                    ta[k].clamp(1e-3, 0.1)
+                };
+                assert!((hold[k] - want_hold).abs() < 1e-12, "{sub} row {k}");
+            }
+        }
         let total: f64 = hold.iter().sum();
         assert!(
             (total - horizon).abs() < 1e-6,

@@ -352,27 +352,34 @@ fn lipschitz_rejects_bad_settings() {
 
 #[test]
 fn trigger_times_match_hand_computed_values() {
-    // Prop. 3: L_f = 2, ζ = 0.01, L_α = 1, L_h = 3, ‖ẋ‖ = 0.5:
-    // τ = ln(1 + 2·0.01/(3·3·0.5))/2 = ln(1.0044444…)/2
-    let t1 = tau_relative_degree_one(2.0, 0.01, 1.0, 3.0, 0.5);
-    assert!((t1 - 0.002_217_298_5).abs() < 1e-10, "{t1}");
-    // Prop. 5: L_f = 2, ζ_b = 0.01, L_h = 3, ‖ẋ‖ = 0.5: ln(1 + 0.02/1.5)/2
+    // corrected Prop. 3: L_f = 2, ζ = 0.01, L_α = 1, L_h = 3, L_∇h = 4,
+    // ‖ẋ‖ = 0.5: τ = ln(1 + 2·0.01/((3·3 + 4·0.5)·0.5))/2 = ln(1 + 0.02/5.5)/2
+    let t1 = tau_relative_degree_one(2.0, 0.01, 1.0, 3.0, 4.0, 0.5);
+    assert!((t1 - 0.001_814_884_0).abs() < 1e-10, "{t1}");
+    // without the curvature term it is the printed Prop. 3: ln(1 + 0.02/4.5)/2
+    let printed = tau_relative_degree_one(2.0, 0.01, 1.0, 3.0, 0.0, 0.5);
+    assert!((printed - 0.002_217_298_5).abs() < 1e-10, "{printed}");
+    // Prop. 5: L_f = 2, margin 0.01, L_h = 3, ‖ẋ‖ = 0.5: ln(1 + 0.02/1.5)/2
     let t5 = tau_relative_degree_r(2.0, 0.01, 3.0, 0.5);
     assert!((t5 - 0.006_622_613_4).abs() < 1e-10, "{t5}");
-    // limits: L_f → 0 gives ζ/(L_α L_h ‖ẋ‖); no motion gives no bound
-    let t0 = tau_relative_degree_one(0.0, 0.01, 1.0, 3.0, 0.5);
-    assert!((t0 - 0.01 / 1.5).abs() < 1e-15);
-    assert!(tau_relative_degree_one(2.0, 0.01, 1.0, 3.0, 0.0).is_infinite());
+    // no margin, no hold
+    assert_eq!(tau_relative_degree_r(2.0, 0.0, 3.0, 0.5), 0.0);
+    assert_eq!(tau_relative_degree_r(2.0, -0.1, 3.0, 0.5), 0.0);
+    // limits: L_f → 0 gives ζ/((L_α L_h + L_∇h ‖ẋ‖) ‖ẋ‖); no motion, no bound
+    let t0 = tau_relative_degree_one(0.0, 0.01, 1.0, 3.0, 4.0, 0.5);
+    assert!((t0 - 0.01 / 2.5).abs() < 1e-15, "{t0}");
+    assert!(tau_relative_degree_one(2.0, 0.01, 1.0, 3.0, 4.0, 0.0).is_infinite());
     assert!(tau_relative_degree_r(2.0, 0.01, 0.0, 0.5).is_infinite());
-    // monotone: larger ζ, longer hold; larger L_f, shorter hold
-    assert!(tau_relative_degree_one(2.0, 0.02, 1.0, 3.0, 0.5) > t1);
-    assert!(tau_relative_degree_one(4.0, 0.01, 1.0, 3.0, 0.5) < t1);
+    // monotone: larger ζ, longer hold; larger L_f or L_∇h, shorter hold
+    assert!(tau_relative_degree_one(2.0, 0.02, 1.0, 3.0, 4.0, 0.5) > t1);
+    assert!(tau_relative_degree_one(4.0, 0.01, 1.0, 3.0, 4.0, 0.5) < t1);
+    assert!(tau_relative_degree_one(2.0, 0.01, 1.0, 3.0, 8.0, 0.5) < t1);
 }
 
 /// [`SelfTriggered`] applies the rules of Props. 3 and 5 once: the trigger's
 /// ζ is the SOCP margin, barriers of relative degree ≥ 2 are shifted by
 /// `ζ_b` (the constant term of their condition drops by `k_α[0] ζ_b`),
-/// the SOCP probability is `p / (1 − δ_L)`, and missing margins are errors
+/// the SOCP probability is `p + 2δ_L`, and missing margins are errors
 /// naming the field.
 #[test]
 fn self_triggered_controller_owns_the_rules() {
@@ -400,7 +407,7 @@ fn self_triggered_controller_owns_the_rules() {
     .unwrap();
     assert_eq!(st.trigger.zeta, 0.02);
     let p = st.controller.filter_mut().settings().probability;
-    assert!((p - 0.9 / 0.99).abs() < 1e-15, "{p}");
+    assert!((p - (0.9 + 2.0 * 0.01)).abs() < 1e-15, "{p}");
     let mut plain =
         SafetyController::new(2, 1, vec![sector.clone()], None, settings.clone()).unwrap();
     let m = model(InputMap::Identity, 4, 20);

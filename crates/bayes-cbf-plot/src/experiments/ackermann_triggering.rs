@@ -57,7 +57,11 @@ pub fn figures(r: &AckermannTriggering, dir: &Path) -> Result<Vec<PathBuf>> {
         ("analytic (Lemma 3)", &|r| Some(r.lipschitz.analytic)),
         ("numerical", &|r| r.lipschitz.numerical),
     ]);
-    let mut tp = Panel::new("Inter-trigger time (Prop. 3)", "t (s)", "τ_k (s)");
+    let mut tp = Panel::new(
+        "Inter-trigger time (Prop. 3, corrected)",
+        "t (s)",
+        "τ_k (s)",
+    );
     tp.log_y = true;
     tp.layers = layers([
         ("analytic", &|r| Some(r.tau_analytic)),

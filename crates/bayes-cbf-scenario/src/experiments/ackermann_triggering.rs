@@ -21,7 +21,10 @@ use super::ExperimentArgs;
 use crate::error::Result;
 use crate::scenario::{self, RunOutput, TriggerSummary};
 use crate::stats;
-use bayes_cbf::control::{tau_relative_degree_one, tau_relative_degree_r};
+use bayes_cbf::control::{
+    tau_in_cuboid, tau_relative_degree_one, tau_relative_degree_r, TriggerReport,
+};
+use bayes_cbf::sim::StepRecord;
 use serde::Serialize;
 
 /// One closed-loop run's part of the summary.
@@ -201,29 +204,38 @@ pub fn run(args: &ExperimentArgs) -> Result<AckermannTriggering> {
         zeta_runs.push((format!("zeta-{z}"), o));
     }
 
-    // τ against ζ on the self-triggered run's own L_f, L_h and ‖ẋ‖
-    // (Prop. 3/5 at each trigger, median over the run): the effect of ζ alone
-    let degrees: Vec<usize> = selft
+    // τ against ζ on the self-triggered run's own L_f, L_h, L_∇h, ‖ẋ‖ and
+    // h(x_k) (corrected Prop. 3 / Prop. 5 and the cuboid time at each
+    // trigger, median over the run): the effect of ζ alone
+    let barriers = &selft.built.barriers;
+    let half_sides: Vec<f64> = selft
         .built
-        .barriers
-        .iter()
-        .map(|b| b.relative_degree())
-        .collect();
-    let ts = selft.built.loop_settings.trigger.clone();
-    let tau_at = |z: f64, l: f64, r: &bayes_cbf::control::TriggerReport| -> f64 {
+        .loop_settings
+        .trigger
+        .as_ref()
+        .map(|t| t.lipschitz.sides.iter().map(|w| w / 2.0).collect())
+        .unwrap_or_default();
+    let tau_at = |z: f64, l: f64, rec: &StepRecord, r: &TriggerReport| -> f64 {
         // the sweep varies ζ of Prop. 3 and ζ_b of Prop. 5 together
-        let (la, zb) = (ts.as_ref().map_or(1.0, |t| t.l_alpha), z);
-        degrees
+        let by_barriers = barriers
             .iter()
-            .zip(&r.l_h)
-            .map(|(&d, &lh)| {
-                if d == 1 {
-                    tau_relative_degree_one(l, z, la, lh, r.xdot_norm)
+            .enumerate()
+            .map(|(i, b)| {
+                if b.relative_degree() == 1 {
+                    let la = b.gains().first().map_or(0.0, |a| a.abs());
+                    tau_relative_degree_one(l, z, la, r.l_h[i], r.l_grad_h[i], r.xdot_norm)
                 } else {
-                    tau_relative_degree_r(l, zb, lh, r.xdot_norm)
+                    tau_relative_degree_r(l, z.min(rec.h[i]), r.l_h[i], r.xdot_norm)
                 }
             })
-            .fold(f64::INFINITY, f64::min)
+            .fold(f64::INFINITY, f64::min);
+        by_barriers.min(tau_in_cuboid(
+            l,
+            &half_sides,
+            &r.xdot_bound,
+            r.xdot_norm,
+            by_barriers,
+        ))
     };
     let dense: Vec<f64> = (0..=12)
         .map(|i| 1e-3 * 10f64.powf(i as f64 / 4.0))
@@ -232,7 +244,7 @@ pub fn run(args: &ExperimentArgs) -> Result<AckermannTriggering> {
         .result
         .records
         .iter()
-        .filter_map(|r| r.trigger.as_ref())
+        .filter_map(|rec| rec.trigger.as_ref().map(|t| (rec, t)))
         .collect();
     let curve = |numerical: bool| -> Vec<f64> {
         dense
@@ -241,13 +253,13 @@ pub fn run(args: &ExperimentArgs) -> Result<AckermannTriggering> {
                 stats::median(
                     &reps
                         .iter()
-                        .filter_map(|r| {
+                        .filter_map(|&(rec, r)| {
                             let l = if numerical {
                                 r.lipschitz.numerical?
                             } else {
                                 r.lipschitz.analytic
                             };
-                            Some(tau_at(z, l, r))
+                            Some(tau_at(z, l, rec, r))
                         })
                         .collect::<Vec<_>>(),
                 )

@@ -182,7 +182,6 @@ pub fn build(s: &Scenario) -> Result<Built> {
                 },
                 zeta: s.controller.zeta,
                 zeta_b: t.zeta_b,
-                l_alpha: t.l_alpha,
                 tau_min: t.tau_min,
                 tau_max: t.tau_max,
                 tau_from: TauSource::parse(&t.tau_from)?,

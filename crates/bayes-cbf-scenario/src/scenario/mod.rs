@@ -124,9 +124,6 @@ pub struct TriggerSpec {
     /// Shift ζ_b of barriers of relative degree ≥ 2.
     #[serde(default = "default_zeta_b")]
     pub zeta_b: f64,
-    /// Lipschitz constant L_α of the class-K function.
-    #[serde(default = "one")]
-    pub l_alpha: f64,
     /// Shortest hold (s).
     #[serde(default = "default_tau_min")]
     pub tau_min: f64,

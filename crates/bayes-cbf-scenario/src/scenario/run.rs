@@ -124,8 +124,6 @@ pub struct TriggerSummary {
     pub zeta: f64,
     /// Shift ζ_b of barriers of relative degree ≥ 2.
     pub zeta_b: f64,
-    /// Lipschitz constant of the class-K function.
-    pub l_alpha: f64,
     /// Shortest hold (s).
     pub tau_min: f64,
     /// Longest hold (s).
@@ -138,6 +136,12 @@ pub struct TriggerSummary {
     pub tau_analytic_s: Option<Stats>,
     /// `τ_k` from the numerical estimate (s).
     pub tau_numerical_s: Option<Stats>,
+    /// Time the state provably stays in the cuboid (s).
+    pub tau_cuboid_s: Option<Stats>,
+    /// High-probability bound on `‖ẋ_k‖`.
+    pub xdot_norm: Option<Stats>,
+    /// Posterior mean `‖M_k(x_k)u̲_k‖`.
+    pub xdot_mean_norm: Option<Stats>,
     /// Analytic `L_f` (Lemma 3).
     pub lipschitz_analytic: Option<Stats>,
     /// Numerical `L_f`.
@@ -295,13 +299,15 @@ fn trigger_summary(ts: &TriggerSettings, r: &LoopResult) -> TriggerSummary {
         samples: ts.lipschitz.samples,
         zeta: ts.zeta,
         zeta_b: ts.zeta_b,
-        l_alpha: ts.l_alpha,
         tau_min: ts.tau_min,
         tau_max: ts.tau_max,
         tau_from: ts.tau_from.name().to_string(),
         hold_s: stats(r.records.iter().map(|x| x.hold).collect()),
         tau_analytic_s: stats(field(&|t| Some(t.tau_analytic))),
         tau_numerical_s: stats(field(&|t| t.tau_numerical)),
+        tau_cuboid_s: stats(field(&|t| Some(t.tau_cuboid).filter(|v| v.is_finite()))),
+        xdot_norm: stats(field(&|t| Some(t.xdot_norm))),
+        xdot_mean_norm: stats(field(&|t| Some(t.xdot_mean_norm))),
         lipschitz_analytic: stats(field(&|t| Some(t.lipschitz.analytic))),
         lipschitz_numerical: stats(field(&|t| t.lipschitz.numerical)),
         lipschitz_ratio_analytic_over_numerical: stats(ratio),
@@ -451,16 +457,16 @@ fn trajectory_columns(built: &Built, r: &LoopResult) -> Trajectory {
                 }),
             ),
             (
-                "l_h",
-                col(&|rec| {
-                    rec.trigger
-                        .as_ref()
-                        .map_or(absent, |t| t.l_h.iter().cloned().fold(0.0, f64::max))
-                }),
+                "tau_cuboid",
+                col(&|rec| rec.trigger.as_ref().map_or(absent, |t| t.tau_cuboid)),
             ),
             (
                 "xdot_norm",
                 col(&|rec| rec.trigger.as_ref().map_or(absent, |t| t.xdot_norm)),
+            ),
+            (
+                "xdot_mean_norm",
+                col(&|rec| rec.trigger.as_ref().map_or(absent, |t| t.xdot_mean_norm)),
             ),
             (
                 "clamped",
@@ -473,5 +479,14 @@ fn trajectory_columns(built: &Built, r: &LoopResult) -> Trajectory {
         ]);
     }
     columns.extend(rest.into_iter().map(|(n, c)| (n.to_string(), c)));
+    if built.loop_settings.trigger.is_some() {
+        let part =
+            |f: &dyn Fn(&TriggerReport) -> f64| col(&|rec| rec.trigger.as_ref().map_or(absent, f));
+        for i in 0..nb {
+            columns.push((format!("l_h{i}"), part(&|t| t.l_h[i])));
+            columns.push((format!("l_grad_h{i}"), part(&|t| t.l_grad_h[i])));
+            columns.push((format!("margin{i}"), part(&|t| t.margin[i])));
+        }
+    }
     Trajectory { columns }
 }

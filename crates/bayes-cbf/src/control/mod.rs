@@ -10,7 +10,8 @@ pub use filter::{
     SafetyController, SafetyFilter, SafetySettings,
 };
 pub use self_trigger::{
-    barrier_gradient_bound, evaluate_trigger, tau_relative_degree_one, tau_relative_degree_r,
-    SelfTriggered, ShiftedBarrier, TauSource, TriggerReport, TriggerSettings,
+    barrier_gradient_bound, barrier_hessian_bound, evaluate_trigger, tau_in_cuboid,
+    tau_relative_degree_one, tau_relative_degree_r, velocity_bound, SelfTriggered, ShiftedBarrier,
+    TauSource, TriggerReport, TriggerSettings,
 };
 pub use socp::{SocpShape, SolveStatus};

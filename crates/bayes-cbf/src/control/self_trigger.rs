@@ -1,26 +1,82 @@
 //! Self-triggered control: how long a control may be held (paper, Sec. V-B
-//! and VI-C).
+//! and VI-C), with the hold of Prop. 3 corrected.
 //!
-//! With `L_f` a Lipschitz constant of `f_k = F(x)u̲_k` on a set `X_k` around
-//! `x_k` (Lemma 3, [`Mvgp::lipschitz`]), the state stays within
-//! `r̄(s) = ‖ẋ_k‖ (e^{s L_f} − 1)/L_f` of `x_k` (Lemma 5). Then
+//! Over a hold the control `u̲_k` is constant and `ẋ = f_k(x) = F(x)u̲_k`.
+//! With `L_f` a Lipschitz constant of `f_k` on the cuboid `X_k` around `x_k`
+//! (Lemma 3, [`Mvgp::lipschitz`]) and `X ≥ ‖ẋ_k‖`, Grönwall's inequality
+//! (Lemma 5) keeps the state within
+//! `r(s) = X (e^{s L_f} − 1)/L_f` of `x_k` and its velocity within
+//! `‖ẋ(s) − ẋ_k‖ ≤ L_f r(s)`, for as long as the state stays in `X_k`.
 //!
-//! * relative degree 1 (Prop. 3): if the SOCP enforced `CBC ≥ ζ` at `t_k`,
-//!   `CBC ≥ 0` on `[t_k, t_k + τ_k)` for
-//!   `τ_k = ln(1 + L_f ζ / ((L_f + L_α) L_h ‖ẋ_k‖)) / L_f`;
-//! * relative degree `r` (Prop. 5): with the barrier shifted to
-//!   `h_b = h − ζ_b` (see [`ShiftedBarrier`]) and `ζ = 0`,
-//!   `h ≥ 0` on the interval for `τ_k = ln(1 + L_f ζ_b / (L_h ‖ẋ_k‖)) / L_f`,
+//! ## Relative degree 1 (Prop. 3, corrected)
 //!
-//! where `L_h ≥ sup_{X_k} ‖∇h‖` and `L_α` is the Lipschitz constant of the
-//! class-K function. Both hold with probability `p = p̃ (1 − δ_L)` when the
-//! SOCP uses `p̃ = p / (1 − δ_L)` ([`TriggerSettings::tilde_p`]).
+//! `CBC(x) = ∇h(x)ᵀ f_k(x) + α h(x)`. Splitting
+//! `∇h(x)ᵀf_k(x) − ∇h(x_k)ᵀf_k(x_k) = ∇h(x)ᵀ(f_k(x) − f_k(x_k)) +
+//! (∇h(x) − ∇h(x_k))ᵀ f_k(x_k)`,
 //!
-//! `‖ẋ_k‖` is the posterior mean `‖M_k(x_k)u̲_k‖`. The applied hold is `τ_k`
-//! clamped to `[τ_min, τ_max]`; a clamp from below is reported, since the
-//! guarantee then no longer covers the whole hold.
+//! `|CBC(x) − CBC(x_k)| ≤ (L_h (L_f + L_α) + L_∇h X) ‖x − x_k‖`,
+//!
+//! with `L_h ≥ sup ‖∇h‖`, `L_∇h ≥ sup ‖∇²h‖` on `X_k` and `L_α = α` (the
+//! barrier's gain). If `CBC(x_k) ≥ ζ_k`, then `CBC ≥ 0` for
+//! `r(s) ≤ ζ_k / (L_h (L_f + L_α) + L_∇h X)`, that is for
+//!
+//! `τ_k = ln(1 + L_f ζ_k / ((L_h (L_f + L_α) + L_∇h X) X)) / L_f`.
+//!
+//! The paper's Prop. 3 prints this without `L_∇h X`: it bounds the change of
+//! `∇hᵀ f_k` as if `∇h` were constant, which is unsafe for a curved barrier
+//! (see `tests/self_trigger_holds.rs` for the counterexample
+//! `h = 0.01 x − x²`, `ẋ = 1`, `ζ = 0.01`, where the printed hold is
+//! `0.0476 s` and `h < 0` from `0.01 s`).
+//!
+//! The margin `ζ_k`: the SOCP's chance constraint
+//! `E[CBC] − c(p̃) √Var[CBC] ≥ ζ` makes `CBC(x_k) ≥ E[CBC] − c(p̃) √Var[CBC]`
+//! with probability `p̃` (the condition is Gaussian for relative degree 1),
+//! so the hold uses that certified value at the applied control when the
+//! step's [`ConstraintReport`]s are given (it is `≥ ζ`, and larger when the
+//! constraint is inactive), and the paper's `ζ` otherwise.
+//!
+//! ## Relative degree `r` (Prop. 5)
+//!
+//! `|h(x) − h(x_k)| ≤ L_h ‖x − x_k‖`, so `h ≥ 0` over the hold while
+//! `r(s) ≤ h(x_k)/L_h`. Prop. 5 takes the margin `ζ_b`, assuming
+//! `h(x_k) ≥ ζ_b` (the SOCP enforces the condition on `h_b = h − ζ_b`,
+//! [`ShiftedBarrier`]), which the sampled-data loop does not ensure; the
+//! hold here uses the margin `h(x_k)` itself, which is what the bound needs:
+//!
+//! `τ_k = ln(1 + L_f h(x_k) / (L_h X)) / L_f` (0 when `h(x_k) ≤ 0`).
+//!
+//! ## Staying in the cuboid
+//!
+//! The constants hold on `X_k` only. Coordinate `i` moves at most
+//! `d_i(s) = b_i s + X ((e^{s L_f} − 1)/L_f − s)` with `b_i ≥ |ẋ_{k,i}|`
+//! (integrate `|ẋ_i(s)| ≤ |ẋ_{k,i}| + L_f r(s)`); the hold is shortened to
+//! the largest `s` with `d_i(s) ≤ side_i / 2` for every `i`.
+//!
+//! ## `‖ẋ_k‖` with high probability
+//!
+//! `v = F(x_k)u̲_k ~ N(μ, s A)` with `μ = M_k(x_k)u̲_k`,
+//! `s = u̲_kᵀ B_k(x_k, x_k) u̲_k` and `A` the row covariance. By Gaussian
+//! concentration of the 1-Lipschitz map `z ↦ ‖Σ^{1/2} z‖`,
+//! `‖v − μ‖ ≤ ρ = √s (√tr A + √(2 λ_max(A) ln(1/δ_L)))` with probability
+//! `1 − δ_L`; then `X = ‖μ‖ + ρ` and `b_i = |μ_i| + ρ`.
+//!
+//! ## Probability
+//!
+//! The hold's guarantee needs three events: the SOCP's condition at `x_k`
+//! (probability `p̃`), the Lipschitz bound (`1 − δ_L`) and the velocity bound
+//! (`1 − δ_L`). They concern the same random `F`, so they are not
+//! independent; by the union bound all three hold with probability at least
+//! `p` when the SOCP uses `p̃ = p + 2δ_L` ([`TriggerSettings::tilde_p`]). The
+//! paper's `p̃ = p/(1 − δ_L)` multiplies probabilities as if the events were
+//! independent.
+//!
+//! The applied hold is `τ_k` clamped to `[τ_min, τ_max]`; a clamp from below
+//! is reported, since the guarantee then no longer covers the whole hold.
+//! `L_h` and `L_∇h` are grid estimates (the grid maximum plus the covering
+//! radius times the largest slope between neighbouring nodes), like the
+//! mean term of Lemma 3.
 
-use super::{SafetyController, SafetySettings};
+use super::{ConstraintReport, SafetyController, SafetySettings};
 use crate::barrier::{DynBarrier, DynLyapunov};
 use crate::error::{Error, InputError};
 use crate::gp::lipschitz::{grid_nodes, grid_sup_estimate};
@@ -66,15 +122,14 @@ impl TauSource {
 #[derive(Debug, Clone, PartialEq)]
 #[cfg_attr(feature = "serde", derive(serde::Serialize, serde::Deserialize))]
 pub struct TriggerSettings {
-    /// Lipschitz settings (`δ_L`, cuboid, grid, samples).
+    /// Lipschitz settings (`δ_L`, cuboid, grid, samples). Every side of the
+    /// cuboid must be > 0: the hold keeps the state inside it.
     pub lipschitz: LipschitzSettings,
     /// Margin `ζ > 0` of relative-degree-1 barriers (Prop. 3); must equal the
     /// SOCP's margin.
     pub zeta: f64,
     /// Shift `ζ_b > 0` of barriers of relative degree ≥ 2 (Prop. 5).
     pub zeta_b: f64,
-    /// Lipschitz constant `L_α` of the class-K function.
-    pub l_alpha: f64,
     /// Shortest hold (s).
     pub tau_min: f64,
     /// Longest hold (s).
@@ -88,14 +143,13 @@ pub struct TriggerSettings {
 
 impl TriggerSettings {
     /// The paper's evaluation (Sec. VII-B) for the cuboid `sides`:
-    /// `δ_L = 1e-4`, `ζ = ζ_b = 1e-2`, `L_α = 1`, 10 nodes per side, holds in
+    /// `δ_L = 1e-4`, `ζ = ζ_b = 1e-2`, 10 nodes per side, holds in
     /// `[1 ms, 0.1 s]`, self-triggered, analytic.
     pub fn new(sides: Vec<f64>) -> Self {
         Self {
             lipschitz: LipschitzSettings::new(sides),
             zeta: 1e-2,
             zeta_b: 1e-2,
-            l_alpha: 1.0,
             tau_min: 1e-3,
             tau_max: 0.1,
             tau_from: TauSource::Analytic,
@@ -106,11 +160,20 @@ impl TriggerSettings {
     /// Checks the settings for state dimension `n`.
     pub fn validate(&self, n: usize) -> Result<(), InputError> {
         self.lipschitz.validate(n)?;
-        for (name, v) in [
-            ("zeta", self.zeta),
-            ("trigger.zeta_b", self.zeta_b),
-            ("trigger.l_alpha", self.l_alpha),
-        ] {
+        if let Some((i, &w)) = self
+            .lipschitz
+            .sides
+            .iter()
+            .enumerate()
+            .find(|(_, &w)| w <= 0.0)
+        {
+            return Err(InputError::invalid(
+                &format!("trigger.cuboid[{i}]"),
+                w,
+                "must be > 0: the hold keeps the state inside the cuboid",
+            ));
+        }
+        for (name, v) in [("zeta", self.zeta), ("trigger.zeta_b", self.zeta_b)] {
             if !(v.is_finite() && v >= 0.0) {
                 return Err(InputError::invalid(name, v, "must be finite and ≥ 0"));
             }
@@ -139,16 +202,18 @@ impl TriggerSettings {
         Ok(())
     }
 
-    /// `p̃ = p / (1 − δ_L)`: the SOCP probability that makes the interval
-    /// guarantee `p`. Errors when `p̃ ≥ 1`.
+    /// `p̃ = p + 2δ_L`: the SOCP probability that makes the guarantee over
+    /// each hold `p` (union bound over the SOCP's condition, the Lipschitz
+    /// bound and the velocity bound; see the module docs). Errors when
+    /// `p̃ ≥ 1`.
     pub fn tilde_p(&self, p: f64) -> Result<f64, InputError> {
-        let pt = p / (1.0 - self.lipschitz.delta_l);
+        let pt = p + 2.0 * self.lipschitz.delta_l;
         if !(pt > 0.0 && pt < 1.0) {
             return Err(InputError::invalid(
                 "controller.probability",
                 p,
                 &format!(
-                    "p / (1 − δ_L) = {pt} must be < 1 (δ_L = {})",
+                    "p + 2δ_L = {pt} must be < 1 (δ_L = {})",
                     self.lipschitz.delta_l
                 ),
             ));
@@ -169,23 +234,87 @@ fn log1p_over(l: f64, a: f64) -> f64 {
     }
 }
 
-/// Prop. 3: `τ = ln(1 + L_f ζ / ((L_f + L_α) L_h ‖ẋ‖)) / L_f`
-/// (`+∞` when `L_h ‖ẋ‖ = 0`).
-pub fn tau_relative_degree_one(l_f: f64, zeta: f64, l_alpha: f64, l_h: f64, xdot: f64) -> f64 {
-    let den = (l_f + l_alpha) * l_h * xdot;
+/// Prop. 3, corrected:
+/// `τ = ln(1 + L_f ζ / ((L_h (L_f + L_α) + L_∇h X) X)) / L_f`
+/// (`+∞` when the denominator is 0). With `l_grad_h = 0` this is the
+/// paper's printed formula, which is unsafe for curved barriers.
+pub fn tau_relative_degree_one(
+    l_f: f64,
+    zeta: f64,
+    l_alpha: f64,
+    l_h: f64,
+    l_grad_h: f64,
+    xdot: f64,
+) -> f64 {
+    let den = (l_h * (l_f + l_alpha) + l_grad_h * xdot) * xdot;
     let a = if den > 0.0 { zeta / den } else { f64::INFINITY };
-    log1p_over(l_f, a)
+    log1p_over(l_f, a.max(0.0))
 }
 
-/// Prop. 5: `τ = ln(1 + L_f ζ_b / (L_h ‖ẋ‖)) / L_f` (`+∞` when `L_h ‖ẋ‖ = 0`).
-pub fn tau_relative_degree_r(l_f: f64, zeta_b: f64, l_h: f64, xdot: f64) -> f64 {
+/// Prop. 5 with margin `m`: `τ = ln(1 + L_f m / (L_h X)) / L_f` (`+∞` when
+/// `L_h X = 0` and `m > 0`; `0` when `m ≤ 0`). The hold uses `m = h(x_k)`.
+pub fn tau_relative_degree_r(l_f: f64, margin: f64, l_h: f64, xdot: f64) -> f64 {
+    if margin <= 0.0 {
+        return 0.0;
+    }
     let den = l_h * xdot;
     let a = if den > 0.0 {
-        zeta_b / den
+        margin / den
     } else {
         f64::INFINITY
     };
     log1p_over(l_f, a)
+}
+
+/// `(e^{L s} − 1)/L − s`, the growth of the distance bound beyond the
+/// straight line (continuous at `L = 0`, where it is 0).
+fn excess(l: f64, s: f64) -> f64 {
+    let ls = l * s;
+    if ls < 1e-4 {
+        l * s * s / 2.0 * (1.0 + ls / 3.0 + ls * ls / 12.0)
+    } else {
+        (ls.exp_m1() - ls) / l
+    }
+}
+
+/// The longest `s ≤ upper` for which the state provably stays in the
+/// cuboid: `b_i s + X ((e^{s L_f} − 1)/L_f − s) ≤ half_sides[i]` for every
+/// coordinate `i` (module docs). `b[i] ≥ |ẋ_{k,i}|`, `xdot ≥ ‖ẋ_k‖`.
+pub fn tau_in_cuboid(l_f: f64, half_sides: &[f64], b: &[f64], xdot: f64, upper: f64) -> f64 {
+    let worst = |s: f64| -> f64 {
+        half_sides
+            .iter()
+            .zip(b)
+            .map(|(&w, &bi)| (bi * s + xdot * excess(l_f, s)) / w)
+            .fold(0.0, f64::max)
+    };
+    if !upper.is_finite() {
+        // the bound grows without limit unless the state is at rest
+        if xdot == 0.0 {
+            return f64::INFINITY;
+        }
+        let mut hi = 1.0;
+        while worst(hi) <= 1.0 && hi < 1e12 {
+            hi *= 2.0;
+        }
+        return tau_in_cuboid(l_f, half_sides, b, xdot, hi);
+    }
+    if worst(upper) <= 1.0 {
+        return upper;
+    }
+    let (mut lo, mut hi) = (0.0, upper);
+    for _ in 0..100 {
+        let mid = 0.5 * (lo + hi);
+        if worst(mid) <= 1.0 {
+            lo = mid;
+        } else {
+            hi = mid;
+        }
+        if hi - lo <= 1e-15 * hi.max(1e-300) {
+            break;
+        }
+    }
+    lo
 }
 
 /// One trigger's evaluation.
@@ -193,14 +322,31 @@ pub fn tau_relative_degree_r(l_f: f64, zeta_b: f64, l_h: f64, xdot: f64) -> f64 
 pub struct TriggerReport {
     /// The Lipschitz constants of `f_k` on the cuboid.
     pub lipschitz: LipschitzEstimate,
-    /// `L_h` of each barrier on the cuboid.
+    /// `L_h ≥ sup ‖∇h‖` of each barrier on the cuboid.
     pub l_h: Vec<f64>,
-    /// `‖ẋ_k‖` (posterior mean).
+    /// `L_∇h ≥ sup ‖∇²h‖` (Frobenius) of each relative-degree-1 barrier on
+    /// the cuboid; 0 for barriers of higher relative degree (Prop. 5 does
+    /// not use it).
+    pub l_grad_h: Vec<f64>,
+    /// The margin of each barrier's hold: for relative degree 1 the
+    /// certified condition `E[CBC] − c(p̃)√Var[CBC]` at the applied control
+    /// (or `ζ` without the step's reports); `h(x_k)` for relative degree ≥ 2.
+    pub margin: Vec<f64>,
+    /// `‖M_k(x_k)u̲_k‖`, the posterior mean of `‖ẋ_k‖`.
+    pub xdot_mean_norm: f64,
+    /// `X`: the bound on `‖ẋ_k‖` that holds with probability `1 − δ_L`.
     pub xdot_norm: f64,
-    /// `τ_k` from the analytic `L_f` (minimum over barriers, unclamped).
+    /// `b_i ≥ |ẋ_{k,i}|` per coordinate, under the same event as `X`.
+    pub xdot_bound: Vec<f64>,
+    /// `τ_k` from the analytic `L_f`: the minimum over barriers and the time
+    /// the state provably stays in the cuboid (unclamped).
     pub tau_analytic: f64,
     /// `τ_k` from the numerical `L_f`, if estimated.
     pub tau_numerical: Option<f64>,
+    /// The time the state provably stays in the cuboid, with the `L_f` that
+    /// sets the hold, computed up to the longer of `τ_max` and the
+    /// barriers' `τ_k` (it is that bound when the state cannot leave before).
+    pub tau_cuboid: f64,
     /// The hold applied: the chosen `τ_k` clamped to `[τ_min, τ_max]`.
     pub hold: f64,
     /// The chosen `τ_k` was below `τ_min` (the guarantee does not cover the
@@ -210,85 +356,204 @@ pub struct TriggerReport {
     pub eval_us: f64,
 }
 
-/// `τ_k` for each barrier from `L_f`, minimum over barriers.
-fn tau_for(
-    l_f: f64,
-    barriers: &[Arc<dyn DynBarrier>],
-    l_h: &[f64],
+/// The parts of the hold that do not depend on `L_f`.
+struct HoldParts<'a> {
+    tau_max: f64,
+    barriers: &'a [Arc<dyn DynBarrier>],
+    l_h: &'a [f64],
+    l_grad_h: &'a [f64],
+    margin: &'a [f64],
+    half_sides: &'a [f64],
+    b: &'a [f64],
     xdot: f64,
-    s: &TriggerSettings,
-) -> f64 {
-    barriers
-        .iter()
-        .zip(l_h)
-        .map(|(b, &lh)| {
-            if b.relative_degree() == 1 {
-                tau_relative_degree_one(l_f, s.zeta, s.l_alpha, lh, xdot)
-            } else {
-                tau_relative_degree_r(l_f, s.zeta_b, lh, xdot)
-            }
-        })
-        .fold(f64::INFINITY, f64::min)
 }
 
-/// `sup ‖∇h‖` on the cuboid: the maximum over the grid plus the covering
-/// radius times the largest finite-difference slope of `‖∇h‖` between
-/// neighbouring nodes.
+impl HoldParts<'_> {
+    /// `τ_k` from `L_f` (barriers and cuboid), and the cuboid time (up to
+    /// the longer of `τ_max` and the barriers' `τ_k`).
+    fn tau(&self, l_f: f64) -> (f64, f64) {
+        let by_barriers = self
+            .barriers
+            .iter()
+            .enumerate()
+            .map(|(i, b)| {
+                if b.relative_degree() == 1 {
+                    let l_alpha = b.gains().first().map_or(0.0, |a| a.abs());
+                    tau_relative_degree_one(
+                        l_f,
+                        self.margin[i],
+                        l_alpha,
+                        self.l_h[i],
+                        self.l_grad_h[i],
+                        self.xdot,
+                    )
+                } else {
+                    tau_relative_degree_r(l_f, self.margin[i], self.l_h[i], self.xdot)
+                }
+            })
+            .fold(f64::INFINITY, f64::min);
+        let upper = by_barriers.max(self.tau_max);
+        let cube = tau_in_cuboid(l_f, self.half_sides, self.b, self.xdot, upper);
+        (by_barriers.min(cube), cube)
+    }
+}
+
+/// A grid estimate of `sup` over the cuboid of `value(node)` (the grid
+/// maximum plus the covering radius times the largest slope between
+/// neighbouring nodes).
+fn sup_on_cuboid(x: &[f64], s: &LipschitzSettings, value: &mut dyn FnMut(&[f64]) -> f64) -> f64 {
+    let all: Vec<usize> = (0..x.len()).collect();
+    let values: Vec<Vec<f64>> = grid_nodes(x, &s.sides, s.grid, &all)
+        .iter()
+        .map(|node| vec![value(node)])
+        .collect();
+    grid_sup_estimate(&values, &s.sides, s.grid)[0]
+}
+
+/// `sup ‖∇h‖` on the cuboid (grid estimate, see [`sup_on_cuboid`]).
 pub fn barrier_gradient_bound(b: &dyn DynBarrier, x: &[f64], s: &LipschitzSettings) -> f64 {
     let n = x.len();
-    let all: Vec<usize> = (0..n).collect();
     let mut grad = vec![0.0; n];
     let mut scratch = vec![Dual64::from(0.0); n];
-    let norms: Vec<Vec<f64>> = grid_nodes(x, &s.sides, s.grid, &all)
-        .iter()
-        .map(|node| {
-            b.gradient(node, &mut grad, &mut scratch);
-            vec![grad.iter().map(|v| v * v).sum::<f64>().sqrt()]
-        })
+    sup_on_cuboid(x, s, &mut |node| {
+        b.gradient(node, &mut grad, &mut scratch);
+        grad.iter().map(|v| v * v).sum::<f64>().sqrt()
+    })
+}
+
+/// `sup ‖∇²h‖_F` on the cuboid (grid estimate; the Frobenius norm bounds
+/// the spectral norm).
+pub fn barrier_hessian_bound(b: &dyn DynBarrier, x: &[f64], s: &LipschitzSettings) -> f64 {
+    let n = x.len();
+    let mut grad = vec![0.0; n];
+    let mut hess = vec![0.0; n * n];
+    let mut scratch = vec![HyperDual64::from(0.0); n];
+    sup_on_cuboid(x, s, &mut |node| {
+        b.hessian(node, &mut grad, &mut hess, &mut scratch);
+        hess.iter().map(|v| v * v).sum::<f64>().sqrt()
+    })
+}
+
+/// The mean `μ = M_k(x)u̲` of `ẋ = F(x)u̲` and the radius `ρ` with
+/// `P(‖F(x)u̲ − μ‖ ≤ ρ) ≥ 1 − δ` (module docs).
+pub fn velocity_bound(
+    model: &Mvgp,
+    x: &[f64],
+    u: &[f64],
+    delta: f64,
+) -> Result<(Vec<f64>, f64), Error> {
+    let post = model.posterior(x)?;
+    let (n, p) = (model.state_dim(), u.len() + 1);
+    if post.mean.ncols() != p {
+        return Err(InputError::shape("u", p - 1, u.len()).into());
+    }
+    let ubar = |c: usize| if c == 0 { 1.0 } else { u[c - 1] };
+    let mu: Vec<f64> = (0..n)
+        .map(|i| (0..p).map(|c| post.mean[(i, c)] * ubar(c)).sum())
         .collect();
-    grid_sup_estimate(&norms, &s.sides, s.grid)[0]
+    let s: f64 = (0..p)
+        .map(|a| {
+            (0..p)
+                .map(|c| ubar(a) * post.B[(a, c)] * ubar(c))
+                .sum::<f64>()
+        })
+        .sum::<f64>()
+        .max(0.0);
+    let a = model.row_cov();
+    let trace = a.trace().max(0.0);
+    let lambda_max = a
+        .clone()
+        .symmetric_eigenvalues()
+        .iter()
+        .copied()
+        .fold(0.0, f64::max);
+    let rho = s.sqrt() * (trace.sqrt() + (2.0 * lambda_max * (1.0 / delta).ln()).sqrt());
+    Ok((mu, rho))
 }
 
 /// Evaluates the trigger at `(x_k, u_k)`: Lipschitz constants, `L_h`,
-/// `‖ẋ_k‖`, both `τ_k` and the hold.
+/// `L_∇h`, the high-probability `‖ẋ_k‖`, both `τ_k`, the cuboid time and
+/// the hold. `barriers` are the unshifted barriers; `conditions`, if given,
+/// are the step's reports of the same barriers
+/// ([`ControlOutput::constraints`](super::ControlOutput::constraints)),
+/// whose certified values set the margins of relative-degree-1 barriers
+/// (module docs).
 pub fn evaluate_trigger<R: Rng>(
     model: &Mvgp,
     x: &[f64],
     u: &[f64],
     barriers: &[Arc<dyn DynBarrier>],
+    conditions: Option<&[ConstraintReport]>,
     settings: &TriggerSettings,
     rng: &mut R,
 ) -> Result<TriggerReport, Error> {
     let started = std::time::Instant::now();
     settings.validate(model.state_dim())?;
+    if let Some(c) = conditions {
+        if c.len() != barriers.len() {
+            return Err(InputError::shape("conditions", barriers.len(), c.len()).into());
+        }
+    }
     let lipschitz = model.lipschitz(x, u, &settings.lipschitz, rng)?;
-    let mean = model.posterior_mean(x)?;
-    let xdot_norm = (0..model.state_dim())
-        .map(|i| {
-            let v = mean[(i, 0)] + (0..u.len()).map(|a| mean[(i, a + 1)] * u[a]).sum::<f64>();
-            v * v
-        })
-        .sum::<f64>()
-        .sqrt();
+    let (mu, rho) = velocity_bound(model, x, u, settings.lipschitz.delta_l)?;
+    let xdot_mean_norm = mu.iter().map(|v| v * v).sum::<f64>().sqrt();
+    let xdot_norm = xdot_mean_norm + rho;
+    let b: Vec<f64> = mu.iter().map(|v| v.abs() + rho).collect();
+    let half_sides: Vec<f64> = settings.lipschitz.sides.iter().map(|w| w / 2.0).collect();
+    let ls = &settings.lipschitz;
     let l_h: Vec<f64> = barriers
         .iter()
-        .map(|b| barrier_gradient_bound(b.as_ref(), x, &settings.lipschitz))
+        .map(|b| barrier_gradient_bound(b.as_ref(), x, ls))
         .collect();
-    let tau_analytic = tau_for(lipschitz.analytic, barriers, &l_h, xdot_norm, settings);
-    let tau_numerical = lipschitz
-        .numerical
-        .map(|l| tau_for(l, barriers, &l_h, xdot_norm, settings));
-    let chosen = match settings.tau_from {
-        TauSource::Analytic => tau_analytic,
-        TauSource::Numerical => tau_numerical.unwrap_or(tau_analytic),
+    let l_grad_h: Vec<f64> = barriers
+        .iter()
+        .map(|b| {
+            if b.relative_degree() == 1 {
+                barrier_hessian_bound(b.as_ref(), x, ls)
+            } else {
+                0.0
+            }
+        })
+        .collect();
+    let margin: Vec<f64> = barriers
+        .iter()
+        .enumerate()
+        .map(|(i, b)| {
+            if b.relative_degree() >= 2 {
+                b.value(x)
+            } else {
+                conditions.map_or(settings.zeta, |c| c[i].mean - c[i].c * c[i].std)
+            }
+        })
+        .collect();
+    let parts = HoldParts {
+        tau_max: settings.tau_max,
+        barriers,
+        l_h: &l_h,
+        l_grad_h: &l_grad_h,
+        margin: &margin,
+        half_sides: &half_sides,
+        b: &b,
+        xdot: xdot_norm,
+    };
+    let (tau_analytic, cube_analytic) = parts.tau(lipschitz.analytic);
+    let numerical = lipschitz.numerical.map(|l| parts.tau(l));
+    let (chosen, tau_cuboid) = match (settings.tau_from, numerical) {
+        (TauSource::Numerical, Some(t)) => t,
+        _ => (tau_analytic, cube_analytic),
     };
     let hold = chosen.clamp(settings.tau_min, settings.tau_max);
     Ok(TriggerReport {
         lipschitz,
         l_h,
+        l_grad_h,
+        margin,
+        xdot_mean_norm,
         xdot_norm,
+        xdot_bound: b,
         tau_analytic,
-        tau_numerical,
+        tau_numerical: numerical.map(|t| t.0),
+        tau_cuboid,
         hold,
         clamped_low: chosen < settings.tau_min,
         eval_us: started.elapsed().as_secs_f64() * 1e6,
@@ -340,10 +605,10 @@ impl DynBarrier for ShiftedBarrier {
 ///   (it must be > 0 when a barrier has relative degree 1);
 /// - barriers of relative degree ≥ 2 enter the SOCP shifted to
 ///   `h_b = h − ζ_b` ([`ShiftedBarrier`], Prop. 5; `ζ_b` > 0 required);
-/// - the SOCP probability is `p̃ = p/(1 − δ_L)`
+/// - the SOCP probability is `p̃ = p + 2δ_L`
 ///   ([`TriggerSettings::tilde_p`]), so that the guarantee over each hold is
-///   the requested `p` (the bound of Lemma 3 holds with probability
-///   `1 − δ_L`).
+///   the requested `p` (the bound of Lemma 3 and the velocity bound each
+///   hold with probability `1 − δ_L`; union bound).
 ///
 /// `barriers` are the unshifted barriers (check `h` against them);
 /// [`SafetyController::new`] checks the rest (`p ≥ 0.5` with

@@ -323,6 +323,15 @@ impl<'a> ClosedLoop<'a> {
             .into());
         }
         if let Some(ts) = &settings.trigger {
+            let nb = controller.barrier_moments().len();
+            if nb != barriers.len() {
+                return Err(InputError::shape(
+                    "barriers (one per controller barrier, for the trigger)",
+                    nb,
+                    barriers.len(),
+                )
+                .into());
+            }
             if ts.lipschitz.sides.len() != n {
                 return Err(
                     InputError::shape("trigger.cuboid", n, ts.lipschitz.sides.len()).into(),
@@ -494,13 +503,18 @@ impl<'a> ClosedLoop<'a> {
                 &self.x,
                 &self.out.u,
                 self.barriers,
+                Some(&self.out.constraints),
                 ts,
                 &mut self.trigger_rng,
             )?),
             None => None,
         };
-        let hold = match &trigger {
-            Some(tr) if self_triggered => tr.hold.min(horizon - t),
+        // an infeasible step did not enforce the condition the hold's
+        // guarantee starts from: hold for the shortest time only
+        let infeasible = matches!(self.out.status, ControlStatus::Infeasible(_));
+        let hold = match (&trigger, &self.settings.trigger) {
+            (Some(_), Some(ts)) if self_triggered && infeasible => ts.tau_min.min(horizon - t),
+            (Some(tr), _) if self_triggered => tr.hold.min(horizon - t),
             _ => self.settings.dt,
         };
         let data_size = self.model.len();
