@@ -87,10 +87,11 @@ proptest! {
     }
 
     #[test]
-    fn scenario_reader_never_panics(i in 0usize..5, t in mutated(BUILTIN[1].1)) {
-        let _ = i;
-        // the mutated text of a built-in, parsed and validated
-        let _ = scenario(&t);
+    fn scenario_reader_never_panics(
+        (i, t) in (0..BUILTIN.len()).prop_flat_map(|i| (Just(i), mutated(BUILTIN[i].1)))
+    ) {
+        // the mutated text of built-in `i`, parsed and validated
+        prop_assert!(one_line(scenario(&t)), "{}", BUILTIN[i].0);
     }
 
     #[test]

@@ -21,6 +21,33 @@ fn rate(v: &Value) -> f64 {
         .unwrap_or_else(|| panic!("no rate in {v}"))
 }
 
+/// The 99.9 % Wilson score interval of `k` successes in `n` trials:
+/// `(p̂ + z²/2n ± z √(p̂(1 − p̂)/n + z²/4n²)) / (1 + z²/n)`,
+/// `z = Φ⁻¹(0.9995)`.
+fn wilson_999(k: u64, n: u64) -> (f64, f64) {
+    let z = 3.2905267314919255;
+    let (p, n) = (k as f64 / n as f64, n as f64);
+    let denom = 1.0 + z * z / n;
+    let centre = (p + z * z / (2.0 * n)) / denom;
+    let half = z * (p * (1.0 - p) / n + z * z / (4.0 * n * n)).sqrt() / denom;
+    ((centre - half).max(0.0), (centre + half).min(1.0))
+}
+
+#[test]
+fn wilson_999_matches_reference_values() {
+    // k = 0 gives [0, z²/(n + z²)]; k = 10 of 100 gives centre
+    // (0.1 + 0.054138)/1.108275 = 0.139079 and half-width
+    // 3.290527 √(0.0009 + 0.0002707)/1.108275 = 0.101587
+    let (lo, hi) = wilson_999(0, 200);
+    let z2 = 3.2905267314919255f64.powi(2);
+    assert!(lo == 0.0 && (hi - z2 / (200.0 + z2)).abs() < 1e-12);
+    let (lo, hi) = wilson_999(10, 100);
+    assert!(
+        (lo - 0.037492).abs() < 1e-5 && (hi - 0.240666).abs() < 1e-5,
+        "{lo} {hi}"
+    );
+}
+
 #[test]
 fn quick_calibration() {
     // the same seed on one and on two threads
@@ -113,16 +140,55 @@ fn quick_calibration() {
             );
         }
     }
-    // the well-specified vehicle: calibrated on the active steps (where the
-    // promise is tight) within a loose bound, the mean CBF near one half
-    let active = |c: &str| {
-        rate(
-            &calibration_row(&s, "ackermann", "well_specified", c)["true_condition_violated"]
-                ["active_steps"],
-        )
+    // The well-specified vehicle (relative degree 1, Gaussian factor) on the
+    // steps whose chance constraint is active, where the promise is tight:
+    // the true condition fails with probability 1 − p under the model. The
+    // counts of this run (seed 3): p = 0.9 119 of 1070 (11.1 %), p = 0.99 25
+    // of 1113 (2.2 %, the model expected 11.1), p = 0.999 0 of 1144, mean
+    // CBF (c = 0, promise ½) 532 of 987. Intervals are 99.9 % Wilson score
+    // intervals, which treat the steps as independent; steps of one episode
+    // are correlated, so the intervals are too narrow and the p = 0.99
+    // excess (its interval [1.2 %, 4.2 %] misses 1 %; the cluster-robust
+    // interval of the report, [0, 6.1 %], does not) is bounded rather than
+    // required to vanish.
+    let active_counts = |truth: &str, c: &str| {
+        let v =
+            &calibration_row(&s, "ackermann", truth, c)["true_condition_violated"]["active_steps"];
+        (v["count"].as_u64().unwrap(), v["of"].as_u64().unwrap())
     };
-    assert!(active(bayes[1]) < 0.05, "{}", active(bayes[1]));
-    assert!(active("mean-cbf") > 0.3, "{}", active("mean-cbf"));
+    let interval = |c: &str| {
+        let (k, n) = active_counts("well_specified", c);
+        assert!(n >= 500, "{c}: only {n} active steps");
+        wilson_999(k, n)
+    };
+    // p = 0.9: calibrated
+    let (lo, hi) = interval(bayes[0]);
+    assert!(lo <= 0.1 && 0.1 <= hi, "p = 0.9: [{lo}, {hi}] misses 0.1");
+    // p = 0.99: the promise is tight (not merely conservative), and any
+    // excess is below twice the promise
+    let (lo, hi) = interval(bayes[1]);
+    assert!(
+        hi >= 0.01 && lo <= 0.02,
+        "p = 0.99: [{lo}, {hi}] against 0.01"
+    );
+    // p = 0.999: at most its promise
+    let (lo, _) = interval(bayes[2]);
+    assert!(lo <= 0.001, "p = 0.999: lower end {lo} above 0.001");
+    // the mean CBF meets its condition with probability ½ when active
+    let (lo, hi) = interval("mean-cbf");
+    assert!(lo <= 0.5 && 0.5 <= hi, "mean CBF: [{lo}, {hi}] misses 0.5");
+    // the well-specified pendulum (relative degree 2, Cantelli factor): at
+    // most 1 − p (measured 1 of 1800, 0 of 1777, 0 of 439)
+    for (c, p) in bayes.iter().zip([0.9, 0.99, 0.999]) {
+        let v = &calibration_row(&s, "pendulum", "well_specified", c)["true_condition_violated"]
+            ["active_steps"];
+        let (lo, _) = wilson_999(v["count"].as_u64().unwrap(), v["of"].as_u64().unwrap());
+        assert!(
+            lo <= 1.0 - p,
+            "pendulum {c}: lower end {lo} above {}",
+            1.0 - p
+        );
+    }
     // paired episodes: the mean CBF violates h where the Bayes CBF does not
     // at least as often as the other way round
     for p in s["paired_mean_vs_bayes"].as_array().unwrap() {

@@ -18,6 +18,115 @@ fn random_moments(m: usize, rng: &mut ChaCha8Rng, r: usize, scale: f64) -> Condi
     ConditionMoments::from_parts(e, &c * c.transpose(), r).unwrap()
 }
 
+/// `c(p)` at `p = 0.9` for relative degree 1: the standard normal quantile
+/// `Φ⁻¹(0.9)` (tables; also [`normal_quantile`]).
+const GAUSS_C_0_9: f64 = 1.2815515655446004;
+/// `Φ⁻¹(0.99)`.
+const GAUSS_C_0_99: f64 = 2.3263478740408408;
+/// `c(p)` at `p = 0.9` for relative degree ≥ 2 (Cantelli): `√(0.9/0.1) = 3`.
+const CANTELLI_C_0_9: f64 = 3.0;
+
+/// `Φ(c)` of the standard normal, by composite Simpson's rule on the density
+/// over `[0, |c|]` (4 000 panels: error below 10⁻¹³ for `|c| ≤ 6`). An
+/// implementation independent of the library's `erf⁻¹`.
+fn normal_cdf(c: f64) -> f64 {
+    let phi = |t: f64| (-0.5 * t * t).exp() / (2.0 * std::f64::consts::PI).sqrt();
+    let (a, panels) = (c.abs(), 4000);
+    let h = a / panels as f64;
+    let mut s = phi(0.0) + phi(a);
+    for k in 1..panels {
+        s += phi(k as f64 * h) * if k % 2 == 1 { 4.0 } else { 2.0 };
+    }
+    let half = s * h / 3.0;
+    if c >= 0.0 {
+        0.5 + half
+    } else {
+        0.5 - half
+    }
+}
+
+/// `Φ⁻¹(p)` by Newton's method on [`normal_cdf`] (Φ is convex for `c < 0`
+/// and concave for `c > 0`, so Newton from 0 converges monotonically).
+fn normal_quantile(p: f64) -> f64 {
+    let mut c: f64 = 0.0;
+    for _ in 0..100 {
+        let density = (-0.5 * c * c).exp() / (2.0 * std::f64::consts::PI).sqrt();
+        let step = (normal_cdf(c) - p) / density;
+        c -= step;
+        if step.abs() < 1e-14 {
+            break;
+        }
+    }
+    c
+}
+
+/// Independent `c(p)`: the Gaussian quantile `Φ⁻¹(p)` at relative degree 1
+/// (paper, Prop. 2), Cantelli's `√(p/(1−p))` at relative degree ≥ 2
+/// (Prop. 4).
+fn c_reference(p: f64, relative_degree: usize) -> f64 {
+    if relative_degree <= 1 {
+        normal_quantile(p)
+    } else {
+        (p / (1.0 - p)).sqrt()
+    }
+}
+
+/// `c(p)` against literal constants and the independent references: a
+/// Cantelli factor without its square root (`p/(1−p)`, 9 at `p = 0.9`) or a
+/// wrong quantile fails here.
+#[test]
+fn safety_factor_matches_literal_constants() {
+    let close = |got: f64, want: f64, what: &str| {
+        assert!(
+            (got - want).abs() <= 1e-12 * want.abs().max(1.0),
+            "{what}: {got} vs {want}"
+        );
+    };
+    close(quantile_factor(0.9, 1).unwrap(), GAUSS_C_0_9, "Φ⁻¹(0.9)");
+    close(quantile_factor(0.99, 1).unwrap(), GAUSS_C_0_99, "Φ⁻¹(0.99)");
+    close(quantile_factor(0.5, 1).unwrap(), 0.0, "Φ⁻¹(0.5)");
+    close(
+        quantile_factor(0.9, 2).unwrap(),
+        CANTELLI_C_0_9,
+        "Cantelli 0.9",
+    );
+    close(
+        quantile_factor(0.99, 2).unwrap(),
+        99f64.sqrt(),
+        "Cantelli 0.99",
+    );
+    close(quantile_factor(0.5, 2).unwrap(), 1.0, "Cantelli 0.5");
+    // relative degree above 2 uses Cantelli as well
+    close(
+        quantile_factor(0.9, 3).unwrap(),
+        CANTELLI_C_0_9,
+        "Cantelli r = 3",
+    );
+    // the independent quantile reproduces the tables (to its quadrature error)
+    for (p, want) in [
+        (0.9, GAUSS_C_0_9),
+        (0.99, GAUSS_C_0_99),
+        (0.975, 1.959963984540054),
+        (0.75, 0.6744897501960817),
+    ] {
+        let got = normal_quantile(p);
+        assert!(
+            (got - want).abs() < 1e-10,
+            "reference Φ⁻¹({p}) = {got} vs {want}"
+        );
+    }
+    for i in 0..=40 {
+        let p = 0.5 + 0.499 * i as f64 / 40.0;
+        for r in [1, 2] {
+            let (got, want) = (quantile_factor(p, r).unwrap(), c_reference(p, r));
+            assert!(
+                (got - want).abs() <= 1e-10 * want.max(1.0),
+                "p = {p}, r = {r}: {got} vs {want}"
+            );
+        }
+    }
+}
+
 /// Checks `s = b − Ax ∈ K`, `z ∈ K*`, `Px + q + Aᵀz = 0`, `sᵀz = 0`.
 fn check_kkt(filter: &SafetyFilter, tol: f64) {
     let KktData {
@@ -86,7 +195,11 @@ fn feasible_program(
         .collect();
     for c in cbcs.iter_mut() {
         // u = 0 strictly feasible
-        let cp = quantile_factor(0.9, c.relative_degree).unwrap();
+        let cp = if c.relative_degree == 1 {
+            GAUSS_C_0_9
+        } else {
+            CANTELLI_C_0_9
+        };
         c.e[0] = 0.05 + cp * c.cov[(0, 0)].sqrt() + 0.5;
     }
     let clc = random_moments(m, rng, 1, 0.3);
@@ -115,7 +228,12 @@ fn solution_satisfies_constraints_and_kkt() {
                 "trial {trial} barrier {k} slack {}",
                 rep.slack
             );
-            assert!((rep.c - quantile_factor(0.9, cbcs[k].relative_degree).unwrap()).abs() < 1e-12);
+            let want = if cbcs[k].relative_degree == 1 {
+                GAUSS_C_0_9
+            } else {
+                CANTELLI_C_0_9
+            };
+            assert!((rep.c - want).abs() < 1e-12, "c = {} vs {want}", rep.c);
         }
         assert!(out.clf.unwrap().slack >= -1e-6);
         assert!(out.u.iter().all(|u| (-3.0 - 1e-7..=3.0 + 1e-7).contains(u)));
@@ -125,14 +243,16 @@ fn solution_satisfies_constraints_and_kkt() {
 
 /// One control, one barrier: the feasible set is an interval (the SCBC is
 /// concave in u); the solution is the projection of û onto it, found here by
-/// bisection on the scalar constraint function.
+/// bisection on the scalar constraint function. Barriers of relative degree
+/// 1 (Gaussian quantile) and 2 (Cantelli factor) alternate.
 #[test]
 fn one_dimensional_problem_matches_independent_solution() {
     let mut rng = ChaCha8Rng::seed_from_u64(2);
-    for _ in 0..30 {
-        let mut mom = random_moments(1, &mut rng, 1, 0.5);
+    for trial in 0..30 {
+        let r = 1 + trial % 2;
+        let mut mom = random_moments(1, &mut rng, r, 0.5);
         let p = rng.random_range(0.6..0.99);
-        let c = quantile_factor(p, 1).unwrap();
+        let c = c_reference(p, r);
         mom.e[0] = c * mom.cov[(0, 0)].sqrt() + 0.3; // u = 0 feasible
         let scbc = |u: f64| mom.mean(&[u]) - c * mom.variance(&[u]).sqrt();
         let u_ref = rng.random_range(-20.0..20.0);
@@ -164,6 +284,154 @@ fn one_dimensional_problem_matches_independent_solution() {
             out.u[0]
         );
     }
+}
+
+/// Minimiser of a convex function on `[lo, hi]` by golden-section search.
+fn golden_section(f: impl Fn(f64) -> f64, mut lo: f64, mut hi: f64) -> f64 {
+    let g = (5f64.sqrt() - 1.0) / 2.0;
+    let (mut a, mut b) = (hi - g * (hi - lo), lo + g * (hi - lo));
+    let (mut fa, mut fb) = (f(a), f(b));
+    for _ in 0..300 {
+        if fa <= fb {
+            hi = b;
+            (b, fb) = (a, fa);
+            a = hi - g * (hi - lo);
+            fa = f(a);
+        } else {
+            lo = a;
+            (a, fa) = (b, fb);
+            b = lo + g * (hi - lo);
+            fb = f(b);
+        }
+    }
+    0.5 * (lo + hi)
+}
+
+/// The end of the feasible interval `{u : g(u) ≥ 0}` of a concave `g` in the
+/// direction of `far`, starting from the feasible `inside` (bisection).
+fn feasible_end(g: impl Fn(f64) -> f64, inside: f64, far: f64) -> f64 {
+    if g(far) >= 0.0 {
+        return far;
+    }
+    let (mut a, mut b) = (inside, far);
+    for _ in 0..200 {
+        let mid = 0.5 * (a + b);
+        if g(mid) >= 0.0 {
+            a = mid;
+        } else {
+            b = mid;
+        }
+    }
+    a
+}
+
+/// One control with a barrier, an active CLF and every weight of the
+/// objective different from one (`R = [r]`, `r ≠ 1`; `λ ≠ 1`). The SOCP
+/// (module docs of `control::socp`) is
+///
+/// `min r²(u − û)² + λδ²` s.t. `SCBC(u) = e_b·u̲ − ζ − c_b‖V_b u̲‖ ≥ 0`,
+/// `δ ≥ SCLC(u) = e_V·u̲ + c₁‖V_V u̲‖`.
+///
+/// For fixed `u` the best slack is `δ(u) = max(SCLC(u), 0)`, so the problem is
+/// the one-dimensional convex minimisation of
+/// `φ(u) = r²(u − û)² + λ max(SCLC(u), 0)²` over the interval `SCBC ≥ 0`,
+/// solved here by golden-section search with `c` from the independent
+/// reference. The solver's tolerances (relative gap 10⁻⁸) make φ exact to
+/// 10⁻⁸ but the minimiser only to about 10⁻⁴, so the comparison is on φ. The CLF is made active (`SCLC > 0` near `û`), so a slack
+/// weighted `λ/2` (or `R` entering other than as `RᵀR`) moves `u`.
+#[test]
+fn clf_slack_and_objective_weights_match_independent_solution() {
+    let mut rng = ChaCha8Rng::seed_from_u64(5);
+    let (mut clf_trades_off, mut barrier_active) = (0, 0);
+    for trial in 0..40 {
+        let rb = 1 + trial % 2;
+        let p = [0.9, 0.95, 0.99][trial % 3];
+        let zeta = 0.1;
+        let mut cbc = random_moments(1, &mut rng, rb, 0.5);
+        let cb = c_reference(p, rb);
+        cbc.e[0] = zeta + cb * cbc.cov[(0, 0)].sqrt() + rng.random_range(0.1..1.0);
+        let mut clc = random_moments(1, &mut rng, 1, 0.4);
+        let c1 = c_reference(p, 1);
+        // the Lyapunov condition wants V to decrease: a positive E[CLC] at
+        // u = 0 that the control can lower, so the slack is active
+        clc.e[0] = rng.random_range(0.5..2.0);
+        let r = if trial % 2 == 0 {
+            rng.random_range(0.3..0.7)
+        } else {
+            rng.random_range(1.5..3.0)
+        };
+        let lambda = if trial % 4 < 2 {
+            rng.random_range(0.2..0.6)
+        } else {
+            rng.random_range(2.0..6.0)
+        };
+        let u_ref = rng.random_range(-4.0..4.0);
+
+        let scbc = |u: f64| cbc.mean(&[u]) - zeta - cb * cbc.variance(&[u]).sqrt();
+        let sclc = |u: f64| clc.mean(&[u]) + c1 * clc.variance(&[u]).sqrt();
+        let phi = |u: f64| (r * (u - u_ref)).powi(2) + lambda * sclc(u).max(0.0).powi(2);
+        let (lo, hi) = (
+            feasible_end(scbc, 0.0, -100.0),
+            feasible_end(scbc, 0.0, 100.0),
+        );
+        let expected = golden_section(phi, lo, hi);
+        let expected_delta = sclc(expected).max(0.0);
+
+        let mut settings = SafetySettings::new(1);
+        settings.probability = p;
+        settings.zeta = zeta;
+        settings.lambda = lambda;
+        settings.r = DMatrix::from_element(1, 1, r);
+        let mut filter = SafetyFilter::new(1, 1, true, settings).unwrap();
+        let mut out = ControlOutput::new(1, 1);
+        filter
+            .solve(std::slice::from_ref(&cbc), Some(&clc), &[u_ref], &mut out)
+            .unwrap();
+        assert_eq!(out.status, ControlStatus::Optimal, "trial {trial}");
+        // Clarabel stops at relative gap and feasibility 10⁻⁸: the objective
+        // is that exact (either side: an active barrier may be crossed by
+        // 10⁻⁹), the minimiser (where φ is flat) to about √10⁻⁸
+        let (got, best) = (phi(out.u[0]), phi(expected));
+        assert!(
+            (got - best).abs() <= 1e-8 * (1.0 + best),
+            "trial {trial}: φ(u) = {got} vs min φ = {best} (r {r}, λ {lambda})"
+        );
+        // φ is strongly convex with modulus 2r², so φ(u) − min φ ≥ r²(u − u*)²
+        assert!(
+            (r * (out.u[0] - expected)).powi(2) <= 1e-8 * (1.0 + best),
+            "trial {trial}: u {} expected {expected} (r {r}, λ {lambda})",
+            out.u[0]
+        );
+        assert!(scbc(out.u[0]) >= -1e-7, "trial {trial}: barrier violated");
+        // δ is the CLF condition at the returned u, and the reference's
+        assert!(
+            (out.delta - sclc(out.u[0]).max(0.0)).abs() < 1e-7 * (1.0 + out.delta),
+            "trial {trial}: δ {} vs SCLC(u) {}",
+            out.delta,
+            sclc(out.u[0])
+        );
+        assert!(
+            (out.delta - expected_delta).abs() < 1e-3 * (1.0 + expected_delta),
+            "trial {trial}: δ {} expected {expected_delta}",
+            out.delta
+        );
+        assert!(expected_delta > 1e-3, "trial {trial}: CLF not active");
+        // the reported CLF slack δ − E − c·std is zero when active
+        assert!(out.clf.unwrap().slack.abs() < 1e-6, "trial {trial}");
+        check_kkt(&filter, 1e-6);
+        // instances where the CLF weight decides u: the barrier is not active
+        // and the minimiser is away from û
+        if scbc(expected) > 1e-3 && (expected - u_ref).abs() > 1e-2 {
+            clf_trades_off += 1;
+        }
+        if scbc(expected).abs() < 1e-6 {
+            barrier_active += 1;
+        }
+    }
+    assert!(
+        clf_trades_off >= 10 && barrier_active >= 3,
+        "{clf_trades_off} trade-off and {barrier_active} barrier-active instances"
+    );
 }
 
 /// With zero variance, or with p = 0.5 at relative degree 1, the SOCP is the
@@ -216,7 +484,7 @@ fn infeasible_step_reports_fallback_and_p_star() {
         let (lo, hi) = (-1.0, 1.0);
         let zeta = 0.05;
         let best_margin = |p: f64| {
-            let c = quantile_factor(p, mom.relative_degree).unwrap();
+            let c = c_reference(p, mom.relative_degree);
             (0..=20000)
                 .map(|i| lo + (hi - lo) * i as f64 / 20000.0)
                 .map(|u| mom.mean(&[u]) - zeta - c * mom.variance(&[u]).sqrt())
@@ -264,7 +532,7 @@ fn infeasible_step_reports_fallback_and_p_star() {
             }
             match fallback {
                 Fallback::MaxMargin => {
-                    let c = quantile_factor(p, mom.relative_degree).unwrap();
+                    let c = c_reference(p, mom.relative_degree);
                     let got = mom.mean(&out.u) - zeta - c * mom.variance(&out.u).sqrt();
                     assert!(
                         (got - best_margin(p)).abs() < 1e-4,
@@ -279,7 +547,7 @@ fn infeasible_step_reports_fallback_and_p_star() {
                         ControlStatus::Infeasible(info) => info.p_star.unwrap(),
                         _ => unreachable!(),
                     };
-                    let c = quantile_factor(ps, mom.relative_degree).unwrap();
+                    let c = c_reference(ps, mom.relative_degree);
                     let slack = mom.mean(&out.u) - zeta - c * mom.variance(&out.u).sqrt();
                     assert!(slack >= -1e-5, "relaxed slack {slack}");
                     assert!(out.u[0] >= lo - 1e-7 && out.u[0] <= hi + 1e-7);

@@ -446,12 +446,20 @@ mod tests {
             for key in ["grid", "heldout"] {
                 let vwe = r[key]["variance_weighted_error"].as_f64().unwrap();
                 let rmse = r[key]["rmse_F"].as_f64().unwrap();
-                // a calibrated model has E[err²] = n(1+m) = 4; far worse means a broken fit
+                // The score is √(mean of the squared Mahalanobis errors of
+                // vec F): a calibrated model has E[d²] = n(1+m) = 4, a score
+                // near 2. Measured with seed 1: MVGP 2.06 (grid) and 1.73
+                // (held out), CoGP 1.68 and 1.44. The bounds allow a factor
+                // 1.5 either way (mean d² in [1.8, 9]): standard deviations
+                // overstated by a factor 2 (score halved) fail the lower
+                // bound for all four scores, understated by 2 (score
+                // doubled) the upper bound for three of them.
                 assert!(
-                    vwe.is_finite() && vwe > 0.0 && vwe < 50.0,
+                    vwe.is_finite() && vwe > 2.0 / 1.5 && vwe < 2.0 * 1.5,
                     "{m} {key} vwe {vwe}"
                 );
-                assert!(rmse.is_finite() && rmse < 1.5, "{m} {key} rmse {rmse}");
+                // measured 0.032 and 0.090 on the grid, 0.006 and 0.004 held out
+                assert!(rmse.is_finite() && rmse < 0.25, "{m} {key} rmse {rmse}");
             }
             assert!(r["fit_seconds"].as_f64().unwrap() > 0.0);
             assert!(
