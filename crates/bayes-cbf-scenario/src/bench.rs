@@ -193,7 +193,8 @@ impl Bound {
 /// bounded online update per state, timed together (`p50_us`, `p99_us`,
 /// `max_us`) and apart (`control_*`, `update_*`); `infeasible_steps` counts
 /// the steps whose SOCP was infeasible (they also solve the max-margin
-/// program and bisect for `p*`), `p99_us_feasible_steps` leaves them out.
+/// program and iterate for `p*`), `p99_us_feasible_steps` leaves them out,
+/// `infeasible_over_feasible` is the ratio of the median control steps.
 fn stream_row(steps: usize, bound: Bound, size: usize) -> Result<Value> {
     let mut w = ackermann_control(size, 5)?;
     let extra = ackermann_data(steps, 12.0, 6)?;
@@ -204,6 +205,8 @@ fn stream_row(steps: usize, bound: Bound, size: usize) -> Result<Value> {
     let mut update = Vec::with_capacity(steps);
     let mut infeasible = 0;
     let mut feasible = Vec::with_capacity(steps);
+    let mut control_feasible = Vec::with_capacity(steps);
+    let mut control_infeasible = Vec::new();
     for j in 0..steps {
         let x = &extra.xs[3 * j..3 * j + 3];
         let s = Instant::now();
@@ -219,8 +222,10 @@ fn stream_row(steps: usize, bound: Bound, size: usize) -> Result<Value> {
         let t = s.elapsed().as_secs_f64() * 1e6;
         if out.is_infeasible() {
             infeasible += 1;
+            control_infeasible.push(c);
         } else {
             feasible.push(t);
+            control_feasible.push(c);
         }
         times.push(t);
         control.push(c);
@@ -239,6 +244,15 @@ fn stream_row(steps: usize, bound: Bound, size: usize) -> Result<Value> {
         "update_p50_us": round(percentile(&mut update.clone(), 0.5)), "update_p99_us": round(percentile(&mut update, 0.99)),
         "infeasible_steps": infeasible, "p99_us_feasible_steps": round(percentile(&mut feasible, 0.99)),
     });
+    if !control_infeasible.is_empty() {
+        // the cost of an infeasible step (max-margin program, p*, fallback)
+        // against a feasible one, control step only
+        let fe = percentile(&mut control_feasible, 0.5);
+        let inf = percentile(&mut control_infeasible, 0.5);
+        row["control_p50_us_feasible"] = json!(round(fe));
+        row["control_p50_us_infeasible"] = json!(round(inf));
+        row["infeasible_over_feasible"] = json!(round(inf / fe));
+    }
     bound.json(&mut row);
     Ok(row)
 }

@@ -2,9 +2,11 @@
 //! experiment (quick modes where they exist) at seed 0 equals the one
 //! stored in `tests/golden/`, timings excepted.
 //!
-//! The stored files are the `summary.json` that `bayes-cbf run NAME
+//! The stored files began as the `summary.json` that `bayes-cbf run NAME
 //! --seed 0 [--quick]` wrote before the formats, scenarios and experiments
-//! moved out of the binary into this crate. Numbers must agree to 1e-9
+//! moved out of the binary into this crate; after a deliberate change of
+//! behaviour `BLESS_GOLDEN=1 cargo test --release --test golden` stores the
+//! summaries that differ. Numbers must agree to 1e-9
 //! relative (they are computed by the same operations, so in practice
 //! bit for bit); keys that hold wall-clock times, ratios of times, memory
 //! or the machine are skipped.
@@ -77,9 +79,20 @@ fn golden(name: &str) -> Value {
     serde_json::from_str(&std::fs::read_to_string(&path).expect("golden file")).unwrap()
 }
 
-fn check(name: &str, got: &Value) -> Vec<String> {
+/// Differences from the stored summary. With `BLESS_GOLDEN=1` in the
+/// environment a summary that differs is stored instead (`text`, the
+/// summary as JSON), for a deliberate change of behaviour reviewed field by
+/// field in the diff.
+fn check(name: &str, got: &Value, text: &str) -> Vec<String> {
     let mut out = Vec::new();
     diff(&golden(name), got, name, &mut out);
+    if !out.is_empty() && std::env::var_os("BLESS_GOLDEN").is_some() {
+        let path = Path::new(env!("CARGO_MANIFEST_DIR"))
+            .join("tests/golden")
+            .join(format!("{name}.json"));
+        std::fs::write(&path, format!("{text}\n")).expect("golden file written");
+        return Vec::new();
+    }
     out
 }
 
@@ -119,7 +132,12 @@ fn every_builtin_scenario_reproduces_its_summary() {
     for (name, _) in BUILTIN {
         let (sc, _) = scenario::load(name, &["seed=0".into()]).unwrap();
         let out = scenario::run_scenario(&sc, |_, _| {}).unwrap();
-        failures.extend(check(name, &serde_json::to_value(&out.summary).unwrap()));
+        let text = serde_json::to_string_pretty(&out.summary).unwrap();
+        failures.extend(check(
+            name,
+            &serde_json::to_value(&out.summary).unwrap(),
+            &text,
+        ));
     }
     assert!(failures.is_empty(), "{failures:#?}");
 }
@@ -133,7 +151,9 @@ fn every_experiment_reproduces_its_summary() {
             quick: *name != "pendulum-learning",
         };
         let r = experiments::run(name, &args).unwrap();
-        failures.extend(check(name, &r.summary()));
+        let summary = r.summary();
+        let text = serde_json::to_string_pretty(&summary).unwrap();
+        failures.extend(check(name, &summary, &text));
     }
     assert!(failures.is_empty(), "{failures:#?}");
 }

@@ -221,6 +221,12 @@ fn posterior_derivative_kernel_lipschitz_bound_holds() {
                 assert!(v <= beta * cj.1 * (1.0 + 1e-4) + 1e-6, "{v} > {}", cj.1);
             }
         }
+        // The with-data constant bounds the posterior correction by
+        // Cauchy–Schwarz with the prior variances, a bound that holds for
+        // any data set; it cannot be tight for a particular one, so this
+        // only checks that the bound is exercised at all. The tight check of
+        // the prior constant is `prior_kernel_constant_is_tight` in
+        // tests/lipschitz.rs.
         assert!(worst > 1e-3, "{map:?}: bound not exercised ({worst})");
     }
 }

@@ -19,8 +19,8 @@ pub use callback::{ArrayFn, CallbackBarrier, ValueFn};
 pub use clf::{AckermannClf, DynLyapunov, Lyapunov};
 pub use condition::true_condition;
 pub use moments::{
-    cbc_moments, clc_moments, quantile_factor, unmodelled_lgh_std, ConditionMoments,
-    MomentWorkspace,
+    cbc_moments, clc_moments, factor_probability, quantile_factor, unmodelled_lgh_std,
+    ConditionMoments, MomentWorkspace,
 };
 pub use monte_carlo::{mc_cbc_moments, McMoments, McSettings};
 

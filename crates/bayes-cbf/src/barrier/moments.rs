@@ -135,6 +135,22 @@ pub fn quantile_factor(p: f64, relative_degree: usize) -> Result<f64, InputError
     })
 }
 
+/// The probability whose safety factor is `c`: the inverse of
+/// [`quantile_factor`], `Φ(c)` for relative degree 1 and `c²/(1 + c²)`
+/// (`c ≥ 0`) for relative degree ≥ 2; `0` for a negative Cantelli factor,
+/// which no probability reaches.
+pub fn factor_probability(c: f64, relative_degree: usize) -> f64 {
+    if relative_degree <= 1 {
+        0.5 * statrs::function::erf::erfc(-c / std::f64::consts::SQRT_2)
+    } else if c.is_infinite() && c > 0.0 {
+        1.0
+    } else if c >= 0.0 {
+        c * c / (1.0 + c * c)
+    } else {
+        0.0
+    }
+}
+
 /// Buffers for moment computation at one state; no allocation after the
 /// first use with a given model size.
 #[derive(Debug, Clone)]

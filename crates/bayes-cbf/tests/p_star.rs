@@ -1,0 +1,140 @@
+//! `p*` of an infeasible step (Remark 2) against an independent reference:
+//! for one control in a box, the worst margin at probability `p` is
+//! `max_u min_i (E[C_i](u) − ζ − c_i(p) √Var[C_i](u))` on a fine grid of
+//! `u`, and `p*` is where it crosses zero (bisection on `p`). One and two
+//! barriers, relative degrees 1 and 2 mixed, and the inverse of `c(p)`
+//! against literal values.
+
+use bayes_cbf::barrier::{factor_probability, ConditionMoments};
+use bayes_cbf::control::{ControlOutput, ControlStatus, Fallback, SafetyFilter, SafetySettings};
+use nalgebra::DMatrix;
+use rand::{RngExt, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+
+fn random_moments(rng: &mut ChaCha8Rng, r: usize) -> ConditionMoments {
+    let e: Vec<f64> = (0..2).map(|_| rng.random_range(-1.0..1.0)).collect();
+    let c = DMatrix::from_fn(2, 2, |_, _| rng.random_range(-1.0..1.0)) * 0.8;
+    ConditionMoments::from_parts(e, &c * c.transpose(), r).unwrap()
+}
+
+/// `c(p)` computed independently of the library: Cantelli's `√(p/(1−p))`,
+/// or the Gaussian quantile by bisection on Φ integrated numerically.
+fn factor(p: f64, r: usize) -> f64 {
+    if r >= 2 {
+        (p / (1.0 - p)).sqrt()
+    } else {
+        // invert Φ by Newton's method, Φ by Simpson's rule on [−12, c]
+        let density = |t: f64| (-t * t / 2.0).exp() / (2.0 * std::f64::consts::PI).sqrt();
+        let phi = |c: f64| {
+            let n = 4000;
+            let (a, h) = (-12.0, (c + 12.0) / n as f64);
+            let inner: f64 = (1..n)
+                .map(|i| density(a + h * i as f64) * if i % 2 == 1 { 4.0 } else { 2.0 })
+                .sum();
+            h / 3.0 * (density(a) + density(c) + inner)
+        };
+        let mut c = 0.0;
+        for _ in 0..30 {
+            let step = (phi(c) - p) / density(c);
+            c -= step;
+            if step.abs() < 1e-15 {
+                break;
+            }
+        }
+        c
+    }
+}
+
+#[test]
+fn factor_probability_inverts_the_safety_factor() {
+    // literal values: Φ(1.2815515655446004) = 0.9, Φ(2.3263478740408408) = 0.99;
+    // Cantelli c = 3 ↔ p = 0.9, c = √99 ↔ p = 0.99
+    let v = factor_probability(1.281_551_565_544_600_4, 1);
+    assert!((v - 0.9).abs() < 1e-10, "{v}");
+    assert!((factor_probability(2.326_347_874_040_840_8, 1) - 0.99).abs() < 1e-10);
+    assert!((factor_probability(0.0, 1) - 0.5).abs() < 1e-15);
+    assert!((factor_probability(3.0, 2) - 0.9).abs() < 1e-15);
+    assert!((factor_probability(99f64.sqrt(), 2) - 0.99).abs() < 1e-14);
+    assert_eq!(factor_probability(-0.5, 2), 0.0);
+    assert_eq!(factor_probability(f64::INFINITY, 2), 1.0);
+    assert_eq!(factor_probability(f64::INFINITY, 1), 1.0);
+    assert_eq!(factor_probability(f64::NEG_INFINITY, 1), 0.0);
+}
+
+#[test]
+fn p_star_matches_a_grid_reference() {
+    let mut rng = ChaCha8Rng::seed_from_u64(11);
+    let (lo, hi, zeta, p) = (-1.0, 1.0, 0.05, 0.999);
+    let grid: Vec<f64> = (0..=20_000)
+        .map(|i| lo + (hi - lo) * i as f64 / 20_000.0)
+        .collect();
+    let mut checked = [0usize; 2];
+    for trial in 0..150 {
+        let nb = 1 + trial % 2;
+        let moms: Vec<ConditionMoments> = (0..nb)
+            .map(|i| {
+                let mut m = random_moments(&mut rng, 1 + (trial / 2 + i) % 2);
+                m.e[0] = rng.random_range(-0.3..0.3);
+                m
+            })
+            .collect();
+        let best_margin = |q: f64| {
+            let cs: Vec<f64> = moms.iter().map(|m| factor(q, m.relative_degree)).collect();
+            grid.iter()
+                .map(|&u| {
+                    moms.iter()
+                        .zip(&cs)
+                        .map(|(m, c)| m.mean(&[u]) - zeta - c * m.variance(&[u]).sqrt())
+                        .fold(f64::INFINITY, f64::min)
+                })
+                .fold(f64::NEG_INFINITY, f64::max)
+        };
+        let p_lo = if moms.iter().any(|m| m.relative_degree == 1) {
+            0.5
+        } else {
+            1e-9
+        };
+        if best_margin(p) >= 0.0 || best_margin(p_lo) < 0.0 {
+            continue;
+        }
+        let (mut a, mut b) = (p_lo, p);
+        while b - a > 1e-7 {
+            let mid = 0.5 * (a + b);
+            if best_margin(mid) >= 0.0 {
+                a = mid;
+            } else {
+                b = mid;
+            }
+        }
+        let mut settings = SafetySettings::new(1);
+        settings.probability = p;
+        settings.zeta = zeta;
+        settings.u_min = Some(vec![lo]);
+        settings.u_max = Some(vec![hi]);
+        settings.fallback = Fallback::Relax;
+        let mut filter = SafetyFilter::new(1, nb, false, settings).unwrap();
+        let mut out = ControlOutput::new(1, nb);
+        filter.solve(&moms, None, &[0.5], &mut out).unwrap();
+        let ps = match &out.status {
+            ControlStatus::Infeasible(info) => info.p_star.expect("feasible at the lower end"),
+            s => panic!("trial {trial}: expected infeasible, got {s:?}"),
+        };
+        // p* is within the tolerance (1e-5) of the reference, up to the
+        // grid's resolution in u
+        assert!(
+            (ps - a).abs() < 5e-5,
+            "trial {trial}: p* {ps}, reference {a}"
+        );
+        // and the relaxed control meets every constraint at p*
+        for m in &moms {
+            let c = factor(ps, m.relative_degree);
+            let slack = m.mean(&out.u) - zeta - c * m.variance(&out.u).sqrt();
+            assert!(slack >= -1e-6, "trial {trial}: slack {slack} at p* {ps}");
+        }
+        checked[nb - 1] += 1;
+    }
+    assert!(
+        checked[0] >= 10 && checked[1] >= 10,
+        "infeasible instances: {checked:?}"
+    );
+}
