@@ -368,7 +368,9 @@ fn trigger_times_match_hand_computed_values() {
     // Prop. 5: L_f = 2, margin 0.01, L_h = 3, ‖ẋ‖ = 0.5: ln(1 + 0.02/1.5)/2
     let t5 = tau_relative_degree_r(2.0, 0.01, 3.0, 0.5);
     assert!((t5 - 0.006_622_613_4).abs() < 1e-10, "{t5}");
-    // no margin, no hold
+    // no margin, no hold (even without motion)
+    assert_eq!(tau_relative_degree_one(2.0, 0.0, 1.0, 3.0, 4.0, 0.5), 0.0);
+    assert_eq!(tau_relative_degree_one(2.0, -0.1, 1.0, 3.0, 4.0, 0.0), 0.0);
     assert_eq!(tau_relative_degree_r(2.0, 0.0, 3.0, 0.5), 0.0);
     assert_eq!(tau_relative_degree_r(2.0, -0.1, 3.0, 0.5), 0.0);
     // limits: L_f → 0 gives ζ/((L_α L_h + L_∇h ‖ẋ‖) ‖ẋ‖); no motion, no bound

@@ -236,8 +236,9 @@ fn log1p_over(l: f64, a: f64) -> f64 {
 
 /// Prop. 3, corrected:
 /// `τ = ln(1 + L_f ζ / ((L_h (L_f + L_α) + L_∇h X) X)) / L_f`
-/// (`+∞` when the denominator is 0). With `l_grad_h = 0` this is the
-/// paper's printed formula, which is unsafe for curved barriers.
+/// (`+∞` when the denominator is 0 and `ζ > 0`; `0` when `ζ ≤ 0`). With
+/// `l_grad_h = 0` this is the paper's printed formula, which is unsafe for
+/// curved barriers.
 pub fn tau_relative_degree_one(
     l_f: f64,
     zeta: f64,
@@ -246,9 +247,12 @@ pub fn tau_relative_degree_one(
     l_grad_h: f64,
     xdot: f64,
 ) -> f64 {
+    if zeta <= 0.0 {
+        return 0.0;
+    }
     let den = (l_h * (l_f + l_alpha) + l_grad_h * xdot) * xdot;
     let a = if den > 0.0 { zeta / den } else { f64::INFINITY };
-    log1p_over(l_f, a.max(0.0))
+    log1p_over(l_f, a)
 }
 
 /// Prop. 5 with margin `m`: `τ = ln(1 + L_f m / (L_h X)) / L_f` (`+∞` when
