@@ -414,7 +414,8 @@ fn sup_on_cuboid(x: &[f64], s: &LipschitzSettings, value: &mut dyn FnMut(&[f64])
     grid_sup_estimate(&values, &s.sides, s.grid)[0]
 }
 
-/// `sup ‖∇h‖` on the cuboid (grid estimate, see [`sup_on_cuboid`]).
+/// `sup ‖∇h‖` on the cuboid (grid estimate: the grid maximum plus the
+/// covering radius times the largest slope between neighbouring nodes).
 pub fn barrier_gradient_bound(b: &dyn DynBarrier, x: &[f64], s: &LipschitzSettings) -> f64 {
     let n = x.len();
     let mut grad = vec![0.0; n];
