@@ -5,8 +5,11 @@
 //! barriers, relative degrees 1 and 2 mixed, and the inverse of `c(p)`
 //! against literal values.
 
+mod common;
+
 use bayes_cbf::barrier::{factor_probability, ConditionMoments};
 use bayes_cbf::control::{ControlOutput, ControlStatus, Fallback, SafetyFilter, SafetySettings};
+use common::c_reference;
 use nalgebra::DMatrix;
 use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -15,34 +18,6 @@ fn random_moments(rng: &mut ChaCha8Rng, r: usize) -> ConditionMoments {
     let e: Vec<f64> = (0..2).map(|_| rng.random_range(-1.0..1.0)).collect();
     let c = DMatrix::from_fn(2, 2, |_, _| rng.random_range(-1.0..1.0)) * 0.8;
     ConditionMoments::from_parts(e, &c * c.transpose(), r).unwrap()
-}
-
-/// `c(p)` computed independently of the library: Cantelli's `√(p/(1−p))`,
-/// or the Gaussian quantile by bisection on Φ integrated numerically.
-fn factor(p: f64, r: usize) -> f64 {
-    if r >= 2 {
-        (p / (1.0 - p)).sqrt()
-    } else {
-        // invert Φ by Newton's method, Φ by Simpson's rule on [−12, c]
-        let density = |t: f64| (-t * t / 2.0).exp() / (2.0 * std::f64::consts::PI).sqrt();
-        let phi = |c: f64| {
-            let n = 4000;
-            let (a, h) = (-12.0, (c + 12.0) / n as f64);
-            let inner: f64 = (1..n)
-                .map(|i| density(a + h * i as f64) * if i % 2 == 1 { 4.0 } else { 2.0 })
-                .sum();
-            h / 3.0 * (density(a) + density(c) + inner)
-        };
-        let mut c = 0.0;
-        for _ in 0..30 {
-            let step = (phi(c) - p) / density(c);
-            c -= step;
-            if step.abs() < 1e-15 {
-                break;
-            }
-        }
-        c
-    }
 }
 
 #[test]
@@ -79,7 +54,10 @@ fn p_star_matches_a_grid_reference() {
             })
             .collect();
         let best_margin = |q: f64| {
-            let cs: Vec<f64> = moms.iter().map(|m| factor(q, m.relative_degree)).collect();
+            let cs: Vec<f64> = moms
+                .iter()
+                .map(|m| c_reference(q, m.relative_degree))
+                .collect();
             grid.iter()
                 .map(|&u| {
                     moms.iter()
@@ -97,15 +75,7 @@ fn p_star_matches_a_grid_reference() {
         if best_margin(p) >= 0.0 || best_margin(p_lo) < 0.0 {
             continue;
         }
-        let (mut a, mut b) = (p_lo, p);
-        while b - a > 1e-7 {
-            let mid = 0.5 * (a + b);
-            if best_margin(mid) >= 0.0 {
-                a = mid;
-            } else {
-                b = mid;
-            }
-        }
+        let a = common::bisect_p_star(best_margin, p_lo, p);
         let mut settings = SafetySettings::new(1);
         settings.probability = p;
         settings.zeta = zeta;
@@ -127,7 +97,7 @@ fn p_star_matches_a_grid_reference() {
         );
         // and the relaxed control meets every constraint at p*
         for m in &moms {
-            let c = factor(ps, m.relative_degree);
+            let c = c_reference(ps, m.relative_degree);
             let slack = m.mean(&out.u) - zeta - c * m.variance(&out.u).sqrt();
             assert!(slack >= -1e-6, "trial {trial}: slack {slack} at p* {ps}");
         }

@@ -2,11 +2,14 @@
 //! independent one-dimensional solution, the deterministic limit, and typed
 //! infeasibility with the largest feasible probability `p*`.
 
+mod common;
+
 use bayes_cbf::barrier::{quantile_factor, ConditionMoments};
 use bayes_cbf::control::{
     ControlOutput, ControlStatus, Fallback, KktData, SafetyFilter, SafetySettings,
 };
 use clarabel::solver::SupportedConeT;
+use common::{c_reference, normal_quantile};
 use nalgebra::{DMatrix, DVector};
 use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -19,57 +22,12 @@ fn random_moments(m: usize, rng: &mut ChaCha8Rng, r: usize, scale: f64) -> Condi
 }
 
 /// `c(p)` at `p = 0.9` for relative degree 1: the standard normal quantile
-/// `Φ⁻¹(0.9)` (tables; also [`normal_quantile`]).
+/// `Φ⁻¹(0.9)` (tables; also `common::normal_quantile`).
 const GAUSS_C_0_9: f64 = 1.2815515655446004;
 /// `Φ⁻¹(0.99)`.
 const GAUSS_C_0_99: f64 = 2.3263478740408408;
 /// `c(p)` at `p = 0.9` for relative degree ≥ 2 (Cantelli): `√(0.9/0.1) = 3`.
 const CANTELLI_C_0_9: f64 = 3.0;
-
-/// `Φ(c)` of the standard normal, by composite Simpson's rule on the density
-/// over `[0, |c|]` (4 000 panels: error below 10⁻¹³ for `|c| ≤ 6`). An
-/// implementation independent of the library's `erf⁻¹`.
-fn normal_cdf(c: f64) -> f64 {
-    let phi = |t: f64| (-0.5 * t * t).exp() / (2.0 * std::f64::consts::PI).sqrt();
-    let (a, panels) = (c.abs(), 4000);
-    let h = a / panels as f64;
-    let mut s = phi(0.0) + phi(a);
-    for k in 1..panels {
-        s += phi(k as f64 * h) * if k % 2 == 1 { 4.0 } else { 2.0 };
-    }
-    let half = s * h / 3.0;
-    if c >= 0.0 {
-        0.5 + half
-    } else {
-        0.5 - half
-    }
-}
-
-/// `Φ⁻¹(p)` by Newton's method on [`normal_cdf`] (Φ is convex for `c < 0`
-/// and concave for `c > 0`, so Newton from 0 converges monotonically).
-fn normal_quantile(p: f64) -> f64 {
-    let mut c: f64 = 0.0;
-    for _ in 0..100 {
-        let density = (-0.5 * c * c).exp() / (2.0 * std::f64::consts::PI).sqrt();
-        let step = (normal_cdf(c) - p) / density;
-        c -= step;
-        if step.abs() < 1e-14 {
-            break;
-        }
-    }
-    c
-}
-
-/// Independent `c(p)`: the Gaussian quantile `Φ⁻¹(p)` at relative degree 1
-/// (paper, Prop. 2), Cantelli's `√(p/(1−p))` at relative degree ≥ 2
-/// (Prop. 4).
-fn c_reference(p: f64, relative_degree: usize) -> f64 {
-    if relative_degree <= 1 {
-        normal_quantile(p)
-    } else {
-        (p / (1.0 - p)).sqrt()
-    }
-}
 
 /// `c(p)` against literal constants and the independent references: a
 /// Cantelli factor without its square root (`p/(1−p)`, 9 at `p = 0.9`) or a
@@ -495,15 +453,7 @@ fn infeasible_step_reports_fallback_and_p_star() {
         if best_margin(p) >= 0.0 || best_margin(p_lo) < 0.0 {
             continue;
         }
-        let (mut a, mut b) = (p_lo, p);
-        while b - a > 1e-7 {
-            let mid = 0.5 * (a + b);
-            if best_margin(mid) >= 0.0 {
-                a = mid;
-            } else {
-                b = mid;
-            }
-        }
+        let a = common::bisect_p_star(best_margin, p_lo, p);
         for fallback in [
             Fallback::MaxMargin,
             Fallback::Brake,

@@ -21,10 +21,7 @@ use super::ExperimentArgs;
 use crate::error::Result;
 use crate::scenario::{self, RunOutput, TriggerSummary};
 use crate::stats;
-use bayes_cbf::control::{
-    tau_in_cuboid, tau_relative_degree_one, tau_relative_degree_r, TriggerReport,
-};
-use bayes_cbf::sim::StepRecord;
+use bayes_cbf::control::TriggerReport;
 use serde::Serialize;
 
 /// One closed-loop run's part of the summary.
@@ -204,38 +201,31 @@ pub fn run(args: &ExperimentArgs) -> Result<AckermannTriggering> {
         zeta_runs.push((format!("zeta-{z}"), o));
     }
 
-    // τ against ζ on the self-triggered run's own L_f, L_h, L_∇h, ‖ẋ‖ and
-    // h(x_k) (corrected Prop. 3 / Prop. 5 and the cuboid time at each
-    // trigger, median over the run): the effect of ζ alone
+    // τ against ζ on the self-triggered run's own L_f, L_h, L_∇h and ‖ẋ‖
+    // (the corrected Prop. 3 with margin ζ, the worst case of an active
+    // constraint, and the cuboid time at each trigger; median over the run):
+    // the effect of ζ alone. Barriers of relative degree ≥ 2 keep their
+    // margin h(x_k).
     let barriers = &selft.built.barriers;
-    let half_sides: Vec<f64> = selft
+    let (half_sides, tau_max): (Vec<f64>, f64) = selft
         .built
         .loop_settings
         .trigger
         .as_ref()
-        .map(|t| t.lipschitz.sides.iter().map(|w| w / 2.0).collect())
+        .map(|t| {
+            (
+                t.lipschitz.sides.iter().map(|w| w / 2.0).collect(),
+                t.tau_max,
+            )
+        })
         .unwrap_or_default();
-    let tau_at = |z: f64, l: f64, rec: &StepRecord, r: &TriggerReport| -> f64 {
-        // the sweep varies ζ of Prop. 3 and ζ_b of Prop. 5 together
-        let by_barriers = barriers
+    let tau_at = |z: f64, l: f64, r: &TriggerReport| -> f64 {
+        let margins: Vec<f64> = barriers
             .iter()
-            .enumerate()
-            .map(|(i, b)| {
-                if b.relative_degree() == 1 {
-                    let la = b.gains().first().map_or(0.0, |a| a.abs());
-                    tau_relative_degree_one(l, z, la, r.l_h[i], r.l_grad_h[i], r.xdot_norm)
-                } else {
-                    tau_relative_degree_r(l, z.min(rec.h[i]), r.l_h[i], r.xdot_norm)
-                }
-            })
-            .fold(f64::INFINITY, f64::min);
-        by_barriers.min(tau_in_cuboid(
-            l,
-            &half_sides,
-            &r.xdot_bound,
-            r.xdot_norm,
-            by_barriers,
-        ))
+            .zip(&r.margin)
+            .map(|(b, &m)| if b.relative_degree() == 1 { z } else { m })
+            .collect();
+        r.tau_with(l, &margins, barriers, &half_sides, tau_max).0
     };
     let dense: Vec<f64> = (0..=12)
         .map(|i| 1e-3 * 10f64.powf(i as f64 / 4.0))
@@ -244,7 +234,7 @@ pub fn run(args: &ExperimentArgs) -> Result<AckermannTriggering> {
         .result
         .records
         .iter()
-        .filter_map(|rec| rec.trigger.as_ref().map(|t| (rec, t)))
+        .filter_map(|rec| rec.trigger.as_ref())
         .collect();
     let curve = |numerical: bool| -> Vec<f64> {
         dense
@@ -253,13 +243,13 @@ pub fn run(args: &ExperimentArgs) -> Result<AckermannTriggering> {
                 stats::median(
                     &reps
                         .iter()
-                        .filter_map(|&(rec, r)| {
+                        .filter_map(|r| {
                             let l = if numerical {
                                 r.lipschitz.numerical?
                             } else {
                                 r.lipschitz.analytic
                             };
-                            Some(tau_at(z, l, rec, r))
+                            Some(tau_at(z, l, r))
                         })
                         .collect::<Vec<_>>(),
                 )

@@ -10,7 +10,7 @@ pub use filter::{
     SafetyController, SafetyFilter, SafetySettings,
 };
 pub use self_trigger::{
-    barrier_gradient_bound, barrier_hessian_bound, evaluate_trigger, tau_in_cuboid,
+    barrier_gradient_and_hessian_bounds, barrier_gradient_bound, evaluate_trigger, tau_in_cuboid,
     tau_relative_degree_one, tau_relative_degree_r, velocity_bound, SelfTriggered, ShiftedBarrier,
     TauSource, TriggerReport, TriggerSettings,
 };

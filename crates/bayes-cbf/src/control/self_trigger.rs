@@ -360,58 +360,55 @@ pub struct TriggerReport {
     pub eval_us: f64,
 }
 
-/// The parts of the hold that do not depend on `L_f`.
-struct HoldParts<'a> {
-    tau_max: f64,
-    barriers: &'a [Arc<dyn DynBarrier>],
-    l_h: &'a [f64],
-    l_grad_h: &'a [f64],
-    margin: &'a [f64],
-    half_sides: &'a [f64],
-    b: &'a [f64],
-    xdot: f64,
-}
-
-impl HoldParts<'_> {
-    /// `τ_k` from `L_f` (barriers and cuboid), and the cuboid time (up to
-    /// the longer of `τ_max` and the barriers' `τ_k`).
-    fn tau(&self, l_f: f64) -> (f64, f64) {
-        let by_barriers = self
-            .barriers
+impl TriggerReport {
+    /// `τ_k` from `L_f` with `margins` (one per barrier, as
+    /// [`margin`](Self::margin)) on this report's `L_h`, `L_∇h` and velocity
+    /// bounds: the smallest over `barriers` of the corrected Prop. 3 or
+    /// Prop. 5 hold and the time the state provably stays in the cuboid of
+    /// `half_sides`; and that cuboid time, computed up to the longer of
+    /// `tau_max` and the barriers' `τ_k`.
+    pub fn tau_with(
+        &self,
+        l_f: f64,
+        margins: &[f64],
+        barriers: &[Arc<dyn DynBarrier>],
+        half_sides: &[f64],
+        tau_max: f64,
+    ) -> (f64, f64) {
+        let x = self.xdot_norm;
+        let by_barriers = barriers
             .iter()
             .enumerate()
             .map(|(i, b)| {
                 if b.relative_degree() == 1 {
                     let l_alpha = b.gains().first().map_or(0.0, |a| a.abs());
-                    tau_relative_degree_one(
-                        l_f,
-                        self.margin[i],
-                        l_alpha,
-                        self.l_h[i],
-                        self.l_grad_h[i],
-                        self.xdot,
-                    )
+                    let (l_h, l_gh) = (self.l_h[i], self.l_grad_h[i]);
+                    tau_relative_degree_one(l_f, margins[i], l_alpha, l_h, l_gh, x)
                 } else {
-                    tau_relative_degree_r(l_f, self.margin[i], self.l_h[i], self.xdot)
+                    tau_relative_degree_r(l_f, margins[i], self.l_h[i], x)
                 }
             })
             .fold(f64::INFINITY, f64::min);
-        let upper = by_barriers.max(self.tau_max);
-        let cube = tau_in_cuboid(l_f, self.half_sides, self.b, self.xdot, upper);
+        let upper = by_barriers.max(tau_max);
+        let cube = tau_in_cuboid(l_f, half_sides, &self.xdot_bound, x, upper);
         (by_barriers.min(cube), cube)
     }
 }
 
-/// A grid estimate of `sup` over the cuboid of `value(node)` (the grid
-/// maximum plus the covering radius times the largest slope between
-/// neighbouring nodes).
-fn sup_on_cuboid(x: &[f64], s: &LipschitzSettings, value: &mut dyn FnMut(&[f64]) -> f64) -> f64 {
+/// Grid estimates of `sup` over the cuboid of each component of
+/// `value(node)` (the grid maximum plus the covering radius times the
+/// largest slope between neighbouring nodes).
+fn sup_on_cuboid(
+    x: &[f64],
+    s: &LipschitzSettings,
+    value: &mut dyn FnMut(&[f64]) -> Vec<f64>,
+) -> Vec<f64> {
     let all: Vec<usize> = (0..x.len()).collect();
     let values: Vec<Vec<f64>> = grid_nodes(x, &s.sides, s.grid, &all)
         .iter()
-        .map(|node| vec![value(node)])
+        .map(|node| value(node))
         .collect();
-    grid_sup_estimate(&values, &s.sides, s.grid)[0]
+    grid_sup_estimate(&values, &s.sides, s.grid)
 }
 
 /// `sup ‖∇h‖` on the cuboid (grid estimate: the grid maximum plus the
@@ -422,21 +419,28 @@ pub fn barrier_gradient_bound(b: &dyn DynBarrier, x: &[f64], s: &LipschitzSettin
     let mut scratch = vec![Dual64::from(0.0); n];
     sup_on_cuboid(x, s, &mut |node| {
         b.gradient(node, &mut grad, &mut scratch);
-        grad.iter().map(|v| v * v).sum::<f64>().sqrt()
-    })
+        vec![grad.iter().map(|v| v * v).sum::<f64>().sqrt()]
+    })[0]
 }
 
-/// `sup ‖∇²h‖_F` on the cuboid (grid estimate; the Frobenius norm bounds
-/// the spectral norm).
-pub fn barrier_hessian_bound(b: &dyn DynBarrier, x: &[f64], s: &LipschitzSettings) -> f64 {
+/// `(sup ‖∇h‖, sup ‖∇²h‖_F)` on the cuboid from one pass of Hessians over
+/// the grid (grid estimates as [`barrier_gradient_bound`]; the Frobenius
+/// norm bounds the spectral norm).
+pub fn barrier_gradient_and_hessian_bounds(
+    b: &dyn DynBarrier,
+    x: &[f64],
+    s: &LipschitzSettings,
+) -> (f64, f64) {
     let n = x.len();
     let mut grad = vec![0.0; n];
     let mut hess = vec![0.0; n * n];
     let mut scratch = vec![HyperDual64::from(0.0); n];
-    sup_on_cuboid(x, s, &mut |node| {
+    let sup = sup_on_cuboid(x, s, &mut |node| {
         b.hessian(node, &mut grad, &mut hess, &mut scratch);
-        hess.iter().map(|v| v * v).sum::<f64>().sqrt()
-    })
+        let norm = |v: &[f64]| v.iter().map(|e| e * e).sum::<f64>().sqrt();
+        vec![norm(&grad), norm(&hess)]
+    });
+    (sup[0], sup[1])
 }
 
 /// The mean `μ = M_k(x)u̲` of `ẋ = F(x)u̲` and the radius `ρ` with
@@ -506,20 +510,17 @@ pub fn evaluate_trigger<R: Rng>(
     let b: Vec<f64> = mu.iter().map(|v| v.abs() + rho).collect();
     let half_sides: Vec<f64> = settings.lipschitz.sides.iter().map(|w| w / 2.0).collect();
     let ls = &settings.lipschitz;
-    let l_h: Vec<f64> = barriers
-        .iter()
-        .map(|b| barrier_gradient_bound(b.as_ref(), x, ls))
-        .collect();
-    let l_grad_h: Vec<f64> = barriers
+    // L_∇h only for relative degree 1 (Prop. 5 does not use it)
+    let (l_h, l_grad_h): (Vec<f64>, Vec<f64>) = barriers
         .iter()
         .map(|b| {
             if b.relative_degree() == 1 {
-                barrier_hessian_bound(b.as_ref(), x, ls)
+                barrier_gradient_and_hessian_bounds(b.as_ref(), x, ls)
             } else {
-                0.0
+                (barrier_gradient_bound(b.as_ref(), x, ls), 0.0)
             }
         })
-        .collect();
+        .unzip();
     let margin: Vec<f64> = barriers
         .iter()
         .enumerate()
@@ -531,24 +532,7 @@ pub fn evaluate_trigger<R: Rng>(
             }
         })
         .collect();
-    let parts = HoldParts {
-        tau_max: settings.tau_max,
-        barriers,
-        l_h: &l_h,
-        l_grad_h: &l_grad_h,
-        margin: &margin,
-        half_sides: &half_sides,
-        b: &b,
-        xdot: xdot_norm,
-    };
-    let (tau_analytic, cube_analytic) = parts.tau(lipschitz.analytic);
-    let numerical = lipschitz.numerical.map(|l| parts.tau(l));
-    let (chosen, tau_cuboid) = match (settings.tau_from, numerical) {
-        (TauSource::Numerical, Some(t)) => t,
-        _ => (tau_analytic, cube_analytic),
-    };
-    let hold = chosen.clamp(settings.tau_min, settings.tau_max);
-    Ok(TriggerReport {
+    let mut report = TriggerReport {
         lipschitz,
         l_h,
         l_grad_h,
@@ -556,13 +540,28 @@ pub fn evaluate_trigger<R: Rng>(
         xdot_mean_norm,
         xdot_norm,
         xdot_bound: b,
-        tau_analytic,
-        tau_numerical: numerical.map(|t| t.0),
-        tau_cuboid,
-        hold,
-        clamped_low: chosen < settings.tau_min,
-        eval_us: started.elapsed().as_secs_f64() * 1e6,
-    })
+        tau_analytic: f64::NAN,
+        tau_numerical: None,
+        tau_cuboid: f64::NAN,
+        hold: f64::NAN,
+        clamped_low: false,
+        eval_us: 0.0,
+    };
+    let tau =
+        |l_f: f64| report.tau_with(l_f, &report.margin, barriers, &half_sides, settings.tau_max);
+    let (tau_analytic, cube_analytic) = tau(report.lipschitz.analytic);
+    let numerical = report.lipschitz.numerical.map(tau);
+    let (chosen, tau_cuboid) = match (settings.tau_from, numerical) {
+        (TauSource::Numerical, Some(t)) => t,
+        _ => (tau_analytic, cube_analytic),
+    };
+    report.tau_analytic = tau_analytic;
+    report.tau_numerical = numerical.map(|t| t.0);
+    report.tau_cuboid = tau_cuboid;
+    report.hold = chosen.clamp(settings.tau_min, settings.tau_max);
+    report.clamped_low = chosen < settings.tau_min;
+    report.eval_us = started.elapsed().as_secs_f64() * 1e6;
+    Ok(report)
 }
 
 /// The barrier `h_b = h − ζ_b` of Prop. 5: enforcing it at the triggering
