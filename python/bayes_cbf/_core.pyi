@@ -1,7 +1,7 @@
 """Type stubs of the compiled module bayes_cbf._core."""
 
 from os import PathLike
-from typing import Any, Literal, Optional, Sequence, Union
+from typing import Any, Literal, Mapping, Optional, Sequence, Union
 
 import numpy as np
 import numpy.typing as npt
@@ -172,6 +172,17 @@ class Barrier:
         k_alpha: Optional[Sequence[float]] = None,
     ) -> "Barrier": ...
     @staticmethod
+    def expression(
+        h: str,
+        state: Sequence[str],
+        params: Optional[Mapping[str, float]] = None,
+        relative_degree: int = 1,
+        alpha: Optional[float] = None,
+        k_alpha: Optional[Sequence[float]] = None,
+    ) -> "Barrier":
+        """h written as an expression over the named states (exact derivatives)."""
+        ...
+    @staticmethod
     def callback(
         h: Any,
         grad: Any,
@@ -202,6 +213,15 @@ class CLF:
     def from_json(text: str) -> "CLF": ...
     @staticmethod
     def ackermann(w1: float, w2: float, gamma: float) -> "CLF": ...
+    @staticmethod
+    def expression(
+        V: str,
+        state: Sequence[str],
+        params: Optional[Mapping[str, float]] = None,
+        gamma: float = 1.0,
+    ) -> "CLF":
+        """V(x, x_d) over the state names and the references <name>_d."""
+        ...
 
 class FilterResult:
     u: F64

@@ -103,7 +103,7 @@ pub fn initial_model(n: usize, m: usize, prior: &PriorSpec, input_map: InputMap)
         B: DMatrix::identity(m + 1, m + 1),
         sigma: 0.1,
     };
-    Ok(Mvgp::new(n, m, hyper, prior.to_prior(), input_map)?)
+    Ok(Mvgp::new(n, m, hyper, prior.to_prior()?, input_map)?)
 }
 
 /// Runs `bayes-cbf fit`.

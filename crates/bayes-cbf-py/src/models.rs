@@ -480,7 +480,7 @@ impl PyCogp {
             S: sq(S, "S", n, 0.01)?,
         };
         let map = to_input_map(input_map_of(input_map)?.as_deref());
-        let prior = prior_of(prior_mean)?.to_prior();
+        let prior = prior_of(prior_mean)?.to_prior().map_err(scenario_err)?;
         let model = Cogp::new(n, m, hyper, prior, map).map_err(core_err)?;
         Ok(Self {
             model,

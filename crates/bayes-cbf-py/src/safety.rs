@@ -140,6 +140,35 @@ impl PyBarrier {
         })
     }
 
+    /// A barrier written as an expression over the named states `state`
+    /// and parameters `params` (interfaces.md, "Expressions"), e.g.
+    /// `Barrier.expression("(x - 1)^2 + (y + 1)^2 - r^2", ["x", "y", "theta"],
+    /// {"r": 0.5}, alpha=5.0)`. Gradients and Hessians are exact (dual
+    /// numbers) and evaluated in Rust, with no Python call per step.
+    #[staticmethod]
+    #[pyo3(signature = (h, state, params=None, relative_degree=1, alpha=None, k_alpha=None))]
+    fn expression(
+        h: String,
+        state: Vec<String>,
+        params: Option<std::collections::BTreeMap<String, f64>>,
+        relative_degree: usize,
+        alpha: Option<f64>,
+        k_alpha: Option<Vec<f64>>,
+    ) -> PyResult<Self> {
+        let alpha = match (relative_degree, alpha, &k_alpha) {
+            (1, None, None) => Some(1.0),
+            _ => alpha,
+        };
+        Self::of_spec(BarrierSpec::Expression {
+            state: Some(state),
+            params: params.unwrap_or_default(),
+            h,
+            relative_degree,
+            alpha,
+            k_alpha,
+        })
+    }
+
     /// A barrier written in Python: `h(x) -> float`, `grad(x) -> (n,)` and,
     /// for relative degree 2 (or self-triggering), `hess(x) -> (n, n)`.
     /// Dual numbers follow from them by the chain rule, so the moments are
@@ -334,6 +363,8 @@ impl PyBarrier {
 #[pyclass(name = "CLF", module = "bayes_cbf", frozen)]
 pub struct PyClf {
     spec: ClfSpec,
+    /// State names of an expression CLF.
+    state: Option<Vec<String>>,
 }
 
 #[pymethods]
@@ -341,9 +372,42 @@ impl PyClf {
     /// A CLF from JSON text.
     #[staticmethod]
     fn from_json(text: &str) -> PyResult<Self> {
-        let spec: ClfSpec =
+        let mut v: serde_json::Value =
             serde_json::from_str(text).map_err(|e| input_err(format!("clf: {e}")))?;
-        Ok(Self { spec })
+        let state = match v.as_object_mut().and_then(|o| o.remove("state")) {
+            None => None,
+            Some(s) => Some(
+                serde_json::from_value::<Vec<String>>(s)
+                    .map_err(|e| input_err(format!("clf.state: {e}")))?,
+            ),
+        };
+        let spec: ClfSpec =
+            serde_json::from_value(v).map_err(|e| input_err(format!("clf: {e}")))?;
+        Ok(Self { spec, state })
+    }
+    /// `V(x, x_d)` written as an expression over the state names `state`,
+    /// the reference names `<state>_d` and the parameters `params`, decay
+    /// rate `gamma`: `CLF.expression("(x - x_d)^2 + (y - y_d)^2", ["x", "y", "theta"])`.
+    #[staticmethod]
+    #[pyo3(signature = (V, state, params=None, gamma=1.0))]
+    #[allow(non_snake_case)]
+    fn expression(
+        V: String,
+        state: Vec<String>,
+        params: Option<std::collections::BTreeMap<String, f64>>,
+        gamma: f64,
+    ) -> PyResult<Self> {
+        let spec = ClfSpec::Expression {
+            v: V,
+            params: params.unwrap_or_default(),
+            gamma,
+        };
+        // parse now, so a bad expression fails here
+        spec.build(&state).map_err(scenario_err)?;
+        Ok(Self {
+            spec,
+            state: Some(state),
+        })
     }
     /// `V = w1/2 ρ² + w2 (1 − cos α)` for the Ackermann vehicle (paper,
     /// Sec. VII-B), decay rate `gamma`.
@@ -351,6 +415,7 @@ impl PyClf {
     fn ackermann(w1: f64, w2: f64, gamma: f64) -> Self {
         Self {
             spec: ClfSpec::Ackermann { w1, w2, gamma },
+            state: None,
         }
     }
     fn __repr__(&self) -> String {
@@ -528,10 +593,23 @@ impl PySafetyFilter {
                 labels.push(b.label.clone());
             }
         }
-        let clf: Option<Arc<dyn DynLyapunov>> = clf
-            .map(|c| c.get().spec.build(n))
-            .transpose()
-            .map_err(scenario_err)?;
+        let clf: Option<Arc<dyn DynLyapunov>> = match clf {
+            None => None,
+            Some(c) => {
+                let c = c.get();
+                let names = c
+                    .state
+                    .clone()
+                    .unwrap_or_else(|| (0..n).map(|i| format!("x{i}")).collect());
+                if names.len() != n {
+                    return Err(input_err(format!(
+                        "clf: {} state names, the model has {n} states",
+                        names.len()
+                    )));
+                }
+                Some(c.spec.build(&names).map_err(scenario_err)?)
+            }
+        };
         let mut settings = SafetySettings::new(m);
         settings.probability = probability;
         settings.zeta = zeta;

@@ -31,6 +31,17 @@ pub enum InputError {
     /// returned a non-finite value; the message names the function.
     #[error("{0}")]
     Evaluation(String),
+    /// An expression that does not parse or names what it may not
+    /// ([`crate::expr`]); a syntax error gives its 1-based column.
+    #[error("{field}{}: {message}", column.map(|c| format!(", column {c}")).unwrap_or_default())]
+    Expression {
+        /// The field holding the expression (`f[1]`, `barriers[0].h`).
+        field: String,
+        /// Column of a syntax error.
+        column: Option<usize>,
+        /// What is wrong.
+        message: String,
+    },
     /// A matrix that must be symmetric positive definite is not.
     #[error("{field} is not symmetric positive definite: {reason}")]
     NotPositiveDefinite {

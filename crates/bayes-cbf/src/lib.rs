@@ -13,6 +13,8 @@
 //!   learning, the joint posterior of `F` and its Jacobian, error metrics.
 //! - [`barrier`]: barrier and Lyapunov functions and the moments of their
 //!   conditions (exact for relative degree 1 and 2, Monte Carlo beyond).
+//! - [`expr`]: the expression language of user-written systems, barriers
+//!   and Lyapunov functions, evaluated over dual numbers.
 //! - [`autodiff`]: seeding dual numbers for derivatives of user functions.
 //! - [`control`]: the chance-constrained SOCP safety filter (Clarabel),
 //!   infeasibility outcomes and fallbacks.
@@ -33,6 +35,7 @@ pub mod autodiff;
 pub mod barrier;
 pub mod control;
 pub mod error;
+pub mod expr;
 pub mod gp;
 pub mod sim;
 pub mod systems;

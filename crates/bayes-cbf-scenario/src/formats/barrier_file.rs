@@ -2,8 +2,11 @@
 
 use crate::bail;
 use crate::error::{Context, Result};
-use bayes_cbf::barrier::{CircleHeading, Disc, DynBarrier, HalfSpace, PendulumSector};
+use bayes_cbf::barrier::{
+    CircleHeading, Disc, DynBarrier, ExpressionBarrier, HalfSpace, PendulumSector,
+};
 use serde::Deserialize;
+use std::collections::BTreeMap;
 use std::path::Path;
 use std::sync::Arc;
 
@@ -79,6 +82,26 @@ pub enum BarrierSpec {
         #[serde(default, skip_serializing_if = "Option::is_none")]
         k_alpha: Option<Vec<f64>>,
     },
+    /// `h` written as an expression over named states (interfaces.md,
+    /// "Expressions").
+    Expression {
+        /// State names; in a scenario, the system's when absent.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        state: Option<Vec<String>>,
+        /// Named constants.
+        #[serde(default, skip_serializing_if = "BTreeMap::is_empty")]
+        params: BTreeMap<String, f64>,
+        /// `h(x)`.
+        h: String,
+        /// Relative degree.
+        relative_degree: usize,
+        /// Gain for relative degree 1.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        alpha: Option<f64>,
+        /// Gains for relative degree ≥ 2.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        k_alpha: Option<Vec<f64>>,
+    },
 }
 
 /// Gains from `alpha` (relative degree 1) or `k_alpha` (≥ 2).
@@ -104,8 +127,15 @@ fn gains(r: usize, alpha: &Option<f64>, k_alpha: &Option<Vec<f64>>) -> Result<Ve
 }
 
 impl BarrierSpec {
-    /// Builds the library barrier, validating every field.
+    /// Builds the library barrier, validating every field (an expression
+    /// must name its states).
     pub fn build(&self) -> Result<Arc<dyn DynBarrier>> {
+        self.build_in(None)
+    }
+
+    /// Builds the barrier of a system whose states are named `state` (an
+    /// expression without its own names uses them).
+    pub fn build_in(&self, state: Option<&[String]>) -> Result<Arc<dyn DynBarrier>> {
         Ok(match self {
             BarrierSpec::PendulumSector {
                 theta_c,
@@ -163,6 +193,36 @@ impl BarrierSpec {
                 *relative_degree,
                 gains(*relative_degree, alpha, k_alpha)?,
             )?),
+            BarrierSpec::Expression {
+                state: own,
+                params,
+                h,
+                relative_degree,
+                alpha,
+                k_alpha,
+            } => {
+                let names: &[String] = match (own, state) {
+                    (Some(own), Some(sys)) if own.len() != sys.len() => bail!(
+                        "state has {} names, the system {} states",
+                        own.len(),
+                        sys.len()
+                    ),
+                    (Some(own), _) => own,
+                    (None, Some(sys)) => sys,
+                    (None, None) => {
+                        bail!("an expression barrier needs \"state\" (the state names)")
+                    }
+                };
+                let params: Vec<(String, f64)> =
+                    params.iter().map(|(k, v)| (k.clone(), *v)).collect();
+                Arc::new(ExpressionBarrier::new(
+                    names,
+                    &params,
+                    h,
+                    *relative_degree,
+                    gains(*relative_degree, alpha, k_alpha)?,
+                )?)
+            }
         })
     }
 

@@ -217,7 +217,7 @@ impl ModelFile {
             B,
             sigma: self.noise_sigma,
         };
-        let mut model = Mvgp::new(n, m, hyper, self.prior_mean.to_prior(), input_map)?;
+        let mut model = Mvgp::new(n, m, hyper, self.prior_mean.to_prior()?, input_map)?;
         if !self.known_rows.is_empty() {
             model = model.with_known_rows(&self.known_rows)?;
         }

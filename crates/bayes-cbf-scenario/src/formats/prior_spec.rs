@@ -1,14 +1,82 @@
-//! The `prior_mean` field of a model file and the `--prior-mean` option:
-//! `"zero"`, `{"type": "pendulum", "mass": .., "length": .., "gravity": ..}`
-//! or `{"type": "ackermann", "wheelbase": ..}` (see `interfaces.md`).
+//! The `prior_mean` field of a model file, the `--prior-mean` option and a
+//! scenario's `[system]`: `"zero"`,
+//! `{"type": "pendulum", "mass": .., "length": .., "gravity": ..}`,
+//! `{"type": "ackermann", "wheelbase": ..}` or
+//! `{"type": "expression", "state": [..], "control": [..], "params": {..},
+//! "f": [..], "g": [[..], ..], "angles": [..]}` (see `interfaces.md`).
 
 use crate::bail;
 use crate::error::{Context, Result};
 use bayes_cbf::gp::PriorMean;
-use bayes_cbf::systems::{Ackermann, Pendulum};
+use bayes_cbf::systems::{Ackermann, DynSystem, ExpressionSystem, Pendulum};
 use serde::{Deserialize, Serialize};
 use serde_json::{json, Value};
+use std::collections::BTreeMap;
 use std::sync::Arc;
+
+/// A system written as expressions (interfaces.md, "Expressions").
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SystemExpression {
+    /// State names; taken from the scenario's system when absent (a prior
+    /// mean inside a scenario).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub state: Option<Vec<String>>,
+    /// Control names, likewise.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub control: Option<Vec<String>>,
+    /// Named constants.
+    #[serde(default, skip_serializing_if = "BTreeMap::is_empty")]
+    pub params: BTreeMap<String, f64>,
+    /// `f(x)`, one expression per state.
+    pub f: Vec<String>,
+    /// `g(x)`, one row per state of one expression per control.
+    pub g: Vec<Vec<String>>,
+    /// States wrapped to `[-π, π)`.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub angles: Vec<String>,
+}
+
+/// State and control names of a system.
+pub type SystemNames = (Vec<String>, Vec<String>);
+
+fn strings(v: &[&str]) -> Vec<String> {
+    v.iter().map(|s| s.to_string()).collect()
+}
+
+impl SystemExpression {
+    /// Builds the system; `names` supplies the state and control names the
+    /// expression leaves out.
+    pub fn build(&self, names: Option<&SystemNames>) -> Result<ExpressionSystem> {
+        let (state, control) = match (&self.state, &self.control, names) {
+            (Some(s), Some(c), _) => (s.clone(), c.clone()),
+            (s, c, Some((ns, nc))) => (
+                s.clone().unwrap_or_else(|| ns.clone()),
+                c.clone().unwrap_or_else(|| nc.clone()),
+            ),
+            (None, _, None) => bail!("an expression system needs \"state\" (the state names)"),
+            (_, None, None) => {
+                bail!("an expression system needs \"control\" (the control names)")
+            }
+        };
+        if let Some((ns, nc)) = names {
+            if (state.len(), control.len()) != (ns.len(), nc.len()) {
+                bail!(
+                    "{} states and {} controls, the system has {} and {}",
+                    state.len(),
+                    control.len(),
+                    ns.len(),
+                    nc.len()
+                );
+            }
+        }
+        let params: Vec<(String, f64)> =
+            self.params.iter().map(|(k, v)| (k.clone(), *v)).collect();
+        Ok(ExpressionSystem::new(
+            &state, &control, &params, &self.f, &self.g, &self.angles,
+        )?)
+    }
+}
 
 /// Prior mean `M0(x)` of `F(x)` as written in files.
 #[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize)]
@@ -31,6 +99,8 @@ pub enum PriorSpec {
         /// Wheelbase `L` (m).
         wheelbase: f64,
     },
+    /// `f` and `g` written as expressions.
+    Expression(SystemExpression),
 }
 
 #[derive(Deserialize)]
@@ -93,7 +163,7 @@ impl TryFrom<Value> for PriorSpec {
                 }
                 None => {
                     return Err(
-                        "prior_mean object needs a \"type\" key (pendulum or ackermann)".into(),
+                        "prior_mean object needs a \"type\" key (pendulum, ackermann or expression)".into(),
                     )
                 }
             },
@@ -125,11 +195,18 @@ impl TryFrom<Value> for PriorSpec {
                 positive("wheelbase", a.wheelbase)?;
                 PriorSpec::Ackermann { wheelbase: a.wheelbase }
             }
+            "expression" if is_obj => {
+                let mut o = v.as_object().cloned().unwrap_or_default();
+                o.remove("type");
+                let e = SystemExpression::deserialize(Value::Object(o))
+                    .map_err(|e| format!("prior_mean: {e}"))?;
+                PriorSpec::Expression(e)
+            }
             "pendulum" => PriorSpec::Pendulum { mass: 1.0, length: 1.0, gravity: 10.0 },
             "ackermann" => PriorSpec::Ackermann { wheelbase: 1.0 },
             other => {
                 return Err(format!(
-                    "unknown prior_mean type \"{other}\": expected \"zero\", \"pendulum\" or \"ackermann\""
+                    "unknown prior_mean type \"{other}\": expected \"zero\", \"pendulum\", \"ackermann\" or \"expression\" (an object with f and g)"
                 ))
             }
         };
@@ -151,37 +228,90 @@ impl From<PriorSpec> for Value {
             PriorSpec::Ackermann { wheelbase } => {
                 json!({"type": "ackermann", "wheelbase": wheelbase})
             }
+            PriorSpec::Expression(e) => {
+                let mut v = serde_json::to_value(e).unwrap_or(Value::Null);
+                if let Value::Object(o) = &mut v {
+                    o.insert("type".into(), json!("expression"));
+                }
+                v
+            }
         }
     }
 }
 
 impl PriorSpec {
-    /// The library's prior mean for this specification.
-    pub fn to_prior(&self) -> PriorMean {
-        match *self {
-            PriorSpec::Zero => PriorMean::Zero,
+    /// The system, `None` for the zero mean; `names` supplies the state and
+    /// control names an expression leaves out (the scenario's system).
+    pub fn to_system(&self, names: Option<&SystemNames>) -> Result<Option<Arc<dyn DynSystem>>> {
+        Ok(match self {
+            PriorSpec::Zero => None,
             PriorSpec::Pendulum {
                 mass,
                 length,
                 gravity,
-            } => PriorMean::System(Arc::new(Pendulum {
-                mass,
-                length,
-                gravity,
+            } => Some(Arc::new(Pendulum {
+                mass: *mass,
+                length: *length,
+                gravity: *gravity,
             })),
-            PriorSpec::Ackermann { wheelbase } => {
-                PriorMean::System(Arc::new(Ackermann { wheelbase }))
+            PriorSpec::Ackermann { wheelbase } => Some(Arc::new(Ackermann {
+                wheelbase: *wheelbase,
+            })),
+            PriorSpec::Expression(e) => Some(Arc::new(e.build(names)?)),
+        })
+    }
+
+    /// The library's prior mean for this specification (an expression
+    /// must name its states and controls).
+    pub fn to_prior(&self) -> Result<PriorMean> {
+        self.to_prior_in(None)
+    }
+
+    /// The prior mean, with the state and control names of the system it
+    /// belongs to.
+    pub fn to_prior_in(&self, names: Option<&SystemNames>) -> Result<PriorMean> {
+        Ok(match self.to_system(names).context("prior_mean")? {
+            None => PriorMean::Zero,
+            Some(s) => PriorMean::System(s),
+        })
+    }
+
+    /// State and control names: an expression's own, and for the built-in
+    /// systems `theta, omega; u` (pendulum) and `x, y, theta; v, z`
+    /// (Ackermann). `None` for the zero mean or an expression without
+    /// names.
+    pub fn names(&self) -> Option<SystemNames> {
+        match self {
+            PriorSpec::Zero => None,
+            PriorSpec::Pendulum { .. } => Some((strings(&["theta", "omega"]), strings(&["u"]))),
+            PriorSpec::Ackermann { .. } => {
+                Some((strings(&["x", "y", "theta"]), strings(&["v", "z"])))
             }
+            PriorSpec::Expression(e) => Some((e.state.clone()?, e.control.clone()?)),
         }
     }
 
     /// State components that are angles in the prior's system (pendulum
-    /// `[0]`, Ackermann `[2]`, none for the zero mean).
+    /// `[0]`, Ackermann `[2]`, an expression's `angles`, none for the zero
+    /// mean).
     pub fn angle_indices(&self) -> Vec<usize> {
         match self {
             PriorSpec::Zero => Vec::new(),
             PriorSpec::Pendulum { .. } => vec![0],
             PriorSpec::Ackermann { .. } => vec![2],
+            PriorSpec::Expression(e) => match &e.state {
+                Some(state) => {
+                    let mut v: Vec<usize> = e
+                        .angles
+                        .iter()
+                        .filter_map(|a| state.iter().position(|s| s == a))
+                        .collect();
+                    v.sort_unstable();
+                    v.dedup();
+                    v
+                }
+                None => Vec::new(),
+            },
         }
     }
 

@@ -7,7 +7,7 @@ use crate::barrier_file::BarrierSpec;
 use crate::error::{Context, Result};
 use crate::input_map_spec::to_input_map;
 use crate::parse::parse_rank;
-use crate::prior_spec::PriorSpec;
+use crate::prior_spec::{PriorSpec, SystemNames};
 use bayes_cbf::barrier::DynBarrier;
 use bayes_cbf::control::{
     Fallback, SafetyController, SafetySettings, SelfTriggered, TauSource, TriggerSettings,
@@ -17,7 +17,7 @@ use bayes_cbf::sim::{
     ConstantReference, DataPolicy, EpsilonGreedy, LoopSettings, Reference, SimSettings,
     StraightLinePlanner,
 };
-use bayes_cbf::systems::{Ackermann, DynSystem, Pendulum};
+use bayes_cbf::systems::DynSystem;
 use nalgebra::DMatrix;
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
@@ -73,22 +73,17 @@ fn matrix(
     })
 }
 
-fn truth(spec: &PriorSpec) -> Result<Arc<dyn DynSystem>> {
-    Ok(match *spec {
-        PriorSpec::Zero => {
-            bail!("system: a true system is required (type = \"pendulum\" or \"ackermann\")")
-        }
-        PriorSpec::Pendulum {
-            mass,
-            length,
-            gravity,
-        } => Arc::new(Pendulum {
-            mass,
-            length,
-            gravity,
-        }),
-        PriorSpec::Ackermann { wheelbase } => Arc::new(Ackermann { wheelbase }),
-    })
+/// The true system and its state and control names.
+fn truth(spec: &PriorSpec) -> Result<(Arc<dyn DynSystem>, SystemNames)> {
+    let system = spec.to_system(None).context("system")?.ok_or_else(|| {
+        crate::err!(
+            "system: a true system is required (type = \"pendulum\", \"ackermann\" or \"expression\")"
+        )
+    })?;
+    let names = spec
+        .names()
+        .unwrap_or_else(|| ((0..system.state_dim()).map(|i| format!("x{i}")).collect(), Vec::new()));
+    Ok((system, names))
 }
 
 fn vector(field: &str, v: &[f64], len: usize, what: &str) -> Result<()> {
@@ -103,7 +98,7 @@ fn vector(field: &str, v: &[f64], len: usize, what: &str) -> Result<()> {
 
 /// Builds and validates a scenario.
 pub fn build(s: &Scenario) -> Result<Built> {
-    let truth = truth(&s.system)?;
+    let (truth, names) = truth(&s.system)?;
     let (n, m) = (truth.state_dim(), truth.control_dim());
     vector("start", &s.start, n, "the state dimension")?;
     if let Some(g) = &s.goal {
@@ -128,7 +123,7 @@ pub fn build(s: &Scenario) -> Result<Built> {
         B: b,
         sigma: s.gp.noise_sigma,
     };
-    let prior = s.gp.prior_mean.to_prior();
+    let prior = s.gp.prior_mean.to_prior_in(Some(&names)).context("gp")?;
     if let PriorMean::System(p) = &prior {
         if (p.state_dim(), p.control_dim()) != (n, m) {
             bail!(
@@ -148,7 +143,9 @@ pub fn build(s: &Scenario) -> Result<Built> {
     let mut barriers = Vec::new();
     let mut obstacles = Vec::new();
     for (i, spec) in s.barriers.iter().enumerate() {
-        let b = spec.build().with_context(|| format!("barriers[{i}]"))?;
+        let b = spec
+            .build_in(Some(&names.0))
+            .with_context(|| format!("barriers[{i}]"))?;
         if b.state_dim() != n {
             bail!(
                 "barriers[{i}] is for state dimension {}, the system has {n}",
@@ -167,7 +164,7 @@ pub fn build(s: &Scenario) -> Result<Built> {
         }
         barriers.push(b);
     }
-    let clf = s.clf.as_ref().map(|c| c.build(n)).transpose()?;
+    let clf = s.clf.as_ref().map(|c| c.build(&names.0)).transpose()?;
     // self-triggering
     let trigger = match &s.trigger {
         None => None,

@@ -280,13 +280,38 @@ pub enum ClfSpec {
         /// Decay rate γ_V.
         gamma: f64,
     },
+    /// `V` written as an expression over the state names and the
+    /// reference names `<state>_d`.
+    Expression {
+        /// `V(x, x_d)`.
+        #[serde(rename = "V")]
+        v: String,
+        /// Named constants.
+        #[serde(default, skip_serializing_if = "std::collections::BTreeMap::is_empty")]
+        params: std::collections::BTreeMap<String, f64>,
+        /// Decay rate γ_V (default 1).
+        #[serde(default = "one")]
+        gamma: f64,
+    },
 }
 
 impl ClfSpec {
-    /// Builds the library CLF for a system of `n` states, validating every
-    /// field.
-    pub fn build(&self, n: usize) -> Result<std::sync::Arc<dyn bayes_cbf::barrier::DynLyapunov>> {
+    /// Builds the library CLF for a system whose states are named `state`,
+    /// validating every field.
+    pub fn build(
+        &self,
+        state: &[String],
+    ) -> Result<std::sync::Arc<dyn bayes_cbf::barrier::DynLyapunov>> {
+        let n = state.len();
         match self {
+            ClfSpec::Expression { v, params, gamma } => {
+                let params: Vec<(String, f64)> =
+                    params.iter().map(|(k, v)| (k.clone(), *v)).collect();
+                Ok(std::sync::Arc::new(
+                    bayes_cbf::barrier::ExpressionClf::new(state, &params, v, *gamma)
+                        .map_err(|e| err!("clf: {e}"))?,
+                ))
+            }
             ClfSpec::Ackermann { w1, w2, gamma } => {
                 if n != 3 {
                     bail!("clf: the ackermann CLF needs a 3-state system");

@@ -11,6 +11,7 @@ mod builtins;
 mod callback;
 mod clf;
 mod condition;
+mod expression;
 mod moments;
 mod monte_carlo;
 
@@ -18,6 +19,7 @@ pub use builtins::{CircleHeading, Disc, HalfSpace, PendulumSector};
 pub use callback::{ArrayFn, CallbackBarrier, ValueFn};
 pub use clf::{AckermannClf, DynLyapunov, Lyapunov};
 pub use condition::true_condition;
+pub use expression::{ExpressionBarrier, ExpressionClf};
 pub use moments::{
     cbc_moments, clc_moments, factor_probability, quantile_factor, unmodelled_lgh_std,
     ConditionMoments, MomentWorkspace,
@@ -45,6 +47,12 @@ pub trait Barrier: Send + Sync {
     /// Short name for reports.
     fn name(&self) -> &str {
         "barrier"
+    }
+    /// The first failed evaluation since the last call, for barriers whose
+    /// evaluation can fail ([`ExpressionBarrier`]); `None` for barriers
+    /// written in Rust.
+    fn take_error(&self) -> Option<String> {
+        None
     }
 }
 
@@ -136,6 +144,9 @@ impl<T: Barrier> DynBarrier for T {
     }
     fn name(&self) -> &str {
         Barrier::name(self)
+    }
+    fn take_error(&self) -> Option<String> {
+        Barrier::take_error(self)
     }
 }
 

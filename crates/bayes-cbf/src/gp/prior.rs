@@ -70,6 +70,15 @@ impl PriorMean {
         }
     }
 
+    /// The first failed evaluation of a system prior since the last call
+    /// ([`DynSystem::take_error`]).
+    pub fn take_error(&self) -> Option<String> {
+        match self {
+            PriorMean::Zero => None,
+            PriorMean::System(s) => s.take_error().map(|m| format!("prior mean: {m}")),
+        }
+    }
+
     /// Dimensions `(n, m)` of a system prior, `None` for zero.
     pub fn dims(&self) -> Option<(usize, usize)> {
         match self {

@@ -545,6 +545,16 @@ impl<'a> ClosedLoop<'a> {
                     *mm = mm.min(f(xs));
                 }
             });
+        if let Some(msg) = self.truth.take_error() {
+            return Err(InputError::Evaluation(format!("true system at step {k}: {msg}")).into());
+        }
+        if let Some(i) = self.x.iter().position(|v| !v.is_finite()) {
+            return Err(InputError::Evaluation(format!(
+                "the state x[{i}] became {} at step {k} (t = {t}) from x = {x_prev:?}, u = {:?}",
+                self.x[i], self.out.u
+            ))
+            .into());
+        }
         for (a, b) in self.min_barrier.iter_mut().zip(&h_fine_min) {
             *a = a.min(*b);
         }

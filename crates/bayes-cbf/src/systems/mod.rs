@@ -14,10 +14,12 @@
 //! `vec F(x)`, the ordering used by the paper's Kronecker covariances.
 
 mod ackermann;
+mod expression;
 mod gp_sample;
 mod pendulum;
 
 pub use ackermann::Ackermann;
+pub use expression::ExpressionSystem;
 pub use gp_sample::GpSample;
 pub use pendulum::Pendulum;
 
@@ -44,6 +46,12 @@ pub trait ControlAffine: Send + Sync {
     fn angle_indices(&self) -> &[usize] {
         &[]
     }
+    /// The first failed evaluation since the last call, for systems whose
+    /// evaluation can fail (an expression that is not finite at some state:
+    /// [`ExpressionSystem`]); `None` for systems written in Rust.
+    fn take_error(&self) -> Option<String> {
+        None
+    }
 }
 
 /// Object-safe view of a [`ControlAffine`] system, implemented for all of them.
@@ -58,6 +66,9 @@ pub trait DynSystem: Send + Sync {
     fn eval_dual(&self, x: &[Dual64], out: &mut [Dual64]);
     /// Angle components.
     fn angle_indices(&self) -> &[usize];
+    /// The first failed evaluation since the last call
+    /// ([`ControlAffine::take_error`]).
+    fn take_error(&self) -> Option<String>;
 
     /// Jacobian `∂ vec F / ∂x`, written column-major as `(n(1+m)) × n`
     /// (entry `(r, j)` at `r + n(1+m) j`), by `n` forward passes.
@@ -109,6 +120,9 @@ impl<T: ControlAffine> DynSystem for T {
     }
     fn angle_indices(&self) -> &[usize] {
         ControlAffine::angle_indices(self)
+    }
+    fn take_error(&self) -> Option<String> {
+        ControlAffine::take_error(self)
     }
 }
 

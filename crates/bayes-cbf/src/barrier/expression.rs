@@ -1,0 +1,182 @@
+//! Barriers and Lyapunov functions written as expressions
+//! (interfaces.md, "Expressions").
+
+use super::{validate_gains, Barrier, Lyapunov};
+use crate::error::InputError;
+use crate::expr::{real_parts, Expr, Failure, Names};
+use num_dual::DualNum;
+
+/// Variables `state` and parameters `params` of an expression.
+fn names<S: AsRef<str>>(state: &[S], params: &[(S, f64)]) -> Result<Names, InputError> {
+    if state.is_empty() {
+        return Err(InputError::invalid("state", 0.0, "at least one state is needed"));
+    }
+    let mut names = Names::default();
+    for s in state {
+        names.add_var(s.as_ref())?;
+    }
+    for (p, v) in params {
+        names.add_param(p.as_ref(), *v)?;
+    }
+    Ok(names)
+}
+
+/// A barrier `h(x)` written as an expression over named states and
+/// parameters; `∇h` and `∇²h` are exact (dual numbers).
+///
+/// ```
+/// use bayes_cbf::barrier::{DynBarrier, ExpressionBarrier};
+/// let disc = ExpressionBarrier::new(
+///     &["x", "y", "theta"], &[("r", 0.5)], "(x - 1)^2 + (y + 1)^2 - r^2", 1, vec![5.0],
+/// ).unwrap();
+/// let mut grad = [0.0; 3];
+/// let mut scratch = [num_dual::Dual64::from(0.0); 3];
+/// let h = disc.gradient(&[0.0, 0.0, 0.3], &mut grad, &mut scratch);
+/// assert_eq!((h, grad), (1.75, [-2.0, 2.0, 0.0]));
+/// ```
+#[derive(Debug)]
+pub struct ExpressionBarrier {
+    state: Vec<String>,
+    h: Expr,
+    relative_degree: usize,
+    gains: Vec<f64>,
+    name: String,
+    failure: Failure,
+}
+
+impl Clone for ExpressionBarrier {
+    fn clone(&self) -> Self {
+        Self {
+            state: self.state.clone(),
+            h: self.h.clone(),
+            relative_degree: self.relative_degree,
+            gains: self.gains.clone(),
+            name: self.name.clone(),
+            failure: Failure::default(),
+        }
+    }
+}
+
+impl ExpressionBarrier {
+    /// Parses `h` over `state` and `params`; `gains` are `[α]` for relative
+    /// degree 1 and `k_α` (Hurwitz) for relative degree ≥ 2
+    /// ([`validate_gains`]).
+    pub fn new<S: AsRef<str>>(
+        state: &[S],
+        params: &[(S, f64)],
+        h: &str,
+        relative_degree: usize,
+        gains: Vec<f64>,
+    ) -> Result<Self, InputError> {
+        let names = names(state, params)?;
+        let h = Expr::parse("h", h, &names)?;
+        validate_gains(relative_degree, &gains)?;
+        Ok(Self {
+            state: names.vars().to_vec(),
+            h,
+            relative_degree,
+            gains,
+            name: "expression".into(),
+            failure: Failure::default(),
+        })
+    }
+
+    /// The same barrier reported under `name`.
+    pub fn with_name(mut self, name: &str) -> Self {
+        self.name = name.to_string();
+        self
+    }
+
+    /// State names.
+    pub fn state_names(&self) -> &[String] {
+        &self.state
+    }
+
+    /// The expression of `h`.
+    pub fn expression(&self) -> &str {
+        self.h.text()
+    }
+}
+
+impl Barrier for ExpressionBarrier {
+    fn state_dim(&self) -> usize {
+        self.state.len()
+    }
+    fn h<D: DualNum<Primitive = f64> + Copy>(&self, x: &[D]) -> D {
+        let v = self.h.eval(x);
+        if !v.re().is_finite() {
+            self.failure.record(|| {
+                format!(
+                    "h of barrier '{}' = {} at state {:?} (h = \"{}\")",
+                    self.name,
+                    v.re(),
+                    real_parts(x),
+                    self.h.text()
+                )
+            });
+        }
+        v
+    }
+    fn relative_degree(&self) -> usize {
+        self.relative_degree
+    }
+    fn gains(&self) -> &[f64] {
+        &self.gains
+    }
+    fn name(&self) -> &str {
+        &self.name
+    }
+    fn take_error(&self) -> Option<String> {
+        self.failure.take()
+    }
+}
+
+/// A control Lyapunov function `V(x, x_d)` written as an expression over
+/// the state names and the reference names `<state>_d`
+/// (`V = "(x - x_d)^2 + (y - y_d)^2"`).
+#[derive(Debug, Clone)]
+pub struct ExpressionClf {
+    n: usize,
+    v: Expr,
+    gamma: f64,
+}
+
+impl ExpressionClf {
+    /// Parses `v` over `state`, the references `<state>_d` and `params`;
+    /// `gamma` is the decay rate `γ ≥ 0`.
+    pub fn new<S: AsRef<str>>(
+        state: &[S],
+        params: &[(S, f64)],
+        v: &str,
+        gamma: f64,
+    ) -> Result<Self, InputError> {
+        let reference: Vec<String> = state.iter().map(|s| format!("{}_d", s.as_ref())).collect();
+        let mut names = names(state, &[])?;
+        for r in &reference {
+            names.add_var(r)?;
+        }
+        for (p, value) in params {
+            names.add_param(p.as_ref(), *value)?;
+        }
+        if !(gamma.is_finite() && gamma >= 0.0) {
+            return Err(InputError::invalid("gamma", gamma, "must be finite and ≥ 0"));
+        }
+        Ok(Self {
+            n: state.len(),
+            v: Expr::parse("V", v, &names)?,
+            gamma,
+        })
+    }
+}
+
+impl Lyapunov for ExpressionClf {
+    fn state_dim(&self) -> usize {
+        self.n
+    }
+    fn v<D: DualNum<Primitive = f64> + Copy>(&self, x: &[D], xd: &[D]) -> D {
+        self.v.eval2(x, xd)
+    }
+    fn gamma(&self) -> f64 {
+        self.gamma
+    }
+}

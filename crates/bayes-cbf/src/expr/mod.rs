@@ -1,0 +1,446 @@
+//! Expressions: formulas over named states, controls and parameters,
+//! parsed once and evaluated over dual numbers, so that the gradients and
+//! Hessians of user-written systems, barriers and Lyapunov functions are
+//! exact (interfaces.md, "Expressions").
+//!
+//! Operators `+ - * / ^`, unary minus, parentheses; functions `sin cos tan
+//! asin acos atan atan2 sinh cosh tanh exp log sqrt abs min max`; the
+//! constant `pi`. Parameters are folded into constants when parsed, so
+//! `1/(m*l^2)` costs nothing at evaluation.
+//!
+//! An [`Expr`] is a flat list of nodes (operands before the node that uses
+//! them) walked recursively by [`Expr::eval`], generic over
+//! `D: DualNum<Primitive = f64>`: one parse serves `f64`, [`num_dual::Dual64`]
+//! (gradients, Jacobians) and [`num_dual::HyperDual64`] (Hessians), and
+//! evaluation never allocates. A general expression crate (exmex) parses
+//! into one numeric type fixed at parse time and cannot evaluate one parsed
+//! expression over a generic dual number; its symbolic partial derivatives
+//! would need a parse per derivative order.
+//!
+//! Semantics on dual numbers: `atan2` keeps finite derivatives on the axes
+//! ([`crate::barrier::atan2`]); `min`/`max` take the derivatives of the
+//! chosen argument; `abs` those of `±x`; `a^b` is `powi` for a constant
+//! integer `b`, `powf` for another constant, `exp(b ln a)` otherwise.
+
+mod parse;
+
+pub use self::names::Names;
+
+use crate::error::InputError;
+use num_dual::DualNum;
+
+/// Builds an [`InputError::Expression`].
+fn error(field: &str, column: Option<usize>, message: String) -> InputError {
+    InputError::Expression {
+        field: field.to_string(),
+        column,
+        message,
+    }
+}
+
+/// Functions of the language.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(crate) enum Func {
+    Sin,
+    Cos,
+    Tan,
+    Asin,
+    Acos,
+    Atan,
+    Atan2,
+    Sinh,
+    Cosh,
+    Tanh,
+    Exp,
+    Log,
+    Sqrt,
+    Abs,
+    Min,
+    Max,
+}
+
+impl Func {
+    const NAMES: [&'static str; 16] = [
+        "sin", "cos", "tan", "asin", "acos", "atan", "atan2", "sinh", "cosh", "tanh", "exp",
+        "log", "sqrt", "abs", "min", "max",
+    ];
+    const ALL: [Func; 16] = [
+        Func::Sin,
+        Func::Cos,
+        Func::Tan,
+        Func::Asin,
+        Func::Acos,
+        Func::Atan,
+        Func::Atan2,
+        Func::Sinh,
+        Func::Cosh,
+        Func::Tanh,
+        Func::Exp,
+        Func::Log,
+        Func::Sqrt,
+        Func::Abs,
+        Func::Min,
+        Func::Max,
+    ];
+
+    fn from_name(name: &str) -> Option<Func> {
+        Self::NAMES
+            .iter()
+            .position(|n| *n == name)
+            .map(|i| Self::ALL[i])
+    }
+
+    fn arity(self) -> usize {
+        match self {
+            Func::Atan2 | Func::Min | Func::Max => 2,
+            _ => 1,
+        }
+    }
+
+    fn arity_text(self) -> &'static str {
+        if self.arity() == 2 {
+            "two arguments"
+        } else {
+            "one argument"
+        }
+    }
+}
+
+/// One node; operands are indices of earlier nodes.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub(crate) enum Node {
+    Const(f64),
+    Var(u32),
+    Neg(u32),
+    Add(u32, u32),
+    Sub(u32, u32),
+    Mul(u32, u32),
+    Div(u32, u32),
+    PowI(u32, i32),
+    PowF(u32, f64),
+    Pow(u32, u32),
+    Call1(Func, u32),
+    Call2(Func, u32, u32),
+}
+
+impl Node {
+    fn children(&self) -> [Option<u32>; 2] {
+        match *self {
+            Node::Const(_) | Node::Var(_) => [None, None],
+            Node::Neg(a) | Node::PowI(a, _) | Node::PowF(a, _) | Node::Call1(_, a) => {
+                [Some(a), None]
+            }
+            Node::Add(a, b)
+            | Node::Sub(a, b)
+            | Node::Mul(a, b)
+            | Node::Div(a, b)
+            | Node::Pow(a, b)
+            | Node::Call2(_, a, b) => [Some(a), Some(b)],
+        }
+    }
+}
+
+/// Evaluates node `i` of `nodes`, variable `v` having the value `var(v)`.
+fn eval_node<D, V>(nodes: &[Node], i: u32, var: &V) -> D
+where
+    D: DualNum<Primitive = f64> + Copy,
+    V: Fn(usize) -> D,
+{
+    let ev = |j: u32| eval_node(nodes, j, var);
+    match nodes[i as usize] {
+        Node::Const(c) => D::from(c),
+        Node::Var(v) => var(v as usize),
+        Node::Neg(a) => -ev(a),
+        Node::Add(a, b) => ev(a) + ev(b),
+        Node::Sub(a, b) => ev(a) - ev(b),
+        Node::Mul(a, b) => ev(a) * ev(b),
+        Node::Div(a, b) => ev(a) / ev(b),
+        Node::PowI(a, n) => ev(a).powi(n),
+        Node::PowF(a, e) => ev(a).powf(e),
+        Node::Pow(a, b) => (ev(b) * ev(a).ln()).exp(),
+        Node::Call1(f, a) => {
+            let v = ev(a);
+            match f {
+                Func::Sin => v.sin(),
+                Func::Cos => v.cos(),
+                Func::Tan => v.tan(),
+                Func::Asin => v.asin(),
+                Func::Acos => v.acos(),
+                Func::Atan => v.atan(),
+                Func::Sinh => v.sinh(),
+                Func::Cosh => v.cosh(),
+                Func::Tanh => v.tanh(),
+                Func::Exp => v.exp(),
+                Func::Log => v.ln(),
+                Func::Sqrt => v.sqrt(),
+                Func::Abs => {
+                    if v.re() < 0.0 {
+                        -v
+                    } else {
+                        v
+                    }
+                }
+                Func::Atan2 | Func::Min | Func::Max => unreachable!("binary function"),
+            }
+        }
+        Node::Call2(f, a, b) => {
+            let (u, v) = (ev(a), ev(b));
+            match f {
+                Func::Atan2 => crate::barrier::atan2(u, v),
+                Func::Min => {
+                    if v.re() < u.re() {
+                        v
+                    } else {
+                        u
+                    }
+                }
+                Func::Max => {
+                    if v.re() > u.re() {
+                        v
+                    } else {
+                        u
+                    }
+                }
+                _ => unreachable!("unary function"),
+            }
+        }
+    }
+}
+
+/// A parsed expression.
+///
+/// ```
+/// use bayes_cbf::expr::{Expr, Names};
+/// use num_dual::Dual64;
+/// let names = Names::new(&["theta", "omega"], &[("g", 10.0), ("l", 2.0)]).unwrap();
+/// let e = Expr::parse("f[1]", "-g/l*sin(theta)", &names).unwrap();
+/// let d = e.eval(&[Dual64::new(0.5, 1.0), Dual64::from(0.0)]);
+/// assert!((d.re + 5.0 * 0.5f64.sin()).abs() < 1e-15);
+/// assert!((d.eps + 5.0 * 0.5f64.cos()).abs() < 1e-15); // ∂/∂θ, exact
+/// ```
+#[derive(Debug, Clone, PartialEq)]
+pub struct Expr {
+    nodes: Vec<Node>,
+    text: String,
+}
+
+impl Expr {
+    /// Parses `text` over `names`; `field` names the expression in errors
+    /// (`f[1]`, `barriers[0].h`). A syntax error gives its column; an unknown
+    /// name lists the known ones.
+    pub fn parse(field: &str, text: &str, names: &Names) -> Result<Self, InputError> {
+        let mut p = parse::Parser::new(field, text, names)?;
+        p.parse()?;
+        Ok(Self {
+            nodes: p.nodes,
+            text: text.to_string(),
+        })
+    }
+
+    /// The value at the variables `x` (in the order of [`Names::vars`]).
+    ///
+    /// `x` must hold at least [`Names::len`] values.
+    pub fn eval<D: DualNum<Primitive = f64> + Copy>(&self, x: &[D]) -> D {
+        eval_node(&self.nodes, (self.nodes.len() - 1) as u32, &|v| x[v])
+    }
+
+    /// The value when the variables are `x` followed by `y` (a Lyapunov
+    /// function of the state and its reference), without concatenating.
+    pub fn eval2<D: DualNum<Primitive = f64> + Copy>(&self, x: &[D], y: &[D]) -> D {
+        let n = x.len();
+        let var = |v: usize| if v < n { x[v] } else { y[v - n] };
+        eval_node(&self.nodes, (self.nodes.len() - 1) as u32, &var)
+    }
+
+    /// The constant value, if the expression does not depend on any
+    /// variable.
+    pub fn constant(&self) -> Option<f64> {
+        match self.nodes[..] {
+            [Node::Const(c)] => Some(c),
+            _ => None,
+        }
+    }
+
+    /// Whether variable `v` appears in the expression.
+    pub fn uses(&self, v: usize) -> bool {
+        self.nodes.iter().any(|n| *n == Node::Var(v as u32))
+    }
+
+    /// The text it was parsed from.
+    pub fn text(&self) -> &str {
+        &self.text
+    }
+}
+
+/// The first failed evaluation of an expression-defined function, kept
+/// because the evaluation traits are infallible (a non-finite value is
+/// recorded, the caller asks with `take_error`). One atomic load per check
+/// when nothing failed.
+#[derive(Debug, Default)]
+pub(crate) struct Failure {
+    failed: std::sync::atomic::AtomicBool,
+    message: std::sync::Mutex<Option<String>>,
+}
+
+impl Failure {
+    /// Keeps `message()` unless a failure is already kept.
+    pub(crate) fn record(&self, message: impl FnOnce() -> String) {
+        use std::sync::atomic::Ordering;
+        if !self.failed.load(Ordering::Relaxed) {
+            let mut slot = self.message.lock().unwrap_or_else(|e| e.into_inner());
+            if slot.is_none() {
+                *slot = Some(message());
+                self.failed.store(true, Ordering::Release);
+            }
+        }
+    }
+
+    /// The kept failure, clearing it.
+    pub(crate) fn take(&self) -> Option<String> {
+        use std::sync::atomic::Ordering;
+        if !self.failed.load(Ordering::Acquire) {
+            return None;
+        }
+        let mut slot = self.message.lock().unwrap_or_else(|e| e.into_inner());
+        self.failed.store(false, Ordering::Release);
+        slot.take()
+    }
+}
+
+/// Real parts of `x`, for messages.
+pub(crate) fn real_parts<D: DualNum<Primitive = f64> + Copy>(x: &[D]) -> Vec<f64> {
+    x.iter().map(|v| v.re()).collect()
+}
+
+mod names {
+    use super::{error, Func, Node};
+    use crate::error::InputError;
+
+    /// The names an expression may use: variables (in evaluation order),
+    /// parameters (folded into constants) and names reserved with a reason
+    /// (a control inside `f`).
+    #[derive(Debug, Clone, Default, PartialEq)]
+    pub struct Names {
+        vars: Vec<String>,
+        params: Vec<(String, f64)>,
+        reserved: Vec<(String, String)>,
+    }
+
+    /// Checks that `name` can be a variable or parameter name.
+    fn check_name(kind: &str, name: &str) -> Result<(), InputError> {
+        let mut chars = name.chars();
+        let valid = matches!(chars.next(), Some(c) if c.is_ascii_alphabetic() || c == '_')
+            && chars.all(|c| c.is_ascii_alphanumeric() || c == '_');
+        if !valid {
+            return Err(error(
+                kind,
+                None,
+                format!("'{name}' is not a name (letters, digits and '_', not starting with a digit)"),
+            ));
+        }
+        if name == "pi" || Func::from_name(name).is_some() {
+            return Err(error(
+                kind,
+                None,
+                format!("'{name}' is a built-in name of the expression language"),
+            ));
+        }
+        Ok(())
+    }
+
+    impl Names {
+        /// Variables `vars` and parameters `params` (name, value); names
+        /// must be distinct identifiers and values finite.
+        pub fn new(vars: &[&str], params: &[(&str, f64)]) -> Result<Self, InputError> {
+            let mut names = Self::default();
+            for v in vars {
+                names.add_var(v)?;
+            }
+            for (p, value) in params {
+                names.add_param(p, *value)?;
+            }
+            Ok(names)
+        }
+
+        fn taken(&self, name: &str) -> bool {
+            self.vars.iter().any(|v| v == name)
+                || self.params.iter().any(|(p, _)| p == name)
+                || self.reserved.iter().any(|(r, _)| r == name)
+        }
+
+        /// Adds a variable (its index is the current [`len`](Self::len)).
+        pub fn add_var(&mut self, name: &str) -> Result<(), InputError> {
+            check_name("state", name)?;
+            if self.taken(name) {
+                return Err(error("state", None, format!("the name '{name}' is given twice")));
+            }
+            self.vars.push(name.to_string());
+            Ok(())
+        }
+
+        /// Adds a parameter.
+        pub fn add_param(&mut self, name: &str, value: f64) -> Result<(), InputError> {
+            check_name("params", name)?;
+            if self.taken(name) {
+                return Err(error(
+                    "params",
+                    None,
+                    format!("the name '{name}' is given twice (a parameter cannot shadow a state or control)"),
+                ));
+            }
+            if !value.is_finite() {
+                return Err(InputError::invalid(&format!("params.{name}"), value, "must be finite"));
+            }
+            self.params.push((name.to_string(), value));
+            Ok(())
+        }
+
+        /// Reserves `name`: using it is an error that gives `reason`.
+        pub fn reserve(&mut self, name: &str, reason: &str) -> Result<(), InputError> {
+            check_name("control", name)?;
+            if self.taken(name) {
+                return Err(error("control", None, format!("the name '{name}' is given twice")));
+            }
+            self.reserved.push((name.to_string(), reason.to_string()));
+            Ok(())
+        }
+
+        /// The variable names, in evaluation order.
+        pub fn vars(&self) -> &[String] {
+            &self.vars
+        }
+
+        /// The number of variables.
+        pub fn len(&self) -> usize {
+            self.vars.len()
+        }
+
+        /// Whether there are no variables.
+        pub fn is_empty(&self) -> bool {
+            self.vars.is_empty()
+        }
+
+        /// The node of `name`, or why it cannot be used.
+        pub(super) fn resolve(&self, name: &str) -> Result<Node, String> {
+            if let Some(i) = self.vars.iter().position(|v| v == name) {
+                return Ok(Node::Var(i as u32));
+            }
+            if let Some((_, v)) = self.params.iter().find(|(p, _)| p == name) {
+                return Ok(Node::Const(*v));
+            }
+            if name == "pi" {
+                return Ok(Node::Const(std::f64::consts::PI));
+            }
+            if let Some((_, why)) = self.reserved.iter().find(|(r, _)| r == name) {
+                return Err(format!("'{name}' cannot be used here: {why}"));
+            }
+            let mut known: Vec<&str> = self.vars.iter().map(String::as_str).collect();
+            known.extend(self.params.iter().map(|(p, _)| p.as_str()));
+            known.push("pi");
+            Err(format!("unknown name '{name}' (known: {})", known.join(", ")))
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests;

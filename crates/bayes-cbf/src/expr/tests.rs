@@ -1,0 +1,193 @@
+use super::*;
+use crate::autodiff::{seed_dual, seed_hyper};
+use num_dual::{Dual64, HyperDual64};
+
+fn names() -> Names {
+    Names::new(&["x", "y"], &[("a", 1.5), ("b", -0.25)]).unwrap()
+}
+
+/// Each case: the text and the same function written in Rust.
+type Case = (&'static str, fn(f64, f64) -> f64);
+
+fn cases() -> Vec<Case> {
+    vec![
+        ("x + y*2 - 3/x", |x, y| x + y * 2.0 - 3.0 / x),
+        ("-x^2", |x, _| -(x * x)),
+        ("2^-1*x", |x, _| 0.5 * x),
+        ("x^y", |x, y| x.powf(y)),
+        ("x^2.5 + y^3", |x, y| x.powf(2.5) + y.powi(3)),
+        ("2^3^2", |_, _| 2f64.powi(9)),
+        ("a*sin(x)*cos(y) - tan(x*y)", |x, y| {
+            1.5 * x.sin() * y.cos() - (x * y).tan()
+        }),
+        ("asin(y/3) + acos(y/4) + atan(x)", |x, y| {
+            (y / 3.0).asin() + (y / 4.0).acos() + x.atan()
+        }),
+        ("atan2(y, x) + atan2(x, -y)", |x, y| {
+            y.atan2(x) + x.atan2(-y)
+        }),
+        ("sinh(x) * cosh(y) + tanh(x - y)", |x, y| {
+            x.sinh() * y.cosh() + (x - y).tanh()
+        }),
+        ("exp(b*x) + log(x) + sqrt(x*x + y*y)", |x, y| {
+            (-0.25 * x).exp() + x.ln() + (x * x + y * y).sqrt()
+        }),
+        ("abs(y) + min(x, y) + max(x, 2*y)", |x, y| {
+            y.abs() + x.min(y) + x.max(2.0 * y)
+        }),
+        ("pi * (x - y) / (a + b)", |x, y| {
+            std::f64::consts::PI * (x - y) / 1.25
+        }),
+        ("+x - -y", |x, y| x + y),
+        ("((x))*((((y))))", |x, y| x * y),
+        ("1.5e-1*x + 2E+1*y + .5", |x, y| 0.15 * x + 20.0 * y + 0.5),
+    ]
+}
+
+/// Points away from the kinks of abs, min and max.
+const POINTS: [(f64, f64); 4] = [(0.7, 0.3), (1.9, -1.2), (0.45, 2.1), (2.6, 0.8)];
+
+#[test]
+fn values_match_the_rust_functions() {
+    let n = names();
+    for (text, f) in cases() {
+        let e = Expr::parse("e", text, &n).unwrap();
+        for (x, y) in POINTS {
+            let got: f64 = e.eval(&[x, y]);
+            let want = f(x, y);
+            assert!(
+                (got - want).abs() <= 1e-14 * want.abs().max(1.0),
+                "{text} at ({x}, {y}): {got} vs {want}"
+            );
+        }
+    }
+}
+
+#[test]
+fn gradients_and_hessians_match_finite_differences() {
+    let n = names();
+    let h = 1e-4;
+    for (text, f) in cases() {
+        let e = Expr::parse("e", text, &n).unwrap();
+        for (x0, y0) in POINTS {
+            let p = [x0, y0];
+            // f at p + s_a h e_a + s_b h e_b
+            let at = |a: usize, sa: f64, b: usize, sb: f64| {
+                let mut w = p;
+                w[a] += sa * h;
+                w[b] += sb * h;
+                f(w[0], w[1])
+            };
+            let mut d = [Dual64::from(0.0); 2];
+            let mut hd = [HyperDual64::from(0.0); 2];
+            for j in 0..2 {
+                seed_dual(&p, j, &mut d);
+                let g = e.eval(&d).eps;
+                let fd = (at(j, 1.0, j, 0.0) - at(j, -1.0, j, 0.0)) / (2.0 * h);
+                assert!(
+                    (g - fd).abs() <= 1e-6 * fd.abs().max(1.0),
+                    "∂{j} {text} at {p:?}: {g} vs {fd}"
+                );
+                for k in 0..2 {
+                    seed_hyper(&p, j, k, &mut hd);
+                    let v = e.eval(&hd).eps1eps2;
+                    let fd = (at(j, 1.0, k, 1.0) - at(j, 1.0, k, -1.0) - at(j, -1.0, k, 1.0)
+                        + at(j, -1.0, k, -1.0))
+                        / (4.0 * h * h);
+                    assert!(
+                        (v - fd).abs() <= 1e-4 * fd.abs().max(1.0),
+                        "∂{j}∂{k} {text} at {p:?}: {v} vs {fd}"
+                    );
+                }
+            }
+        }
+    }
+}
+
+#[test]
+fn parameters_and_constant_subexpressions_fold() {
+    let n = Names::new(&["theta"], &[("m", 2.0), ("l", 0.5)]).unwrap();
+    let e = Expr::parse("g", "1/(m*l^2)", &n).unwrap();
+    assert_eq!(e.constant(), Some(2.0));
+    assert_eq!(e.nodes.len(), 1);
+    let e = Expr::parse("f", "-10/l*sin(theta) + 2*pi", &n).unwrap();
+    assert!(e.uses(0) && e.constant().is_none());
+    // -10/l and 2*pi are single constants: sin, θ, one product, one sum
+    assert_eq!(e.nodes.len(), 6, "{:?}", e.nodes);
+}
+
+#[test]
+fn errors_name_the_field_and_column() {
+    let mut n = names();
+    n.reserve("u", "f and g are functions of the state only")
+        .unwrap();
+    let cases = [
+        ("x + * y", "column 5", "expected a number"),
+        ("sin(x", "column 6", "expected ')'"),
+        ("x y", "column 3", "unexpected 'y'"),
+        ("x + z", "column 5", "unknown name 'z' (known: x, y, a, b, pi)"),
+        ("foo(x)", "column 1", "unknown function 'foo'"),
+        ("atan2(x)", "column 1", "atan2 takes two arguments, got 1"),
+        ("sin(x, y)", "column 1", "sin takes one argument, got 2"),
+        ("x + sin", "column 5", "write sin(...)"),
+        ("", "column 1", "empty expression"),
+        ("   ", "column 1", "empty expression"),
+        ("x # y", "column 3", "unexpected character '#'"),
+        ("2 * u", "column 5", "'u' cannot be used here: f and g are functions"),
+        ("1.2.3", "column 1", "malformed number '1.2.3'"),
+        ("θ + 1", "column 1", "unexpected character 'θ'"),
+        ("x + (y", "column 7", "expected ')', found the end"),
+    ];
+    for (text, col, msg) in cases {
+        let e = Expr::parse("barriers[0].h", text, &n).unwrap_err();
+        let s = e.to_string();
+        assert!(
+            s.starts_with("barriers[0].h") && s.contains(col) && s.contains(msg),
+            "{text}: {s}"
+        );
+    }
+    let deep = format!("{}x{}", "(".repeat(200), ")".repeat(200));
+    let s = Expr::parse("h", &deep, &n).unwrap_err().to_string();
+    assert!(s.contains("nested deeper"), "{s}");
+    let minus = format!("{}x", "-".repeat(500));
+    assert!(Expr::parse("h", &minus, &n).is_err());
+    for (vars, params, want) in [
+        (vec!["x", "x"], vec![], "given twice"),
+        (vec!["x"], vec![("x", 1.0)], "given twice"),
+        (vec!["2x"], vec![], "not a name"),
+        (vec!["sin"], vec![], "built-in"),
+        (vec!["x"], vec![("pi", 3.0)], "built-in"),
+        (vec!["x"], vec![("c", f64::NAN)], "params.c"),
+    ] {
+        let s = Names::new(&vars, &params).unwrap_err().to_string();
+        assert!(s.contains(want), "{vars:?} {params:?}: {s}");
+    }
+}
+
+#[test]
+fn random_text_never_panics() {
+    // a fuzz over the language's own alphabet: every outcome is a value or
+    // a typed error
+    let alphabet: Vec<char> = "xyab()+-*/^,. 0123456789esinqrtlogmaxpi#".chars().collect();
+    let n = names();
+    let mut seed = 0x9E37_79B9_7F4A_7C15u64;
+    let mut next = || {
+        seed ^= seed << 13;
+        seed ^= seed >> 7;
+        seed ^= seed << 17;
+        seed
+    };
+    let mut parsed = 0;
+    for _ in 0..20_000 {
+        let len = (next() % 24) as usize;
+        let text: String = (0..len)
+            .map(|_| alphabet[(next() % alphabet.len() as u64) as usize])
+            .collect();
+        if let Ok(e) = Expr::parse("h", &text, &n) {
+            parsed += 1;
+            let _: f64 = e.eval(&[0.3, -0.7]);
+            let _ = e.eval(&[HyperDual64::from(0.3), HyperDual64::from(-0.7)]);
+        }
+    }
+    assert!(parsed > 100, "{parsed}");
+}
