@@ -161,7 +161,7 @@ impl PyBarrier {
         };
         Self::of_spec(BarrierSpec::Expression {
             state: Some(state),
-            params: params.unwrap_or_default(),
+            params: params.unwrap_or_default().into(),
             h,
             relative_degree,
             alpha,
@@ -399,7 +399,7 @@ impl PyClf {
     ) -> PyResult<Self> {
         let spec = ClfSpec::Expression {
             v: V,
-            params: params.unwrap_or_default(),
+            params: params.unwrap_or_default().into(),
             gamma,
         };
         // parse now, so a bad expression fails here

@@ -6,7 +6,7 @@ use bayes_cbf::barrier::{
     CircleHeading, Disc, DynBarrier, ExpressionBarrier, HalfSpace, PendulumSector,
 };
 use serde::Deserialize;
-use std::collections::BTreeMap;
+use super::params::Params;
 use std::path::Path;
 use std::sync::Arc;
 
@@ -89,8 +89,8 @@ pub enum BarrierSpec {
         #[serde(default, skip_serializing_if = "Option::is_none")]
         state: Option<Vec<String>>,
         /// Named constants.
-        #[serde(default, skip_serializing_if = "BTreeMap::is_empty")]
-        params: BTreeMap<String, f64>,
+        #[serde(default, skip_serializing_if = "Params::is_empty")]
+        params: Params,
         /// `h(x)`.
         h: String,
         /// Relative degree.
@@ -213,8 +213,7 @@ impl BarrierSpec {
                         bail!("an expression barrier needs \"state\" (the state names)")
                     }
                 };
-                let params: Vec<(String, f64)> =
-                    params.iter().map(|(k, v)| (k.clone(), *v)).collect();
+                let params = params.pairs();
                 Arc::new(ExpressionBarrier::new(
                     names,
                     &params,

@@ -6,5 +6,6 @@ pub mod barrier_file;
 pub mod csv_data;
 pub mod input_map_spec;
 pub mod model_file;
+pub mod params;
 pub mod parse;
 pub mod prior_spec;

@@ -11,7 +11,7 @@ use bayes_cbf::gp::PriorMean;
 use bayes_cbf::systems::{Ackermann, DynSystem, ExpressionSystem, Pendulum};
 use serde::{Deserialize, Serialize};
 use serde_json::{json, Value};
-use std::collections::BTreeMap;
+use super::params::Params;
 use std::sync::Arc;
 
 /// A system written as expressions (interfaces.md, "Expressions").
@@ -26,8 +26,8 @@ pub struct SystemExpression {
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub control: Option<Vec<String>>,
     /// Named constants.
-    #[serde(default, skip_serializing_if = "BTreeMap::is_empty")]
-    pub params: BTreeMap<String, f64>,
+    #[serde(default, skip_serializing_if = "Params::is_empty")]
+    pub params: Params,
     /// `f(x)`, one expression per state.
     pub f: Vec<String>,
     /// `g(x)`, one row per state of one expression per control.
@@ -70,8 +70,7 @@ impl SystemExpression {
                 );
             }
         }
-        let params: Vec<(String, f64)> =
-            self.params.iter().map(|(k, v)| (k.clone(), *v)).collect();
+        let params = self.params.pairs();
         Ok(ExpressionSystem::new(
             &state, &control, &params, &self.f, &self.g, &self.angles,
         )?)
@@ -199,7 +198,7 @@ impl TryFrom<Value> for PriorSpec {
                 let mut o = v.as_object().cloned().unwrap_or_default();
                 o.remove("type");
                 let e = SystemExpression::deserialize(Value::Object(o))
-                    .map_err(|e| format!("prior_mean: {e}"))?;
+                    .map_err(|e| format!("expression: {e}"))?;
                 PriorSpec::Expression(e)
             }
             "pendulum" => PriorSpec::Pendulum { mass: 1.0, length: 1.0, gravity: 10.0 },

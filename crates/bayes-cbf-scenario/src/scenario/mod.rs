@@ -21,6 +21,7 @@ pub use run::{
 use crate::barrier_file::BarrierSpec;
 use crate::error::{Context, Result};
 use crate::input_map_spec::FeatureSpec;
+use crate::params::Params;
 use crate::prior_spec::PriorSpec;
 use crate::{bail, err};
 use serde::{Deserialize, Serialize};
@@ -287,8 +288,8 @@ pub enum ClfSpec {
         #[serde(rename = "V")]
         v: String,
         /// Named constants.
-        #[serde(default, skip_serializing_if = "std::collections::BTreeMap::is_empty")]
-        params: std::collections::BTreeMap<String, f64>,
+        #[serde(default, skip_serializing_if = "Params::is_empty")]
+        params: Params,
         /// Decay rate γ_V (default 1).
         #[serde(default = "one")]
         gamma: f64,
@@ -305,8 +306,7 @@ impl ClfSpec {
         let n = state.len();
         match self {
             ClfSpec::Expression { v, params, gamma } => {
-                let params: Vec<(String, f64)> =
-                    params.iter().map(|(k, v)| (k.clone(), *v)).collect();
+                let params = params.pairs();
                 Ok(std::sync::Arc::new(
                     bayes_cbf::barrier::ExpressionClf::new(state, &params, v, *gamma)
                         .map_err(|e| err!("clf: {e}"))?,

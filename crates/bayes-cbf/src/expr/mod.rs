@@ -18,7 +18,8 @@
 //! would need a parse per derivative order.
 //!
 //! Semantics on dual numbers: `atan2` keeps finite derivatives on the axes
-//! ([`crate::barrier::atan2`]); `min`/`max` take the derivatives of the
+//! ([`crate::barrier::atan2`]) and has zero derivatives at the origin, where
+//! the angle is undefined; `min`/`max` take the derivatives of the
 //! chosen argument; `abs` those of `±x`; `a^b` is `powi` for a constant
 //! integer `b`, `powf` for another constant, `exp(b ln a)` otherwise.
 
@@ -186,6 +187,10 @@ where
         Node::Call2(f, a, b) => {
             let (u, v) = (ev(a), ev(b));
             match f {
+                // at the origin, where the angle is undefined: atan2(±0, ±0)
+                // with zero derivatives, so that a bearing term (a CLF
+                // at its reference point) stays finite
+                Func::Atan2 if u.re() == 0.0 && v.re() == 0.0 => D::from(u.re().atan2(v.re())),
                 Func::Atan2 => crate::barrier::atan2(u, v),
                 Func::Min => {
                     if v.re() < u.re() {
