@@ -105,6 +105,36 @@ const MODEL_EDITS: &[(&str, &str, &[&str])] = &[
         "\"prior_mean\": {\"type\": \"ackermann\", \"wheelbase\": 2}",
         &["prior_mean", "n = 3"],
     ),
+    (
+        PRIOR,
+        r#""prior_mean": {"type": "expression", "state": ["a", "b"], "control": ["u"], "f": ["b", "sin(a"], "g": [["0"], ["1"]]}"#,
+        &["prior_mean", "f[1], column 6", "expected ')'"],
+    ),
+    (
+        PRIOR,
+        r#""prior_mean": {"type": "expression", "state": ["a", "b"], "control": ["u"], "f": ["b", "sin(c)"], "g": [["0"], ["1"]]}"#,
+        &["prior_mean", "f[1], column 5", "unknown name 'c' (known: a, b, pi)"],
+    ),
+    (
+        PRIOR,
+        r#""prior_mean": {"type": "expression", "state": ["a", "b"], "control": ["u"], "f": ["b"], "g": [["0"], ["1"]]}"#,
+        &["prior_mean", "wrong shape of f"],
+    ),
+    (
+        PRIOR,
+        r#""prior_mean": {"type": "expression", "control": ["u"], "f": ["b", "a"], "g": [["0"], ["1"]]}"#,
+        &["prior_mean", "needs \"state\""],
+    ),
+    (
+        PRIOR,
+        r#""prior_mean": {"type": "expression", "state": ["a", "b"], "control": ["u"], "f": ["b", "log(a - 5)"], "g": [["0"], ["1"]]}"#,
+        &["prior mean: f[1] = NaN at state [0.1, 0.2]"],
+    ),
+    (
+        PRIOR,
+        r#""prior_mean": {"type": "expression", "state": ["a", "b"], "control": ["u"], "params": {"k": "x"}, "f": ["b", "a"], "g": [["0"], ["1"]]}"#,
+        &["params.k = \"x\": expected a number"],
+    ),
     (PRIOR, "\"input_map\": [4]", &["input_map[0]"]),
     (
         PRIOR,

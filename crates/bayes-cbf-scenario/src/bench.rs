@@ -6,8 +6,8 @@
 use crate::bail;
 use crate::error::{Context, Result};
 use crate::workloads::{
-    ackermann_control, ackermann_data, ackermann_heading_sweep, pendulum_control, pendulum_data,
-    ControlWorkload,
+    ackermann_control, ackermann_control_written, ackermann_data, ackermann_heading_sweep,
+    pendulum_control, pendulum_control_written, pendulum_data, ControlWorkload, Written,
 };
 use bayes_cbf::control::ControlOutput;
 use bayes_cbf::gp::{
@@ -338,9 +338,22 @@ pub fn run_bench(quick: bool, threads: usize, stage: &dyn Fn(&str)) -> Result<Va
     for &k in ks {
         stage(&format!("k = {k}"));
         let mut w = ackermann_control(k, 0)?;
-        rows.push(control_row("ackermann", 1, k, reps(k), &mut w)?);
+        let ackermann = control_row("ackermann", 1, k, reps(k), &mut w)?;
         let mut p = pendulum_control(k, 0)?;
-        rows.push(control_row("pendulum", 2, k, reps(k), &mut p)?);
+        let pendulum = control_row("pendulum", 2, k, reps(k), &mut p)?;
+        // the same workloads with the system, prior mean and barriers
+        // written as expressions, timed right after the built-ins
+        let mut we = ackermann_control_written(k, 0, Written::Expressions)?;
+        let ackermann_expr = control_row("ackermann-expression", 1, k, reps(k), &mut we)?;
+        let mut pe = pendulum_control_written(k, 0, Written::Expressions)?;
+        let pendulum_expr = control_row("pendulum-expression", 2, k, reps(k), &mut pe)?;
+        for (builtin, mut expr) in [(ackermann, ackermann_expr), (pendulum, pendulum_expr)] {
+            let ratio = expr["p50_us"].as_f64().unwrap_or(f64::NAN)
+                / builtin["p50_us"].as_f64().unwrap_or(f64::NAN);
+            expr["over_builtin"] = json!(round(ratio));
+            rows.push(builtin);
+            rows.push(expr);
+        }
         let e = p.extra.clone();
         // one observation added to a model of size k (a fresh copy each time, not timed)
         let adds = if k >= 3000 {

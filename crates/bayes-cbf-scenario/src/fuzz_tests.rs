@@ -13,6 +13,14 @@ const MODEL: &str = r#"{"state_dim": 2, "control_dim": 1, "kernel": {"type": "rb
  "A": [[1.0, 0.1], [0.1, 0.8]], "B": [[1.0, 0.2], [0.2, 0.5]], "noise_sigma": 0.1, "prior_mean": "zero",
  "data": {"x": [[0.1, 0.2], [0.3, 0.1]], "u": [[0.5], [0.1]], "xdot": [[0.2, -0.4], [0.1, 0.0]]}}"#;
 const BARRIER: &str = r#"{"type": "circle_heading", "center": [-1.1667, -1.5], "radius": 0.7906, "q1": 0.7, "q2": 0.3, "relative_degree": 1, "alpha": 5.0}"#;
+const EXPR_BARRIER: &str = r#"{"type": "expression", "state": ["x", "y", "theta"], "params": {"r": 0.5, "c": 1.0},
+ "h": "(x - c)^2 + (y + 1)^2 - r^2 + 0.1*cos(theta - atan2(y + 1, x - c)) - sqrt(abs(x*y)) / max(exp(y), 1)", "relative_degree": 2, "k_alpha": [1.0, 3.0]}"#;
+const EXPR_MODEL: &str = r#"{"state_dim": 2, "control_dim": 1, "kernel": {"type": "rbf", "lengthscales": [0.7, 1.3], "variance": 1.5},
+ "A": [[1.0, 0.1], [0.1, 0.8]], "B": [[1.0, 0.2], [0.2, 0.5]], "noise_sigma": 0.1,
+ "prior_mean": {"type": "expression", "state": ["theta", "omega"], "control": ["u"], "params": {"l": 2.0},
+                "f": ["omega", "-10/l*sin(theta)"], "g": [["0"], ["1/l^2"]], "angles": ["theta"]},
+ "data": {"x": [[0.1, 0.2], [0.3, 0.1]], "u": [[0.5], [0.1]], "xdot": [[0.2, -0.4], [0.1, 0.0]]}}"#;
+const EXPR_SCENARIO: &str = include_str!("../tests/data/pendulum-safe-expression.toml");
 const CSV: &str = "x1,x2,u1,xdot1,xdot2\n0.1,0.2,0.5,0.2,-0.4\n0.3,0.1,0.1,0.1,0.0\n";
 
 /// A mutation of `base`: byte-level edits at random positions.
@@ -53,7 +61,18 @@ fn model(text: &str) -> crate::error::Result<()> {
 }
 
 fn barrier(text: &str) -> crate::error::Result<()> {
-    BarrierSpec::parse(text, "b.json")?.build()?;
+    let b = BarrierSpec::parse(text, "b.json")?.build()?;
+    // evaluate what parsed: values, gradients and Hessians at a few points
+    let n = b.state_dim();
+    let (mut g, mut h) = (vec![0.0; n], vec![0.0; n * n]);
+    let mut d = vec![num_dual::Dual64::from(0.0); n];
+    let mut hd = vec![num_dual::HyperDual64::from(0.0); n];
+    for x in [vec![0.0; n], vec![1.0; n], vec![-2.5; n]] {
+        b.value(&x);
+        b.gradient(&x, &mut g, &mut d);
+        b.hessian(&x, &mut g, &mut h, &mut hd);
+    }
+    let _ = b.take_error();
     Ok(())
 }
 
@@ -79,6 +98,21 @@ proptest! {
     #[test]
     fn barrier_reader_never_panics(t in mutated(BARRIER)) {
         prop_assert!(one_line(barrier(&t)));
+    }
+
+    #[test]
+    fn expression_barrier_reader_never_panics(t in mutated(EXPR_BARRIER)) {
+        prop_assert!(one_line(barrier(&t)));
+    }
+
+    #[test]
+    fn expression_model_reader_never_panics(t in mutated(EXPR_MODEL)) {
+        prop_assert!(one_line(model(&t)));
+    }
+
+    #[test]
+    fn expression_scenario_reader_never_panics(t in mutated(EXPR_SCENARIO)) {
+        prop_assert!(one_line(scenario(&t)));
     }
 
     #[test]

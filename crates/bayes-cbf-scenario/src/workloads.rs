@@ -97,10 +97,23 @@ pub fn pendulum_data(k: usize, seed: u64) -> Result<Dataset> {
     )?)
 }
 
+/// How a workload's scenario is written.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Written {
+    /// As built in (Rust systems and barriers).
+    BuiltIn,
+    /// System, prior mean and barriers in the expression language
+    /// ([`scenario::as_expressions`]).
+    Expressions,
+}
+
 /// A built-in scenario's model (with `k` observations of `data`, the rest
 /// kept for online updates), controller and start state.
-fn from_builtin(name: &str, k: usize, data: Dataset) -> Result<ControlWorkload> {
-    let (sc, _) = scenario::load(name, &[])?;
+fn from_builtin(name: &str, k: usize, data: Dataset, written: Written) -> Result<ControlWorkload> {
+    let (mut sc, _) = scenario::load(name, &[])?;
+    if written == Written::Expressions {
+        sc = scenario::as_expressions(&sc)?;
+    }
     let built = scenario::build(&sc)?;
     let mut model = built.model;
     let train = data.slice(0..k);
@@ -121,10 +134,16 @@ fn from_builtin(name: &str, k: usize, data: Dataset) -> Result<ControlWorkload> 
 /// `k` observations of the true vehicle (`L = 12`) at its start state,
 /// reference control `(0.5, 0)` and a CLF reference just ahead.
 pub fn ackermann_control(k: usize, seed: u64) -> Result<ControlWorkload> {
+    ackermann_control_written(k, seed, Written::BuiltIn)
+}
+
+/// [`ackermann_control`] with the scenario written as `written`.
+pub fn ackermann_control_written(k: usize, seed: u64, written: Written) -> Result<ControlWorkload> {
     let mut w = from_builtin(
         "ackermann-bayes-cbf",
         k,
         ackermann_data(k + 200, 12.0, seed)?,
+        written,
     )?;
     w.u_ref = vec![0.5, 0.0];
     w.reference = Some((vec![-2.9, -0.97, PI / 4.0], vec![0.3, 0.1, 0.0]));
@@ -136,5 +155,10 @@ pub fn ackermann_control(k: usize, seed: u64) -> Result<ControlWorkload> {
 /// `k_α = [1, 3]`, `p = 0.99`, `|u| ≤ 20`) with `k` observations, at its
 /// start `θ = 75°`, `ω = −0.01` (Sec. VII-A).
 pub fn pendulum_control(k: usize, seed: u64) -> Result<ControlWorkload> {
-    from_builtin("pendulum-safe", k, pendulum_data(k + 200, seed)?)
+    pendulum_control_written(k, seed, Written::BuiltIn)
+}
+
+/// [`pendulum_control`] with the scenario written as `written`.
+pub fn pendulum_control_written(k: usize, seed: u64, written: Written) -> Result<ControlWorkload> {
+    from_builtin("pendulum-safe", k, pendulum_data(k + 200, seed)?, written)
 }

@@ -225,6 +225,100 @@ impl BarrierSpec {
         })
     }
 
+    /// The same barrier written as an expression over the state names
+    /// `state` (the built-ins restated in the expression language; an
+    /// expression is returned as it is).
+    pub fn to_expression(&self, state: &[String]) -> Result<Self> {
+        let name = |i: usize| -> Result<&str> {
+            state.get(i).map(String::as_str).ok_or_else(|| {
+                crate::err!("state index {i} out of range ({} state names)", state.len())
+            })
+        };
+        let p = |v: &[(&str, f64)]| Params(v.iter().map(|(k, x)| (k.to_string(), *x)).collect());
+        let (params, h, relative_degree, alpha, k_alpha) = match self {
+            BarrierSpec::PendulumSector {
+                theta_c,
+                delta,
+                relative_degree,
+                alpha,
+                k_alpha,
+            } => (
+                p(&[("theta_c", *theta_c), ("delta", *delta)]),
+                format!("cos(delta) - cos({} - theta_c)", name(0)?),
+                relative_degree,
+                alpha,
+                k_alpha,
+            ),
+            BarrierSpec::CircleHeading {
+                center,
+                radius,
+                q1,
+                q2,
+                relative_degree,
+                alpha,
+                k_alpha,
+            } => {
+                let (x, y, th) = (name(0)?, name(1)?, name(2)?);
+                (
+                    p(&[("cx", center[0]), ("cy", center[1]), ("r", *radius), ("q1", *q1), ("q2", *q2)]),
+                    format!("q1*(({x} - cx)^2 + ({y} - cy)^2 - r^2) + q2*cos({th} - atan2({y} - cy, {x} - cx))"),
+                    relative_degree,
+                    alpha,
+                    k_alpha,
+                )
+            }
+            BarrierSpec::Disc {
+                indices,
+                center,
+                radius,
+                relative_degree,
+                alpha,
+                k_alpha,
+                ..
+            } => (
+                p(&[("cx", center[0]), ("cy", center[1]), ("r", *radius)]),
+                format!(
+                    "({} - cx)^2 + ({} - cy)^2 - r^2",
+                    name(indices[0])?,
+                    name(indices[1])?
+                ),
+                relative_degree,
+                alpha,
+                k_alpha,
+            ),
+            BarrierSpec::HalfSpace {
+                normal,
+                offset,
+                relative_degree,
+                alpha,
+                k_alpha,
+            } => {
+                let mut terms = Vec::new();
+                let mut params = vec![("offset".to_string(), *offset)];
+                for (i, w) in normal.iter().enumerate() {
+                    terms.push(format!("n{i}*{}", name(i)?));
+                    params.push((format!("n{i}"), *w));
+                }
+                (
+                    Params(params.into_iter().collect()),
+                    format!("{} - offset", terms.join(" + ")),
+                    relative_degree,
+                    alpha,
+                    k_alpha,
+                )
+            }
+            BarrierSpec::Expression { .. } => return Ok(self.clone()),
+        };
+        Ok(BarrierSpec::Expression {
+            state: None,
+            params,
+            h,
+            relative_degree: *relative_degree,
+            alpha: *alpha,
+            k_alpha: k_alpha.clone(),
+        })
+    }
+
     /// Parses a barrier from JSON text; `name` is used in errors.
     pub fn parse(text: &str, name: &str) -> Result<Self> {
         if text.trim().is_empty() {

@@ -275,6 +275,45 @@ impl PriorSpec {
         })
     }
 
+    /// The same system written as an expression (the built-ins restated in
+    /// the expression language; an expression is returned as it is, the
+    /// zero mean as `None`).
+    pub fn to_expression(&self) -> Option<SystemExpression> {
+        let (state, control) = self.names()?;
+        let params = |v: &[(&str, f64)]| {
+            Params(v.iter().map(|(k, x)| (k.to_string(), *x)).collect())
+        };
+        let texts = |v: &[&str]| strings(v);
+        Some(match self {
+            PriorSpec::Zero => return None,
+            PriorSpec::Pendulum {
+                mass,
+                length,
+                gravity,
+            } => SystemExpression {
+                state: Some(state),
+                control: Some(control),
+                params: params(&[("m", *mass), ("l", *length), ("g", *gravity)]),
+                f: texts(&["omega", "-g/l*sin(theta)"]),
+                g: vec![texts(&["0"]), texts(&["1/(m*l)"])],
+                angles: texts(&["theta"]),
+            },
+            PriorSpec::Ackermann { wheelbase } => SystemExpression {
+                state: Some(state),
+                control: Some(control),
+                params: params(&[("L", *wheelbase)]),
+                f: texts(&["0", "0", "0"]),
+                g: vec![
+                    texts(&["cos(theta)", "0"]),
+                    texts(&["sin(theta)", "0"]),
+                    texts(&["0", "1/L"]),
+                ],
+                angles: texts(&["theta"]),
+            },
+            PriorSpec::Expression(e) => e.clone(),
+        })
+    }
+
     /// State and control names: an expression's own, and for the built-in
     /// systems `theta, omega; u` (pendulum) and `x, y, theta; v, z`
     /// (Ackermann). `None` for the zero mean or an expression without

@@ -418,6 +418,34 @@ impl Default for OutputSpec {
     }
 }
 
+/// The scenario with its system, prior mean and barriers restated in the
+/// expression language ([`PriorSpec::to_expression`],
+/// [`BarrierSpec::to_expression`]); the CLF, controller and everything
+/// else unchanged. The run is the same up to rounding (tests/expressions.rs).
+pub fn as_expressions(s: &Scenario) -> Result<Scenario> {
+    let mut out = s.clone();
+    let names = s
+        .system
+        .names()
+        .ok_or_else(|| err!("system: a true system is required"))?;
+    if let Some(e) = s.system.to_expression() {
+        out.system = PriorSpec::Expression(e);
+    }
+    if let Some(mut e) = s.gp.prior_mean.to_expression() {
+        // inside a scenario the prior takes the system's names
+        e.state = None;
+        e.control = None;
+        out.gp.prior_mean = PriorSpec::Expression(e);
+    }
+    out.barriers = s
+        .barriers
+        .iter()
+        .enumerate()
+        .map(|(i, b)| b.to_expression(&names.0).with_context(|| format!("barriers[{i}]")))
+        .collect::<Result<_>>()?;
+    Ok(out)
+}
+
 /// Validates a scenario completely (everything a run would check before
 /// starting).
 pub fn validate(s: &Scenario) -> Result<()> {

@@ -228,9 +228,6 @@ impl MomentWorkspace {
             model.posterior_into(x, &mut self.post_ws, &mut self.post)?;
             self.level = 1;
         }
-        if let Some(msg) = model.prior().take_error() {
-            return Err(InputError::Evaluation(msg));
-        }
         self.x.copy_from_slice(x);
         self.a_mat.copy_from(model.row_cov());
         Ok(())

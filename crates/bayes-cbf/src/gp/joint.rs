@@ -148,6 +148,7 @@ impl<K: Kernel> Mvgp<K> {
         self.prior().eval(x, &mut ws.m0);
         self.prior()
             .jacobian(x, &mut ws.jac0, &mut ws.sx, &mut ws.so);
+        self.prior().check()?;
         let rows = n * p;
         for c in 0..p {
             for i in 0..n {

@@ -401,6 +401,10 @@ impl<K: Kernel> Mvgp<K> {
                 &xdot[j * n..(j + 1) * n],
             );
         }
+        if let Err(e) = self.prior.check() {
+            self.clear();
+            return Err(e.into());
+        }
         self.refactor()?;
         Ok(())
     }
@@ -445,6 +449,10 @@ impl<K: Kernel> Mvgp<K> {
         let k = self.len();
         check_point(self.n, self.m, x, u, xdot, k)?;
         self.push_point(x, u, xdot);
+        if let Err(e) = self.prior.check() {
+            self.pop_last_point();
+            return Err(e.into());
+        }
         let n = self.n;
         let mut gcol = std::mem::take(&mut self.scratch);
         gcol.resize((2 * (k + 1)).max(gcol.len()), 0.0);
@@ -560,6 +568,7 @@ impl<K: Kernel> Mvgp<K> {
         let (n, p) = (self.n, self.m + 1);
         let mut out = DMatrix::zeros(n, p);
         self.prior.eval(x, &mut ws.m0);
+        self.prior.check()?;
         for c in 0..p {
             for i in 0..n {
                 out[(i, c)] = ws.m0[i + n * c];
@@ -600,6 +609,7 @@ impl<K: Kernel> Mvgp<K> {
             out.B = DMatrix::zeros(p, p);
         }
         self.prior.eval(x, &mut ws.m0);
+        self.prior.check()?;
         for c in 0..p {
             for i in 0..n {
                 out.mean[(i, c)] = ws.m0[i + n * c];

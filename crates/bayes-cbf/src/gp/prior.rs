@@ -79,6 +79,14 @@ impl PriorMean {
         }
     }
 
+    /// [`take_error`](Self::take_error) as an [`InputError::Evaluation`].
+    pub(crate) fn check(&self) -> Result<(), crate::error::InputError> {
+        match self.take_error() {
+            None => Ok(()),
+            Some(m) => Err(crate::error::InputError::Evaluation(m)),
+        }
+    }
+
     /// Dimensions `(n, m)` of a system prior, `None` for zero.
     pub fn dims(&self) -> Option<(usize, usize)> {
         match self {
