@@ -213,7 +213,7 @@ fn map_panel(out: &RunOutput, upto: usize, title: &str) -> Panel {
         });
     }
     if let Some(g) = &out.scenario.goal {
-        let s = &out.scenario.start;
+        let s = &out.built.start;
         panel.layers.push(Layer::Line {
             name: Some("planned path".into()),
             xs: vec![s[0], g[0]],

@@ -121,7 +121,7 @@ fn from_builtin(name: &str, k: usize, data: Dataset, written: Written) -> Result
     Ok(ControlWorkload {
         model,
         controller: built.controller,
-        x: sc.start.clone(),
+        x: built.start.clone(),
         u_ref: vec![0.0; built.truth.control_dim()],
         reference: None,
         extra: data.slice(k..data.len()),

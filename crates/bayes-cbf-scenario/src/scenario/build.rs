@@ -14,18 +14,21 @@ use bayes_cbf::control::{
 };
 use bayes_cbf::gp::{FitSettings, LipschitzSettings, Mvgp, MvgpHyper, PriorMean, Rbf};
 use bayes_cbf::sim::{
-    ConstantReference, DataPolicy, EpsilonGreedy, LoopSettings, Reference, SimSettings,
+    ConstantReference, DataPolicy, EpsilonGreedy, LinearFeedback, LoopSettings, Reference,
+    SimSettings,
     StraightLinePlanner,
 };
 use bayes_cbf::systems::DynSystem;
 use nalgebra::DMatrix;
-use rand::SeedableRng;
+use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use rand_distr::{Distribution, StandardNormal};
 use std::sync::Arc;
 
 /// Everything a run needs.
 pub struct Built {
+    /// The initial state (`start`, spread by the seed if `start_spread`).
+    pub start: Vec<f64>,
     /// The true system.
     pub truth: Arc<dyn DynSystem>,
     /// The initial model.
@@ -101,6 +104,19 @@ pub fn build(s: &Scenario) -> Result<Built> {
     let (truth, names) = truth(&s.system)?;
     let (n, m) = (truth.state_dim(), truth.control_dim());
     vector("start", &s.start, n, "the state dimension")?;
+    let mut start = s.start.clone();
+    if let Some(spread) = &s.start_spread {
+        vector("start_spread", spread, n, "the state dimension")?;
+        if let Some(i) = spread.iter().position(|v| *v < 0.0) {
+            bail!("start_spread[{i}] = {}: must be ≥ 0", spread[i]);
+        }
+        let mut rng = ChaCha8Rng::seed_from_u64(s.seed ^ 0x57A7_5EED);
+        for (x, w) in start.iter_mut().zip(spread) {
+            if *w > 0.0 {
+                *x += rng.random_range(-*w..=*w);
+            }
+        }
+    }
     if let Some(g) = &s.goal {
         vector("goal", g, n, "the state dimension")?;
     }
@@ -225,7 +241,7 @@ pub fn build(s: &Scenario) -> Result<Built> {
                 .clone()
                 .context("reference: the planner needs a goal")?;
             Box::new(
-                StraightLinePlanner::new(s.start.clone(), goal, *duration)
+                StraightLinePlanner::new(start.clone(), goal, *duration)
                     .map_err(|e| crate::err!("reference: {e}"))?,
             )
         }
@@ -240,6 +256,19 @@ pub fn build(s: &Scenario) -> Result<Built> {
         ReferenceSpec::Constant { u } => {
             vector("reference.u", u, m, "the control dimension")?;
             Box::new(ConstantReference(u.clone()))
+        }
+        ReferenceSpec::Feedback { u0, gain, target } => {
+            vector("reference.u0", u0, m, "the control dimension")?;
+            vector("reference.target", target, n, "the state dimension")?;
+            Box::new(
+                LinearFeedback::new(
+                    u0.clone(),
+                    gain,
+                    target.clone(),
+                    truth.angle_indices().to_vec(),
+                )
+                .map_err(|e| crate::err!("reference: {e}"))?,
+            )
         }
     };
     // loop
@@ -279,6 +308,7 @@ pub fn build(s: &Scenario) -> Result<Built> {
         .validate()
         .map_err(|e| crate::err!("learning: {e}"))?;
     Ok(Built {
+        start,
         truth,
         model,
         barriers,

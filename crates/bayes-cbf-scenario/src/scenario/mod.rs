@@ -50,6 +50,14 @@ pub const BUILTIN: &[(&str, &str)] = &[
         "ackermann-self-triggered",
         include_str!("builtin/ackermann-self-triggered.toml"),
     ),
+    (
+        "double-integrator",
+        include_str!("builtin/double-integrator.toml"),
+    ),
+    (
+        "unicycle-obstacles",
+        include_str!("builtin/unicycle-obstacles.toml"),
+    ),
 ];
 
 /// A closed-loop scenario.
@@ -70,6 +78,11 @@ pub struct Scenario {
     pub steps: usize,
     /// Initial state.
     pub start: Vec<f64>,
+    /// Half-widths of a uniform spread of the initial state, drawn from
+    /// the seed: the run starts at `start + U[−spread, spread]` (seed
+    /// sweeps then vary the start, not only the noise).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub start_spread: Option<Vec<f64>>,
     /// Goal state (vehicle scenarios).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub goal: Option<Vec<f64>>,
@@ -377,6 +390,16 @@ pub enum ReferenceSpec {
     Constant {
         /// The control.
         u: Vec<f64>,
+    },
+    /// Linear state feedback `û = u0 + K (target − x)` (the system's angles
+    /// differenced on the circle): a nominal PD-type controller.
+    Feedback {
+        /// Feed-forward control `u0`.
+        u0: Vec<f64>,
+        /// Gain `K`, one row per control of one entry per state.
+        gain: Vec<Vec<f64>>,
+        /// Target state.
+        target: Vec<f64>,
     },
 }
 

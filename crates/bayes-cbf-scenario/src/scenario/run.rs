@@ -180,7 +180,7 @@ pub fn run_scenario(
         &mut built.controller,
         &built.barriers,
         built.reference.as_mut(),
-        &scenario.start,
+        &built.start,
         &built.loop_settings,
     )
     .map(|l| l.with_monitors(&monitors))

@@ -138,3 +138,113 @@ impl Reference for StraightLinePlanner {
         out.u_ref.fill(0.0);
     }
 }
+
+/// Linear state feedback towards a target: `û = u₀ + K (x* − x)`, with `K`
+/// of size `m × n` (row-major) and the components listed in `angles`
+/// differenced on the circle (wrapped to `[−π, π)`). The nominal
+/// controller of a robot without a CLF (a PD law on positions and
+/// velocities); the safety filter keeps it safe. No CLF reference.
+#[derive(Debug, Clone, PartialEq)]
+pub struct LinearFeedback {
+    u0: Vec<f64>,
+    gain: Vec<f64>,
+    target: Vec<f64>,
+    angles: Vec<usize>,
+}
+
+impl LinearFeedback {
+    /// Validated constructor: `u0` of length `m`, `gain` of `m` rows of
+    /// length `n = target.len()`, all finite; `angles` below `n`.
+    pub fn new(
+        u0: Vec<f64>,
+        gain: &[Vec<f64>],
+        target: Vec<f64>,
+        angles: Vec<usize>,
+    ) -> Result<Self, InputError> {
+        let (m, n) = (u0.len(), target.len());
+        crate::error::check_finite("feedback.u0", &u0)?;
+        crate::error::check_finite("feedback.target", &target)?;
+        if gain.len() != m {
+            return Err(InputError::shape(
+                "feedback.gain",
+                format!("{m} rows (one per control)"),
+                format!("{} rows", gain.len()),
+            ));
+        }
+        let mut flat = Vec::with_capacity(m * n);
+        for (j, row) in gain.iter().enumerate() {
+            let field = format!("feedback.gain[{j}]");
+            if row.len() != n {
+                return Err(InputError::shape(&field, format!("{n} entries (one per state)"), row.len()));
+            }
+            crate::error::check_finite(&field, row)?;
+            flat.extend_from_slice(row);
+        }
+        if let Some(&i) = angles.iter().find(|&&i| i >= n) {
+            return Err(InputError::invalid("feedback.angles", i as f64, "must index a state"));
+        }
+        Ok(Self {
+            u0,
+            gain: flat,
+            target,
+            angles,
+        })
+    }
+}
+
+impl Reference for LinearFeedback {
+    fn at(&mut self, _k: usize, _t: f64, x: &[f64], _rng: &mut ChaCha8Rng, out: &mut ReferenceOut) {
+        let n = self.target.len();
+        for (j, u) in out.u_ref.iter_mut().enumerate() {
+            let mut v = self.u0[j];
+            for i in 0..n {
+                let mut e = self.target[i] - x[i];
+                if self.angles.contains(&i) {
+                    e = crate::systems::wrap_angle(e);
+                }
+                v += self.gain[j * n + i] * e;
+            }
+            *u = v;
+        }
+        out.xd.copy_from_slice(x);
+        out.xd_dot.fill(0.0);
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use rand::SeedableRng;
+
+    #[test]
+    fn linear_feedback_is_u0_plus_k_times_the_error() {
+        let mut r = LinearFeedback::new(
+            vec![1.0, -2.0],
+            &[vec![2.0, 0.5, 0.0], vec![0.0, 1.0, 3.0]],
+            vec![1.0, 0.0, 3.0],
+            vec![2],
+        )
+        .unwrap();
+        let mut out = ReferenceOut {
+            u_ref: vec![0.0; 2],
+            xd: vec![0.0; 3],
+            xd_dot: vec![9.0; 3],
+        };
+        let mut rng = ChaCha8Rng::seed_from_u64(0);
+        let x = [0.5, 0.2, -3.0];
+        r.at(0, 0.0, &x, &mut rng, &mut out);
+        // the angle error 3 − (−3) = 6 wraps to 6 − 2π
+        let e2 = 6.0 - 2.0 * std::f64::consts::PI;
+        assert!((out.u_ref[0] - (1.0 + 2.0 * 0.5 + 0.5 * -0.2)).abs() < 1e-15);
+        assert!((out.u_ref[1] - (-2.0 - 0.2 + 3.0 * e2)).abs() < 1e-12);
+        assert_eq!((out.xd.as_slice(), out.xd_dot.as_slice()), (&x[..], &[0.0; 3][..]));
+        for (gain, target, want) in [
+            (vec![vec![1.0]], vec![0.0, 0.0], "feedback.gain[0]"),
+            (vec![vec![1.0, f64::NAN]], vec![0.0, 0.0], "feedback.gain[0][1]"),
+            (vec![], vec![0.0, 0.0], "feedback.gain"),
+        ] {
+            let e = LinearFeedback::new(vec![0.0], &gain, target, vec![]).unwrap_err();
+            assert!(e.to_string().contains(want), "{e}");
+        }
+    }
+}
