@@ -4,6 +4,7 @@ use crate::plot::{render_gif, render_png, Figure, Layer, LegendPos, Panel, Point
 use crate::Result;
 use bayes_cbf::barrier::{cbc_moments, quantile_factor, ConditionMoments, MomentWorkspace};
 use bayes_cbf::sim::StepStatus;
+use bayes_cbf_scenario::prior_spec::PriorSpec;
 use bayes_cbf_scenario::scenario::RunOutput;
 use std::path::{Path, PathBuf};
 
@@ -14,20 +15,100 @@ pub fn write_figures(out: &RunOutput, dir: &Path) -> Result<Vec<PathBuf>> {
     if !out.scenario.outputs.plots {
         return Ok(files);
     }
-    // figures by the system's shape: the pendulum (n = 2, m = 1) and the
-    // Ackermann vehicle (n = 3, m = 2); other systems get summary and CSV only
+    // the paper's robots get the paper's figures; a system written as
+    // expressions gets its named states, controls and barriers over time
+    // (and the map of a planar robot: x, y, heading and two controls)
+    let expression = matches!(out.scenario.system, PriorSpec::Expression(_));
     match (out.built.truth.state_dim(), out.built.truth.control_dim()) {
-        (2, 1) => files.push(pendulum(out, dir)?),
+        (2, 1) if !expression => files.push(pendulum(out, dir)?),
         (3, 2) => {
             files.push(vehicle_map(out, dir)?);
-            files.push(vehicle_series(out, dir)?);
+            files.push(if expression {
+                generic_series(out, dir)?
+            } else {
+                vehicle_series(out, dir)?
+            });
             if out.scenario.outputs.animation {
                 files.push(animation(out, dir)?);
             }
         }
+        _ if expression => files.push(generic_series(out, dir)?),
         _ => {}
     }
     Ok(files)
+}
+
+/// States, controls (applied and reference, infeasible steps marked),
+/// barrier values and the model's uncertainty over time, labelled with the
+/// system's own names.
+fn generic_series(out: &RunOutput, dir: &Path) -> Result<PathBuf> {
+    let t = times(out);
+    let rec = &out.result.records;
+    let (states, controls) = out.scenario.system.names().unwrap_or_default();
+    let name = |v: &[String], i: usize, p: &str| v.get(i).cloned().unwrap_or(format!("{p}{i}"));
+    let mut xs = Panel::new("state", "t (s)", "x");
+    for i in 0..out.built.truth.state_dim() {
+        let ys = rec.iter().map(|r| r.x[i]).collect();
+        xs.layers.push(Layer::line(&name(&states, i, "x"), t.clone(), ys, i));
+    }
+    let mut us = Panel::new("control", "t (s)", "u");
+    for j in 0..out.built.truth.control_dim() {
+        let c = name(&controls, j, "u");
+        us.layers.push(Layer::Scatter {
+            name: Some(format!("{c} reference")),
+            xs: t.clone(),
+            ys: rec.iter().map(|r| r.u_ref[j]).collect(),
+            color: 7,
+            size: 1,
+            shape: PointShape::Circle,
+        });
+        us.layers.push(Layer::line(&c, t.clone(), rec.iter().map(|r| r.u[j]).collect(), j));
+    }
+    let inf: Vec<(f64, f64)> = rec
+        .iter()
+        .filter(|r| r.status == StepStatus::Infeasible)
+        .map(|r| (r.t, r.u[0]))
+        .collect();
+    if !inf.is_empty() {
+        us.layers.push(Layer::Scatter {
+            name: Some("infeasible (fallback)".into()),
+            xs: inf.iter().map(|p| p.0).collect(),
+            ys: inf.iter().map(|p| p.1).collect(),
+            color: 3,
+            size: 3,
+            shape: PointShape::Cross,
+        });
+    }
+    let mut hs = Panel::new("barriers (h ≥ 0 is safe)", "t (s)", "h");
+    hs.layers.push(Layer::HLine {
+        y: 0.0,
+        color: 3,
+        dashed: true,
+        name: Some("h = 0".into()),
+    });
+    for i in 0..out.built.barriers.len() {
+        let ys = rec.iter().map(|r| r.h_fine_min[i]).collect();
+        hs.layers.push(Layer::line(&format!("h{i}"), t.clone(), ys, i));
+    }
+    let mut trace = Panel::new("model uncertainty", "t (s)", "tr(B_k(x,x) ⊗ A)");
+    trace.log_y = true;
+    trace.layers.push(Layer::line(
+        "tr(B_k ⊗ A)",
+        t.clone(),
+        rec.iter().map(|r| r.trace_cov).collect(),
+        1,
+    ));
+    let fig = Figure {
+        width: 1000,
+        height: 1100,
+        rows: 4,
+        cols: 1,
+        title: Some(format!("{} (seed {})", out.scenario.name, out.scenario.seed)),
+        panels: vec![xs, us, hs, trace],
+    };
+    let path = dir.join("timeseries.png");
+    render_png(&fig, &path)?;
+    Ok(path)
 }
 
 fn times(out: &RunOutput) -> Vec<f64> {
