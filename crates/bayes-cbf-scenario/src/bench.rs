@@ -71,6 +71,42 @@ fn control_row(
     )
 }
 
+/// One control step of `builtin` and of `expr` (the same workload written
+/// as expressions), alternating, `reps` each: the expression step's
+/// percentiles and its median over the built-in's.
+fn expression_row(
+    system: &str,
+    rd: usize,
+    k: usize,
+    reps: usize,
+    builtin: &mut ControlWorkload,
+    expr: &mut ControlWorkload,
+) -> Result<Value> {
+    let m = builtin.model.control_dim();
+    let mut out = ControlOutput::new(m, 2);
+    let (mut tb, mut te) = (Vec::with_capacity(reps), Vec::with_capacity(reps));
+    let mut x = builtin.x.clone();
+    for i in 0..2 * reps {
+        let w = if i % 2 == 0 { &mut *builtin } else { &mut *expr };
+        x[0] = w.x[0] + 1e-4 * ((i / 2) % 50) as f64;
+        let r = w.reference.clone();
+        let reference = r.as_ref().map(|(a, b)| (a.as_slice(), b.as_slice()));
+        let s = Instant::now();
+        w.controller
+            .step(&w.model, &x, &w.u_ref, reference, &mut out)
+            .with_context(|| format!("control step ({system}, k = {k})"))?;
+        let us = s.elapsed().as_secs_f64() * 1e6;
+        if i % 2 == 0 { tb.push(us) } else { te.push(us) }
+    }
+    let (b50, e50, e99) = (
+        percentile(&mut tb, 0.5),
+        percentile(&mut te, 0.5),
+        percentile(&mut te, 0.99),
+    );
+    Ok(json!({"case": "control_step", "system": format!("{system}-expression"), "relative_degree": rd, "k": k,
+              "p50_us": round(e50), "p99_us": round(e99), "builtin_p50_us": round(b50), "over_builtin": round(e50 / b50)}))
+}
+
 fn floor_row(model: &Mvgp, k: usize, reps: usize) -> Value {
     let mut rhs = nalgebra::DMatrix::<f64>::zeros(k, 1);
     let (p50, _) = time_us(reps, |i| {
@@ -338,22 +374,16 @@ pub fn run_bench(quick: bool, threads: usize, stage: &dyn Fn(&str)) -> Result<Va
     for &k in ks {
         stage(&format!("k = {k}"));
         let mut w = ackermann_control(k, 0)?;
-        let ackermann = control_row("ackermann", 1, k, reps(k), &mut w)?;
+        rows.push(control_row("ackermann", 1, k, reps(k), &mut w)?);
         let mut p = pendulum_control(k, 0)?;
-        let pendulum = control_row("pendulum", 2, k, reps(k), &mut p)?;
+        rows.push(control_row("pendulum", 2, k, reps(k), &mut p)?);
         // the same workloads with the system, prior mean and barriers
-        // written as expressions, timed right after the built-ins
+        // written as expressions, interleaved step by step with the
+        // built-ins so that both see the same machine
         let mut we = ackermann_control_written(k, 0, Written::Expressions)?;
-        let ackermann_expr = control_row("ackermann-expression", 1, k, reps(k), &mut we)?;
+        rows.push(expression_row("ackermann", 1, k, reps(k), &mut w, &mut we)?);
         let mut pe = pendulum_control_written(k, 0, Written::Expressions)?;
-        let pendulum_expr = control_row("pendulum-expression", 2, k, reps(k), &mut pe)?;
-        for (builtin, mut expr) in [(ackermann, ackermann_expr), (pendulum, pendulum_expr)] {
-            let ratio = expr["p50_us"].as_f64().unwrap_or(f64::NAN)
-                / builtin["p50_us"].as_f64().unwrap_or(f64::NAN);
-            expr["over_builtin"] = json!(round(ratio));
-            rows.push(builtin);
-            rows.push(expr);
-        }
+        rows.push(expression_row("pendulum", 2, k, reps(k), &mut p, &mut pe)?);
         let e = p.extra.clone();
         // one observation added to a model of size k (a fresh copy each time, not timed)
         let adds = if k >= 3000 {
