@@ -58,6 +58,8 @@ pub const BUILTIN: &[(&str, &str)] = &[
         "unicycle-obstacles",
         include_str!("builtin/unicycle-obstacles.toml"),
     ),
+    ("cartpole-track", include_str!("builtin/cartpole-track.toml")),
+    ("quadrotor-floor", include_str!("builtin/quadrotor-floor.toml")),
 ];
 
 /// A closed-loop scenario.

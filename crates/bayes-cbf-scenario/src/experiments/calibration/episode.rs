@@ -38,6 +38,8 @@ use std::sync::Arc;
 use crate::error::{Context, Result};
 use crate::stats::normal_cdf;
 
+/// Rows of the pendulum's `F` known exactly: `θ̇ = ω`.
+const KNOWN_ROWS: [usize; 1] = [0];
 /// Random Fourier features per entry of a GP-prior truth.
 pub(crate) const FEATURES: usize = 128;
 /// Control period τ (s), as in the paper's experiments.
@@ -354,18 +356,16 @@ pub(crate) fn setup(system: System, truth: TruthKind, seed: u64, steps: usize) -
             let (hyper, map) = pendulum_hyper()?;
             let prior = Pendulum::default();
             let truth_sys: Arc<dyn DynSystem> = match truth {
-                TruthKind::WellSpecified => Arc::new(GpSample::draw(
-                    2,
-                    1,
-                    Some(prior),
-                    &hyper,
-                    &map,
-                    FEATURES,
-                    truth_seed,
-                )?),
+                // the structured prior: θ̇ = ω exactly, only ω̇ drawn
+                TruthKind::WellSpecified => Arc::new(
+                    GpSample::draw(2, 1, Some(prior), &hyper, &map, FEATURES, truth_seed)?
+                        .with_known_rows(&KNOWN_ROWS)?,
+                ),
                 TruthKind::MisSpecified => Arc::new(PENDULUM_TRUE),
             };
-            let model = Mvgp::new(2, 1, hyper, PriorMean::System(Arc::new(prior)), map)?;
+            // the model knows the kinematic row too (interfaces.md, known_rows)
+            let model = Mvgp::new(2, 1, hyper, PriorMean::System(Arc::new(prior)), map)?
+                .with_known_rows(&KNOWN_ROWS)?;
             let barrier: Arc<dyn DynBarrier> = Arc::new(PendulumSector::new(
                 SECTOR.0,
                 SECTOR.1,
