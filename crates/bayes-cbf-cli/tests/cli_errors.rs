@@ -113,7 +113,11 @@ const MODEL_EDITS: &[(&str, &str, &[&str])] = &[
     (
         PRIOR,
         r#""prior_mean": {"type": "expression", "state": ["a", "b"], "control": ["u"], "f": ["b", "sin(c)"], "g": [["0"], ["1"]]}"#,
-        &["prior_mean", "f[1], column 5", "unknown name 'c' (known: a, b, pi)"],
+        &[
+            "prior_mean",
+            "f[1], column 5",
+            "unknown name 'c' (known: a, b, pi)",
+        ],
     ),
     (
         PRIOR,

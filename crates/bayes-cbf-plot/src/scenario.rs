@@ -49,7 +49,8 @@ fn generic_series(out: &RunOutput, dir: &Path) -> Result<PathBuf> {
     let mut xs = Panel::new("state", "t (s)", "x");
     for i in 0..out.built.truth.state_dim() {
         let ys = rec.iter().map(|r| r.x[i]).collect();
-        xs.layers.push(Layer::line(&name(&states, i, "x"), t.clone(), ys, i));
+        xs.layers
+            .push(Layer::line(&name(&states, i, "x"), t.clone(), ys, i));
     }
     let mut us = Panel::new("control", "t (s)", "u");
     for j in 0..out.built.truth.control_dim() {
@@ -62,7 +63,12 @@ fn generic_series(out: &RunOutput, dir: &Path) -> Result<PathBuf> {
             size: 1,
             shape: PointShape::Circle,
         });
-        us.layers.push(Layer::line(&c, t.clone(), rec.iter().map(|r| r.u[j]).collect(), j));
+        us.layers.push(Layer::line(
+            &c,
+            t.clone(),
+            rec.iter().map(|r| r.u[j]).collect(),
+            j,
+        ));
     }
     let inf: Vec<(f64, f64)> = rec
         .iter()
@@ -88,22 +94,19 @@ fn generic_series(out: &RunOutput, dir: &Path) -> Result<PathBuf> {
     });
     for i in 0..out.built.barriers.len() {
         let ys = rec.iter().map(|r| r.h_fine_min[i]).collect();
-        hs.layers.push(Layer::line(&format!("h{i}"), t.clone(), ys, i));
+        hs.layers
+            .push(Layer::line(&format!("h{i}"), t.clone(), ys, i));
     }
-    let mut trace = Panel::new("model uncertainty", "t (s)", "tr(B_k(x,x) ⊗ A)");
-    trace.log_y = true;
-    trace.layers.push(Layer::line(
-        "tr(B_k ⊗ A)",
-        t.clone(),
-        rec.iter().map(|r| r.trace_cov).collect(),
-        1,
-    ));
+    let trace = trace_panel(out);
     let fig = Figure {
         width: 1000,
         height: 1100,
         rows: 4,
         cols: 1,
-        title: Some(format!("{} (seed {})", out.scenario.name, out.scenario.seed)),
+        title: Some(format!(
+            "{} (seed {})",
+            out.scenario.name, out.scenario.seed
+        )),
         panels: vec![xs, us, hs, trace],
     };
     let path = dir.join("timeseries.png");
@@ -398,18 +401,21 @@ fn scbc_panel(out: &RunOutput) -> Panel {
     scbc
 }
 
-fn vehicle_series(out: &RunOutput, dir: &Path) -> Result<PathBuf> {
-    let t = times(out);
-    let rec = &out.result.records;
-    let (speed, scbc) = (speed_panel(out), scbc_panel(out));
+/// `tr(B_k(x, x) ⊗ A)` over time, on a log scale.
+fn trace_panel(out: &RunOutput) -> Panel {
     let mut trace = Panel::new("model uncertainty", "t (s)", "tr(B_k(x,x) ⊗ A)");
     trace.log_y = true;
-    trace.layers.push(Layer::line(
-        "tr(B_k ⊗ A)",
-        t.clone(),
-        rec.iter().map(|r| r.trace_cov).collect(),
-        1,
-    ));
+    let ys = out.result.records.iter().map(|r| r.trace_cov).collect();
+    trace
+        .layers
+        .push(Layer::line("tr(B_k ⊗ A)", times(out), ys, 1));
+    trace
+}
+
+fn vehicle_series(out: &RunOutput, dir: &Path) -> Result<PathBuf> {
+    let rec = &out.result.records;
+    let (speed, scbc) = (speed_panel(out), scbc_panel(out));
+    let mut trace = trace_panel(out);
     let mut first = true;
     for w in rec.windows(2) {
         if w[0].data_size != w[1].data_size {

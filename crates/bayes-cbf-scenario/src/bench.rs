@@ -87,7 +87,11 @@ fn expression_row(
     let (mut tb, mut te) = (Vec::with_capacity(reps), Vec::with_capacity(reps));
     let mut x = builtin.x.clone();
     for i in 0..2 * reps {
-        let w = if i % 2 == 0 { &mut *builtin } else { &mut *expr };
+        let w = if i % 2 == 0 {
+            &mut *builtin
+        } else {
+            &mut *expr
+        };
         x[0] = w.x[0] + 1e-4 * ((i / 2) % 50) as f64;
         let r = w.reference.clone();
         let reference = r.as_ref().map(|(a, b)| (a.as_slice(), b.as_slice()));
@@ -96,15 +100,21 @@ fn expression_row(
             .step(&w.model, &x, &w.u_ref, reference, &mut out)
             .with_context(|| format!("control step ({system}, k = {k})"))?;
         let us = s.elapsed().as_secs_f64() * 1e6;
-        if i % 2 == 0 { tb.push(us) } else { te.push(us) }
+        if i % 2 == 0 {
+            tb.push(us)
+        } else {
+            te.push(us)
+        }
     }
     let (b50, e50, e99) = (
         percentile(&mut tb, 0.5),
         percentile(&mut te, 0.5),
         percentile(&mut te, 0.99),
     );
-    Ok(json!({"case": "control_step", "system": format!("{system}-expression"), "relative_degree": rd, "k": k,
-              "p50_us": round(e50), "p99_us": round(e99), "builtin_p50_us": round(b50), "over_builtin": round(e50 / b50)}))
+    Ok(
+        json!({"case": "control_step", "system": format!("{system}-expression"), "relative_degree": rd, "k": k,
+              "p50_us": round(e50), "p99_us": round(e99), "builtin_p50_us": round(b50), "over_builtin": round(e50 / b50)}),
+    )
 }
 
 fn floor_row(model: &Mvgp, k: usize, reps: usize) -> Value {

@@ -33,6 +33,4 @@ pub mod workloads;
 mod fuzz_tests;
 
 pub use error::{Context, Error, Result};
-pub use formats::{
-    barrier_file, csv_data, input_map_spec, model_file, params, parse, prior_spec,
-};
+pub use formats::{barrier_file, csv_data, input_map_spec, model_file, params, parse, prior_spec};

@@ -22,13 +22,21 @@ fn same_loop(builtin: &str, file: &str) {
     for (k, (x, y)) in ra.iter().zip(rb).enumerate() {
         assert_eq!(x.status, y.status, "step {k}");
         assert_eq!(x.refit, y.refit, "step {k}");
-        for (p, q) in x.x.iter().chain(&x.u).chain(&x.h).zip(y.x.iter().chain(&y.u).chain(&y.h)) {
+        for (p, q) in
+            x.x.iter()
+                .chain(&x.u)
+                .chain(&x.h)
+                .zip(y.x.iter().chain(&y.u).chain(&y.h))
+        {
             worst = worst.max((p - q).abs());
             assert!((p - q).abs() <= 1e-9, "{builtin} step {k}: {x:?} vs {y:?}");
         }
     }
     assert_eq!(a.summary.safe, b.summary.safe);
-    eprintln!("{builtin}: largest difference {worst:e} over {} steps", ra.len());
+    eprintln!(
+        "{builtin}: largest difference {worst:e} over {} steps",
+        ra.len()
+    );
 }
 
 #[test]
@@ -55,24 +63,68 @@ fn expression_clf_drives_the_vehicle_to_its_goal() {
     let expr = scenario::run_scenario(&sc, |_, _| {}).unwrap().summary;
     let builtin = run("ackermann-bayes-cbf").summary;
     assert!(expr.safe && !expr.collided, "{expr:?}");
-    let (ge, gb) = (expr.final_goal_distance.unwrap(), builtin.final_goal_distance.unwrap());
+    let (ge, gb) = (
+        expr.final_goal_distance.unwrap(),
+        builtin.final_goal_distance.unwrap(),
+    );
     eprintln!("goal distance: expression CLF {ge:.4}, built-in {gb:.4}");
     assert!((ge - gb).abs() < 0.05, "{ge} vs {gb}");
+}
+
+#[test]
+fn expression_barriers_name_the_states_of_a_built_in_system() {
+    // the built-in pendulum's states are theta and omega: an expression
+    // barrier written over them is the built-in sector barrier
+    let set = "barriers.0={ type = \"expression\", params = { theta_c = 0.7853981633974483, delta = 0.39269908169872414 }, h = \"cos(delta) - cos(theta - theta_c)\", relative_degree = 2, k_alpha = [1.0, 3.0] }";
+    let (sc, _) = scenario::load("pendulum-safe", &[set.into(), "steps=100".into()]).unwrap();
+    let a = scenario::run_scenario(&sc, |_, _| {}).unwrap();
+    let (sc, _) = scenario::load("pendulum-safe", &["steps=100".into()]).unwrap();
+    let b = scenario::run_scenario(&sc, |_, _| {}).unwrap();
+    for (x, y) in a.result.records.iter().zip(&b.result.records) {
+        for (p, q) in x.u.iter().chain(&x.h).zip(y.u.iter().chain(&y.h)) {
+            assert!((p - q).abs() <= 1e-9, "{x:?} vs {y:?}");
+        }
+    }
+    // the vehicle's are x, y, theta; a name it does not have is an error
+    let bad =
+        "barriers.0={ type = \"expression\", h = \"omega - 1\", relative_degree = 1, alpha = 1.0 }";
+    let e = scenario::load("ackermann-bayes-cbf", &[bad.into()])
+        .and_then(|(s, _)| scenario::validate(&s))
+        .unwrap_err();
+    assert!(
+        format!("{e:#}").contains("unknown name 'omega' (known: x, y, theta"),
+        "{e:#}"
+    );
 }
 
 #[test]
 fn bad_expressions_in_scenarios_name_the_field() {
     let file = data("pendulum-safe-expression.toml");
     for (set, want) in [
-        ("system.f.1='-g/l*sin(thta)'", "system: f[1], column 10: unknown name 'thta' (known: theta, omega, g, l, m, pi)"),
-        ("system.g.1.0='1/(m*l'", "system: g[1][0], column 7: expected ')'"),
+        (
+            "system.f.1='-g/l*sin(thta)'",
+            "system: f[1], column 10: unknown name 'thta' (known: theta, omega, g, l, m, pi)",
+        ),
+        (
+            "system.g.1.0='1/(m*l'",
+            "system: g[1][0], column 7: expected ')'",
+        ),
         ("system.f.0='omega*u'", "'u' cannot be used here"),
-        ("barriers.0.h='cos(delta) - cos(theta - theta_c'", "barriers[0]: h, column"),
+        (
+            "barriers.0.h='cos(delta) - cos(theta - theta_c'",
+            "barriers[0]: h, column",
+        ),
         ("barriers.0.h='cos(phi)'", "unknown name 'phi'"),
         ("barriers.0.k_alpha=[0.0, 3.0]", "Hurwitz"),
         ("system.angles=['psi']", "angles"),
-        ("system.params.m='heavy'", "params.m = \"heavy\": expected a number"),
-        ("barriers.0.params.delta='wide'", "params.delta = \"wide\": expected a number"),
+        (
+            "system.params.m='heavy'",
+            "params.m = \"heavy\": expected a number",
+        ),
+        (
+            "barriers.0.params.delta='wide'",
+            "params.delta = \"wide\": expected a number",
+        ),
     ] {
         let e = scenario::load(&file, &[set.to_string()])
             .and_then(|(s, _)| scenario::validate(&s))

@@ -10,7 +10,10 @@ use bayes_cbf_scenario::sweep::{run_seeds, SeedRange, Shard, SweepMeta, SweepRow
 fn sweep(name: &str) -> Vec<SweepRow> {
     let meta = SweepMeta {
         scenario: name.into(),
-        sets: vec!["outputs.plots=false".into(), "outputs.animation=false".into()],
+        sets: vec![
+            "outputs.plots=false".into(),
+            "outputs.animation=false".into(),
+        ],
         seeds: SeedRange {
             start: 500,
             end: 600,
@@ -28,7 +31,11 @@ fn double_integrator_stops_before_the_wall_on_every_seed() {
     for r in &rows {
         // h = 1 − p: never negative, and the cart gets within 0.25 of the wall
         assert!(r.safe && !r.collided, "seed {}: {r:?}", r.seed);
-        assert!((0.0..0.25).contains(&r.min_barrier), "seed {}: {r:?}", r.seed);
+        assert!(
+            (0.0..0.25).contains(&r.min_barrier),
+            "seed {}: {r:?}",
+            r.seed
+        );
     }
 }
 
@@ -37,7 +44,11 @@ fn unicycle_never_enters_a_disc_on_any_seed() {
     let rows = sweep("unicycle-obstacles");
     assert_eq!(rows.len(), 100);
     for r in &rows {
-        assert!(r.safe && !r.collided && r.min_barrier >= 0.0, "seed {}: {r:?}", r.seed);
+        assert!(
+            r.safe && !r.collided && r.min_barrier >= 0.0,
+            "seed {}: {r:?}",
+            r.seed
+        );
     }
     // it also gets to the goal, except where a barrier and the CLF meet
     // head-on (the CBF-CLF deadlock, a stop in front of a disc)
@@ -52,7 +63,11 @@ fn cartpole_stays_on_its_track_on_every_seed() {
     for r in &rows {
         // both track ends: h ≥ 0, and the cart is driven to within 0.1 of one
         assert!(r.safe && !r.collided, "seed {}: {r:?}", r.seed);
-        assert!((0.0..0.1).contains(&r.min_barrier), "seed {}: {r:?}", r.seed);
+        assert!(
+            (0.0..0.1).contains(&r.min_barrier),
+            "seed {}: {r:?}",
+            r.seed
+        );
     }
 }
 
@@ -61,6 +76,10 @@ fn quadrotor_touches_neither_floor_nor_obstacle_on_any_seed() {
     let rows = sweep("quadrotor-floor");
     assert_eq!(rows.len(), 100);
     for r in &rows {
-        assert!(r.safe && !r.collided && r.min_barrier >= 0.0, "seed {}: {r:?}", r.seed);
+        assert!(
+            r.safe && !r.collided && r.min_barrier >= 0.0,
+            "seed {}: {r:?}",
+            r.seed
+        );
     }
 }

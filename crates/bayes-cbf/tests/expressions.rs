@@ -189,7 +189,11 @@ fn expression_clf_equals_the_ackermann_clf() {
         close(&ga, &gb, 1e-12, "∇V");
     }
     let err = ExpressionClf::new(&["x"], &[], "(x - x_ref)^2", 1.0).unwrap_err();
-    assert!(err.to_string().contains("unknown name 'x_ref' (known: x, x_d"), "{err}");
+    assert!(
+        err.to_string()
+            .contains("unknown name 'x_ref' (known: x, x_d"),
+        "{err}"
+    );
 }
 
 #[test]
@@ -208,7 +212,10 @@ fn non_finite_evaluations_are_errors_naming_the_entry() {
     assert!(sys.take_error().is_none());
     sys.eval_f64(&[-0.5, 0.0], &mut f);
     let msg = sys.take_error().unwrap();
-    assert!(msg.contains("f[1] = NaN at state [-0.5, 0.0]") && msg.contains("log(theta)"), "{msg}");
+    assert!(
+        msg.contains("f[1] = NaN at state [-0.5, 0.0]") && msg.contains("log(theta)"),
+        "{msg}"
+    );
     assert!(sys.take_error().is_none(), "taken once");
 
     // through the model: a prior mean that fails is an error of the step
@@ -237,7 +244,9 @@ fn non_finite_evaluations_are_errors_naming_the_entry() {
     let bad = ExpressionBarrier::new(&["a", "b"], &[], "sqrt(a - 2) - b", 1, vec![1.0])
         .unwrap()
         .with_name("root");
-    let err = cbc_moments(&mut ws, &bad, &mut out).unwrap_err().to_string();
+    let err = cbc_moments(&mut ws, &bad, &mut out)
+        .unwrap_err()
+        .to_string();
     assert!(err.contains("h of barrier 'root' = NaN"), "{err}");
 }
 
@@ -249,13 +258,11 @@ fn bad_expressions_are_typed_errors() {
             "f[0], column 1: 'u' cannot be used here",
         ),
         (
-            ExpressionSystem::new(&["x"], &["u"], &[], &["x", "x"], &[vec!["1"]], &[])
-                .map(|_| ()),
+            ExpressionSystem::new(&["x"], &["u"], &[], &["x", "x"], &[vec!["1"]], &[]).map(|_| ()),
             "wrong shape of f",
         ),
         (
-            ExpressionSystem::new(&["x"], &["u"], &[], &["x"], &[vec!["1", "2"]], &[])
-                .map(|_| ()),
+            ExpressionSystem::new(&["x"], &["u"], &[], &["x"], &[vec!["1", "2"]], &[]).map(|_| ()),
             "wrong shape of g[0]",
         ),
         (

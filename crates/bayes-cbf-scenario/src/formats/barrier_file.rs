@@ -1,12 +1,12 @@
 //! Barrier files (`barrier.json`, interfaces.md): parsing and validation.
 
+use super::params::Params;
 use crate::bail;
 use crate::error::{Context, Result};
 use bayes_cbf::barrier::{
     CircleHeading, Disc, DynBarrier, ExpressionBarrier, HalfSpace, PendulumSector,
 };
 use serde::Deserialize;
-use super::params::Params;
 use std::path::Path;
 use std::sync::Arc;
 

@@ -5,13 +5,13 @@
 //! `{"type": "expression", "state": [..], "control": [..], "params": {..},
 //! "f": [..], "g": [[..], ..], "angles": [..]}` (see `interfaces.md`).
 
+use super::params::Params;
 use crate::bail;
 use crate::error::{Context, Result};
 use bayes_cbf::gp::PriorMean;
 use bayes_cbf::systems::{Ackermann, DynSystem, ExpressionSystem, Pendulum};
 use serde::{Deserialize, Serialize};
 use serde_json::{json, Value};
-use super::params::Params;
 use std::sync::Arc;
 
 /// A system written as expressions (interfaces.md, "Expressions").
@@ -72,7 +72,12 @@ impl SystemExpression {
         }
         let params = self.params.pairs();
         Ok(ExpressionSystem::new(
-            &state, &control, &params, &self.f, &self.g, &self.angles,
+            &state,
+            &control,
+            &params,
+            &self.f,
+            &self.g,
+            &self.angles,
         )?)
     }
 }
@@ -160,11 +165,10 @@ impl TryFrom<Value> for PriorSpec {
                 Some(other) => {
                     return Err(format!("prior_mean.type must be a string, got {other}"))
                 }
-                None => {
-                    return Err(
-                        "prior_mean object needs a \"type\" key (pendulum, ackermann or expression)".into(),
-                    )
-                }
+                None => return Err(
+                    "prior_mean object needs a \"type\" key (pendulum, ackermann or expression)"
+                        .into(),
+                ),
             },
             other => {
                 return Err(format!(
@@ -280,9 +284,8 @@ impl PriorSpec {
     /// zero mean as `None`).
     pub fn to_expression(&self) -> Option<SystemExpression> {
         let (state, control) = self.names()?;
-        let params = |v: &[(&str, f64)]| {
-            Params(v.iter().map(|(k, x)| (k.to_string(), *x)).collect())
-        };
+        let params =
+            |v: &[(&str, f64)]| Params(v.iter().map(|(k, x)| (k.to_string(), *x)).collect());
         let texts = |v: &[&str]| strings(v);
         Some(match self {
             PriorSpec::Zero => return None,

@@ -15,8 +15,7 @@ use bayes_cbf::control::{
 use bayes_cbf::gp::{FitSettings, LipschitzSettings, Mvgp, MvgpHyper, PriorMean, Rbf};
 use bayes_cbf::sim::{
     ConstantReference, DataPolicy, EpsilonGreedy, LinearFeedback, LoopSettings, Reference,
-    SimSettings,
-    StraightLinePlanner,
+    SimSettings, StraightLinePlanner,
 };
 use bayes_cbf::systems::DynSystem;
 use nalgebra::DMatrix;
@@ -83,9 +82,12 @@ fn truth(spec: &PriorSpec) -> Result<(Arc<dyn DynSystem>, SystemNames)> {
             "system: a true system is required (type = \"pendulum\", \"ackermann\" or \"expression\")"
         )
     })?;
-    let names = spec
-        .names()
-        .unwrap_or_else(|| ((0..system.state_dim()).map(|i| format!("x{i}")).collect(), Vec::new()));
+    let names = spec.names().unwrap_or_else(|| {
+        (
+            (0..system.state_dim()).map(|i| format!("x{i}")).collect(),
+            Vec::new(),
+        )
+    });
     Ok((system, names))
 }
 

@@ -58,8 +58,14 @@ pub const BUILTIN: &[(&str, &str)] = &[
         "unicycle-obstacles",
         include_str!("builtin/unicycle-obstacles.toml"),
     ),
-    ("cartpole-track", include_str!("builtin/cartpole-track.toml")),
-    ("quadrotor-floor", include_str!("builtin/quadrotor-floor.toml")),
+    (
+        "cartpole-track",
+        include_str!("builtin/cartpole-track.toml"),
+    ),
+    (
+        "quadrotor-floor",
+        include_str!("builtin/quadrotor-floor.toml"),
+    ),
 ];
 
 /// A closed-loop scenario.
@@ -466,7 +472,10 @@ pub fn as_expressions(s: &Scenario) -> Result<Scenario> {
         .barriers
         .iter()
         .enumerate()
-        .map(|(i, b)| b.to_expression(&names.0).with_context(|| format!("barriers[{i}]")))
+        .map(|(i, b)| {
+            b.to_expression(&names.0)
+                .with_context(|| format!("barriers[{i}]"))
+        })
         .collect::<Result<_>>()?;
     Ok(out)
 }

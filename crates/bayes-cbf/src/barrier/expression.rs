@@ -9,7 +9,11 @@ use num_dual::DualNum;
 /// Variables `state` and parameters `params` of an expression.
 fn names<S: AsRef<str>>(state: &[S], params: &[(S, f64)]) -> Result<Names, InputError> {
     if state.is_empty() {
-        return Err(InputError::invalid("state", 0.0, "at least one state is needed"));
+        return Err(InputError::invalid(
+            "state",
+            0.0,
+            "at least one state is needed",
+        ));
     }
     let mut names = Names::default();
     for s in state {
@@ -159,7 +163,11 @@ impl ExpressionClf {
             names.add_param(p.as_ref(), *value)?;
         }
         if !(gamma.is_finite() && gamma >= 0.0) {
-            return Err(InputError::invalid("gamma", gamma, "must be finite and ≥ 0"));
+            return Err(InputError::invalid(
+                "gamma",
+                gamma,
+                "must be finite and ≥ 0",
+            ));
         }
         Ok(Self {
             n: state.len(),

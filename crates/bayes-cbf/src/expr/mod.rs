@@ -62,8 +62,8 @@ pub(crate) enum Func {
 
 impl Func {
     const NAMES: [&'static str; 16] = [
-        "sin", "cos", "tan", "asin", "acos", "atan", "atan2", "sinh", "cosh", "tanh", "exp",
-        "log", "sqrt", "abs", "min", "max",
+        "sin", "cos", "tan", "asin", "acos", "atan", "atan2", "sinh", "cosh", "tanh", "exp", "log",
+        "sqrt", "abs", "min", "max",
     ];
     const ALL: [Func; 16] = [
         Func::Sin,
@@ -268,7 +268,7 @@ impl Expr {
 
     /// Whether variable `v` appears in the expression.
     pub fn uses(&self, v: usize) -> bool {
-        self.nodes.iter().any(|n| *n == Node::Var(v as u32))
+        self.nodes.contains(&Node::Var(v as u32))
     }
 
     /// The text it was parsed from.
@@ -340,7 +340,9 @@ mod names {
             return Err(error(
                 kind,
                 None,
-                format!("'{name}' is not a name (letters, digits and '_', not starting with a digit)"),
+                format!(
+                    "'{name}' is not a name (letters, digits and '_', not starting with a digit)"
+                ),
             ));
         }
         if name == "pi" || Func::from_name(name).is_some() {
@@ -377,7 +379,11 @@ mod names {
         pub fn add_var(&mut self, name: &str) -> Result<(), InputError> {
             check_name("state", name)?;
             if self.taken(name) {
-                return Err(error("state", None, format!("the name '{name}' is given twice")));
+                return Err(error(
+                    "state",
+                    None,
+                    format!("the name '{name}' is given twice"),
+                ));
             }
             self.vars.push(name.to_string());
             Ok(())
@@ -394,7 +400,11 @@ mod names {
                 ));
             }
             if !value.is_finite() {
-                return Err(InputError::invalid(&format!("params.{name}"), value, "must be finite"));
+                return Err(InputError::invalid(
+                    &format!("params.{name}"),
+                    value,
+                    "must be finite",
+                ));
             }
             self.params.push((name.to_string(), value));
             Ok(())
@@ -404,7 +414,11 @@ mod names {
         pub fn reserve(&mut self, name: &str, reason: &str) -> Result<(), InputError> {
             check_name("control", name)?;
             if self.taken(name) {
-                return Err(error("control", None, format!("the name '{name}' is given twice")));
+                return Err(error(
+                    "control",
+                    None,
+                    format!("the name '{name}' is given twice"),
+                ));
             }
             self.reserved.push((name.to_string(), reason.to_string()));
             Ok(())
@@ -442,7 +456,10 @@ mod names {
             let mut known: Vec<&str> = self.vars.iter().map(String::as_str).collect();
             known.extend(self.params.iter().map(|(p, _)| p.as_str()));
             known.push("pi");
-            Err(format!("unknown name '{name}' (known: {})", known.join(", ")))
+            Err(format!(
+                "unknown name '{name}' (known: {})",
+                known.join(", ")
+            ))
         }
     }
 }

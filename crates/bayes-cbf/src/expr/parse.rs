@@ -62,9 +62,9 @@ fn tokenise<'a>(field: &str, text: &'a str) -> Result<Vec<Token<'a>>, InputError
                 }
             }
             let lit = &text[bi..end];
-            let v: f64 = lit.parse().map_err(|_| {
-                super::error(field, Some(col), format!("malformed number '{lit}'"))
-            })?;
+            let v: f64 = lit
+                .parse()
+                .map_err(|_| super::error(field, Some(col), format!("malformed number '{lit}'")))?;
             toks.push(Token {
                 tok: Tok::Num(v),
                 col,
@@ -152,7 +152,10 @@ impl<'a> Parser<'a> {
         let t = self.peek();
         if !matches!(t.tok, Tok::End) {
             let (col, found) = (t.col, describe(&t.tok));
-            return Err(self.err(col, format!("unexpected {found} after a complete expression")));
+            return Err(self.err(
+                col,
+                format!("unexpected {found} after a complete expression"),
+            ));
         }
         Ok(())
     }
@@ -276,12 +279,24 @@ impl<'a> Parser<'a> {
                 if let Some(func) = Func::from_name(name) {
                     return Err(self.err(
                         col,
-                        format!("'{name}' is a function of {}: write {name}(...)", func.arity_text()),
+                        format!(
+                            "'{name}' is a function of {}: write {name}(...)",
+                            func.arity_text()
+                        ),
                     ));
                 }
-                self.names.resolve(name).map(|n| self.push(n)).map_err(|m| self.err(col, m))
+                self.names
+                    .resolve(name)
+                    .map(|n| self.push(n))
+                    .map_err(|m| self.err(col, m))
             }
-            other => Err(self.err(col, format!("expected a number, a name or '(', found {}", describe(&other)))),
+            other => Err(self.err(
+                col,
+                format!(
+                    "expected a number, a name or '(', found {}",
+                    describe(&other)
+                ),
+            )),
         }
     }
 
@@ -289,7 +304,10 @@ impl<'a> Parser<'a> {
         let func = Func::from_name(name).ok_or_else(|| {
             self.err(
                 col,
-                format!("unknown function '{name}' (functions: {})", Func::NAMES.join(" ")),
+                format!(
+                    "unknown function '{name}' (functions: {})",
+                    Func::NAMES.join(" ")
+                ),
             )
         })?;
         let mut args = vec![self.sum()?];

@@ -13,8 +13,7 @@ pub use closed_loop::{
 pub use dataset::{sample_uniform, simulate_trajectory, Dataset};
 pub use derivative::finite_difference_xdot;
 pub use reference::{
-    ConstantReference, EpsilonGreedy, LinearFeedback, Reference, ReferenceOut,
-    StraightLinePlanner,
+    ConstantReference, EpsilonGreedy, LinearFeedback, Reference, ReferenceOut, StraightLinePlanner,
 };
 
 use crate::error::InputError;

@@ -175,13 +175,21 @@ impl LinearFeedback {
         for (j, row) in gain.iter().enumerate() {
             let field = format!("feedback.gain[{j}]");
             if row.len() != n {
-                return Err(InputError::shape(&field, format!("{n} entries (one per state)"), row.len()));
+                return Err(InputError::shape(
+                    &field,
+                    format!("{n} entries (one per state)"),
+                    row.len(),
+                ));
             }
             crate::error::check_finite(&field, row)?;
             flat.extend_from_slice(row);
         }
         if let Some(&i) = angles.iter().find(|&&i| i >= n) {
-            return Err(InputError::invalid("feedback.angles", i as f64, "must index a state"));
+            return Err(InputError::invalid(
+                "feedback.angles",
+                i as f64,
+                "must index a state",
+            ));
         }
         Ok(Self {
             u0,
@@ -237,10 +245,17 @@ mod tests {
         let e2 = 6.0 - 2.0 * std::f64::consts::PI;
         assert!((out.u_ref[0] - (1.0 + 2.0 * 0.5 + 0.5 * -0.2)).abs() < 1e-15);
         assert!((out.u_ref[1] - (-2.0 - 0.2 + 3.0 * e2)).abs() < 1e-12);
-        assert_eq!((out.xd.as_slice(), out.xd_dot.as_slice()), (&x[..], &[0.0; 3][..]));
+        assert_eq!(
+            (out.xd.as_slice(), out.xd_dot.as_slice()),
+            (&x[..], &[0.0; 3][..])
+        );
         for (gain, target, want) in [
             (vec![vec![1.0]], vec![0.0, 0.0], "feedback.gain[0]"),
-            (vec![vec![1.0, f64::NAN]], vec![0.0, 0.0], "feedback.gain[0][1]"),
+            (
+                vec![vec![1.0, f64::NAN]],
+                vec![0.0, 0.0],
+                "feedback.gain[0][1]",
+            ),
             (vec![], vec![0.0, 0.0], "feedback.gain"),
         ] {
             let e = LinearFeedback::new(vec![0.0], &gain, target, vec![]).unwrap_err();

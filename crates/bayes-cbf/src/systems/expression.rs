@@ -60,10 +60,18 @@ impl ExpressionSystem {
     ) -> Result<Self, InputError> {
         let (n, m) = (state.len(), control.len());
         if n == 0 {
-            return Err(InputError::invalid("state", 0.0, "at least one state is needed"));
+            return Err(InputError::invalid(
+                "state",
+                0.0,
+                "at least one state is needed",
+            ));
         }
         if m == 0 {
-            return Err(InputError::invalid("control", 0.0, "at least one control is needed"));
+            return Err(InputError::invalid(
+                "control",
+                0.0,
+                "at least one control is needed",
+            ));
         }
         let mut names = Names::default();
         for s in state {
@@ -79,10 +87,18 @@ impl ExpressionSystem {
             names.add_param(p.as_ref(), *v)?;
         }
         if f.len() != n {
-            return Err(InputError::shape("f", format!("{n} expressions (one per state)"), f.len()));
+            return Err(InputError::shape(
+                "f",
+                format!("{n} expressions (one per state)"),
+                f.len(),
+            ));
         }
         if g.len() != n {
-            return Err(InputError::shape("g", format!("{n} rows (one per state)"), g.len()));
+            return Err(InputError::shape(
+                "g",
+                format!("{n} rows (one per state)"),
+                g.len(),
+            ));
         }
         let mut entries = Vec::with_capacity(n * (1 + m));
         for (i, e) in f.iter().enumerate() {
@@ -99,18 +115,23 @@ impl ExpressionSystem {
         }
         for c in 0..m {
             for (i, row) in g.iter().enumerate() {
-                entries.push(Expr::parse(&format!("g[{i}][{c}]"), row[c].as_ref(), &names)?);
+                entries.push(Expr::parse(
+                    &format!("g[{i}][{c}]"),
+                    row[c].as_ref(),
+                    &names,
+                )?);
             }
         }
         let mut idx = Vec::new();
         for a in angles {
-            let i = state.iter().position(|s| s.as_ref() == a.as_ref()).ok_or_else(|| {
-                InputError::Invalid {
+            let i = state
+                .iter()
+                .position(|s| s.as_ref() == a.as_ref())
+                .ok_or_else(|| InputError::Invalid {
                     field: "angles".into(),
                     value: a.as_ref().to_string(),
                     reason: "not a state name".into(),
-                }
-            })?;
+                })?;
             if !idx.contains(&i) {
                 idx.push(i);
             }
