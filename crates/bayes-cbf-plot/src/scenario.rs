@@ -343,12 +343,20 @@ fn vehicle_map(out: &RunOutput, dir: &Path) -> Result<PathBuf> {
         .map(|(i, _)| i)
         .unwrap_or(0);
     let (theta, u) = (rec[k].x[2], rec[k].u.clone());
+    // the system's own names (the vehicle's: x, y, theta; v, z)
+    let (states, controls) = out.scenario.system.names().unwrap_or_default();
+    let name = |v: &[String], i: usize, d: &str| v.get(i).cloned().unwrap_or_else(|| d.into());
     let mut panel = map_panel(
         out,
         rec.len(),
         &format!(
-            "trajectory over min stochastic CBC (θ = {:.2} rad, v = {:.2}, z = {:.2})",
-            theta, u[0], u[1]
+            "trajectory over min stochastic CBC ({} = {:.2} rad, {} = {:.2}, {} = {:.2})",
+            name(&states, 2, "θ"),
+            theta,
+            name(&controls, 0, "v"),
+            u[0],
+            name(&controls, 1, "z"),
+            u[1]
         ),
     );
     panel
