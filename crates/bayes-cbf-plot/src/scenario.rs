@@ -45,16 +45,19 @@ fn generic_series(out: &RunOutput, dir: &Path) -> Result<PathBuf> {
     let t = times(out);
     let rec = &out.result.records;
     let (states, controls) = out.scenario.system.names().unwrap_or_default();
-    let name = |v: &[String], i: usize, p: &str| v.get(i).cloned().unwrap_or(format!("{p}{i}"));
     let mut xs = Panel::new("state", "t (s)", "x");
     for i in 0..out.built.truth.state_dim() {
         let ys = rec.iter().map(|r| r.x[i]).collect();
-        xs.layers
-            .push(Layer::line(&name(&states, i, "x"), t.clone(), ys, i));
+        xs.layers.push(Layer::line(
+            &name(&states, i, &format!("x{i}")),
+            t.clone(),
+            ys,
+            i,
+        ));
     }
     let mut us = Panel::new("control", "t (s)", "u");
     for j in 0..out.built.truth.control_dim() {
-        let c = name(&controls, j, "u");
+        let c = name(&controls, j, &format!("u{j}"));
         us.layers.push(Layer::Scatter {
             name: Some(format!("{c} reference")),
             xs: t.clone(),
@@ -112,6 +115,14 @@ fn generic_series(out: &RunOutput, dir: &Path) -> Result<PathBuf> {
     let path = dir.join("timeseries.png");
     render_png(&fig, &path)?;
     Ok(path)
+}
+
+/// `names[i]`, or `fallback` when the system has no such name.
+fn name(names: &[String], i: usize, fallback: &str) -> String {
+    names
+        .get(i)
+        .cloned()
+        .unwrap_or_else(|| fallback.to_string())
 }
 
 fn times(out: &RunOutput) -> Vec<f64> {
@@ -345,7 +356,6 @@ fn vehicle_map(out: &RunOutput, dir: &Path) -> Result<PathBuf> {
     let (theta, u) = (rec[k].x[2], rec[k].u.clone());
     // the system's own names (the vehicle's: x, y, theta; v, z)
     let (states, controls) = out.scenario.system.names().unwrap_or_default();
-    let name = |v: &[String], i: usize, d: &str| v.get(i).cloned().unwrap_or_else(|| d.into());
     let mut panel = map_panel(
         out,
         rec.len(),

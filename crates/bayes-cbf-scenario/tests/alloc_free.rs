@@ -132,3 +132,82 @@ fn posterior_and_moments_do_not_allocate() {
     });
     assert_eq!(n, 0, "relative degree 2: {n} allocations");
 }
+
+#[test]
+fn expression_posterior_and_moments_do_not_allocate() {
+    // the Ackermann workload with its prior mean and barriers written as
+    // expressions, and an expression CLF; the pendulum's sector barrier of
+    // relative degree 2 as an expression
+    use bayes_cbf::barrier::{
+        cbc_moments, clc_moments, ConditionMoments, ExpressionBarrier, ExpressionClf,
+        MomentWorkspace,
+    };
+    use bayes_cbf_scenario::workloads::{
+        ackermann_control_written, pendulum_control_written, Written,
+    };
+    faer::set_global_parallelism(faer::Par::Seq);
+    let w = ackermann_control_written(150, 3, Written::Expressions).unwrap();
+    let mut ws = MomentWorkspace::new(&w.model);
+    let mut mom = ConditionMoments::zeros(2);
+    let clf = ExpressionClf::new(
+        &["x", "y", "theta"],
+        &[("w1", 0.9), ("w2", 1.5)],
+        "w1/2*((x_d - x)^2 + (y_d - y)^2) + w2*(1 - cos(theta - atan2(y_d - y, x_d - x)))",
+        10.0,
+    )
+    .unwrap();
+    let b = ExpressionBarrier::new(
+        &["x", "y", "theta"],
+        &[
+            ("cx", -1.1667),
+            ("cy", -1.5),
+            ("r", 0.7906),
+            ("q1", 0.7),
+            ("q2", 0.3),
+        ],
+        "q1*((x - cx)^2 + (y - cy)^2 - r^2) + q2*cos(theta - atan2(y - cy, x - cx))",
+        1,
+        vec![5.0],
+    )
+    .unwrap();
+    let r = w.reference.clone().unwrap();
+    let mut x = w.x.clone();
+    let mut run = |x: &[f64]| {
+        ws.update(&w.model, x, 1).unwrap();
+        cbc_moments(&mut ws, &b, &mut mom).unwrap();
+        clc_moments(&mut ws, &clf, &r.0, &r.1, &mut mom).unwrap();
+    };
+    run(&x);
+    let n = count(|| {
+        for i in 0..50 {
+            x[1] = -1.0 + 0.01 * i as f64;
+            run(&x);
+        }
+    });
+    assert_eq!(n, 0, "expressions, relative degree 1: {n} allocations");
+    let w = pendulum_control_written(150, 3, Written::Expressions).unwrap();
+    let b = ExpressionBarrier::new(
+        &["theta", "omega"],
+        &[
+            ("tc", std::f64::consts::FRAC_PI_4),
+            ("d", std::f64::consts::FRAC_PI_8),
+        ],
+        "cos(d) - cos(theta - tc)",
+        2,
+        vec![1.0, 3.0],
+    )
+    .unwrap();
+    let mut ws = MomentWorkspace::new(&w.model);
+    let mut mom = ConditionMoments::zeros(1);
+    let mut x = w.x.clone();
+    ws.update(&w.model, &x, 2).unwrap();
+    cbc_moments(&mut ws, &b, &mut mom).unwrap();
+    let n = count(|| {
+        for i in 0..50 {
+            x[1] = -0.01 + 0.01 * i as f64;
+            ws.update(&w.model, &x, 2).unwrap();
+            cbc_moments(&mut ws, &b, &mut mom).unwrap();
+        }
+    });
+    assert_eq!(n, 0, "expressions, relative degree 2: {n} allocations");
+}

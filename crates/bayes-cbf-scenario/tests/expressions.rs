@@ -143,3 +143,38 @@ fn bad_expressions_in_scenarios_name_the_field() {
     .unwrap();
     assert!(e.to_string().contains("needs \"state\""), "{e}");
 }
+
+#[test]
+fn start_spread_draws_the_start_from_the_seed_within_its_bounds() {
+    let start = |seed: u64| {
+        let (sc, _) = scenario::load("unicycle-obstacles", &[format!("seed={seed}")]).unwrap();
+        let built = scenario::build(&sc).unwrap();
+        let spread = sc.start_spread.clone().unwrap();
+        for ((x, s), w) in built.start.iter().zip(&sc.start).zip(&spread) {
+            assert!(
+                (x - s).abs() <= *w,
+                "seed {seed}: {:?} from {:?} ± {spread:?}",
+                built.start,
+                sc.start
+            );
+        }
+        built.start
+    };
+    assert_eq!(start(3), start(3));
+    let starts: Vec<Vec<f64>> = (0..20).map(start).collect();
+    for i in 0..3 {
+        let distinct = starts
+            .iter()
+            .map(|s| s[i].to_bits())
+            .collect::<std::collections::HashSet<_>>();
+        assert_eq!(
+            distinct.len(),
+            20,
+            "coordinate {i} does not vary with the seed"
+        );
+    }
+    // the run starts at the drawn state
+    let (sc, _) = scenario::load("unicycle-obstacles", &["seed=4".into()]).unwrap();
+    let out = scenario::run_scenario(&sc, |_, _| {}).unwrap();
+    assert_eq!(out.result.records[0].x, out.built.start);
+}

@@ -21,35 +21,33 @@ fn sweep(name: &str) -> Vec<SweepRow> {
         shard: Shard { index: 0, count: 1 },
         goal_tolerance: 0.5,
     };
-    run_seeds(&meta, &|_, _| {}).unwrap()
+    let rows = run_seeds(&meta, &|_, _| {}).unwrap();
+    assert_eq!(rows.len(), 100);
+    rows
 }
 
-#[test]
-fn double_integrator_stops_before_the_wall_on_every_seed() {
-    let rows = sweep("double-integrator");
-    assert_eq!(rows.len(), 100);
-    for r in &rows {
-        // h = 1 − p: never negative, and the cart gets within 0.25 of the wall
-        assert!(r.safe && !r.collided, "seed {}: {r:?}", r.seed);
+/// Every seed safe (no barrier below 0 on the fine grid), and its smallest
+/// barrier value below `closest` (the robot is driven up to a barrier).
+fn safe_on_every_seed(rows: &[SweepRow], closest: f64) {
+    for r in rows {
         assert!(
-            (0.0..0.25).contains(&r.min_barrier),
+            r.safe && !r.collided && (0.0..closest).contains(&r.min_barrier),
             "seed {}: {r:?}",
             r.seed
         );
     }
+}
+
+#[test]
+fn double_integrator_stops_before_the_wall_on_every_seed() {
+    // h = 1 − p: the cart gets within 0.25 of the wall
+    safe_on_every_seed(&sweep("double-integrator"), 0.25);
 }
 
 #[test]
 fn unicycle_never_enters_a_disc_on_any_seed() {
     let rows = sweep("unicycle-obstacles");
-    assert_eq!(rows.len(), 100);
-    for r in &rows {
-        assert!(
-            r.safe && !r.collided && r.min_barrier >= 0.0,
-            "seed {}: {r:?}",
-            r.seed
-        );
-    }
+    safe_on_every_seed(&rows, f64::INFINITY);
     // it also gets to the goal, except where a barrier and the CLF meet
     // head-on (the CBF-CLF deadlock, a stop in front of a disc)
     let reached = rows.iter().filter(|r| r.goal_distance < 0.5).count();
@@ -58,28 +56,11 @@ fn unicycle_never_enters_a_disc_on_any_seed() {
 
 #[test]
 fn cartpole_stays_on_its_track_on_every_seed() {
-    let rows = sweep("cartpole-track");
-    assert_eq!(rows.len(), 100);
-    for r in &rows {
-        // both track ends: h ≥ 0, and the cart is driven to within 0.1 of one
-        assert!(r.safe && !r.collided, "seed {}: {r:?}", r.seed);
-        assert!(
-            (0.0..0.1).contains(&r.min_barrier),
-            "seed {}: {r:?}",
-            r.seed
-        );
-    }
+    // both track ends: the cart is driven to within 0.1 of one
+    safe_on_every_seed(&sweep("cartpole-track"), 0.1);
 }
 
 #[test]
 fn quadrotor_touches_neither_floor_nor_obstacle_on_any_seed() {
-    let rows = sweep("quadrotor-floor");
-    assert_eq!(rows.len(), 100);
-    for r in &rows {
-        assert!(
-            r.safe && !r.collided && r.min_barrier >= 0.0,
-            "seed {}: {r:?}",
-            r.seed
-        );
-    }
+    safe_on_every_seed(&sweep("quadrotor-floor"), f64::INFINITY);
 }

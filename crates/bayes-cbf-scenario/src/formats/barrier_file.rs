@@ -234,7 +234,6 @@ impl BarrierSpec {
                 crate::err!("state index {i} out of range ({} state names)", state.len())
             })
         };
-        let p = |v: &[(&str, f64)]| Params(v.iter().map(|(k, x)| (k.to_string(), *x)).collect());
         let (params, h, relative_degree, alpha, k_alpha) = match self {
             BarrierSpec::PendulumSector {
                 theta_c,
@@ -243,7 +242,7 @@ impl BarrierSpec {
                 alpha,
                 k_alpha,
             } => (
-                p(&[("theta_c", *theta_c), ("delta", *delta)]),
+                Params::of(&[("theta_c", *theta_c), ("delta", *delta)]),
                 format!("cos(delta) - cos({} - theta_c)", name(0)?),
                 relative_degree,
                 alpha,
@@ -260,7 +259,7 @@ impl BarrierSpec {
             } => {
                 let (x, y, th) = (name(0)?, name(1)?, name(2)?);
                 (
-                    p(&[("cx", center[0]), ("cy", center[1]), ("r", *radius), ("q1", *q1), ("q2", *q2)]),
+                    Params::of(&[("cx", center[0]), ("cy", center[1]), ("r", *radius), ("q1", *q1), ("q2", *q2)]),
                     format!("q1*(({x} - cx)^2 + ({y} - cy)^2 - r^2) + q2*cos({th} - atan2({y} - cy, {x} - cx))"),
                     relative_degree,
                     alpha,
@@ -276,7 +275,7 @@ impl BarrierSpec {
                 k_alpha,
                 ..
             } => (
-                p(&[("cx", center[0]), ("cy", center[1]), ("r", *radius)]),
+                Params::of(&[("cx", center[0]), ("cy", center[1]), ("r", *radius)]),
                 format!(
                     "({} - cx)^2 + ({} - cy)^2 - r^2",
                     name(indices[0])?,
@@ -391,6 +390,47 @@ mod tests {
                 .unwrap_err();
             let msg = format!("{err:#}");
             assert!(msg.contains(field), "{msg} should name {field}");
+        }
+    }
+
+    #[test]
+    fn every_built_in_barrier_restated_as_an_expression_is_the_same_function() {
+        let names: Vec<String> = ["a", "b", "c"].iter().map(|s| s.to_string()).collect();
+        let specs = [
+            r#"{"type": "pendulum_sector", "theta_c": 0.7854, "delta": 0.3927, "relative_degree": 2, "k_alpha": [1.0, 3.0]}"#,
+            r#"{"type": "circle_heading", "center": [-1.1667, -1.5], "radius": 0.7906, "q1": 0.7, "q2": 0.3, "relative_degree": 1, "alpha": 5.0}"#,
+            r#"{"type": "disc", "state_dim": 3, "indices": [2, 0], "center": [0.5, -0.2], "radius": 0.4, "relative_degree": 1, "alpha": 2.0}"#,
+            r#"{"type": "half_space", "normal": [0.3, -1.2, 2.0], "offset": 0.7, "relative_degree": 2, "k_alpha": [2.0, 3.0]}"#,
+        ];
+        for text in specs {
+            let spec = BarrierSpec::parse(text, "b").unwrap();
+            let a = spec.build().unwrap();
+            let n = a.state_dim();
+            let expr = spec.to_expression(&names[..n]).unwrap();
+            assert!(matches!(expr, BarrierSpec::Expression { .. }), "{expr:?}");
+            let b = expr.build_in(Some(&names[..n])).unwrap();
+            assert_eq!(
+                (a.relative_degree(), a.gains()),
+                (b.relative_degree(), b.gains())
+            );
+            let (mut ga, mut gb) = (vec![0.0; n], vec![0.0; n]);
+            let (mut ha, mut hb) = (vec![0.0; n * n], vec![0.0; n * n]);
+            let mut hd = vec![num_dual::HyperDual64::from(0.0); n];
+            for k in 0..50 {
+                let x: Vec<f64> = (0..n)
+                    .map(|i| ((k * 7 + i * 13) % 23) as f64 / 23.0 * 6.0 - 3.0)
+                    .collect();
+                let va = a.hessian(&x, &mut ga, &mut ha, &mut hd);
+                let vb = b.hessian(&x, &mut gb, &mut hb, &mut hd);
+                let close = |p: f64, q: f64| (p - q).abs() <= 1e-12 * q.abs().max(1.0);
+                assert!(close(va, vb), "{text} at {x:?}: h {va} vs {vb}");
+                for (p, q) in ga.iter().chain(&ha).zip(gb.iter().chain(&hb)) {
+                    assert!(
+                        close(*p, *q),
+                        "{text} at {x:?}: {ga:?} {ha:?} vs {gb:?} {hb:?}"
+                    );
+                }
+            }
         }
     }
 }

@@ -16,6 +16,11 @@ impl Params {
         self.0.is_empty()
     }
 
+    /// Parameters from (name, value) pairs.
+    pub fn of(pairs: &[(&str, f64)]) -> Self {
+        Params(pairs.iter().map(|(k, v)| (k.to_string(), *v)).collect())
+    }
+
     /// The parameters as (name, value) pairs, for the core constructors.
     pub fn pairs(&self) -> Vec<(String, f64)> {
         self.0.iter().map(|(k, v)| (k.clone(), *v)).collect()

@@ -284,9 +284,6 @@ impl PriorSpec {
     /// zero mean as `None`).
     pub fn to_expression(&self) -> Option<SystemExpression> {
         let (state, control) = self.names()?;
-        let params =
-            |v: &[(&str, f64)]| Params(v.iter().map(|(k, x)| (k.to_string(), *x)).collect());
-        let texts = |v: &[&str]| strings(v);
         Some(match self {
             PriorSpec::Zero => return None,
             PriorSpec::Pendulum {
@@ -296,22 +293,22 @@ impl PriorSpec {
             } => SystemExpression {
                 state: Some(state),
                 control: Some(control),
-                params: params(&[("m", *mass), ("l", *length), ("g", *gravity)]),
-                f: texts(&["omega", "-g/l*sin(theta)"]),
-                g: vec![texts(&["0"]), texts(&["1/(m*l)"])],
-                angles: texts(&["theta"]),
+                params: Params::of(&[("m", *mass), ("l", *length), ("g", *gravity)]),
+                f: strings(&["omega", "-g/l*sin(theta)"]),
+                g: vec![strings(&["0"]), strings(&["1/(m*l)"])],
+                angles: strings(&["theta"]),
             },
             PriorSpec::Ackermann { wheelbase } => SystemExpression {
                 state: Some(state),
                 control: Some(control),
-                params: params(&[("L", *wheelbase)]),
-                f: texts(&["0", "0", "0"]),
+                params: Params::of(&[("L", *wheelbase)]),
+                f: strings(&["0", "0", "0"]),
                 g: vec![
-                    texts(&["cos(theta)", "0"]),
-                    texts(&["sin(theta)", "0"]),
-                    texts(&["0", "1/L"]),
+                    strings(&["cos(theta)", "0"]),
+                    strings(&["sin(theta)", "0"]),
+                    strings(&["0", "1/L"]),
                 ],
-                angles: texts(&["theta"]),
+                angles: strings(&["theta"]),
             },
             PriorSpec::Expression(e) => e.clone(),
         })

@@ -4,18 +4,6 @@ use super::{validate_gains, Barrier};
 use crate::error::{check_finite, InputError};
 use num_dual::DualNum;
 
-/// The [`Barrier`] methods that return the stored relative degree and gains.
-macro_rules! order_and_gains {
-    () => {
-        fn relative_degree(&self) -> usize {
-            self.relative_degree
-        }
-        fn gains(&self) -> &[f64] {
-            &self.gains
-        }
-    };
-}
-
 /// Checks an obstacle radius: finite and positive.
 fn check_radius(radius: f64) -> Result<(), InputError> {
     if !(radius.is_finite() && radius > 0.0) {

@@ -121,12 +121,7 @@ impl Barrier for ExpressionBarrier {
         }
         v
     }
-    fn relative_degree(&self) -> usize {
-        self.relative_degree
-    }
-    fn gains(&self) -> &[f64] {
-        &self.gains
-    }
+    order_and_gains!();
     fn name(&self) -> &str {
         &self.name
     }

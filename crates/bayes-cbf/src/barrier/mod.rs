@@ -7,6 +7,18 @@
 //! `n` passes of [`Dual64`] for `∇h`, `n(n+1)/2` passes of [`HyperDual64`]
 //! for `∇²h`.
 
+/// The [`Barrier`] methods (of the built-in and expression barriers) that return the stored relative degree and gains.
+macro_rules! order_and_gains {
+    () => {
+        fn relative_degree(&self) -> usize {
+            self.relative_degree
+        }
+        fn gains(&self) -> &[f64] {
+            &self.gains
+        }
+    };
+}
+
 mod builtins;
 mod callback;
 mod clf;
