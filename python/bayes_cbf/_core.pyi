@@ -144,6 +144,15 @@ class Barrier:
         k_alpha: Optional[Sequence[float]] = None,
     ) -> "Barrier": ...
     @staticmethod
+    def pendulum_sector_edge(
+        theta_c: float,
+        delta: float,
+        edge: Literal["upper", "lower"],
+        relative_degree: int = 2,
+        alpha: Optional[float] = None,
+        k_alpha: Optional[Sequence[float]] = None,
+    ) -> "Barrier": ...
+    @staticmethod
     def circle_heading(
         center: Sequence[float],
         radius: float,

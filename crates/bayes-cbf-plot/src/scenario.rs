@@ -134,20 +134,25 @@ fn pendulum(out: &RunOutput, dir: &Path) -> Result<PathBuf> {
     let rec = &out.result.records;
     let deg = |v: f64| v.to_degrees();
     let mut theta = Panel::new("pendulum angle", "t (s)", "θ (°)");
+    // the sectors of the sector barriers and of their edges, once each
+    let mut sectors: Vec<(f64, f64)> = Vec::new();
     for spec in &out.scenario.barriers {
-        if let bayes_cbf_scenario::barrier_file::BarrierSpec::PendulumSector {
-            theta_c,
-            delta,
-            ..
-        } = spec
+        use bayes_cbf_scenario::barrier_file::BarrierSpec;
+        if let BarrierSpec::PendulumSector { theta_c, delta, .. }
+        | BarrierSpec::PendulumSectorEdge { theta_c, delta, .. } = spec
         {
-            theta.layers.push(Layer::HBand {
-                lo: deg(theta_c - delta),
-                hi: deg(theta_c + delta),
-                color: 3,
-                name: Some("unsafe sector".into()),
-            });
+            if !sectors.contains(&(*theta_c, *delta)) {
+                sectors.push((*theta_c, *delta));
+            }
         }
+    }
+    for (theta_c, delta) in sectors {
+        theta.layers.push(Layer::HBand {
+            lo: deg(theta_c - delta),
+            hi: deg(theta_c + delta),
+            color: 3,
+            name: Some("unsafe sector".into()),
+        });
     }
     let th: Vec<f64> = rec.iter().map(|r| deg(r.x[0])).collect();
     // keep the sector in view

@@ -6,7 +6,7 @@ use crate::convert::{core_err, input_err, matrix, scenario_err, to_numpy, vector
 use crate::models::PyMvgp;
 use bayes_cbf::barrier::{ArrayFn, CallbackBarrier, DynBarrier, DynLyapunov, McSettings, ValueFn};
 use bayes_cbf::control::{ControlOutput, Fallback, SafetyController, SafetySettings};
-use bayes_cbf_scenario::barrier_file::BarrierSpec;
+use bayes_cbf_scenario::barrier_file::{BarrierSpec, EdgeSpec};
 use bayes_cbf_scenario::queries::{check_barrier, condition_moments, status_parts};
 use bayes_cbf_scenario::scenario::ClfSpec;
 use numpy::{PyArray1, PyArrayDyn};
@@ -68,6 +68,39 @@ impl PyBarrier {
         Self::of_spec(BarrierSpec::PendulumSector {
             theta_c,
             delta,
+            relative_degree,
+            alpha,
+            k_alpha,
+        })
+    }
+
+    /// One edge of the sector `theta_c ± delta`, linear in
+    /// `φ = (θ − θ_c) mod 2π`: `h = φ − δ` (`edge="upper"`) or
+    /// `h = 2π − δ − φ` (`edge="lower"`); the two edges together keep the
+    /// pendulum in the free arc with a control-invariant safe set.
+    #[staticmethod]
+    #[pyo3(signature = (theta_c, delta, edge, relative_degree=2, alpha=None, k_alpha=None))]
+    fn pendulum_sector_edge(
+        theta_c: f64,
+        delta: f64,
+        edge: &str,
+        relative_degree: usize,
+        alpha: Option<f64>,
+        k_alpha: Option<Vec<f64>>,
+    ) -> PyResult<Self> {
+        let edge = match edge {
+            "upper" => EdgeSpec::Upper,
+            "lower" => EdgeSpec::Lower,
+            other => {
+                return Err(input_err(format!(
+                    "edge: '{other}' is neither 'upper' nor 'lower'"
+                )))
+            }
+        };
+        Self::of_spec(BarrierSpec::PendulumSectorEdge {
+            theta_c,
+            delta,
+            edge,
             relative_degree,
             alpha,
             k_alpha,

@@ -4,8 +4,10 @@
 //! barriers and the CLF, relative degree 1) or the pendulum (sector
 //! barrier, relative degree 2), as in the paper's Sec. VII.
 
+use crate::barrier_file::BarrierSpec;
 use crate::error::Result;
-use crate::scenario;
+use crate::prior_spec::PriorSpec;
+use crate::scenario::{self, Scenario};
 use bayes_cbf::control::SafetyController;
 use bayes_cbf::gp::Mvgp;
 use bayes_cbf::sim::{sample_uniform, Dataset};
@@ -109,8 +111,15 @@ pub enum Written {
 
 /// A built-in scenario's model (with `k` observations of `data`, the rest
 /// kept for online updates), controller and start state.
-fn from_builtin(name: &str, k: usize, data: Dataset, written: Written) -> Result<ControlWorkload> {
+fn from_builtin(
+    name: &str,
+    adjust: fn(&mut Scenario),
+    k: usize,
+    data: Dataset,
+    written: Written,
+) -> Result<ControlWorkload> {
     let (mut sc, _) = scenario::load(name, &[])?;
+    adjust(&mut sc);
     if written == Written::Expressions {
         sc = scenario::as_expressions(&sc)?;
     }
@@ -141,6 +150,7 @@ pub fn ackermann_control(k: usize, seed: u64) -> Result<ControlWorkload> {
 pub fn ackermann_control_written(k: usize, seed: u64, written: Written) -> Result<ControlWorkload> {
     let mut w = from_builtin(
         "ackermann-bayes-cbf",
+        |_| {},
         k,
         ackermann_data(k + 200, 12.0, seed)?,
         written,
@@ -150,15 +160,37 @@ pub fn ackermann_control_written(k: usize, seed: u64, written: Written) -> Resul
     Ok(w)
 }
 
-/// Pendulum workload: the built-in scenario `pendulum-safe` (zero prior
-/// mean, the unsafe sector `θ_c = 45°`, `Δ = 22.5°`, relative degree 2 with
-/// `k_α = [1, 3]`, `p = 0.99`, `|u| ≤ 20`) with `k` observations, at its
-/// start `θ = 75°`, `ω = −0.01` (Sec. VII-A).
+/// Pendulum workload: the paper's Fig. 6 (Sec. VII-A), the built-in
+/// scenario `pendulum-safe` as the paper wrote it (zero prior mean, the
+/// sector barrier `cos Δ − cos(θ − θ_c)` with `θ_c = 45°`, `Δ = 22.5°`,
+/// relative degree 2 with `k_α = [1, 3]`, the max-margin fallback;
+/// `p = 0.99`, `|u| ≤ 20`) with `k` observations, at its start `θ = 75°`,
+/// `ω = −0.01`.
 pub fn pendulum_control(k: usize, seed: u64) -> Result<ControlWorkload> {
     pendulum_control_written(k, seed, Written::BuiltIn)
 }
 
 /// [`pendulum_control`] with the scenario written as `written`.
 pub fn pendulum_control_written(k: usize, seed: u64, written: Written) -> Result<ControlWorkload> {
-    from_builtin("pendulum-safe", k, pendulum_data(k + 200, seed)?, written)
+    from_builtin(
+        "pendulum-safe",
+        as_in_the_paper,
+        k,
+        pendulum_data(k + 200, seed)?,
+        written,
+    )
+}
+
+/// `pendulum-safe` as the paper wrote it: zero prior mean, one sector
+/// barrier, the max-margin fallback.
+fn as_in_the_paper(sc: &mut Scenario) {
+    sc.gp.prior_mean = PriorSpec::Zero;
+    sc.barriers = vec![BarrierSpec::PendulumSector {
+        theta_c: std::f64::consts::FRAC_PI_4,
+        delta: std::f64::consts::FRAC_PI_8,
+        relative_degree: 2,
+        alpha: None,
+        k_alpha: Some(vec![1.0, 3.0]),
+    }];
+    sc.controller.fallback = "max_margin".into();
 }

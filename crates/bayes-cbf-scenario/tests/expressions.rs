@@ -78,7 +78,8 @@ fn expression_barriers_name_the_states_of_a_built_in_system() {
     let set = "barriers.0={ type = \"expression\", params = { theta_c = 0.7853981633974483, delta = 0.39269908169872414 }, h = \"cos(delta) - cos(theta - theta_c)\", relative_degree = 2, k_alpha = [1.0, 3.0] }";
     let (sc, _) = scenario::load("pendulum-safe", &[set.into(), "steps=100".into()]).unwrap();
     let a = scenario::run_scenario(&sc, |_, _| {}).unwrap();
-    let (sc, _) = scenario::load("pendulum-safe", &["steps=100".into()]).unwrap();
+    let set = "barriers.0={ type = \"pendulum_sector\", theta_c = 0.7853981633974483, delta = 0.39269908169872414, relative_degree = 2, k_alpha = [1.0, 3.0] }";
+    let (sc, _) = scenario::load("pendulum-safe", &[set.into(), "steps=100".into()]).unwrap();
     let b = scenario::run_scenario(&sc, |_, _| {}).unwrap();
     for (x, y) in a.result.records.iter().zip(&b.result.records) {
         for (p, q) in x.u.iter().chain(&x.h).zip(y.u.iter().chain(&y.h)) {
@@ -126,7 +127,9 @@ fn bad_expressions_in_scenarios_name_the_field() {
             "params.delta = \"wide\": expected a number",
         ),
     ] {
-        let e = scenario::load(&file, &[set.to_string()])
+        // barrier 0 as an expression, then the bad override
+        let sector = "barriers.0={ type = \"expression\", params = { theta_c = 0.7853981633974483, delta = 0.39269908169872414 }, h = \"cos(delta) - cos(theta - theta_c)\", relative_degree = 2, k_alpha = [1.0, 3.0] }";
+        let e = scenario::load(&file, &[sector.to_string(), set.to_string()])
             .and_then(|(s, _)| scenario::validate(&s))
             .unwrap_err();
         let msg = format!("{e:#}");

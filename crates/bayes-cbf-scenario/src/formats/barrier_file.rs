@@ -5,6 +5,7 @@ use crate::bail;
 use crate::error::{Context, Result};
 use bayes_cbf::barrier::{
     CircleHeading, Disc, DynBarrier, ExpressionBarrier, HalfSpace, PendulumSector,
+    PendulumSectorEdge, SectorEdge,
 };
 use serde::Deserialize;
 use std::path::Path;
@@ -20,6 +21,25 @@ pub enum BarrierSpec {
         theta_c: f64,
         /// Sector half-width (rad).
         delta: f64,
+        /// Relative degree (1 or 2).
+        relative_degree: usize,
+        /// Gain for relative degree 1.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        alpha: Option<f64>,
+        /// Gains for relative degree 2.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        k_alpha: Option<Vec<f64>>,
+    },
+    /// One edge of the sector `theta_c ± delta` as a linear barrier in
+    /// `φ = (θ − theta_c) mod 2π`: `h = φ − delta` (`edge = "upper"`) or
+    /// `h = 2π − delta − φ` (`edge = "lower"`).
+    PendulumSectorEdge {
+        /// Sector centre (rad).
+        theta_c: f64,
+        /// Sector half-width (rad).
+        delta: f64,
+        /// `"upper"` (`theta_c + delta`) or `"lower"` (`theta_c − delta`).
+        edge: EdgeSpec,
         /// Relative degree (1 or 2).
         relative_degree: usize,
         /// Gain for relative degree 1.
@@ -104,6 +124,25 @@ pub enum BarrierSpec {
     },
 }
 
+/// The `edge` of a `pendulum_sector_edge` barrier.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize, serde::Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum EdgeSpec {
+    /// `theta_c + delta`.
+    Upper,
+    /// `theta_c − delta`.
+    Lower,
+}
+
+impl From<EdgeSpec> for SectorEdge {
+    fn from(e: EdgeSpec) -> Self {
+        match e {
+            EdgeSpec::Upper => SectorEdge::Upper,
+            EdgeSpec::Lower => SectorEdge::Lower,
+        }
+    }
+}
+
 /// Gains from `alpha` (relative degree 1) or `k_alpha` (≥ 2).
 fn gains(r: usize, alpha: &Option<f64>, k_alpha: &Option<Vec<f64>>) -> Result<Vec<f64>> {
     match (r, alpha, k_alpha) {
@@ -146,6 +185,20 @@ impl BarrierSpec {
             } => Arc::new(PendulumSector::new(
                 *theta_c,
                 *delta,
+                *relative_degree,
+                gains(*relative_degree, alpha, k_alpha)?,
+            )?),
+            BarrierSpec::PendulumSectorEdge {
+                theta_c,
+                delta,
+                edge,
+                relative_degree,
+                alpha,
+                k_alpha,
+            } => Arc::new(PendulumSectorEdge::new(
+                *theta_c,
+                *delta,
+                (*edge).into(),
                 *relative_degree,
                 gains(*relative_degree, alpha, k_alpha)?,
             )?),
@@ -248,6 +301,31 @@ impl BarrierSpec {
                 alpha,
                 k_alpha,
             ),
+            BarrierSpec::PendulumSectorEdge {
+                theta_c,
+                delta,
+                edge,
+                relative_degree,
+                alpha,
+                k_alpha,
+            } => {
+                // (θ − θ_c) mod 2π, with its jump at θ_c as the built-in's
+                let phi = format!(
+                    "(pi + atan2(-sin({0} - theta_c), -cos({0} - theta_c)))",
+                    name(0)?
+                );
+                let h = match edge {
+                    EdgeSpec::Upper => format!("{phi} - delta"),
+                    EdgeSpec::Lower => format!("2*pi - delta - {phi}"),
+                };
+                (
+                    Params::of(&[("theta_c", *theta_c), ("delta", *delta)]),
+                    h,
+                    relative_degree,
+                    alpha,
+                    k_alpha,
+                )
+            }
             BarrierSpec::CircleHeading {
                 center,
                 radius,
@@ -380,6 +458,14 @@ mod tests {
             ),
             (r#"{"type": "triangle"}"#, "triangle"),
             (
+                r#"{"type": "pendulum_sector_edge", "theta_c": 0.7, "delta": 0.3, "edge": "middle", "relative_degree": 1, "alpha": 1}"#,
+                "middle",
+            ),
+            (
+                r#"{"type": "pendulum_sector_edge", "theta_c": 0.7, "delta": 0.3, "relative_degree": 1, "alpha": 1}"#,
+                "edge",
+            ),
+            (
                 r#"{"type": "half_space", "normal": [0, 0], "offset": 1, "relative_degree": 1, "alpha": 1}"#,
                 "normal",
             ),
@@ -398,6 +484,8 @@ mod tests {
         let names: Vec<String> = ["a", "b", "c"].iter().map(|s| s.to_string()).collect();
         let specs = [
             r#"{"type": "pendulum_sector", "theta_c": 0.7854, "delta": 0.3927, "relative_degree": 2, "k_alpha": [1.0, 3.0]}"#,
+            r#"{"type": "pendulum_sector_edge", "theta_c": 0.7854, "delta": 0.3927, "edge": "upper", "relative_degree": 2, "k_alpha": [1.0, 3.0]}"#,
+            r#"{"type": "pendulum_sector_edge", "theta_c": -2.5, "delta": 0.2, "edge": "lower", "relative_degree": 1, "alpha": 2.0}"#,
             r#"{"type": "circle_heading", "center": [-1.1667, -1.5], "radius": 0.7906, "q1": 0.7, "q2": 0.3, "relative_degree": 1, "alpha": 5.0}"#,
             r#"{"type": "disc", "state_dim": 3, "indices": [2, 0], "center": [0.5, -0.2], "radius": 0.4, "relative_degree": 1, "alpha": 2.0}"#,
             r#"{"type": "half_space", "normal": [0.3, -1.2, 2.0], "offset": 0.7, "relative_degree": 2, "k_alpha": [2.0, 3.0]}"#,

@@ -63,6 +63,83 @@ impl Barrier for PendulumSector {
     }
 }
 
+/// Which edge of a pendulum's unsafe sector a [`PendulumSectorEdge`] keeps.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum SectorEdge {
+    /// The edge `θ_c + Δ`, reached by turning clockwise (decreasing `θ`).
+    Upper,
+    /// The edge `θ_c − Δ`, reached by turning counter-clockwise.
+    Lower,
+}
+
+/// One edge of a pendulum's unsafe sector as a linear barrier in the angle
+/// measured from the sector's centre:
+/// `φ(θ) = (θ − θ_c) mod 2π ∈ [0, 2π)`, `h = φ − Δ` for the upper edge and
+/// `h = 2π − Δ − φ` for the lower edge. The two together keep `θ` in the
+/// arc the sector leaves free; `φ` jumps only at `θ = θ_c`, inside the
+/// sector, so `h` is smooth (and `∇²h = 0`) on the whole safe arc, whether
+/// or not the simulation wraps `θ`.
+///
+/// Unlike [`PendulumSector`], whose `∂h/∂θ = sin(θ − θ_c)` vanishes at the
+/// far side `θ_c + π` (there `ḧ = cos(θ − θ_c) ω² = −ω²` whatever the
+/// torque, so the relative-degree-2 condition `ḧ + k₁ḣ + k₀h ≥ 0` has no
+/// solution once `ω² > k₀ (1 + cos Δ)`), the gradient here is constant:
+/// `ḧ = ±ω̇`, and the relative-degree-2 safe set
+/// `{h ≥ 0, ḣ + λ h ≥ 0}` (`λ` the slower root of `s² + k₁ s + k₀`) is
+/// control-invariant when the torque bound affords `|ω̇| ≥ λ² (2π − 2Δ)`.
+#[derive(Debug, Clone, PartialEq)]
+pub struct PendulumSectorEdge {
+    /// Sector centre `θ_c` (rad).
+    pub theta_c: f64,
+    /// Half-width `Δ` (rad).
+    pub delta: f64,
+    /// The edge this barrier keeps.
+    pub edge: SectorEdge,
+    relative_degree: usize,
+    gains: Vec<f64>,
+}
+
+impl PendulumSectorEdge {
+    /// Validated constructor; `gains` = `[α]` (r = 1) or `k_α` (r = 2).
+    pub fn new(
+        theta_c: f64,
+        delta: f64,
+        edge: SectorEdge,
+        relative_degree: usize,
+        gains: Vec<f64>,
+    ) -> Result<Self, InputError> {
+        // the same checks as the sector's
+        let s = PendulumSector::new(theta_c, delta, relative_degree, gains)?;
+        Ok(Self {
+            theta_c: s.theta_c,
+            delta: s.delta,
+            edge,
+            relative_degree: s.relative_degree,
+            gains: s.gains,
+        })
+    }
+}
+
+impl Barrier for PendulumSectorEdge {
+    fn state_dim(&self) -> usize {
+        2
+    }
+    fn h<D: DualNum<Primitive = f64> + Copy>(&self, x: &[D]) -> D {
+        let tau = std::f64::consts::TAU;
+        let d = x[0] - self.theta_c;
+        // the whole turns are a constant: φ has the derivatives of θ
+        let phi = d - (d.re() / tau).floor() * tau;
+        match self.edge {
+            SectorEdge::Upper => phi - self.delta,
+            SectorEdge::Lower => -phi + (tau - self.delta),
+        }
+    }
+    order_and_gains!();
+    fn name(&self) -> &str {
+        "pendulum_sector_edge"
+    }
+}
+
 /// Obstacle barrier of the Ackermann vehicle with a heading term
 /// (paper, Sec. VII-B):
 /// `h(x) = q1 (‖x[0:2] − o‖² − r²) + q2 cos(θ − atan2(y − o_y, x − o_x))`.
@@ -243,5 +320,43 @@ impl Barrier for HalfSpace {
     order_and_gains!();
     fn name(&self) -> &str {
         "half_space"
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::super::DynBarrier;
+    use super::*;
+    use num_dual::HyperDual64;
+    use std::f64::consts::{PI, TAU};
+
+    #[test]
+    fn sector_edges_are_linear_in_the_angle_from_the_centre_on_the_free_arc() {
+        let (tc, d) = (PI / 4.0, PI / 8.0);
+        let up = PendulumSectorEdge::new(tc, d, SectorEdge::Upper, 2, vec![1.0, 3.0]).unwrap();
+        let lo = PendulumSectorEdge::new(tc, d, SectorEdge::Lower, 2, vec![1.0, 3.0]).unwrap();
+        let (mut g, mut hs, mut hd) = (vec![0.0; 2], vec![0.0; 4], vec![HyperDual64::from(0.0); 2]);
+        for i in 0..=200 {
+            // the free arc, in unwrapped and in wrapped coordinates
+            let s = d + (TAU - 2.0 * d) * i as f64 / 200.0;
+            for turns in [-2.0, -1.0, 0.0, 1.0] {
+                let x = [tc + s + turns * TAU, 0.3];
+                let hu = up.hessian(&x, &mut g, &mut hs, &mut hd);
+                assert!((hu - (s - d)).abs() < 1e-12, "{x:?}: {hu}");
+                assert_eq!((g[0], g[1]), (1.0, 0.0));
+                assert!(hs.iter().all(|v| *v == 0.0));
+                let hl = lo.hessian(&x, &mut g, &mut hs, &mut hd);
+                assert!((hl - (TAU - d - s)).abs() < 1e-12, "{x:?}: {hl}");
+                assert_eq!((g[0], g[1]), (-1.0, 0.0));
+            }
+        }
+        // inside the sector one edge is negative: the centre itself, and
+        // points either side of it
+        for s in [-0.3, 0.0, 0.3] {
+            let x = [tc + s, 0.0];
+            assert!(up.value(&x).min(lo.value(&x)) < 0.0, "{s}");
+        }
+        assert!(PendulumSectorEdge::new(tc, 0.0, SectorEdge::Upper, 1, vec![1.0]).is_err());
+        assert!(PendulumSectorEdge::new(tc, d, SectorEdge::Upper, 2, vec![1.0]).is_err());
     }
 }

@@ -27,7 +27,9 @@ mod expression;
 mod moments;
 mod monte_carlo;
 
-pub use builtins::{CircleHeading, Disc, HalfSpace, PendulumSector};
+pub use builtins::{
+    CircleHeading, Disc, HalfSpace, PendulumSector, PendulumSectorEdge, SectorEdge,
+};
 pub use callback::{ArrayFn, CallbackBarrier, ValueFn};
 pub use clf::{AckermannClf, DynLyapunov, Lyapunov};
 pub use condition::true_condition;
