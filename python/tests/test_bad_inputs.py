@@ -63,6 +63,7 @@ CONSTRUCTOR_CASES = [
         '{"type": "half_space", "normal": [1], "offset": 0, "relative_degree": 1, "alpha": 1, "beta": 2}'), "beta"),
     ("barrier missing gains", lambda: bc.Barrier.pendulum_sector(0.0, 0.3, relative_degree=2), "k_alpha"),
     ("barrier negative gain", lambda: bc.Barrier.half_space([1.0], 0.0, alpha=-1.0), "alpha"),
+    ("sector edge unknown", lambda: bc.Barrier.pendulum_sector_edge(0.0, 0.3, "middle", k_alpha=[1.0, 3.0]), "edge"),
     ("callback not callable", lambda: bc.Barrier.callback(3, lambda x: x), "h"),
     ("callback rd2 without hess", lambda: bc.Barrier.callback(
         lambda x: 1.0, lambda x: x, state_dim=2, relative_degree=2, k_alpha=[1.0, 1.0]), "hess"),

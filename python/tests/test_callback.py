@@ -80,3 +80,16 @@ def test_a_raising_callback_is_an_input_error_naming_it(model):
     # the barrier recovers once its callbacks behave
     assert bc.moments(model, bc.Barrier.callback(
         lambda x: 1.0, lambda x: np.zeros(2), state_dim=2), np.zeros(2), np.zeros(1))[0] > 0
+
+
+def test_sector_edges_are_linear_in_the_angle_from_the_centre():
+    tc, d = 0.7854, 0.3927
+    up = bc.Barrier.pendulum_sector_edge(tc, d, "upper", k_alpha=[1.0, 3.0])
+    lo = bc.Barrier.pendulum_sector_edge(tc, d, "lower", k_alpha=[1.0, 3.0])
+    for s in np.linspace(d, 2 * np.pi - d, 9):
+        for turns in (-1, 0, 1):
+            x = np.array([tc + s + 2 * np.pi * turns, 0.4])
+            assert abs(up.value(x) - (s - d)) < 1e-12
+            assert abs(lo.value(x) - (2 * np.pi - d - s)) < 1e-12
+            np.testing.assert_array_equal(up.gradient(x), [1.0, 0.0])
+            np.testing.assert_array_equal(lo.gradient(x), [-1.0, 0.0])

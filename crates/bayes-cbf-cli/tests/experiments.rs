@@ -100,7 +100,7 @@ fn calibration_and_soak_write_their_files() {
     assert_eq!(s["scenario"], "calibration");
     assert!(is_png(&out.join("calibration.png")));
     let csv = std::fs::read_to_string(out.join("episodes.csv")).unwrap();
-    assert_eq!(csv.lines().count(), 1 + 2 * 2 * 4);
+    assert_eq!(csv.lines().count(), 1 + 2 * 2 * 7);
     let out = dir.join("soak");
     let r = run(&[
         "run",

@@ -87,8 +87,8 @@ fn quick_calibration() {
     let rows = s["rows"].as_array().unwrap();
     assert_eq!(
         rows.len(),
-        2 * 2 * 4,
-        "2 systems × 2 truths × 4 controllers"
+        2 * 2 * 7,
+        "2 systems × 2 truths × 7 controllers"
     );
     for r in rows {
         assert_eq!(r["non_finite_records"], 0, "{r}");
@@ -189,6 +189,33 @@ fn quick_calibration() {
             1.0 - p
         );
     }
+    // recalibration under a wrong prior (the vehicle's wheelbase 12 against
+    // the model's 1): after each episode's first 100 steps the active steps
+    // violate the true condition at most 1.5 (1 − p) (the 99.9 % interval's
+    // lower end), where the posterior as it is violates it on a quarter of
+    // them; a right model keeps its promise (at most 1 − p)
+    for (p, plain, recal) in [
+        (0.9, bayes[0], "bayes-cbf p=0.9 recalibrated"),
+        (0.99, bayes[1], "bayes-cbf p=0.99 recalibrated"),
+    ] {
+        let late = |truth: &str, c: &str| {
+            let v = &calibration_row(&s, "ackermann", truth, c)["true_condition_violated"]
+                ["active_steps_after_burn_in"];
+            (v["count"].as_u64().unwrap(), v["of"].as_u64().unwrap())
+        };
+        let (k, n) = late("mis_specified", recal);
+        assert!(n >= 300, "{recal}: only {n} active steps after the burn-in");
+        let (lo, _) = wilson_999(k, n);
+        assert!(lo <= 1.5 * (1.0 - p), "{recal}: {k} of {n}");
+        let (kp, np) = late("mis_specified", plain);
+        assert!(
+            (kp as f64 / np as f64) > 10.0 * (1.0 - p).max(k as f64 / n as f64) / 4.0,
+            "{plain}: {kp} of {np} against {k} of {n} recalibrated"
+        );
+        let (k, n) = late("well_specified", recal);
+        let (lo, _) = wilson_999(k, n);
+        assert!(lo <= 1.0 - p, "well specified {recal}: {k} of {n}");
+    }
     // paired episodes: the mean CBF violates h where the Bayes CBF does not
     // at least as often as the other way round
     for p in s["paired_mean_vs_bayes"].as_array().unwrap() {
@@ -202,7 +229,7 @@ fn quick_calibration() {
     let csv = &one.tables()[0].csv;
     assert_eq!(
         csv.lines().count(),
-        1 + 2 * 2 * 4 * s["episodes"].as_u64().unwrap() as usize
+        1 + 2 * 2 * 7 * s["episodes"].as_u64().unwrap() as usize
     );
 }
 

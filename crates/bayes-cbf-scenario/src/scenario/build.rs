@@ -10,7 +10,8 @@ use crate::parse::parse_rank;
 use crate::prior_spec::{PriorSpec, SystemNames};
 use bayes_cbf::barrier::DynBarrier;
 use bayes_cbf::control::{
-    Fallback, SafetyController, SafetySettings, SelfTriggered, TauSource, TriggerSettings,
+    Fallback, RecalibrationSettings, SafetyController, SafetySettings, SelfTriggered, TauSource,
+    TriggerSettings,
 };
 use bayes_cbf::gp::{FitSettings, LipschitzSettings, Mvgp, MvgpHyper, PriorMean, Rbf};
 use bayes_cbf::sim::{
@@ -305,6 +306,10 @@ pub fn build(s: &Scenario) -> Result<Built> {
         xdot_noise: l.xdot_noise,
         seed: s.seed,
         trigger,
+        recalibration: (l.recalibrate && l.update_every > 0).then_some(RecalibrationSettings {
+            rate: l.recalibration_rate,
+            ..RecalibrationSettings::default()
+        }),
     };
     loop_settings
         .validate()

@@ -24,6 +24,7 @@ use crate::input_map_spec::FeatureSpec;
 use crate::params::Params;
 use crate::prior_spec::PriorSpec;
 use crate::{bail, err};
+use bayes_cbf::control::RecalibrationSettings;
 use serde::{Deserialize, Serialize};
 use std::path::Path;
 
@@ -269,6 +270,11 @@ pub struct LearningSpec {
     pub rank_b: String,
     /// Noise on the measured ẋ.
     pub xdot_noise: f64,
+    /// Recalibrate the barrier conditions' variances online after every
+    /// model update (`bayes_cbf::control::Recalibrator`); on by default.
+    pub recalibrate: bool,
+    /// Step size `η` of the recalibration's `log κ`.
+    pub recalibration_rate: f64,
 }
 
 impl Default for LearningSpec {
@@ -285,6 +291,8 @@ impl Default for LearningSpec {
             rank_a: "full".into(),
             rank_b: "full".into(),
             xdot_noise: 0.0,
+            recalibrate: true,
+            recalibration_rate: RecalibrationSettings::default().rate,
         }
     }
 }

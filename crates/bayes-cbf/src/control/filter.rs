@@ -1,5 +1,6 @@
 //! The safety filter around a reference control `û`.
 
+use super::recalibration::{RecalibrationSettings, Recalibrator};
 use super::socp::{ConeProgram, SocpShape, SolveStatus};
 use crate::barrier::{
     cbc_moments, clc_moments, factor_probability, mc_cbc_moments, quantile_factor,
@@ -683,6 +684,18 @@ pub struct SafetyController {
     max_degree: usize,
     mc: McSettings,
     steps: u64,
+    recal: Option<Recalibration>,
+}
+
+/// The recalibration state: the inflations, and the last step's state,
+/// control and uninflated condition moments `(E, Var)` at that control.
+#[derive(Debug, Clone)]
+struct Recalibration {
+    inflation: Recalibrator,
+    x: Vec<f64>,
+    u: Vec<f64>,
+    predicted: Vec<Option<(f64, f64)>>,
+    post: ConditionMoments,
 }
 
 impl std::fmt::Debug for SafetyController {
@@ -745,7 +758,62 @@ impl SafetyController {
                 ..McSettings::default()
             },
             steps: 0,
+            recal: None,
         })
+    }
+
+    /// Turns the online recalibration of the barrier conditions' variances
+    /// on (`Some`) or off (see [`super::Recalibrator`]); on, every step's
+    /// condition variances are inflated by `κ_i²` and
+    /// [`SafetyController::recalibrate`] adapts `κ_i` after each model
+    /// update. Turning it on again restarts from `κ = 1`.
+    pub fn set_recalibration(
+        &mut self,
+        settings: Option<RecalibrationSettings>,
+    ) -> Result<(), InputError> {
+        self.recal = match settings {
+            None => None,
+            Some(s) => Some(Recalibration {
+                inflation: Recalibrator::new(self.barriers.len(), s)?,
+                x: Vec::new(),
+                u: Vec::new(),
+                predicted: vec![None; self.barriers.len()],
+                post: ConditionMoments::zeros(self.filter.shape.m),
+            }),
+        };
+        Ok(())
+    }
+
+    /// The recalibration's inflations, if it is on.
+    pub fn recalibrator(&self) -> Option<&Recalibrator> {
+        self.recal.as_ref().map(|r| &r.inflation)
+    }
+
+    /// Adapts the inflations to the model `model` that has learned the last
+    /// step's observation: each barrier's condition at the last step's state
+    /// and control, before and after, is one update of its `κ_i`
+    /// ([`Recalibrator::update`]). Does nothing when the recalibration is
+    /// off or no step was taken; barriers of relative degree > 2 (Monte
+    /// Carlo moments) are not recalibrated.
+    pub fn recalibrate<K: Kernel>(&mut self, model: &Mvgp<K>) -> Result<(), Error> {
+        let (Some(rc), Some(ws)) = (self.recal.as_mut(), self.ws.as_mut()) else {
+            return Ok(());
+        };
+        if rc.x.is_empty() {
+            return Ok(());
+        }
+        ws.update(model, &rc.x, self.max_degree)?;
+        let p = self.filter.settings.probability;
+        for (i, b) in self.barriers.iter().enumerate() {
+            let Some(before) = rc.predicted[i].take() else {
+                continue;
+            };
+            cbc_moments(ws, b.as_ref(), &mut rc.post)?;
+            let after = (rc.post.mean(&rc.u), rc.post.variance(&rc.u));
+            let c = quantile_factor(p, b.relative_degree())?;
+            rc.inflation.update(i, before, after, c, 1.0 - p);
+        }
+        Ok(())
     }
 
     /// Monte Carlo settings used for barriers of relative degree > 2
@@ -804,6 +872,15 @@ impl SafetyController {
             }
         }
         self.steps += 1;
+        if let Some(rc) = &self.recal {
+            for (i, mom) in self.cbcs.iter_mut().enumerate() {
+                let k = rc.inflation.inflation(i);
+                if k != 1.0 {
+                    mom.cov *= k * k;
+                    mom.v *= k;
+                }
+            }
+        }
         let clc = match &self.clf {
             Some(c) => {
                 let zeros = self.zero_reference.as_slice();
@@ -813,6 +890,18 @@ impl SafetyController {
             }
             None => None,
         };
-        self.filter.solve(&self.cbcs, clc, u_ref, out)
+        self.filter.solve(&self.cbcs, clc, u_ref, out)?;
+        if let Some(rc) = self.recal.as_mut() {
+            rc.x.clear();
+            rc.x.extend_from_slice(x);
+            rc.u.clear();
+            rc.u.extend_from_slice(&out.u);
+            for (i, (b, mom)) in self.barriers.iter().zip(&self.cbcs).enumerate() {
+                let k = rc.inflation.inflation(i);
+                rc.predicted[i] = (b.relative_degree() <= 2)
+                    .then(|| (mom.mean(&out.u), mom.variance(&out.u) / (k * k)));
+            }
+        }
+        Ok(())
     }
 }

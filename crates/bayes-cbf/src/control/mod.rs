@@ -2,6 +2,7 @@
 //! and Prop. 4), typed infeasibility (Remark 2) and declared fallbacks.
 
 mod filter;
+mod recalibration;
 mod self_trigger;
 mod socp;
 
@@ -9,6 +10,7 @@ pub use filter::{
     ConstraintReport, ControlOutput, ControlStatus, Fallback, InfeasibleInfo, KktData,
     SafetyController, SafetyFilter, SafetySettings,
 };
+pub use recalibration::{RecalibrationSettings, Recalibrator};
 pub use self_trigger::{
     barrier_gradient_and_hessian_bounds, barrier_gradient_bound, evaluate_trigger, tau_in_cuboid,
     tau_relative_degree_one, tau_relative_degree_r, velocity_bound, SelfTriggered, ShiftedBarrier,

@@ -8,8 +8,8 @@ use super::reference::{Reference, ReferenceOut};
 use super::{SimSettings, Simulator};
 use crate::barrier::DynBarrier;
 use crate::control::{
-    evaluate_trigger, ControlOutput, ControlStatus, SafetyController, TriggerReport,
-    TriggerSettings,
+    evaluate_trigger, ControlOutput, ControlStatus, RecalibrationSettings, SafetyController,
+    TriggerReport, TriggerSettings,
 };
 use crate::error::{Error, InputError};
 use crate::gp::{fit, FitSettings, Mvgp};
@@ -104,6 +104,10 @@ pub struct LoopSettings {
     /// if [`TriggerSettings::hold`], hold each control for `τ_k` until the
     /// horizon `steps · dt` (so `steps` counts fixed-step triggers only).
     pub trigger: Option<TriggerSettings>,
+    /// Online recalibration of the barrier conditions' variances after
+    /// every model update ([`crate::control::Recalibrator`]); `None` keeps
+    /// the posterior variances as they are.
+    pub recalibration: Option<RecalibrationSettings>,
 }
 
 impl Default for LoopSettings {
@@ -123,6 +127,7 @@ impl Default for LoopSettings {
             xdot_noise: 0.0,
             seed: 0,
             trigger: None,
+            recalibration: Some(RecalibrationSettings::default()),
         }
     }
 }
@@ -160,6 +165,9 @@ impl LoopSettings {
             ));
         }
         SimSettings::new(self.sim.internal_step, self.sim.process_noise)?;
+        if let Some(r) = &self.recalibration {
+            r.validate()?;
+        }
         if let Some(t) = &self.trigger {
             // the cuboid's dimension is checked against the system in the loop
             t.validate(t.lipschitz.sides.len())?;
@@ -206,6 +214,9 @@ pub struct StepRecord {
     pub hold: f64,
     /// The trigger evaluation, when [`LoopSettings::trigger`] is set.
     pub trigger: Option<TriggerReport>,
+    /// The variance inflation `κ_i` of each barrier's condition at this
+    /// step (empty when the recalibration is off).
+    pub inflation: Vec<f64>,
 }
 
 impl StepRecord {
@@ -338,6 +349,7 @@ impl<'a> ClosedLoop<'a> {
                 );
             }
         }
+        controller.set_recalibration(settings.recalibration)?;
         Ok(Self {
             truth,
             model,
@@ -497,6 +509,11 @@ impl<'a> ClosedLoop<'a> {
             &mut self.out,
         )?;
         let control_us = start.elapsed().as_secs_f64() * 1e6;
+        let inflation: Vec<f64> = self
+            .controller
+            .recalibrator()
+            .map(|r| (0..self.barriers.len()).map(|i| r.inflation(i)).collect())
+            .unwrap_or_default();
         let trigger = match &self.settings.trigger {
             Some(ts) => Some(evaluate_trigger(
                 &self.model,
@@ -579,7 +596,9 @@ impl<'a> ClosedLoop<'a> {
             })
             .collect();
         self.buffer.push((mid, self.out.u.clone(), xdot));
-        self.learn(k);
+        if self.learn(k) {
+            self.controller.recalibrate(&self.model)?;
+        }
         let refit = self.refit(k);
         let rec = StepRecord {
             t,
@@ -599,6 +618,7 @@ impl<'a> ClosedLoop<'a> {
             monitors: mon_min,
             hold,
             trigger,
+            inflation,
         };
         self.k += 1;
         self.t_now += hold;
@@ -606,11 +626,11 @@ impl<'a> ClosedLoop<'a> {
     }
 
     /// Adds the buffered observations when an update is due after step `k`,
-    /// keeping the data within the [`DataPolicy`].
-    fn learn(&mut self, k: usize) {
+    /// keeping the data within the [`DataPolicy`]; whether it was due.
+    fn learn(&mut self, k: usize) -> bool {
         let every = self.settings.update_every;
         if every == 0 || !(k + 1).is_multiple_of(every) {
-            return;
+            return false;
         }
         for (xo, uo, xd) in self.buffer.drain(..) {
             // an observation the factor cannot absorb even with bounded
@@ -643,6 +663,7 @@ impl<'a> ClosedLoop<'a> {
                 }
             }
         }
+        true
     }
 
     /// Swaps in a background refit that is due and runs or launches a

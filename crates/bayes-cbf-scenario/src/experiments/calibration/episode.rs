@@ -119,31 +119,36 @@ pub(crate) struct ControllerKind {
     pub p: f64,
     /// The mean CBF: `c = 0` (p = 0.5 at relative degree 1).
     pub mean: bool,
+    /// Online recalibration of the condition's variance
+    /// ([`bayes_cbf::control::Recalibrator`], default settings).
+    pub recalibrate: bool,
 }
 
-/// Bayes CBF at p ∈ {0.9, 0.99, 0.999} and the mean CBF.
-pub(crate) const CONTROLLERS: [ControllerKind; 4] = [
-    ControllerKind {
-        name: "bayes-cbf p=0.9",
-        p: 0.9,
-        mean: false,
-    },
-    ControllerKind {
-        name: "bayes-cbf p=0.99",
-        p: 0.99,
-        mean: false,
-    },
-    ControllerKind {
-        name: "bayes-cbf p=0.999",
-        p: 0.999,
-        mean: false,
-    },
+/// Bayes CBF at p ∈ {0.9, 0.99, 0.999} with the posterior as it is and
+/// with online recalibration, and the mean CBF.
+pub(crate) const CONTROLLERS: [ControllerKind; 7] = [
+    bayes("bayes-cbf p=0.9", 0.9, false),
+    bayes("bayes-cbf p=0.99", 0.99, false),
+    bayes("bayes-cbf p=0.999", 0.999, false),
+    bayes("bayes-cbf p=0.9 recalibrated", 0.9, true),
+    bayes("bayes-cbf p=0.99 recalibrated", 0.99, true),
+    bayes("bayes-cbf p=0.999 recalibrated", 0.999, true),
     ControllerKind {
         name: "mean-cbf",
         p: 0.5,
         mean: true,
+        recalibrate: false,
     },
 ];
+
+const fn bayes(name: &'static str, p: f64, recalibrate: bool) -> ControllerKind {
+    ControllerKind {
+        name,
+        p,
+        mean: false,
+        recalibrate,
+    }
+}
 
 impl ControllerKind {
     /// The probability given to the SOCP: `p`, or for the mean CBF the one
@@ -304,6 +309,7 @@ pub(crate) fn setup(system: System, truth: TruthKind, seed: u64, steps: usize) -
         refit_every: 0,
         xdot_noise: 0.0,
         seed: rng.random(),
+        recalibration: None,
         ..LoopSettings::default()
     };
     let truth_seed: u64 = rng.random();
@@ -427,6 +433,13 @@ pub(crate) struct EpisodeStats {
     pub active_steps: usize,
     /// Active steps whose true condition is negative.
     pub active_violations: usize,
+    /// Active steps from step [`BURN_IN`] on.
+    #[serde(default)]
+    pub active_steps_late: usize,
+    /// Active steps from step [`BURN_IN`] on whose true condition is
+    /// negative.
+    #[serde(default)]
+    pub active_violations_late: usize,
     /// Steps with an infeasible SOCP (the fallback was applied).
     pub infeasible_steps: usize,
     /// Standardised true conditions `z = (C_true − E[C]) / √Var[C]` of the
@@ -481,7 +494,10 @@ fn run_inner(
     seed: u64,
     steps: usize,
 ) -> Result<EpisodeStats> {
-    let s = setup(system, truth, seed, steps)?;
+    let mut s = setup(system, truth, seed, steps)?;
+    s.loop_settings.recalibration = kind
+        .recalibrate
+        .then(bayes_cbf::control::RecalibrationSettings::default);
     let mut ctrl = controller(system, kind, &s.barrier)?;
     let mut reference: Box<dyn Reference> = match system {
         System::Vehicle => Box::new(Pursuit {
@@ -536,6 +552,10 @@ fn replay_moments(s: &Setup, r: &LoopResult) -> Result<Vec<(f64, f64)>> {
     }
     Ok(out)
 }
+
+/// Steps of an episode before its active-step rate is counted again
+/// separately (the recalibration's burn-in).
+pub(crate) const BURN_IN: usize = 100;
 
 /// Standard normal quantiles `Φ⁻¹(q)` for `q` = 0.5, 0.1, 0.01, 0.001.
 pub(crate) const NORMAL_QUANTILES: [(f64, f64); 4] = [
@@ -622,8 +642,14 @@ fn summarise(system: System, s: &Setup, r: &LoopResult, moments: &[(f64, f64)]) 
         if active {
             st.active_steps += 1;
             st.active_violations += violated as usize;
+            if k >= BURN_IN {
+                st.active_steps_late += 1;
+                st.active_violations_late += violated as usize;
+            }
         }
+        // the standard deviation the controller used
         let (mean, std) = moments[k];
+        let std = std * rec.inflation.first().copied().unwrap_or(1.0);
         if std > 0.0 {
             let (z, q) = ((c - mean) / std, normal_cdf(-mean / std));
             st.z[0].push(z, q);

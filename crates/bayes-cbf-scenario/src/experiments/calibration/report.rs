@@ -30,6 +30,8 @@ pub(super) struct Row {
     pub cbc: Vec<(usize, usize)>,
     /// Per episode: the same over active steps.
     pub active: Vec<(usize, usize)>,
+    /// Per episode: the same over active steps from step `BURN_IN` (100) on.
+    pub active_late: Vec<(usize, usize)>,
     /// Per episode: `(infeasible steps, steps)`.
     pub infeasible: Vec<(usize, usize)>,
     pub min_h: Vec<f64>,
@@ -84,6 +86,7 @@ pub(super) fn tables(plan: &Plan, results: &[(Task, EpisodeStats)]) -> Vec<Row> 
                     h_steps: Vec::new(),
                     cbc: Vec::new(),
                     active: Vec::new(),
+                    active_late: Vec::new(),
                     infeasible: Vec::new(),
                     min_h: Vec::new(),
                     min_distance: Vec::new(),
@@ -103,6 +106,8 @@ pub(super) fn tables(plan: &Plan, results: &[(Task, EpisodeStats)]) -> Vec<Row> 
                     row.h_steps.push((s.steps_h_violated, s.steps));
                     row.cbc.push((s.cbc_violations, s.solved_steps));
                     row.active.push((s.active_violations, s.active_steps));
+                    row.active_late
+                        .push((s.active_violations_late, s.active_steps_late));
                     row.infeasible.push((s.infeasible_steps, s.steps));
                     row.min_h.push(s.min_h);
                     row.non_finite += s.non_finite;
@@ -142,6 +147,7 @@ fn row_json(r: &Row) -> Value {
         "true_condition_violated": {
             "solved_steps": pooled(&r.cbc),
             "active_steps": pooled(&r.active),
+            "active_steps_after_burn_in": pooled(&r.active_late),
             "expected_by_the_model": {"solved_steps": num(r.z[0].expected), "active_steps": num(r.z[1].expected)},
         },
         "standardised_condition": {"solved_steps": z_json(&r.z[0]), "active_steps": z_json(&r.z[1])},
@@ -284,18 +290,20 @@ pub(super) fn console_table(rows: &[Row]) -> String {
     };
     let _ = writeln!(
         s,
-        "{:<48} {:>6} {:>24} {:>24} {:>24} {:>24} {:>12}",
+        "{:<58} {:>6} {:>24} {:>24} {:>24} {:>24} {:>24} {:>12}",
         "system / truth / controller",
         "1-p",
         "episodes h<0",
         "true cond.<0 (solved)",
         "true cond.<0 (active)",
+        "(active, k >= 100)",
         "infeasible steps",
         "z mean/sd"
     );
     for r in rows {
         let (cv, cn) = Row::sum(&r.cbc);
         let (av, an) = Row::sum(&r.active);
+        let (lv, ln) = Row::sum(&r.active_late);
         let (iv, inn) = Row::sum(&r.infeasible);
         let req = r
             .requested()
@@ -304,12 +312,13 @@ pub(super) fn console_table(rows: &[Row]) -> String {
         let (zm, zsd) = r.z[0].mean_sd();
         let _ = writeln!(
             s,
-            "{:<48} {:>6} {:>24} {:>24} {:>24} {:>24} {:>12}",
+            "{:<58} {:>6} {:>24} {:>24} {:>24} {:>24} {:>24} {:>12}",
             r.label(),
             req,
             pct(r.episodes_violating(), r.episodes()),
             pct(cv, cn),
             pct(av, an),
+            pct(lv, ln),
             pct(iv, inn),
             format!("{zm:.2}/{zsd:.2}")
         );
