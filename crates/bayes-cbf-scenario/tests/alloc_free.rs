@@ -45,9 +45,15 @@ fn count<F: FnMut()>(mut f: F) -> usize {
     ALLOCS.with(Cell::get)
 }
 
-/// Allocations of 50 Ackermann control steps after warm-up.
-fn ackermann_step_allocations(k: usize) -> usize {
+/// Allocations of 50 Ackermann control steps after warm-up (each followed
+/// by a recalibration against the same model when `recalibrate`).
+fn ackermann_step_allocations(k: usize, recalibrate: bool) -> usize {
     let mut w = ackermann_control(k, 3).unwrap();
+    if recalibrate {
+        w.controller
+            .set_recalibration(Some(Default::default()))
+            .unwrap();
+    }
     let mut out = ControlOutput::new(2, 2);
     let r = w.reference.clone().unwrap();
     let mut x = w.x.clone();
@@ -56,6 +62,7 @@ fn ackermann_step_allocations(k: usize) -> usize {
         w.controller
             .step(&w.model, &x, &w.u_ref, Some((&r.0, &r.1)), &mut out)
             .unwrap();
+        w.controller.recalibrate(&w.model).unwrap();
     }
     count(|| {
         for i in 0..50 {
@@ -63,6 +70,7 @@ fn ackermann_step_allocations(k: usize) -> usize {
             w.controller
                 .step(&w.model, &x, &w.u_ref, Some((&r.0, &r.1)), &mut out)
                 .unwrap();
+            w.controller.recalibrate(&w.model).unwrap();
         }
     })
 }
@@ -73,9 +81,12 @@ fn ackermann_step_allocations(k: usize) -> usize {
 #[test]
 fn control_steps_do_not_allocate() {
     faer::set_global_parallelism(faer::Par::Seq);
-    let small = ackermann_step_allocations(150);
-    let large = ackermann_step_allocations(600);
+    let small = ackermann_step_allocations(150, false);
+    let large = ackermann_step_allocations(600, false);
     assert_eq!(small, large, "allocations depend on k: {small} vs {large}");
+    // the recalibration (moments once more after the update) adds none
+    let recalibrated = ackermann_step_allocations(600, true);
+    assert_eq!(recalibrated, large, "recalibration allocates");
     assert!(small <= 50 * 8, "{small} allocations in 50 steps");
     eprintln!(
         "control step: {} allocations per step, all in the SOCP solver's timers",

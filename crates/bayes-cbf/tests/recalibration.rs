@@ -1,0 +1,89 @@
+//! The controller's online recalibration: an observation that moves the
+//! condition's mean down by more than the certified bound widens the
+//! condition's variance by exactly `κ²` in the SOCP, and one that does not
+//! narrows it by `e^{−η(1−p)}`. (Closed loops under a wrong prior:
+//! `bayes-cbf-scenario`'s quick calibration test.)
+
+use bayes_cbf::barrier::{DynBarrier, PendulumSector};
+use bayes_cbf::control::{ControlOutput, RecalibrationSettings, SafetyController, SafetySettings};
+use bayes_cbf::gp::{InputMap, Mvgp, MvgpHyper, PriorMean, Rbf};
+use bayes_cbf::systems::Pendulum;
+use nalgebra::DMatrix;
+use std::sync::Arc;
+
+fn model(mass: f64, gravity: f64) -> Mvgp {
+    let hyper = MvgpHyper {
+        kernel: Rbf::new(vec![1.0; 3], 1.0).unwrap(),
+        A: DMatrix::identity(2, 2) * 0.01,
+        B: DMatrix::identity(2, 2),
+        sigma: 0.02,
+    };
+    let prior = PriorMean::System(Arc::new(Pendulum {
+        mass,
+        length: 1.0,
+        gravity,
+    }));
+    Mvgp::new(2, 1, hyper, prior, InputMap::periodic(2, &[0])).unwrap()
+}
+
+/// The sector barrier of relative degree 1 (`ḣ = sin(θ − θ_c) θ̇`) or 2.
+fn controller(relative_degree: usize) -> (SafetyController, Arc<dyn DynBarrier>) {
+    let gains = if relative_degree == 1 {
+        vec![2.0]
+    } else {
+        vec![1.0, 3.0]
+    };
+    let sector: Arc<dyn DynBarrier> =
+        Arc::new(PendulumSector::new(0.785, 0.39, relative_degree, gains).unwrap());
+    let mut s = SafetySettings::new(1);
+    s.probability = 0.99;
+    s.u_min = Some(vec![-20.0]);
+    s.u_max = Some(vec![20.0]);
+    (
+        SafetyController::new(2, 1, vec![sector.clone()], None, s).unwrap(),
+        sector,
+    )
+}
+
+#[test]
+fn a_miss_widens_the_conditions_variance_by_kappa_squared() {
+    let (mut ctrl, _) = controller(1);
+    ctrl.set_recalibration(Some(RecalibrationSettings::default()))
+        .unwrap();
+    let m = model(1.0, 10.0);
+    let x = [1.6, -0.5];
+    let mut out = ControlOutput::new(1, 1);
+    // nothing learned: no update, κ = 1
+    ctrl.step(&m, &x, &[0.0], None, &mut out).unwrap();
+    ctrl.recalibrate(&m).unwrap();
+    assert_eq!(ctrl.recalibrator().unwrap().counts(0), (0, 0));
+    ctrl.step(&m, &x, &[0.0], None, &mut out).unwrap();
+    let raw = ctrl.barrier_moments()[0].cov.clone();
+    let u = out.u.clone();
+    // an observation at x saying θ turns towards the sector much faster
+    // than the model thinks (ḣ = sin(θ − θ_c) θ̇, sin > 0 here): the
+    // condition's mean drops
+    let mut learned = m.clone();
+    learned.add_observation(&x, &u, &[-30.0, -10.0]).unwrap();
+    ctrl.recalibrate(&learned).unwrap();
+    let r = ctrl.recalibrator().unwrap();
+    assert_eq!(r.counts(0), (1, 1));
+    let kappa = r.inflation(0);
+    assert!((kappa - (0.3f64 * 0.99).exp()).abs() < 1e-12, "{kappa}");
+    // the next step with the same model sees κ² times the variance
+    ctrl.step(&m, &x, &[0.0], None, &mut out).unwrap();
+    let inflated = &ctrl.barrier_moments()[0].cov;
+    for (a, b) in inflated.iter().zip(raw.iter()) {
+        assert!(
+            (a - kappa * kappa * b).abs() <= 1e-12 * b.abs().max(1e-300),
+            "{a} {b}"
+        );
+    }
+    // and a hit lowers κ by e^{−η(1−p)}
+    let mut learned = m.clone();
+    learned.add_observation(&x, &out.u, &[30.0, 0.0]).unwrap();
+    ctrl.recalibrate(&learned).unwrap();
+    let r = ctrl.recalibrator().unwrap();
+    assert_eq!(r.counts(0), (1, 2));
+    assert!((r.inflation(0) - kappa * (-0.3f64 * 0.01).exp()).abs() < 1e-12);
+}
