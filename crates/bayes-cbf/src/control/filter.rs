@@ -828,7 +828,8 @@ impl SafetyController {
         &mut self.filter
     }
 
-    /// Moments of the last step, one per barrier.
+    /// Moments of the last step, one per barrier (their covariances
+    /// inflated by `κ_i²` when the recalibration is on).
     pub fn barrier_moments(&self) -> &[ConditionMoments] {
         &self.cbcs
     }

@@ -104,6 +104,11 @@ impl Recalibrator {
         &self.settings
     }
 
+    /// The number of barriers.
+    pub fn barriers(&self) -> usize {
+        self.log_kappa.len()
+    }
+
     /// `κ_i`.
     pub fn inflation(&self, i: usize) -> f64 {
         self.log_kappa[i].exp()

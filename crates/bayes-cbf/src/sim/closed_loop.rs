@@ -214,8 +214,8 @@ pub struct StepRecord {
     pub hold: f64,
     /// The trigger evaluation, when [`LoopSettings::trigger`] is set.
     pub trigger: Option<TriggerReport>,
-    /// The variance inflation `κ_i` of each barrier's condition at this
-    /// step (empty when the recalibration is off).
+    /// The variance inflation `κ_i` of each of the controller's barrier
+    /// conditions at this step (empty when the recalibration is off).
     pub inflation: Vec<f64>,
 }
 
@@ -512,7 +512,7 @@ impl<'a> ClosedLoop<'a> {
         let inflation: Vec<f64> = self
             .controller
             .recalibrator()
-            .map(|r| (0..self.barriers.len()).map(|i| r.inflation(i)).collect())
+            .map(|r| (0..r.barriers()).map(|i| r.inflation(i)).collect())
             .unwrap_or_default();
         let trigger = match &self.settings.trigger {
             Some(ts) => Some(evaluate_trigger(
