@@ -88,15 +88,7 @@ impl PyBarrier {
         alpha: Option<f64>,
         k_alpha: Option<Vec<f64>>,
     ) -> PyResult<Self> {
-        let edge = match edge {
-            "upper" => EdgeSpec::Upper,
-            "lower" => EdgeSpec::Lower,
-            other => {
-                return Err(input_err(format!(
-                    "edge: '{other}' is neither 'upper' nor 'lower'"
-                )))
-            }
-        };
+        let edge: EdgeSpec = edge.parse().map_err(scenario_err)?;
         Self::of_spec(BarrierSpec::PendulumSectorEdge {
             theta_c,
             delta,

@@ -134,6 +134,18 @@ pub enum EdgeSpec {
     Lower,
 }
 
+impl std::str::FromStr for EdgeSpec {
+    type Err = crate::Error;
+    /// `"upper"` or `"lower"`, as in barrier files.
+    fn from_str(s: &str) -> Result<Self> {
+        match s {
+            "upper" => Ok(EdgeSpec::Upper),
+            "lower" => Ok(EdgeSpec::Lower),
+            other => bail!("edge: '{other}' is neither 'upper' nor 'lower'"),
+        }
+    }
+}
+
 impl From<EdgeSpec> for SectorEdge {
     fn from(e: EdgeSpec) -> Self {
         match e {
