@@ -100,6 +100,11 @@ pub enum GpError {
     /// Hyperparameter optimisation failed to produce a finite likelihood.
     #[error("hyperparameter optimisation failed: {0}")]
     Optimisation(String),
+    /// The marginal likelihood cannot be evaluated at the given parameter
+    /// vector (the Gram matrix does not factorise, the value is not finite,
+    /// or the decoded hyperparameters are rejected).
+    #[error("the likelihood cannot be evaluated at these parameters: {0}")]
+    NotEvaluable(String),
     /// An operation that needs data was called on an empty model.
     #[error("the model has no training data")]
     NoData,

@@ -27,7 +27,7 @@
 //! - `∂ log p/∂ log θ = Σ_ij ⟨Ḡ_ij, P_i Σ P_jᵀ⟩ ∂k0_ij/∂ log θ`.
 
 use super::data::{check_batch, check_state, TrainingData};
-use super::factor::CholFactor;
+use super::factor::{CholFactor, Jitter};
 use super::input_map::InputMap;
 use super::kernel::{Kernel, Rbf};
 use super::mvgp::check_spd;
@@ -435,6 +435,7 @@ pub(crate) fn lml_grad<K: Kernel>(
     kernel: &K,
     Sigma: &DMatrix<f64>,
     S: &DMatrix<f64>,
+    jitter: Jitter,
 ) -> Result<CogpGradient, GpError> {
     let CogpData {
         n,
@@ -448,7 +449,7 @@ pub(crate) fn lml_grad<K: Kernel>(
     let (np, kn) = (n * p, k * n);
     let su = sigma_u(Sigma, us, n, p, k);
     let g = gram(kernel, S, &su, zs, us, (n, p, d, k));
-    let factor = CholFactor::factor(g.as_ref(), kn)?;
+    let factor = CholFactor::factor_with(g.as_ref(), kn, jitter)?;
     drop(g);
     let mut alpha = Mat::<f64>::from_fn(kn, 1, |r, _| resid[r]);
     factor.solve_l(alpha.as_mut());
@@ -528,7 +529,13 @@ impl<K: Kernel> Cogp<K> {
             resid: self.residuals(),
         };
         let h = self.hyper();
-        Ok(lml_grad(&data, &h.kernel, &h.Sigma, &h.S)?)
+        Ok(lml_grad(
+            &data,
+            &h.kernel,
+            &h.Sigma,
+            &h.S,
+            Jitter::Escalate,
+        )?)
     }
 }
 

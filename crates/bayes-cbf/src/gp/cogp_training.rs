@@ -1,23 +1,26 @@
 //! Hyperparameter learning for the CoGP by maximising the exact marginal
-//! likelihood with an analytic gradient (L-BFGS, argmin), mirroring
-//! [`fit`](super::fit) for the MVGP.
+//! likelihood with an analytic gradient (projected L-BFGS, as
+//! [`fit`](super::fit) for the MVGP).
 //!
 //! The likelihood and its gradient are [`Cogp::log_marginal_likelihood_gradient`].
 //!
 //! ## Parameterisation
-//! `Σ = C_Σ C_Σᵀ + diag(v_Σ)`, `S = C_S C_Sᵀ + diag(v_S)` with ranks from
-//! [`Rank`]. The kernel's output scale is held fixed (it is redundant with
-//! `Σ`); there is no other redundancy, since `S` is the only noise term.
-//! `θ = [log ℓ (kernel, without scale), vec C_Σ, log v_Σ, vec C_S, log v_S]`.
+//! `Σ` and `S` by their Cholesky factors with logarithmic diagonals, or a
+//! low-rank or diagonal form ([`Rank`]; the `psd` module). The kernel's
+//! output scale is held fixed (it is redundant with `Σ`); there is no other
+//! redundancy, since `S` is the only noise term.
+//! `θ = [log ℓ (kernel, without scale), θ_Σ, θ_S]`, bounded as the MVGP's:
+//! lengthscales within `10³` of their input's spread either way,
+//! logarithmic diagonal entries within `10⁶` of their start's scale.
 
 use super::cogp::{lml_grad, Cogp, CogpData, CogpHyper};
+use super::factor::Jitter;
 use super::kernel::Kernel;
-use super::low_rank::{chain_low_rank, init_low_rank, low_rank_plus_diag};
 use super::optimise::{
-    multi_start, perturb, prefit, EvalFailure, Evaluation, Harness, Objective, RunSettings,
-    StartPlan,
+    multi_start, perturb, EvalFailure, Harness, Objective, RunSettings, StartPlan,
 };
-use super::theta::{kernel_from_free, pack_free, start_from_inputs};
+use super::psd::{PsdParam, SCALE_RANGE};
+use super::theta::{input_spreads, kernel_bounds, kernel_from_free, pack_free, start_from_inputs};
 use super::training::{FitReport, Rank};
 use crate::error::{Error, GpError, InputError};
 use nalgebra::DMatrix;
@@ -77,32 +80,33 @@ impl CogpFitSettings {
     }
 }
 
-/// Layout of θ.
+/// Layout of θ: `[log ℓ (free kernel hyperparameters), θ_Σ, θ_S]`.
 #[derive(Debug, Clone)]
 struct Layout {
-    n: usize,
-    np: usize,
-    n_kern: usize,
+    kern_free: usize,
     scale_idx: Option<usize>,
-    rs: usize,
-    rn: usize,
+    sigma: PsdParam,
+    s: PsdParam,
 }
 
 impl Layout {
-    fn off_cs(&self) -> usize {
-        self.n_kern - usize::from(self.scale_idx.is_some())
+    fn new(kernel: &impl Kernel, np: usize, n: usize, rank_sigma: Rank, rank_s: Rank) -> Self {
+        let scale_idx = kernel.scale_index();
+        Self {
+            kern_free: kernel.n_hyper() - usize::from(scale_idx.is_some()),
+            scale_idx,
+            sigma: PsdParam::new(np, rank_sigma),
+            s: PsdParam::new(n, rank_s),
+        }
     }
-    fn off_vs(&self) -> usize {
-        self.off_cs() + self.np * self.rs
+    fn off_sigma(&self) -> usize {
+        self.kern_free
     }
-    fn off_cn(&self) -> usize {
-        self.off_vs() + self.np
-    }
-    fn off_vn(&self) -> usize {
-        self.off_cn() + self.n * self.rn
+    fn off_s(&self) -> usize {
+        self.kern_free + self.sigma.len()
     }
     fn len(&self) -> usize {
-        self.off_vn() + self.n
+        self.off_s() + self.s.len()
     }
 }
 
@@ -111,88 +115,111 @@ struct Likelihood<'a, K: Kernel> {
     layout: Layout,
     kernel: K,
     data: CogpData<'a>,
+    lower: Vec<f64>,
+    upper: Vec<f64>,
 }
 
-impl<K: Kernel> Likelihood<'_, K> {
+impl<'a, K: Kernel> Likelihood<'a, K> {
+    /// The likelihood, with the covariances' logarithmic entries bounded
+    /// around the scales of `scale_sigma` and `scale_s` (the start).
+    fn new(
+        layout: Layout,
+        kernel: K,
+        data: CogpData<'a>,
+        scale_sigma: &DMatrix<f64>,
+        scale_s: &DMatrix<f64>,
+    ) -> Self {
+        let len = layout.len();
+        let (mut lower, mut upper) = (vec![f64::NEG_INFINITY; len], vec![f64::INFINITY; len]);
+        let spreads = input_spreads(data.zs, data.k, data.d);
+        kernel_bounds(
+            kernel.n_hyper(),
+            layout.scale_idx,
+            &spreads,
+            &mut lower,
+            &mut upper,
+        );
+        let (os, on) = (layout.off_sigma(), layout.off_s());
+        let r = SCALE_RANGE;
+        layout
+            .sigma
+            .bounds(scale_sigma, r, &mut lower[os..on], &mut upper[os..on]);
+        layout
+            .s
+            .bounds(scale_s, r, &mut lower[on..], &mut upper[on..]);
+        Self {
+            layout,
+            kernel,
+            data,
+            lower,
+            upper,
+        }
+    }
+
     #[allow(non_snake_case)]
     fn unpack(&self, th: &[f64]) -> Result<(K, DMatrix<f64>, DMatrix<f64>), InputError> {
         let l = &self.layout;
         let kern = kernel_from_free(&self.kernel, th, l.scale_idx)?;
-        let Sigma = low_rank_plus_diag(
-            &th[l.off_cs()..l.off_vs()],
-            &th[l.off_vs()..l.off_cn()],
-            l.np,
-            l.rs,
-        );
-        let S = low_rank_plus_diag(
-            &th[l.off_cn()..l.off_vn()],
-            &th[l.off_vn()..l.len()],
-            l.n,
-            l.rn,
-        );
+        let Sigma = l.sigma.matrix(&th[l.off_sigma()..l.off_s()]);
+        let S = l.s.matrix(&th[l.off_s()..]);
         Ok((kern, Sigma, S))
     }
 
-    /// θ for the given kernel (its scale is ignored), `Σ` and `S`.
+    /// θ for the given kernel (its scale is ignored), `Σ` and `S`: exact for
+    /// full and diagonal forms, with random low-rank factors.
     #[allow(non_snake_case)]
     fn theta(
         &self,
         kern: &K,
         Sigma: &DMatrix<f64>,
         S: &DMatrix<f64>,
-        exact: bool,
         rng: &mut ChaCha8Rng,
     ) -> Vec<f64> {
         let l = &self.layout;
         let mut th = vec![0.0; l.len()];
         pack_free(&kern.log_hyper(), l.scale_idx, &mut th);
-        let (cs, rest) = th[l.off_cs()..].split_at_mut(l.np * l.rs);
-        let (vs, rest) = rest.split_at_mut(l.np);
-        let (cn, vn) = rest.split_at_mut(l.n * l.rn);
-        init_low_rank(Sigma, l.rs, exact, rng, cs, vs);
-        init_low_rank(S, l.rn, exact, rng, cn, vn);
+        let (ts, tn) = th[l.off_sigma()..].split_at_mut(l.sigma.len());
+        l.sigma.init(Sigma, rng, ts);
+        l.s.init(S, rng, tn);
         th
+    }
+
+    /// θ of the diagonal parts of `Σ` and `S` with zero factors off the
+    /// diagonal, keeping the kernel entries of `th`.
+    #[allow(non_snake_case)]
+    fn diagonal_theta(&self, th: &[f64], Sigma: &DMatrix<f64>, S: &DMatrix<f64>) -> Vec<f64> {
+        let l = &self.layout;
+        let mut out = th.to_vec();
+        let (ts, tn) = out[l.off_sigma()..].split_at_mut(l.sigma.len());
+        l.sigma.diagonal_point(Sigma, ts);
+        l.s.diagonal_point(S, tn);
+        out
     }
 }
 
 impl<K: Kernel> Objective for Likelihood<'_, K> {
+    fn bounds(&self) -> (&[f64], &[f64]) {
+        (&self.lower, &self.upper)
+    }
+
     /// `(−log p, −∇θ log p)`.
-    fn eval(&self, th: &[f64]) -> Evaluation {
+    fn eval(&mut self, th: &[f64], grad: &mut [f64]) -> Result<f64, EvalFailure> {
         let l = &self.layout;
-        // log-scale parameters are bounded to |θ| ≤ 50; the factors C are
-        // on the scale of √Σ and only need to be finite
-        let is_log =
-            |i: usize| i < l.off_cs() || (l.off_vs()..l.off_cn()).contains(&i) || i >= l.off_vn();
-        let bad = |(i, v): (usize, &f64)| !v.is_finite() || (is_log(i) && v.abs() > 50.0);
-        if th.iter().enumerate().any(bad) {
-            return Err(EvalFailure::OutOfRange);
-        }
         let (kern, sigma, s) = self.unpack(th).map_err(|_| EvalFailure::InvalidHyper)?;
-        let g = lml_grad(&self.data, &kern, &sigma, &s)
+        // exactly, without jitter (as the MVGP's fit; factor::Jitter)
+        let g = lml_grad(&self.data, &kern, &sigma, &s, Jitter::Exact(1.0))
             .map_err(|_| EvalFailure::NotPositiveDefinite)?;
         if !g.log_likelihood.is_finite() {
             return Err(EvalFailure::NonFinite);
         }
-        let mut grad = vec![0.0; th.len()];
-        pack_free(&g.kernel_log_hyper, l.scale_idx, &mut grad);
-        chain_low_rank(
-            &g.Sigma,
-            &th[l.off_cs()..l.off_vs()],
-            &th[l.off_vs()..l.off_cn()],
-            l.rs,
-            &mut grad[l.off_cs()..l.off_cn()],
-        );
-        chain_low_rank(
-            &g.S,
-            &th[l.off_cn()..l.off_vn()],
-            &th[l.off_vn()..l.len()],
-            l.rn,
-            &mut grad[l.off_cn()..l.len()],
-        );
+        pack_free(&g.kernel_log_hyper, l.scale_idx, grad);
+        let (gs, gn) = grad[l.off_sigma()..].split_at_mut(l.sigma.len());
+        l.sigma.chain(&g.Sigma, &th[l.off_sigma()..l.off_s()], gs);
+        l.s.chain(&g.S, &th[l.off_s()..], gn);
         for gi in grad.iter_mut() {
             *gi = -*gi;
         }
-        Ok((-g.log_likelihood, grad))
+        Ok(-g.log_likelihood)
     }
 }
 
@@ -283,69 +310,61 @@ pub fn fit_cogp<K: Kernel>(
         us: model.augmented_controls(),
         resid: model.residuals(),
     };
-    let layout = Layout {
-        n,
-        np,
-        n_kern: kernel0.n_hyper(),
-        scale_idx: kernel0.scale_index(),
-        rs: settings.rank_sigma.cols(np),
-        rn: settings.rank_s.cols(n),
-    };
-    let use_prefit = settings.prefit_diagonal && !settings.warm_start && layout.rs + layout.rn > 0;
-    let diag = Harness::new(Likelihood {
-        layout: Layout {
-            rs: 0,
-            rn: 0,
-            ..layout.clone()
-        },
-        kernel: kernel0.clone(),
+    let layout = Layout::new(&kernel0, np, n, settings.rank_sigma, settings.rank_s);
+    let full_rank = settings.rank_sigma != Rank::Diagonal || settings.rank_s != Rank::Diagonal;
+    let use_prefit = settings.prefit_diagonal && !settings.warm_start && full_rank;
+    let diag_layout = Layout::new(&kernel0, np, n, Rank::Diagonal, Rank::Diagonal);
+    let mut diag = Harness::new(Likelihood::new(
+        diag_layout,
+        kernel0.clone(),
         data,
-    });
-    let full = Harness::new(Likelihood {
-        layout,
-        kernel: kernel0.clone(),
-        data,
-    });
-    // a run that stops early (line-search failure) resumes from the best
+        &Sigma0,
+        &S0,
+    ));
+    let mut full = Harness::new(Likelihood::new(layout, kernel0.clone(), data, &Sigma0, &S0));
+    // a run that stops early (line-search failure) resumes from its last
     // point with fresh memory, up to 4 times, while it improves
     let run = RunSettings {
         max_iters: settings.max_iters,
         stall_resumes: 4,
-        relative_cost_tolerance: None,
+        relative_cost_tolerance: 1e-12,
     };
     let mut rng = ChaCha8Rng::seed_from_u64(settings.seed);
-    let (obj, dg) = (full.objective(), diag.objective());
     let starts = 1 + settings.restarts;
-    let best = multi_start(&full, starts, &run, |s| {
+    let best = multi_start(&mut full, starts, &run, |full, s| {
         if !use_prefit {
-            let exact = settings.warm_start && s == 0;
-            let mut th = obj.theta(&kernel0, &Sigma0, &S0, exact, &mut rng);
+            let mut th = full.objective().theta(&kernel0, &Sigma0, &S0, &mut rng);
             if s > 0 {
                 perturb(&mut th, &mut rng);
             }
             return Ok::<_, Error>(StartPlan::at(th));
         }
-        let mut th = dg.theta(&kernel0, &Sigma0, &S0, false, &mut rng);
+        let mut th = diag.objective().theta(&kernel0, &Sigma0, &S0, &mut rng);
         if s > 0 {
             perturb(&mut th, &mut rng);
         }
-        prefit(&diag, &full, th, &run, |optimum| {
-            let Some(opt) = optimum else {
-                // no diagonal model could be evaluated: start the full fit cold
-                return Ok((obj.theta(&kernel0, &Sigma0, &S0, false, &mut rng), None));
-            };
-            let (kd, sd, nd) = dg.unpack(opt)?;
-            let th = obj.theta(&kd, &sd, &nd, false, &mut rng);
-            // the diagonal optimum itself (C = 0) stays a candidate
-            let mut th_diag = th.clone();
-            let l = &obj.layout;
-            th_diag[l.off_cs()..l.off_vs()].fill(0.0);
-            th_diag[l.off_cn()..l.off_vn()].fill(0.0);
-            Ok((th, Some(th_diag)))
+        // pre-fit: the diagonal model's optimum, lifted into the full
+        // parameterisation, is the start; itself it stays a candidate
+        let (start, candidate) = match diag.run_start(th, &run)? {
+            // no diagonal model could be evaluated: start the full fit cold
+            None => (
+                full.objective().theta(&kernel0, &Sigma0, &S0, &mut rng),
+                None,
+            ),
+            Some(opt) => {
+                let (kd, sd, nd) = diag.objective().unpack(&opt.theta)?;
+                let th = full.objective().theta(&kd, &sd, &nd, &mut rng);
+                let th_diag = full.objective().diagonal_theta(&th, &sd, &nd);
+                (th, Some(th_diag))
+            }
+        };
+        Ok(StartPlan {
+            theta: start,
+            candidates: candidate.and_then(|t| full.point(t)).into_iter().collect(),
         })
     })?;
     let evaluations = full.evaluations() + diag.evaluations();
-    let (kern, Sigma, S) = obj.unpack(&best.theta)?;
+    let (kern, Sigma, S) = full.objective().unpack(&best.theta)?;
     drop((full, diag));
     model.set_hyper(CogpHyper {
         kernel: kern,
@@ -367,8 +386,8 @@ mod tests {
     use crate::gp::Rbf;
     use rand::RngExt;
 
-    /// The θ-level gradient (through `C Cᵀ + diag(v)`) against central
-    /// finite differences.
+    /// The θ-level gradient (through the parameterisations of `Σ` and `S`)
+    /// against central finite differences.
     #[test]
     fn theta_gradient_matches_finite_differences() {
         let mut rng = ChaCha8Rng::seed_from_u64(4);
@@ -380,31 +399,26 @@ mod tests {
             let (k, p) = (8, m + 1);
             let (zs, us, resid) = random_training_rows(&mut rng, k, n, m);
             let kernel = Rbf::new(vec![0.8; n], 1.3).unwrap();
-            let layout = Layout {
-                n,
-                np: n * p,
-                n_kern: n + 1,
-                scale_idx: Some(n),
-                rs: rs.cols(n * p),
-                rn: rn.cols(n),
-            };
+            let layout = Layout::new(&kernel, n * p, n, rs, rn);
             let th: Vec<f64> = (0..layout.len())
                 .map(|_| rng.random_range(-0.5..0.5))
                 .collect();
-            let obj = Likelihood {
-                layout,
-                kernel,
-                data: CogpData {
-                    n,
-                    p,
-                    d: n,
-                    k,
-                    zs: &zs,
-                    us: &us,
-                    resid: &resid,
-                },
+            let data = CogpData {
+                n,
+                p,
+                d: n,
+                k,
+                zs: &zs,
+                us: &us,
+                resid: &resid,
             };
-            let f = |th: &[f64]| obj.eval(th).unwrap();
+            let (sigma0, s0) = (DMatrix::identity(n * p, n * p), DMatrix::identity(n, n));
+            let mut obj = Likelihood::new(layout, kernel, data, &sigma0, &s0);
+            let mut f = |th: &[f64]| {
+                let mut g = vec![0.0; th.len()];
+                let v = obj.eval(th, &mut g).unwrap();
+                (v, g)
+            };
             let (_, g) = f(&th);
             let h = 1e-6;
             for i in 0..th.len() {

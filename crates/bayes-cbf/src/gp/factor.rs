@@ -6,6 +6,7 @@
 
 use super::simd::with_faer;
 use crate::error::GpError;
+use faer::dyn_stack::{MemBuffer, MemStack};
 use faer::linalg::triangular_solve::{
     solve_lower_triangular_in_place, solve_upper_triangular_in_place,
 };
@@ -55,60 +56,44 @@ impl CholFactor {
     /// pivot `L_jj² ≤ 1e-10 (G_jj + jitter)` (within roundoff of singular);
     /// fails with [`GpError::IllConditioned`].
     pub(crate) fn factor(g: MatRef<'_, f64>, capacity: usize) -> Result<Self, GpError> {
-        Self::factor_impl(g, capacity, true)
+        Self::factor_with(g, capacity, Jitter::Escalate)
     }
 
-    /// [`factor`](Self::factor) without logging the jitter (used inside
-    /// optimisers, which evaluate many nearby matrices).
-    pub(crate) fn factor_quiet(g: MatRef<'_, f64>, capacity: usize) -> Result<Self, GpError> {
-        Self::factor_impl(g, capacity, false)
-    }
-
-    fn factor_impl(g: MatRef<'_, f64>, capacity: usize, log_jitter: bool) -> Result<Self, GpError> {
+    /// [`factor`](Self::factor) with the given jitter policy.
+    pub(crate) fn factor_with(
+        g: MatRef<'_, f64>,
+        capacity: usize,
+        jitter: Jitter,
+    ) -> Result<Self, GpError> {
         let k = g.nrows();
         let cap = capacity.max(k).max(1);
-        let mean_diag = if k == 0 {
-            1.0
-        } else {
-            (0..k).map(|i| g[(i, i)]).sum::<f64>() / k as f64
-        };
         let mut l = Mat::<f64>::zeros(cap, cap);
-        for &level in JITTER_LEVELS.iter() {
-            let jit = level * mean_diag.abs().max(f64::MIN_POSITIVE);
-            {
-                let mut sub = l.as_mut().submatrix_mut(0, 0, k, k);
+        let mut scratch = DenseScratch::new(k);
+        let jit = factor_in_place(
+            l.as_mut().submatrix_mut(0, 0, k, k),
+            &mut scratch,
+            jitter,
+            |mut a| {
                 for j in 0..k {
                     for i in j..k {
-                        sub[(i, j)] = g[(i, j)];
-                    }
-                    sub[(j, j)] += jit;
-                }
-            }
-            let ok = with_faer(|| cholesky_in_place(l.as_mut().submatrix_mut(0, 0, k, k)))
-                && (0..k).all(|j| {
-                    let p = l[(j, j)];
-                    p * p > MIN_PIVOT * (g[(j, j)] + jit).abs()
-                });
-            if ok {
-                if level > 0.0 && log_jitter {
-                    log::warn!("Gram matrix (k = {k}) needed jitter {jit:.3e} ({level:e} × mean diagonal) to factorise");
-                }
-                // clear the strict upper triangle
-                for j in 0..k {
-                    for i in 0..j {
-                        l[(i, j)] = 0.0;
+                        a[(i, j)] = g[(i, j)];
                     }
                 }
-                return Ok(Self {
-                    l,
-                    k,
-                    jitter: vec![jit; k],
-                });
+            },
+        )?;
+        if jit > 0.0 {
+            log::warn!("Gram matrix (k = {k}) needed jitter {jit:.3e} to factorise");
+        }
+        // clear the strict upper triangle
+        for j in 0..k {
+            for i in 0..j {
+                l[(i, j)] = 0.0;
             }
         }
-        Err(GpError::IllConditioned {
-            size: k,
-            max_jitter: *JITTER_LEVELS.last().unwrap_or(&0.0),
+        Ok(Self {
+            l,
+            k,
+            jitter: vec![jit; k],
         })
     }
 
@@ -241,19 +226,9 @@ impl CholFactor {
 
     /// [`inverse`](Self::inverse) as a faer matrix.
     pub(crate) fn inverse_mat(&self) -> Mat<f64> {
-        use faer::dyn_stack::{MemBuffer, MemStack};
-        use faer::linalg::cholesky::llt::inverse;
         let k = self.k;
         let mut out = Mat::<f64>::zeros(k, k);
-        with_faer(|| {
-            let mut mem = MemBuffer::new(inverse::inverse_scratch::<f64>(k, Par::Seq));
-            inverse::inverse(
-                out.as_mut(),
-                self.l_ref(),
-                Par::Seq,
-                MemStack::new(&mut mem),
-            );
-        });
+        inverse_in_place(out.as_mut(), self.l_ref(), &mut DenseScratch::new(k));
         // only the lower triangle is written
         for j in 0..k {
             for i in 0..j {
@@ -393,16 +368,118 @@ impl CholFactor {
     }
 }
 
-/// Unblocked-by-column Cholesky in place (lower triangle); false if not PD.
-/// Delegates to faer's blocked LLᵀ.
-fn cholesky_in_place(a: MatMut<'_, f64>) -> bool {
-    use faer::dyn_stack::{MemBuffer, MemStack};
+/// Workspace of the dense factorisation and inverse at a fixed size `k`
+/// ([`factor_in_place`], [`inverse_in_place`]): reused, it keeps repeated
+/// factorisations (the likelihood evaluations of a fit) free of allocation.
+pub(crate) struct DenseScratch {
+    mem: MemBuffer,
+    diag: Vec<f64>,
+}
+
+impl DenseScratch {
+    /// Scratch for `k × k` matrices.
+    pub(crate) fn new(k: usize) -> Self {
+        use faer::linalg::cholesky::llt::{factor, inverse};
+        let req = factor::cholesky_in_place_scratch::<f64>(k, Par::Seq, Default::default())
+            .or(inverse::inverse_scratch::<f64>(k, Par::Seq));
+        Self {
+            mem: MemBuffer::new(req),
+            diag: vec![0.0; k],
+        }
+    }
+}
+
+/// How [`factor_in_place`] treats a matrix that does not factorise.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub(crate) enum Jitter {
+    /// Escalate jitter through [`JITTER_LEVELS`] while the factorisation
+    /// fails or leaves a pivot within roundoff of singular (a model's
+    /// factor: its posterior variances need the pivot floor).
+    Escalate,
+    /// Factorise `G` as it is and fail if it is not positive definite or a
+    /// pivot is below the floor times the given factor (a likelihood
+    /// evaluation inside an optimiser: jitter would make the objective jump
+    /// where it switches on, and the pivot floor keeps the optimum where
+    /// the model's own factor needs no jitter; a factor above 1 leaves a
+    /// margin for the model's factor, computed with other roundoff).
+    Exact(f64),
+}
+
+/// Factorises `G = L Lᵀ` in place in the lower triangle of `a` (`k × k`),
+/// where `fill(a)` writes `G`'s lower triangle (the strict upper triangle
+/// is neither read nor written). With [`Jitter::Escalate`], escalates
+/// jitter through [`JITTER_LEVELS`] (relative to the mean diagonal,
+/// refilling `a` for each level) while the factorisation fails or leaves a
+/// pivot `L_jj² ≤ 1e-10 (G_jj + jitter)` (within roundoff of singular);
+/// with [`Jitter::Exact`], either fails at once. Returns the absolute jitter added to the diagonal, or fails with
+/// [`GpError::IllConditioned`].
+pub(crate) fn factor_in_place(
+    mut a: MatMut<'_, f64>,
+    scratch: &mut DenseScratch,
+    jitter: Jitter,
+    mut fill: impl FnMut(MatMut<'_, f64>),
+) -> Result<f64, GpError> {
     use faer::linalg::cholesky::llt::factor;
-    let n = a.nrows();
-    let req = factor::cholesky_in_place_scratch::<f64>(n, Par::Seq, Default::default());
-    let mut mem = MemBuffer::new(req);
-    let stack = MemStack::new(&mut mem);
-    factor::cholesky_in_place(a, Default::default(), Par::Seq, stack, Default::default()).is_ok()
+    let k = a.nrows();
+    assert!(
+        a.ncols() == k && scratch.diag.len() >= k,
+        "factor_in_place: size"
+    );
+    fill(a.as_mut());
+    let diag = &mut scratch.diag[..k];
+    for (j, d) in diag.iter_mut().enumerate() {
+        *d = a[(j, j)];
+    }
+    let mean_diag = if k == 0 {
+        1.0
+    } else {
+        diag.iter().sum::<f64>() / k as f64
+    };
+    let (levels, min_pivot) = match jitter {
+        Jitter::Escalate => (&JITTER_LEVELS[..], MIN_PIVOT),
+        Jitter::Exact(margin) => (&JITTER_LEVELS[..1], margin * MIN_PIVOT),
+    };
+    for (li, &level) in levels.iter().enumerate() {
+        let jit = level * mean_diag.abs().max(f64::MIN_POSITIVE);
+        if li > 0 {
+            fill(a.as_mut());
+        }
+        for j in 0..k {
+            a[(j, j)] = diag[j] + jit;
+        }
+        let ok = with_faer(|| {
+            factor::cholesky_in_place(
+                a.as_mut(),
+                Default::default(),
+                Par::Seq,
+                MemStack::new(&mut scratch.mem),
+                Default::default(),
+            )
+            .is_ok()
+        }) && (0..k).all(|j| {
+            let p = a[(j, j)];
+            p * p > min_pivot * (diag[j] + jit).abs()
+        });
+        if ok {
+            return Ok(jit);
+        }
+    }
+    Err(GpError::IllConditioned {
+        size: k,
+        max_jitter: *JITTER_LEVELS.last().unwrap_or(&0.0),
+    })
+}
+
+/// Writes the lower triangle of `G⁻¹ = L⁻ᵀ L⁻¹` into `out` from the factor
+/// in the lower triangle of `l` (faer's blocked inverse, ≈ ⅔k³ flops; the
+/// strict upper triangles are neither read nor written).
+pub(crate) fn inverse_in_place(
+    out: MatMut<'_, f64>,
+    l: MatRef<'_, f64>,
+    scratch: &mut DenseScratch,
+) {
+    use faer::linalg::cholesky::llt::inverse;
+    with_faer(|| inverse::inverse(out, l, Par::Seq, MemStack::new(&mut scratch.mem)));
 }
 
 #[cfg(test)]
@@ -510,6 +587,52 @@ mod tests {
         let inv = f.inverse_mat();
         let prod = &g * &inv;
         assert_close(prod.as_ref(), Mat::<f64>::identity(37, 37).as_ref(), 1e-9);
+    }
+
+    /// The in-place factorisation and inverse read and write only lower
+    /// triangles (the MVGP likelihood relies on it): NaN in the strict upper
+    /// triangles stays put and does not reach the results, which match the
+    /// factor and inverse of a clean copy.
+    #[test]
+    fn in_place_operations_leave_the_upper_triangle_alone() {
+        let k = 70;
+        let g = random_spd(k, 9);
+        let mut a = Mat::<f64>::from_fn(k, k, |i, j| if i >= j { 0.0 } else { f64::NAN });
+        let mut scratch = DenseScratch::new(k);
+        let jit = factor_in_place(a.as_mut(), &mut scratch, Jitter::Escalate, |mut a| {
+            for j in 0..k {
+                for i in j..k {
+                    a[(i, j)] = g[(i, j)];
+                }
+            }
+        })
+        .unwrap();
+        assert_eq!(jit, 0.0);
+        let mut inv = Mat::<f64>::from_fn(k, k, |i, j| if i >= j { 0.0 } else { f64::NAN });
+        inverse_in_place(inv.as_mut(), a.as_ref(), &mut scratch);
+        let clean = CholFactor::factor(g.as_ref(), k).unwrap();
+        let reference = clean.inverse_mat();
+        for j in 0..k {
+            for i in 0..k {
+                if i >= j {
+                    assert!((a[(i, j)] - clean.l[(i, j)]).abs() < 1e-12);
+                    assert!(
+                        (inv[(i, j)] - reference[(i, j)]).abs()
+                            < 1e-9 * reference[(i, j)].abs().max(1.0)
+                    );
+                } else {
+                    assert!(a[(i, j)].is_nan() && inv[(i, j)].is_nan());
+                }
+            }
+        }
+        // and the inverse times G is the identity
+        let prod = &reference * &g;
+        for j in 0..k {
+            for i in 0..k {
+                let e = if i == j { 1.0 } else { 0.0 };
+                assert!((prod[(i, j)] - e).abs() < 1e-8);
+            }
+        }
     }
 
     #[test]

@@ -39,10 +39,21 @@ pub(crate) fn kernel_from_free<K: Kernel>(
     Ok(kern)
 }
 
+/// Standard deviations of the kernel inputs `zs` (`k × d`, row-major), each
+/// at least `10⁻³`: the scale of each lengthscale.
+pub(crate) fn input_spreads(zs: &[f64], k: usize, d: usize) -> Vec<f64> {
+    (0..d)
+        .map(|j| {
+            let mean = (0..k).map(|i| zs[i * d + j]).sum::<f64>() / k as f64;
+            let var = (0..k).map(|i| (zs[i * d + j] - mean).powi(2)).sum::<f64>() / k as f64;
+            var.sqrt().max(1e-3)
+        })
+        .collect()
+}
+
 /// Data-driven start of the log hyperparameters `kh`: the first `d` (the
-/// lengthscales of the RBF layout) are the logs of the standard deviations
-/// of the kernel inputs `zs` (`k × d`, row-major; at least `10⁻³`), and
-/// the output scale at `scale_idx` is 1.
+/// lengthscales of the RBF layout) are the logs of the
+/// [`input_spreads`], and the output scale at `scale_idx` is 1.
 pub(crate) fn start_from_inputs(
     kh: &mut [f64],
     zs: &[f64],
@@ -50,13 +61,45 @@ pub(crate) fn start_from_inputs(
     d: usize,
     scale_idx: Option<usize>,
 ) {
-    for j in 0..d.min(kh.len()) {
-        let mean = (0..k).map(|i| zs[i * d + j]).sum::<f64>() / k as f64;
-        let var = (0..k).map(|i| (zs[i * d + j] - mean).powi(2)).sum::<f64>() / k as f64;
-        kh[j] = var.sqrt().max(1e-3).ln();
+    for (h, s) in kh.iter_mut().zip(input_spreads(zs, k, d)) {
+        *h = s.ln();
     }
     if let Some(si) = scale_idx {
         kh[si] = 0.0;
+    }
+}
+
+/// Bounds of a log-scale parameter with no scale of its own (log-diagonal
+/// entries of covariance factors, kernel hyperparameters other than the
+/// lengthscales): `|θ| ≤ 50`.
+pub(crate) const LOG_BOUND: f64 = 50.0;
+
+/// How far a lengthscale may go from the spread of its input, either way:
+/// `ℓ_i ∈ [s_i/10³, 10³ s_i]`. Beyond the upper end the kernel is constant
+/// along input `i` to within `5·10⁻⁷` over one spread; below the lower end
+/// it is white noise.
+pub(crate) const LENGTHSCALE_RANGE: f64 = 1e3;
+
+/// Bounds `[lo, hi]` of the kernel's free log hyperparameters (in the order
+/// of [`pack_free`]): lengthscales within [`LENGTHSCALE_RANGE`] of their
+/// input's spread, any other hyperparameter within [`LOG_BOUND`].
+pub(crate) fn kernel_bounds(
+    n_hyper: usize,
+    scale_idx: Option<usize>,
+    spreads: &[f64],
+    lo: &mut [f64],
+    hi: &mut [f64],
+) {
+    let mut t = 0;
+    for i in 0..n_hyper {
+        if Some(i) == scale_idx {
+            continue;
+        }
+        (lo[t], hi[t]) = match spreads.get(i) {
+            Some(s) => ((s / LENGTHSCALE_RANGE).ln(), (s * LENGTHSCALE_RANGE).ln()),
+            None => (-LOG_BOUND, LOG_BOUND),
+        };
+        t += 1;
     }
 }
 
