@@ -12,7 +12,7 @@ use crate::workloads::{
 use bayes_cbf::control::ControlOutput;
 use bayes_cbf::gp::{
     fit, fit_cogp, held_out_errors, Cogp, CogpFitSettings, CogpHyper, FitSettings, InputMap, Mvgp,
-    MvgpHyper, PriorMean, Rbf,
+    MvgpHyper, MvgpLikelihood, PriorMean, Rbf,
 };
 use bayes_cbf::systems::Ackermann;
 use nalgebra::DMatrix;
@@ -147,8 +147,8 @@ fn fit_rows(system: &str, k: usize, reps: usize, iters: u64) -> Result<Vec<Value
             PriorMean::Zero,
         ),
     };
-    let mut mv = Vec::new();
-    let mut co = Vec::new();
+    let (mut mv, mut co) = (Vec::new(), Vec::new());
+    let (mut mv_evals, mut co_evals) = (0, 0);
     for _ in 0..reps {
         let hyper = MvgpHyper {
             kernel: Rbf::new(vec![1.0; d], 1.0)?,
@@ -159,13 +159,14 @@ fn fit_rows(system: &str, k: usize, reps: usize, iters: u64) -> Result<Vec<Value
         let mut model = Mvgp::new(n, m, hyper, prior.clone(), map.clone())?;
         model.set_data(&data.xs, &data.us, &data.xdot)?;
         let s = Instant::now();
-        fit(
+        mv_evals = fit(
             &mut model,
             &FitSettings {
                 max_iters: iters,
                 ..FitSettings::default()
             },
-        )?;
+        )?
+        .evaluations;
         mv.push(s.elapsed().as_secs_f64() * 1e3);
         let np = n * (m + 1);
         let ch = CogpHyper {
@@ -176,14 +177,15 @@ fn fit_rows(system: &str, k: usize, reps: usize, iters: u64) -> Result<Vec<Value
         let mut cogp = Cogp::new(n, m, ch, prior.clone(), map.clone())?;
         cogp.set_data(&data.xs, &data.us, &data.xdot)?;
         let s = Instant::now();
-        fit_cogp(
+        co_evals = fit_cogp(
             &mut cogp,
             &CogpFitSettings {
                 max_iters: iters,
                 prefit_diagonal: false,
                 ..CogpFitSettings::default()
             },
-        )?;
+        )?
+        .evaluations;
         co.push(s.elapsed().as_secs_f64() * 1e3);
     }
     let (m50, c50) = (
@@ -191,9 +193,83 @@ fn fit_rows(system: &str, k: usize, reps: usize, iters: u64) -> Result<Vec<Value
         round(percentile(&mut co, 0.5)),
     );
     Ok(vec![
-        json!({"case": "fit", "model": "mvgp", "system": system, "k": k, "max_iters": iters, "p50_ms": m50}),
-        json!({"case": "fit", "model": "cogp", "system": system, "k": k, "max_iters": iters, "p50_ms": c50, "ratio_to_mvgp": round(c50 / m50)}),
+        json!({"case": "fit", "model": "mvgp", "system": system, "k": k, "max_iters": iters, "p50_ms": m50, "evaluations": mv_evals}),
+        json!({"case": "fit", "model": "cogp", "system": system, "k": k, "max_iters": iters, "p50_ms": c50, "evaluations": co_evals, "ratio_to_mvgp": round(c50 / m50)}),
     ])
+}
+
+/// The pendulum MVGP of the fit rows (zero prior mean, unit start) on `k`
+/// uniform observations.
+fn pendulum_fit_model(k: usize) -> Result<Mvgp> {
+    let data = pendulum_data(k, 11)?;
+    let hyper = MvgpHyper {
+        kernel: Rbf::new(vec![1.0; 2], 1.0)?,
+        A: DMatrix::identity(2, 2),
+        B: DMatrix::identity(2, 2),
+        sigma: 0.1,
+    };
+    let mut model = Mvgp::new(2, 1, hyper, PriorMean::Zero, InputMap::Identity)?;
+    model.set_data(&data.xs, &data.us, &data.xdot)?;
+    Ok(model)
+}
+
+/// One evaluation of the likelihood and its gradient (the unit of a fit)
+/// against its floor, one Cholesky factorisation and one inverse of the
+/// same `k × k` Gram matrix in the same buffers, interleaved in one run.
+fn fit_evaluation_row(k: usize, reps: usize) -> Result<Value> {
+    let model = pendulum_fit_model(k)?;
+    let mut lik = MvgpLikelihood::new(&model, &FitSettings::default())?;
+    let theta = lik.start().to_vec();
+    let mut grad = vec![0.0; theta.len()];
+    let (mut te, mut tf) = (Vec::with_capacity(reps), Vec::with_capacity(reps));
+    lik.evaluate(&theta, &mut grad)?;
+    for _ in 0..reps {
+        let s = Instant::now();
+        lik.evaluate(&theta, &mut grad)?;
+        te.push(s.elapsed().as_secs_f64() * 1e3);
+        let s = Instant::now();
+        lik.floor()?;
+        tf.push(s.elapsed().as_secs_f64() * 1e3);
+    }
+    let (e50, f50) = (percentile(&mut te, 0.5), percentile(&mut tf, 0.5));
+    Ok(
+        json!({"case": "fit_evaluation", "system": "pendulum", "k": k, "p50_ms": round(e50),
+              "floor_p50_ms": round(f50), "over_floor": round(e50 / f50)}),
+    )
+}
+
+/// The pendulum fit with the noise floor at its optimum's side (bound
+/// active) against the same fit without it: evaluations and time.
+fn fit_bound_row(k: usize, iters: u64) -> Result<Value> {
+    let run = |sigma_min: f64| -> Result<(usize, f64, f64)> {
+        let mut model = pendulum_fit_model(k)?;
+        let s = Instant::now();
+        let r = fit(
+            &mut model,
+            &FitSettings {
+                max_iters: iters,
+                sigma_min,
+                ..FitSettings::default()
+            },
+        )?;
+        // σ in the fit's own scale, A_00 = 1
+        let h = model.hyper();
+        Ok((
+            r.evaluations,
+            s.elapsed().as_secs_f64() * 1e3,
+            h.sigma * h.A[(0, 0)].sqrt(),
+        ))
+    };
+    let (free_evals, free_ms, sigma) = run(0.0)?;
+    // a floor at 5× the unconstrained optimum's σ: the optimum of the
+    // bounded fit sits on the bound
+    let (bound_evals, bound_ms, _) = run(5.0 * sigma)?;
+    Ok(
+        json!({"case": "fit_bound", "system": "pendulum", "k": k, "max_iters": iters,
+              "evaluations_free": free_evals, "evaluations_bound": bound_evals,
+              "evaluations_ratio": round(bound_evals as f64 / free_evals as f64),
+              "free_ms": round(free_ms), "bound_ms": round(bound_ms)}),
+    )
 }
 
 /// How a stream bounds the model's data.
@@ -437,6 +513,16 @@ pub fn run_bench(quick: bool, threads: usize, stage: &dyn Fn(&str)) -> Result<Va
     stage(&format!("fits at k = {fit_k}"));
     rows.extend(fit_rows("ackermann", fit_k, fit_reps, iters)?);
     rows.extend(fit_rows("pendulum", fit_k, fit_reps, iters)?);
+    rows.push(fit_bound_row(fit_k, 100)?);
+    let evaluation_ks: &[(usize, usize)] = if quick {
+        &[(100, 5), (300, 5)]
+    } else {
+        &[(500, 15), (1000, 9), (3000, 5)]
+    };
+    for &(k, reps) in evaluation_ks {
+        stage(&format!("fit evaluation at k = {k}"));
+        rows.push(fit_evaluation_row(k, reps)?);
+    }
     stage("streams");
     let (steps, bounds): (usize, &[(Bound, usize)]) = if quick {
         (

@@ -67,30 +67,36 @@ fn outcomes_hold_on_nine_of_ten_seeds() {
 fn learning_reduces_the_uncertainty() {
     let r = run("ackermann-learning", None).result;
     // tr(B_k ⊗ A) at the first step after each update against the last
-    // step before it: adding data never raises the posterior variance, but
-    // a refit of the hyperparameters may, so most (not all) updates drop it
-    let (mut updates, mut drops) = (0, 0);
+    // step before it. Adding data never raises the posterior variance, but
+    // every update here is also a refit of the hyperparameters (every 40
+    // steps), which may: once the trace is small, the refits raise it by a
+    // little each time as σ and B grow with the data. So: the first update
+    // must reduce it, and after the second the trace stays below 1 % of
+    // the prior's for the rest of the run.
+    let first = r.records[0].trace_cov;
+    let mut updates = 0;
     for w in r.records.windows(2) {
         let (a, b) = (&w[0], &w[1]);
         if a.data_size != b.data_size {
             updates += 1;
-            if b.trace_cov < a.trace_cov {
-                drops += 1;
-            } else if updates == 1 {
-                panic!(
+            if updates == 1 {
+                assert!(
+                    b.trace_cov < a.trace_cov,
                     "the first update must reduce the uncertainty: {} → {}",
-                    a.trace_cov, b.trace_cov
+                    a.trace_cov,
+                    b.trace_cov
                 );
             }
         }
+        if updates >= 2 {
+            assert!(
+                b.trace_cov < 1e-2 * first,
+                "trace back to {} (prior {first}) after {updates} updates",
+                b.trace_cov
+            );
+        }
     }
     assert!(updates >= 5, "only {updates} updates");
-    // the refits share the update steps (every 40) and can raise the trace
-    // once it is small; which ones do depends on controls at the 10⁻⁴ level
-    assert!(
-        2 * drops > updates,
-        "trace dropped at {drops} of {updates} updates"
-    );
-    let (first, last) = (r.records[0].trace_cov, r.records.last().unwrap().trace_cov);
+    let last = r.records.last().unwrap().trace_cov;
     assert!(last < first * 1e-3, "trace {first} → {last}");
 }

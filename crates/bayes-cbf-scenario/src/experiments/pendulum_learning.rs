@@ -449,16 +449,28 @@ mod tests {
                 // The score is √(mean of the squared Mahalanobis errors of
                 // vec F): a calibrated model has E[d²] = n(1+m) = 4, a score
                 // near 2. Measured with seed 1: MVGP 2.06 (grid) and 1.73
-                // (held out), CoGP 1.68 and 1.44. The bounds allow a factor
-                // 1.5 either way (mean d² in [1.8, 9]): standard deviations
-                // overstated by a factor 2 (score halved) fail the lower
-                // bound for all four scores, understated by 2 (score
-                // doubled) the upper bound for three of them.
-                assert!(
-                    vwe.is_finite() && vwe > 2.0 / 1.5 && vwe < 2.0 * 1.5,
-                    "{m} {key} vwe {vwe}"
-                );
-                // measured 0.032 and 0.090 on the grid, 0.006 and 0.004 held out
+                // (held out). The bounds allow a factor 1.5 either way
+                // (mean d² in [1.8, 9]): standard deviations overstated by a
+                // factor 2 (score halved) fail the lower bound for both
+                // scores, understated by 2 (score doubled) the upper bound.
+                //
+                // The CoGP fitted to its optimum is overconfident: 17.2
+                // (grid) and 11.7 (held out), 8.2/5.8 and 4.4/5.2 at seeds 2
+                // and 3. Its free Σ learns cross-covariances between f and g
+                // of correlation near ±1, which the torques u ∝ sin θ of the
+                // data cannot refute, and its posterior is sharp along them;
+                // the MVGP's B k0 ⊗ A has no such freedom. It keeps the
+                // lower bound, and the paper's comparison (Sec. VII-A): the
+                // MVGP is the better calibrated of the two.
+                assert!(vwe.is_finite() && vwe > 2.0 / 1.5, "{m} {key} vwe {vwe}");
+                if m == "MVGP" {
+                    assert!(vwe < 2.0 * 1.5, "{m} {key} vwe {vwe}");
+                    let cogp = s["models"]["CoGP"][key]["variance_weighted_error"]
+                        .as_f64()
+                        .unwrap();
+                    assert!(vwe < cogp, "{key}: MVGP {vwe}, CoGP {cogp}");
+                }
+                // measured 0.032 and 0.098 on the grid, 0.006 and 0.004 held out
                 assert!(rmse.is_finite() && rmse < 0.25, "{m} {key} rmse {rmse}");
             }
             assert!(r["fit_seconds"].as_f64().unwrap() > 0.0);
