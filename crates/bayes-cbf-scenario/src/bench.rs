@@ -238,38 +238,64 @@ fn fit_evaluation_row(k: usize, reps: usize) -> Result<Value> {
     )
 }
 
-/// The pendulum fit with the noise floor at its optimum's side (bound
-/// active) against the same fit without it: evaluations and time.
-fn fit_bound_row(k: usize, iters: u64) -> Result<Value> {
-    let run = |sigma_min: f64| -> Result<(usize, f64, f64)> {
-        let mut model = pendulum_fit_model(k)?;
+/// Fits with active bounds against the same fits without them
+/// (evaluations and time): the pendulum fit with the noise floor at 5× the
+/// free optimum's `σ` (the bounded optimum sits on the floor), and a warm
+/// start a factor 3 away from the free optimum whose every scale may move
+/// only 1.5× either way (`warm_range`) against the same warm start without
+/// that box.
+fn fit_bound_rows(k: usize, iters: u64) -> Result<Vec<Value>> {
+    let run = |model: &mut Mvgp, settings: FitSettings| -> Result<(usize, f64)> {
         let s = Instant::now();
         let r = fit(
-            &mut model,
+            model,
             &FitSettings {
                 max_iters: iters,
-                sigma_min,
-                ..FitSettings::default()
+                ..settings
             },
         )?;
-        // σ in the fit's own scale, A_00 = 1
-        let h = model.hyper();
-        Ok((
-            r.evaluations,
-            s.elapsed().as_secs_f64() * 1e3,
-            h.sigma * h.A[(0, 0)].sqrt(),
-        ))
+        Ok((r.evaluations, s.elapsed().as_secs_f64() * 1e3))
     };
-    let (free_evals, free_ms, sigma) = run(0.0)?;
-    // a floor at 5× the unconstrained optimum's σ: the optimum of the
-    // bounded fit sits on the bound
-    let (bound_evals, bound_ms, _) = run(5.0 * sigma)?;
-    Ok(
-        json!({"case": "fit_bound", "system": "pendulum", "k": k, "max_iters": iters,
-              "evaluations_free": free_evals, "evaluations_bound": bound_evals,
-              "evaluations_ratio": round(bound_evals as f64 / free_evals as f64),
-              "free_ms": round(free_ms), "bound_ms": round(bound_ms)}),
-    )
+    let row = |bound: &str, free: (usize, f64), bounded: (usize, f64)| {
+        json!({"case": "fit_bound", "system": "pendulum", "k": k, "max_iters": iters, "bound": bound,
+              "evaluations_free": free.0, "evaluations_bound": bounded.0,
+              "evaluations_ratio": round(bounded.0 as f64 / free.0 as f64),
+              "free_ms": round(free.1), "bound_ms": round(bounded.1)})
+    };
+    let mut free_model = pendulum_fit_model(k)?;
+    let free = run(&mut free_model, FitSettings::default())?;
+    // σ in the fit's own scale, A_00 = 1
+    let h = free_model.hyper().clone();
+    let sigma = h.sigma * h.A[(0, 0)].sqrt();
+    let floored = run(
+        &mut pendulum_fit_model(k)?,
+        FitSettings {
+            sigma_min: 5.0 * sigma,
+            ..FitSettings::default()
+        },
+    )?;
+    let warm = |range: f64| -> Result<(usize, f64)> {
+        let mut model = pendulum_fit_model(k)?;
+        let mut start = h.clone();
+        let l = start.kernel.lengthscales().to_vec();
+        start.kernel = Rbf::new(vec![3.0 * l[0], l[1] / 3.0], 1.0)?;
+        start.sigma *= 3.0;
+        start.B /= 3.0;
+        model.set_hyper(start)?;
+        run(
+            &mut model,
+            FitSettings {
+                warm_start: true,
+                warm_range: range,
+                ..FitSettings::default()
+            },
+        )
+    };
+    let (wide, boxed) = (warm(f64::INFINITY)?, warm(1.5)?);
+    Ok(vec![
+        row("noise floor at 5 × the free optimum's sigma", free, floored),
+        row("warm start, every scale within 1.5 × of it", wide, boxed),
+    ])
 }
 
 /// How a stream bounds the model's data.
@@ -513,7 +539,7 @@ pub fn run_bench(quick: bool, threads: usize, stage: &dyn Fn(&str)) -> Result<Va
     stage(&format!("fits at k = {fit_k}"));
     rows.extend(fit_rows("ackermann", fit_k, fit_reps, iters)?);
     rows.extend(fit_rows("pendulum", fit_k, fit_reps, iters)?);
-    rows.push(fit_bound_row(fit_k, 100)?);
+    rows.extend(fit_bound_rows(fit_k, 100)?);
     let evaluation_ks: &[(usize, usize)] = if quick {
         &[(100, 5), (300, 5)]
     } else {

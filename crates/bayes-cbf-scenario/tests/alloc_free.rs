@@ -2,7 +2,9 @@
 //! workspaces are warm: counted with a global allocator.
 
 use bayes_cbf::control::ControlOutput;
-use bayes_cbf_scenario::workloads::{ackermann_control, pendulum_control};
+use bayes_cbf::gp::{FitSettings, InputMap, Mvgp, MvgpHyper, MvgpLikelihood, PriorMean, Rbf};
+use bayes_cbf_scenario::workloads::{ackermann_control, pendulum_control, pendulum_data};
+use nalgebra::DMatrix;
 use std::alloc::{GlobalAlloc, Layout, System};
 use std::cell::Cell;
 
@@ -12,24 +14,26 @@ thread_local! {
     // per test thread: tests run in parallel
     static COUNTING: Cell<bool> = const { Cell::new(false) };
     static ALLOCS: Cell<usize> = const { Cell::new(0) };
+    static BYTES: Cell<usize> = const { Cell::new(0) };
 }
 
-fn note() {
+fn note(bytes: usize) {
     if COUNTING.with(Cell::get) {
         ALLOCS.with(|a| a.set(a.get() + 1));
+        BYTES.with(|b| b.set(b.get() + bytes));
     }
 }
 
 unsafe impl GlobalAlloc for Counting {
     unsafe fn alloc(&self, layout: Layout) -> *mut u8 {
-        note();
+        note(layout.size());
         unsafe { System.alloc(layout) }
     }
     unsafe fn dealloc(&self, ptr: *mut u8, layout: Layout) {
         unsafe { System.dealloc(ptr, layout) }
     }
     unsafe fn realloc(&self, ptr: *mut u8, layout: Layout, new_size: usize) -> *mut u8 {
-        note();
+        note(new_size);
         unsafe { System.realloc(ptr, layout, new_size) }
     }
 }
@@ -37,12 +41,18 @@ unsafe impl GlobalAlloc for Counting {
 #[global_allocator]
 static GLOBAL: Counting = Counting;
 
-fn count<F: FnMut()>(mut f: F) -> usize {
+fn count<F: FnMut()>(f: F) -> usize {
+    count_bytes(f).0
+}
+
+/// Allocations and the bytes they asked for.
+fn count_bytes<F: FnMut()>(mut f: F) -> (usize, usize) {
     ALLOCS.with(|a| a.set(0));
+    BYTES.with(|b| b.set(0));
     COUNTING.with(|c| c.set(true));
     f();
     COUNTING.with(|c| c.set(false));
-    ALLOCS.with(Cell::get)
+    (ALLOCS.with(Cell::get), BYTES.with(Cell::get))
 }
 
 /// Allocations of 50 Ackermann control steps after warm-up (each followed
@@ -221,4 +231,33 @@ fn expression_posterior_and_moments_do_not_allocate() {
         }
     });
     assert_eq!(n, 0, "expressions, relative degree 2: {n} allocations");
+}
+
+/// One likelihood-and-gradient evaluation of a fit allocates nothing that
+/// grows with `k` (its `k`-sized buffers are the fit's workspace): the same
+/// few `n × n` and `(1+m) × (1+m)` matrices at k = 100 and k = 400.
+#[test]
+fn fit_evaluations_allocate_nothing_that_grows_with_k() {
+    let per_evaluation = |k: usize| {
+        let data = pendulum_data(k, 11).unwrap();
+        let hyper = MvgpHyper {
+            kernel: Rbf::new(vec![1.0; 2], 1.0).unwrap(),
+            A: DMatrix::identity(2, 2),
+            B: DMatrix::identity(2, 2),
+            sigma: 0.1,
+        };
+        let mut model = Mvgp::new(2, 1, hyper, PriorMean::Zero, InputMap::Identity).unwrap();
+        model.set_data(&data.xs, &data.us, &data.xdot).unwrap();
+        let mut lik = MvgpLikelihood::new(&model, &FitSettings::default()).unwrap();
+        let theta = lik.start().to_vec();
+        let mut grad = vec![0.0; theta.len()];
+        lik.evaluate(&theta, &mut grad).unwrap();
+        count_bytes(|| {
+            lik.evaluate(&theta, &mut grad).unwrap();
+        })
+    };
+    let (small, large) = (per_evaluation(100), per_evaluation(400));
+    eprintln!("allocations, bytes per evaluation: {small:?} at k = 100, {large:?} at k = 400");
+    assert_eq!(small, large);
+    assert!(small.1 < 4096, "{} bytes", small.1);
 }

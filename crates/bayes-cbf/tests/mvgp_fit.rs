@@ -227,3 +227,108 @@ fn ackermann_fit_predicts_held_out_within_five_percent() {
     eprintln!("ackermann held-out relative RMSE: {e:.4}");
     assert!(e <= 0.05, "relative RMSE {e}");
 }
+
+/// A pendulum model of `k` observations and the default start.
+fn pendulum_model(k: usize, seed: u64) -> Mvgp {
+    let sys = Pendulum::default();
+    let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    let (lo, hi) = ([-std::f64::consts::PI, -6.0], [std::f64::consts::PI, 6.0]);
+    let data = sample_uniform(&sys, &lo, &hi, &[-20.0], &[20.0], k, 0.01, &mut rng).unwrap();
+    let mut model = Mvgp::new(
+        2,
+        1,
+        default_hyper(2, 2, 1),
+        PriorMean::Zero,
+        InputMap::Identity,
+    )
+    .unwrap();
+    model.set_data(&data.xs, &data.us, &data.xdot).unwrap();
+    model
+}
+
+/// `σ` in the fit's own scale (`A_00 = 1`).
+fn fitted_sigma(model: &Mvgp) -> f64 {
+    let h = model.hyper();
+    h.sigma * h.A[(0, 0)].sqrt()
+}
+
+/// Active bounds cost no more than twice the evaluations of the same fit
+/// without them: the noise floor above the free optimum's `σ` (the bounded
+/// optimum sits on the floor), and a warm start whose every scale may move
+/// only 1.5× either way (most scales end on their bounds) against the same
+/// warm start without that box.
+#[test]
+fn active_bounds_cost_at_most_twice_the_evaluations() {
+    for seed in [3, 4] {
+        let mut free = pendulum_model(200, seed);
+        let r_free = fit(&mut free, &FitSettings::default()).unwrap();
+        let sigma = fitted_sigma(&free);
+        for factor in [2.0, 5.0, 20.0] {
+            let mut floored = pendulum_model(200, seed);
+            let settings = FitSettings {
+                sigma_min: factor * sigma,
+                ..FitSettings::default()
+            };
+            let r = fit(&mut floored, &settings).unwrap();
+            // the result sits on the floor (within the final factorisation's
+            // 10 % steps), below the free optimum's likelihood
+            let s = fitted_sigma(&floored);
+            assert!(
+                s >= factor * sigma * (1.0 - 1e-9) && s <= 1.25 * factor * sigma,
+                "seed {seed}, floor {factor}×: σ {s} against the floor {}",
+                factor * sigma
+            );
+            assert!(r.log_likelihood < r_free.log_likelihood);
+            assert!(
+                r.evaluations <= 2 * r_free.evaluations,
+                "seed {seed}, floor {factor}×: {} evaluations against {} free",
+                r.evaluations,
+                r_free.evaluations
+            );
+        }
+        // warm starts from a point away from the optimum: lengthscales,
+        // σ and B off by factors of 3
+        let start = |model: &mut Mvgp| {
+            let mut h = free.hyper().clone();
+            let l = h.kernel.lengthscales().to_vec();
+            h.kernel = Rbf::new(vec![3.0 * l[0], 0.3 * l[1]], 1.0).unwrap();
+            h.sigma *= 3.0;
+            h.B *= 0.3;
+            model.set_hyper(h).unwrap();
+        };
+        let mut wide = pendulum_model(200, seed);
+        start(&mut wide);
+        let r_wide = fit(
+            &mut wide,
+            &FitSettings {
+                warm_start: true,
+                warm_range: f64::INFINITY,
+                ..FitSettings::default()
+            },
+        )
+        .unwrap();
+        let mut boxed = pendulum_model(200, seed);
+        start(&mut boxed);
+        let r_box = fit(
+            &mut boxed,
+            &FitSettings {
+                warm_start: true,
+                warm_range: 1.5,
+                ..FitSettings::default()
+            },
+        )
+        .unwrap();
+        // the box binds: its optimum is worse than the free one's
+        assert!(r_box.log_likelihood < r_wide.log_likelihood - 1.0);
+        assert!(
+            r_box.evaluations <= 2 * r_wide.evaluations,
+            "seed {seed}: {} evaluations in the box against {} without",
+            r_box.evaluations,
+            r_wide.evaluations
+        );
+        eprintln!(
+            "seed {seed}: free {} evaluations; warm start {} without the box, {} in it",
+            r_free.evaluations, r_wide.evaluations, r_box.evaluations
+        );
+    }
+}
