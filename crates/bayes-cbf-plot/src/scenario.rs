@@ -101,20 +101,7 @@ fn generic_series(out: &RunOutput, dir: &Path) -> Result<PathBuf> {
             .push(Layer::line(&format!("h{i}"), t.clone(), ys, i));
     }
     let trace = trace_panel(out);
-    let fig = Figure {
-        width: 1000,
-        height: 1100,
-        rows: 4,
-        cols: 1,
-        title: Some(format!(
-            "{} (seed {})",
-            out.scenario.name, out.scenario.seed
-        )),
-        panels: vec![xs, us, hs, trace],
-    };
-    let path = dir.join("timeseries.png");
-    render_png(&fig, &path)?;
-    Ok(path)
+    timeseries(out, dir, (1000, 1100), vec![xs, us, hs, trace])
 }
 
 /// `names[i]`, or `fallback` when the system has no such name.
@@ -215,20 +202,7 @@ fn pendulum(out: &RunOutput, dir: &Path) -> Result<PathBuf> {
             shape: PointShape::Cross,
         });
     }
-    let fig = Figure {
-        width: 1100,
-        height: 900,
-        rows: 3,
-        cols: 1,
-        title: Some(format!(
-            "{} (seed {})",
-            out.scenario.name, out.scenario.seed
-        )),
-        panels: vec![theta, omega, u],
-    };
-    let path = dir.join("timeseries.png");
-    render_png(&fig, &path)?;
-    Ok(path)
+    timeseries(out, dir, (1100, 900), vec![theta, omega, u])
 }
 
 /// Heat map of [`scbc_grid`] on `cells × cells` points of the vehicle
@@ -455,17 +429,23 @@ fn vehicle_series(out: &RunOutput, dir: &Path) -> Result<PathBuf> {
             first = false;
         }
     }
-    let fig = Figure {
-        width: 1000,
-        height: 900,
-        rows: 3,
-        cols: 1,
-        title: Some(format!(
-            "{} (seed {})",
-            out.scenario.name, out.scenario.seed
-        )),
-        panels: vec![speed, scbc, trace],
-    };
+    timeseries(out, dir, (1000, 900), vec![speed, scbc, trace])
+}
+
+/// `timeseries.png`: `panels` one above the other, titled with the
+/// scenario and its seed, at `size` pixels.
+fn timeseries(
+    out: &RunOutput,
+    dir: &Path,
+    size: (u32, u32),
+    panels: Vec<Panel>,
+) -> Result<PathBuf> {
+    let fig = Figure::grid(
+        (size.0, size.1),
+        (panels.len(), 1),
+        format!("{} (seed {})", out.scenario.name, out.scenario.seed),
+        panels,
+    );
     let path = dir.join("timeseries.png");
     render_png(&fig, &path)?;
     Ok(path)
@@ -522,16 +502,11 @@ pub fn comparison_figure(a: &RunOutput, b: &RunOutput, path: &Path) -> Result<()
     }
     panels.extend([a, b].map(speed_panel));
     panels.extend([a, b].map(scbc_panel));
-    let fig = Figure {
-        width: 1500,
-        height: 1400,
-        rows: 3,
-        cols: 2,
-        title: Some(
-            "mean CBF (left) against Bayes CBF (right): true wheelbase 12, model wheelbase 1"
-                .into(),
-        ),
+    let fig = Figure::grid(
+        (1500, 1400),
+        (3, 2),
+        "mean CBF (left) against Bayes CBF (right): true wheelbase 12, model wheelbase 1",
         panels,
-    };
+    );
     render_png(&fig, path)
 }

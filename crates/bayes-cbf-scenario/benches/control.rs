@@ -8,7 +8,7 @@ use criterion::{criterion_group, criterion_main, BenchmarkId, Criterion};
 use std::hint::black_box;
 
 fn control_step(c: &mut Criterion) {
-    faer::set_global_parallelism(faer::Par::Seq);
+    bayes_cbf::gp::set_linear_algebra_threads(1);
     let mut g = c.benchmark_group("control_step");
     for k in [200, 1000] {
         let mut w = ackermann_control(k, 0).unwrap();
@@ -38,7 +38,7 @@ fn control_step(c: &mut Criterion) {
 }
 
 fn gp_ops(c: &mut Criterion) {
-    faer::set_global_parallelism(faer::Par::Seq);
+    bayes_cbf::gp::set_linear_algebra_threads(1);
     let mut g = c.benchmark_group("gp");
     let w = pendulum_control(1000, 0).unwrap();
     let mut ws = w.model.workspace();

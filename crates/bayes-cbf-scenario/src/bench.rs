@@ -464,11 +464,7 @@ pub fn run_bench(quick: bool, threads: usize, stage: &dyn Fn(&str)) -> Result<Va
     if threads == 0 || threads > 256 {
         bail!("--threads = {threads}: must be in 1..=256");
     }
-    faer::set_global_parallelism(if threads == 1 {
-        faer::Par::Seq
-    } else {
-        faer::Par::rayon(threads)
-    });
+    bayes_cbf::gp::set_linear_algebra_threads(threads);
 
     let ks: &[usize] = if quick {
         &[100, 200]

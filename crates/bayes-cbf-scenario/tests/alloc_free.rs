@@ -1,9 +1,15 @@
 //! The control step (posterior, moments, SOCP) allocates nothing once its
 //! workspaces are warm: counted with a global allocator.
 
+use bayes_cbf::barrier::{
+    cbc_moments, clc_moments, ConditionMoments, DynLyapunov, ExpressionClf, MomentWorkspace,
+};
 use bayes_cbf::control::ControlOutput;
 use bayes_cbf::gp::{FitSettings, InputMap, Mvgp, MvgpHyper, MvgpLikelihood, PriorMean, Rbf};
-use bayes_cbf_scenario::workloads::{ackermann_control, pendulum_control, pendulum_data};
+use bayes_cbf_scenario::workloads::{
+    ackermann_control, ackermann_control_written, pendulum_control_written, pendulum_data,
+    ControlWorkload, Written,
+};
 use nalgebra::DMatrix;
 use std::alloc::{GlobalAlloc, Layout, System};
 use std::cell::Cell;
@@ -90,7 +96,7 @@ fn ackermann_step_allocations(k: usize, recalibrate: bool) -> usize {
 /// nested timer maps: a small constant per step, independent of `k`.
 #[test]
 fn control_steps_do_not_allocate() {
-    faer::set_global_parallelism(faer::Par::Seq);
+    bayes_cbf::gp::set_linear_algebra_threads(1);
     let small = ackermann_step_allocations(150, false);
     let large = ackermann_step_allocations(600, false);
     assert_eq!(small, large, "allocations depend on k: {small} vs {large}");
@@ -104,72 +110,52 @@ fn control_steps_do_not_allocate() {
     );
 }
 
-#[test]
-fn posterior_and_moments_do_not_allocate() {
-    use bayes_cbf::barrier::{
-        cbc_moments, clc_moments, AckermannClf, CircleHeading, ConditionMoments, MomentWorkspace,
-        PendulumSector,
-    };
-    faer::set_global_parallelism(faer::Par::Seq);
-    let w = ackermann_control(150, 3).unwrap();
+/// Allocations of the posterior and the moments of every condition of a
+/// workload (its barriers, and `clf` or else its own CLF) at 50 states
+/// after warm-up; `vary` moves the state.
+fn moment_allocations(
+    w: &ControlWorkload,
+    clf: Option<&dyn DynLyapunov>,
+    vary: fn(&mut [f64], usize),
+) -> usize {
+    let degree = w
+        .controller
+        .barriers()
+        .iter()
+        .map(|b| b.relative_degree())
+        .max()
+        .unwrap_or(1);
     let mut ws = MomentWorkspace::new(&w.model);
-    let mut mom = ConditionMoments::zeros(2);
-    let b = CircleHeading::new([-1.1667, -1.5], 0.7906, 0.7, 0.3, 1, vec![5.0]).unwrap();
-    let clf = AckermannClf::new(0.9, 1.5, 10.0).unwrap();
-    let r = w.reference.clone().unwrap();
+    let mut mom = ConditionMoments::zeros(w.u_ref.len());
+    let zero = vec![0.0; w.x.len()];
+    let (xd, xd_dot) = w.reference.as_ref().map_or((&zero, &zero), |(a, b)| (a, b));
     let mut x = w.x.clone();
     let mut run = |x: &[f64]| {
-        ws.update(&w.model, x, 1).unwrap();
-        cbc_moments(&mut ws, &b, &mut mom).unwrap();
-        clc_moments(&mut ws, &clf, &r.0, &r.1, &mut mom).unwrap();
+        ws.update(&w.model, x, degree).unwrap();
+        for b in w.controller.barriers() {
+            cbc_moments(&mut ws, b.as_ref(), &mut mom).unwrap();
+        }
+        if let Some(clf) = clf.or(w.controller.clf().map(|c| c.as_ref())) {
+            clc_moments(&mut ws, clf, xd, xd_dot, &mut mom).unwrap();
+        }
     };
     run(&x);
-    let n = count(|| {
+    count(|| {
         for i in 0..50 {
-            x[1] = -1.0 + 0.01 * i as f64;
+            vary(&mut x, i);
             run(&x);
         }
-    });
-    assert_eq!(n, 0, "relative degree 1: {n} allocations");
-    let w = pendulum_control(150, 3).unwrap();
-    let mut ws = MomentWorkspace::new(&w.model);
-    let mut mom = ConditionMoments::zeros(1);
-    let b = PendulumSector::new(
-        std::f64::consts::FRAC_PI_4,
-        std::f64::consts::FRAC_PI_8,
-        2,
-        vec![1.0, 3.0],
-    )
-    .unwrap();
-    let mut x = w.x.clone();
-    ws.update(&w.model, &x, 2).unwrap();
-    cbc_moments(&mut ws, &b, &mut mom).unwrap();
-    let n = count(|| {
-        for i in 0..50 {
-            x[1] = -0.01 + 0.01 * i as f64;
-            ws.update(&w.model, &x, 2).unwrap();
-            cbc_moments(&mut ws, &b, &mut mom).unwrap();
-        }
-    });
-    assert_eq!(n, 0, "relative degree 2: {n} allocations");
+    })
 }
 
+/// The posterior and the moments allocate nothing, for the built-in
+/// barriers and CLF and for the same scenarios written as expressions, with
+/// the vehicle's CLF as an expression too (relative degree 1: the
+/// vehicle's heading barriers and CLF; relative degree 2: the pendulum's
+/// sector).
 #[test]
-fn expression_posterior_and_moments_do_not_allocate() {
-    // the Ackermann workload with its prior mean and barriers written as
-    // expressions, and an expression CLF; the pendulum's sector barrier of
-    // relative degree 2 as an expression
-    use bayes_cbf::barrier::{
-        cbc_moments, clc_moments, ConditionMoments, ExpressionBarrier, ExpressionClf,
-        MomentWorkspace,
-    };
-    use bayes_cbf_scenario::workloads::{
-        ackermann_control_written, pendulum_control_written, Written,
-    };
-    faer::set_global_parallelism(faer::Par::Seq);
-    let w = ackermann_control_written(150, 3, Written::Expressions).unwrap();
-    let mut ws = MomentWorkspace::new(&w.model);
-    let mut mom = ConditionMoments::zeros(2);
+fn posterior_and_moments_do_not_allocate() {
+    bayes_cbf::gp::set_linear_algebra_threads(1);
     let clf = ExpressionClf::new(
         &["x", "y", "theta"],
         &[("w1", 0.9), ("w2", 1.5)],
@@ -177,60 +163,17 @@ fn expression_posterior_and_moments_do_not_allocate() {
         10.0,
     )
     .unwrap();
-    let b = ExpressionBarrier::new(
-        &["x", "y", "theta"],
-        &[
-            ("cx", -1.1667),
-            ("cy", -1.5),
-            ("r", 0.7906),
-            ("q1", 0.7),
-            ("q2", 0.3),
-        ],
-        "q1*((x - cx)^2 + (y - cy)^2 - r^2) + q2*cos(theta - atan2(y - cy, x - cx))",
-        1,
-        vec![5.0],
-    )
-    .unwrap();
-    let r = w.reference.clone().unwrap();
-    let mut x = w.x.clone();
-    let mut run = |x: &[f64]| {
-        ws.update(&w.model, x, 1).unwrap();
-        cbc_moments(&mut ws, &b, &mut mom).unwrap();
-        clc_moments(&mut ws, &clf, &r.0, &r.1, &mut mom).unwrap();
-    };
-    run(&x);
-    let n = count(|| {
-        for i in 0..50 {
-            x[1] = -1.0 + 0.01 * i as f64;
-            run(&x);
-        }
-    });
-    assert_eq!(n, 0, "expressions, relative degree 1: {n} allocations");
-    let w = pendulum_control_written(150, 3, Written::Expressions).unwrap();
-    let b = ExpressionBarrier::new(
-        &["theta", "omega"],
-        &[
-            ("tc", std::f64::consts::FRAC_PI_4),
-            ("d", std::f64::consts::FRAC_PI_8),
-        ],
-        "cos(d) - cos(theta - tc)",
-        2,
-        vec![1.0, 3.0],
-    )
-    .unwrap();
-    let mut ws = MomentWorkspace::new(&w.model);
-    let mut mom = ConditionMoments::zeros(1);
-    let mut x = w.x.clone();
-    ws.update(&w.model, &x, 2).unwrap();
-    cbc_moments(&mut ws, &b, &mut mom).unwrap();
-    let n = count(|| {
-        for i in 0..50 {
-            x[1] = -0.01 + 0.01 * i as f64;
-            ws.update(&w.model, &x, 2).unwrap();
-            cbc_moments(&mut ws, &b, &mut mom).unwrap();
-        }
-    });
-    assert_eq!(n, 0, "expressions, relative degree 2: {n} allocations");
+    for (written, clf) in [
+        (Written::BuiltIn, None),
+        (Written::Expressions, Some(&clf as &dyn DynLyapunov)),
+    ] {
+        let w = ackermann_control_written(150, 3, written).unwrap();
+        let n = moment_allocations(&w, clf, |x, i| x[1] = -1.0 + 0.01 * i as f64);
+        assert_eq!(n, 0, "{written:?}, relative degree 1: {n} allocations");
+        let w = pendulum_control_written(150, 3, written).unwrap();
+        let n = moment_allocations(&w, None, |x, i| x[1] = -0.01 + 0.01 * i as f64);
+        assert_eq!(n, 0, "{written:?}, relative degree 2: {n} allocations");
+    }
 }
 
 /// One likelihood-and-gradient evaluation of a fit allocates nothing that

@@ -90,6 +90,19 @@ fn active_control(
     out.u[0]
 }
 
+/// The rate of `DRAWS` draws of the true condition below zero, and the
+/// 99.9 % half-width of a binomial rate `1 − p` over `DRAWS` draws.
+fn violation_rate(
+    seed: u64,
+    p: f64,
+    mut condition: impl FnMut(&mut ChaCha8Rng) -> f64,
+) -> (f64, f64) {
+    let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    let violations = (0..DRAWS).filter(|_| condition(&mut rng) < 0.0).count();
+    let half = Z999 * (p * (1.0 - p) / DRAWS as f64).sqrt();
+    (violations as f64 / DRAWS as f64, half)
+}
+
 /// Relative degree 1, half-space barrier: at the returned control the
 /// Gaussian condition fails with probability exactly `1 − p`. Checked at
 /// `p = 0.9` (`c = Φ⁻¹(0.9)`) and `p = 0.99`, at two states, against
@@ -108,18 +121,11 @@ fn relative_degree_one_violation_rate_is_one_minus_p() {
             let h = barrier.value(x);
             let grad = DVector::from_column_slice(&barrier.normal);
             let ubar = DVector::from_column_slice(&[1.0, u]);
-            let mut rng = ChaCha8Rng::seed_from_u64(100 + t as u64);
-            let mut violations = 0usize;
-            for _ in 0..DRAWS {
-                let z = DMatrix::from_fn(2, 2, |_, _| StandardNormal.sample(&mut rng));
+            let (rate, half) = violation_rate(100 + t as u64, p, |rng| {
+                let z = DMatrix::from_fn(2, 2, |_, _| StandardNormal.sample(rng));
                 let f = &post.mean + &la * z * lb.transpose();
-                let cbc = grad.dot(&(f * &ubar)) + DynBarrier::gains(&barrier)[0] * h;
-                if cbc < 0.0 {
-                    violations += 1;
-                }
-            }
-            let rate = violations as f64 / DRAWS as f64;
-            let half = Z999 * (p * (1.0 - p) / DRAWS as f64).sqrt();
+                grad.dot(&(f * &ubar)) + DynBarrier::gains(&barrier)[0] * h
+            });
             eprintln!("p = {p}, x = {x:?}: u = {u:.4}, rate {rate:.4} (1 − p ± {half:.4})");
             assert!(
                 (rate - (1.0 - p)).abs() <= half,
@@ -181,22 +187,15 @@ fn relative_degree_two_violation_rate_is_at_most_one_minus_p() {
             DVector::from_column_slice(&[2.0 * (x[0] - ring.o[0]), 2.0 * (x[1] - ring.o[1])]);
         let hess = DMatrix::identity(2, 2) * 2.0;
         let ubar = DVector::from_column_slice(&[1.0, u]);
-        let mut rng = ChaCha8Rng::seed_from_u64(200 + t as u64);
-        let mut violations = 0usize;
-        for _ in 0..DRAWS {
-            let z = DMatrix::from_fn(n, joint.c.nrows(), |_, _| StandardNormal.sample(&mut rng));
+        let (rate, slack) = violation_rate(200 + t as u64, p, |rng| {
+            let z = DMatrix::from_fn(n, joint.c.nrows(), |_, _| StandardNormal.sample(rng));
             let big_f = &joint.mean + &la * z * lc.transpose();
             let fu = big_f.columns(0, pc) * &ubar;
             let f = big_f.column(0).into_owned();
             let jf = DMatrix::from_fn(n, n, |l, i| big_f[(l, (i + 1) * pc)]);
             let grad_lfh = &hess * &f + jf.transpose() * &grad;
-            let cbc = grad_lfh.dot(&fu) + ring.gains[0] * h + ring.gains[1] * grad.dot(&f);
-            if cbc < 0.0 {
-                violations += 1;
-            }
-        }
-        let rate = violations as f64 / DRAWS as f64;
-        let slack = Z999 * (p * (1.0 - p) / DRAWS as f64).sqrt();
+            grad_lfh.dot(&fu) + ring.gains[0] * h + ring.gains[1] * grad.dot(&f)
+        });
         eprintln!("relative degree 2, x = {x:?}: u = {u:.4}, rate {rate:.4} (≤ 0.1 + {slack:.4})");
         assert!(
             rate <= 1.0 - p + slack,

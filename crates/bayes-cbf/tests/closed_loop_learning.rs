@@ -40,11 +40,12 @@ fn parts() -> (SafetyController, EpsilonGreedy, [Arc<dyn DynBarrier>; 1]) {
     (ctrl, reference, [sector])
 }
 
-/// The pendulum of Sec. VII-A with ε-greedy exploration, `settings` applied.
-fn run(settings: &LoopSettings, mut on_step: impl FnMut(usize)) -> LoopResult {
+/// `use_engine` on the closed loop of the pendulum of Sec. VII-A with
+/// ε-greedy exploration, `settings` applied.
+fn with_engine<R>(settings: &LoopSettings, use_engine: impl FnOnce(ClosedLoop) -> R) -> R {
     let (mut ctrl, mut reference, barriers) = parts();
     let truth = Pendulum::default();
-    ClosedLoop::new(
+    let engine = ClosedLoop::new(
         &truth,
         model(),
         &mut ctrl,
@@ -53,9 +54,15 @@ fn run(settings: &LoopSettings, mut on_step: impl FnMut(usize)) -> LoopResult {
         &[-0.5, 0.0],
         settings,
     )
-    .unwrap()
-    .run(&mut |k, _: &_| on_step(k))
-    .unwrap()
+    .unwrap();
+    use_engine(engine)
+}
+
+/// The run of [`with_engine`] to its horizon.
+fn run(settings: &LoopSettings, mut on_step: impl FnMut(usize)) -> LoopResult {
+    with_engine(settings, |engine| {
+        engine.run(&mut |k, _: &_| on_step(k)).unwrap()
+    })
 }
 
 fn base(steps: usize) -> LoopSettings {
@@ -248,33 +255,23 @@ fn stepping_equals_running() {
     let whole = run(&settings, |k| seen.push(k));
     assert_eq!(seen, (0..40).collect::<Vec<_>>());
 
-    let (mut ctrl, mut reference, barriers) = parts();
-    let truth = Pendulum::default();
-    let mut engine = ClosedLoop::new(
-        &truth,
-        model(),
-        &mut ctrl,
-        &barriers,
-        &mut reference,
-        &[-0.5, 0.0],
-        &settings,
-    )
-    .unwrap();
-    let mut k = 0;
-    while !engine.is_finished() {
-        let rec = engine.step().unwrap();
-        let want = &whole.records[k];
-        assert_eq!(
-            (&rec.x, &rec.u, rec.data_size),
-            (&want.x, &want.u, want.data_size)
-        );
-        assert_eq!((rec.refit, rec.status), (want.refit, want.status));
-        k += 1;
-    }
-    assert_eq!(k, 40);
-    assert_eq!(engine.state(), whole.final_state.as_slice());
-    assert_eq!(engine.model().xs(), whole.model.xs());
-    assert_eq!(engine.min_barrier(), whole.min_barrier.as_slice());
-    let e = engine.step().expect_err("past the horizon");
-    assert!(e.to_string().contains("horizon"), "{e}");
+    with_engine(&settings, |mut engine| {
+        let mut k = 0;
+        while !engine.is_finished() {
+            let rec = engine.step().unwrap();
+            let want = &whole.records[k];
+            assert_eq!(
+                (&rec.x, &rec.u, rec.data_size),
+                (&want.x, &want.u, want.data_size)
+            );
+            assert_eq!((rec.refit, rec.status), (want.refit, want.status));
+            k += 1;
+        }
+        assert_eq!(k, 40);
+        assert_eq!(engine.state(), whole.final_state.as_slice());
+        assert_eq!(engine.model().xs(), whole.model.xs());
+        assert_eq!(engine.min_barrier(), whole.min_barrier.as_slice());
+        let e = engine.step().expect_err("past the horizon");
+        assert!(e.to_string().contains("horizon"), "{e}");
+    });
 }

@@ -143,21 +143,9 @@ fn check_case(n: usize, m: usize, k: usize, prior: PriorMean, input_map: InputMa
 
 #[test]
 fn posterior_matches_brute_force_joint_gaussian() {
-    let mut seed = 0;
-    for n in 1..=3 {
-        for m in 1..=2 {
-            for nonzero_prior in [false, true] {
-                let prior = if nonzero_prior {
-                    let sys: Arc<dyn DynSystem> = Arc::new(RandomSystem::new(n, m, seed + 100));
-                    PriorMean::System(sys)
-                } else {
-                    PriorMean::Zero
-                };
-                check_case(n, m, 7, prior, InputMap::Identity, seed);
-                seed += 1;
-            }
-        }
-    }
+    common::for_each_posterior_case(|n, m, prior, seed| {
+        check_case(n, m, 7, prior, InputMap::Identity, seed)
+    });
 }
 
 #[test]

@@ -21,6 +21,14 @@ fn default_hyper(d: usize, n: usize, m: usize) -> MvgpHyper {
     }
 }
 
+/// The pendulum MVGP (zero prior mean, unit start) on `data`.
+fn pendulum_mvgp(data: &bayes_cbf::sim::Dataset) -> Mvgp {
+    let hyper = default_hyper(2, 2, 1);
+    let mut model = Mvgp::new(2, 1, hyper, PriorMean::Zero, InputMap::Identity).unwrap();
+    model.set_data(&data.xs, &data.us, &data.xdot).unwrap();
+    model
+}
+
 #[test]
 #[allow(non_snake_case)]
 fn fit_beats_true_hyperparameters_on_mvgp_samples() {
@@ -111,15 +119,7 @@ fn fit_is_deterministic_given_seed() {
     )
     .unwrap();
     let run = || {
-        let mut model = Mvgp::new(
-            2,
-            1,
-            default_hyper(2, 2, 1),
-            PriorMean::Zero,
-            InputMap::Identity,
-        )
-        .unwrap();
-        model.set_data(&ds.xs, &ds.us, &ds.xdot).unwrap();
+        let mut model = pendulum_mvgp(&ds);
         fit(
             &mut model,
             &FitSettings {
@@ -168,15 +168,7 @@ fn pendulum_fit_predicts_held_out_within_five_percent() {
     let (lo, hi) = ([-std::f64::consts::PI, -6.0], [std::f64::consts::PI, 6.0]);
     let train = sample_uniform(&sys, &lo, &hi, &[-15.0], &[15.0], 200, 0.01, &mut rng).unwrap();
     let test = sample_uniform(&sys, &lo, &hi, &[-15.0], &[15.0], 200, 0.0, &mut rng).unwrap();
-    let mut model = Mvgp::new(
-        2,
-        1,
-        default_hyper(2, 2, 1),
-        PriorMean::Zero,
-        InputMap::Identity,
-    )
-    .unwrap();
-    model.set_data(&train.xs, &train.us, &train.xdot).unwrap();
+    let mut model = pendulum_mvgp(&train);
     fit(&mut model, &FitSettings::default()).unwrap();
     let e = held_out_relative_rmse(&model, &sys, &test);
     eprintln!("pendulum held-out relative RMSE: {e:.4}");
@@ -233,17 +225,7 @@ fn pendulum_model(k: usize, seed: u64) -> Mvgp {
     let sys = Pendulum::default();
     let mut rng = ChaCha8Rng::seed_from_u64(seed);
     let (lo, hi) = ([-std::f64::consts::PI, -6.0], [std::f64::consts::PI, 6.0]);
-    let data = sample_uniform(&sys, &lo, &hi, &[-20.0], &[20.0], k, 0.01, &mut rng).unwrap();
-    let mut model = Mvgp::new(
-        2,
-        1,
-        default_hyper(2, 2, 1),
-        PriorMean::Zero,
-        InputMap::Identity,
-    )
-    .unwrap();
-    model.set_data(&data.xs, &data.us, &data.xdot).unwrap();
-    model
+    pendulum_mvgp(&sample_uniform(&sys, &lo, &hi, &[-20.0], &[20.0], k, 0.01, &mut rng).unwrap())
 }
 
 /// `σ` in the fit's own scale (`A_00 = 1`).

@@ -6,7 +6,7 @@ mod common;
 
 use bayes_cbf::gp::{InputMap, Kernel, Mvgp, MvgpHyper, PriorMean, Rbf};
 use bayes_cbf::systems::DynSystem;
-use common::{random_spd, rel_diff, RandomSystem};
+use common::{random_spd, rel_diff};
 use nalgebra::{DMatrix, DVector};
 use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -141,30 +141,19 @@ fn check_case(case: Case, seed: u64) {
 
 #[test]
 fn posterior_matches_brute_force_joint_gaussian() {
-    let mut seed = 0;
-    for n in 1..=3 {
-        for m in 1..=2 {
-            for nonzero_prior in [false, true] {
-                let prior = if nonzero_prior {
-                    let sys: Arc<dyn DynSystem> = Arc::new(RandomSystem::new(n, m, seed + 100));
-                    PriorMean::System(sys)
-                } else {
-                    PriorMean::Zero
-                };
-                check_case(
-                    Case {
-                        n,
-                        m,
-                        k: 7,
-                        prior,
-                        input_map: InputMap::Identity,
-                    },
-                    seed,
-                );
-                seed += 1;
-            }
-        }
-    }
+    common::for_each_posterior_case(|n, m, prior, seed| {
+        let input_map = InputMap::Identity;
+        check_case(
+            Case {
+                n,
+                m,
+                k: 7,
+                prior,
+                input_map,
+            },
+            seed,
+        )
+    });
 }
 
 #[test]

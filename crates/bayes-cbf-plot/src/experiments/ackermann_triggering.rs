@@ -78,17 +78,15 @@ pub fn figures(r: &AckermannTriggering, dir: &Path) -> Result<Vec<PathBuf>> {
         dashed: true,
         name: Some("τ_min".into()),
     });
-    let fig = Figure {
-        width: 1300,
-        height: 550,
-        rows: 1,
-        cols: 2,
-        title: Some(format!(
+    let fig = Figure::grid(
+        (1300, 550),
+        (1, 2),
+        format!(
             "Ackermann vehicle learning online, δ_L = 1e-4, ζ = {}, cuboid (0.2, 0.2, π/50)",
             selft.scenario.controller.zeta
-        )),
-        panels: vec![lp, tp],
-    };
+        ),
+        vec![lp, tp],
+    );
     let path = dir.join("lipschitz.png");
     render_png(&fig, &path)?;
     files.push(path);
@@ -148,14 +146,7 @@ pub fn figures(r: &AckermannTriggering, dir: &Path) -> Result<Vec<PathBuf>> {
             3,
         ),
     ];
-    let fig = Figure {
-        width: 1200,
-        height: 500,
-        rows: 1,
-        cols: 2,
-        title: Some("Margin ζ against hold τ_k: τ_k grows about linearly in ζ; the margin constrains the controller".into()),
-        panels: vec![zp, gp],
-    };
+    let fig = Figure::grid((1200, 500), (1, 2), "Margin ζ against hold τ_k: τ_k grows about linearly in ζ; the margin constrains the controller", vec![zp, gp]);
     let path = dir.join("tau-vs-zeta.png");
     render_png(&fig, &path)?;
     files.push(path);

@@ -50,17 +50,12 @@ pub fn figures(r: &Calibration, dir: &Path) -> Result<Vec<PathBuf>> {
     }
     let cols = 2;
     let rows_n = r.cells.len().div_ceil(cols).max(1);
-    let fig = Figure {
-        width: 1400,
-        height: 560 * rows_n as u32,
-        rows: rows_n,
-        cols,
-        title: Some(
-            "Safety calibration: violation rates, 95 % intervals (zero counts drawn at 1e-5)"
-                .into(),
-        ),
+    let fig = Figure::grid(
+        (1400, 560 * rows_n as u32),
+        (rows_n, cols),
+        "Safety calibration: violation rates, 95 % intervals (zero counts drawn at 1e-5)",
         panels,
-    };
+    );
     let path = dir.join("calibration.png");
     render_png(&fig, &path)?;
     Ok(vec![path])

@@ -51,17 +51,10 @@ pub fn figures(r: &CovarianceShapes, dir: &Path) -> Result<Vec<PathBuf>> {
             panels.push(p);
         }
     }
-    let fig = Figure {
-        width: 1350,
-        height: 900,
-        rows: 2,
-        cols: 3,
-        title: Some(format!(
+    let fig = Figure::grid((1350, 900), (2, 3), format!(
             "3σ ellipses of the unit-trace covariance of each column of F at x = (0, 0, π/4), Ackermann, k = {}",
             r.k
-        )),
-        panels,
-    };
+        ), panels);
     let path = dir.join("covariance-shapes.png");
     render_png(&fig, &path)?;
     Ok(vec![path])

@@ -77,14 +77,12 @@ pub fn figures(r: &PendulumLearning, dir: &Path) -> Result<Vec<PathBuf>> {
             ));
         }
     }
-    let fig = Figure {
-        width: 1200,
-        height: 850,
-        rows: 2,
-        cols: 2,
-        title: Some("Posterior standard deviation (training points red +)".into()),
+    let fig = Figure::grid(
+        (1200, 850),
+        (2, 2),
+        "Posterior standard deviation (training points red +)",
         panels,
-    };
+    );
     let path = dir.join(plots[2]);
     render_png(&fig, &path)?;
     files.push(path);

@@ -83,16 +83,12 @@ pub fn figures(r: &SpeedTest, out: &Path) -> Result<Vec<PathBuf>> {
             panels.push(p);
         }
     }
-    let fig = Figure {
-        width: 1650,
-        height: 1000,
-        rows: 2,
-        cols: 3,
-        title: Some(
-            "MVGP vs CoGP (fitted models): median and 2nd–9th decile over repetitions".into(),
-        ),
+    let fig = Figure::grid(
+        (1650, 1000),
+        (2, 3),
+        "MVGP vs CoGP (fitted models): median and 2nd–9th decile over repetitions",
         panels,
-    };
+    );
     render_png(&fig, &out.join("speed_test.png"))?;
     let mut panels = Vec::new();
     for s in systems {

@@ -1,45 +1,23 @@
 //! Colour maps, the zero level set of a gridded field (marching squares),
 //! tick-label formatting and axis-range helpers.
 
+use plotters::style::colors::colormaps::{ColorMap, DerivedColorMap, ViridisRGB};
 use plotters::style::RGBColor;
+use std::sync::LazyLock;
 
-/// Control points of viridis (sequential), evenly spaced on `[0, 1]`.
-const VIRIDIS: [(u8, u8, u8); 9] = [
-    (68, 1, 84),
-    (71, 44, 122),
-    (59, 81, 139),
-    (44, 113, 142),
-    (33, 144, 141),
-    (39, 173, 129),
-    (92, 200, 99),
-    (170, 220, 50),
-    (253, 231, 37),
+/// A blue–white–red diverging map on `[0, 1]` through these control points
+/// (the sequential map is plotters' viridis).
+static DIVERGING: LazyLock<DerivedColorMap<RGBColor>> =
+    LazyLock::new(|| DerivedColorMap::new(&DIVERGING_POINTS));
+const DIVERGING_POINTS: [RGBColor; 7] = [
+    RGBColor(33, 102, 172),
+    RGBColor(103, 169, 207),
+    RGBColor(209, 229, 240),
+    RGBColor(247, 247, 247),
+    RGBColor(253, 219, 199),
+    RGBColor(239, 138, 98),
+    RGBColor(178, 24, 43),
 ];
-
-/// Control points of a blue–white–red diverging map on `[0, 1]`.
-const DIVERGING: [(u8, u8, u8); 7] = [
-    (33, 102, 172),
-    (103, 169, 207),
-    (209, 229, 240),
-    (247, 247, 247),
-    (253, 219, 199),
-    (239, 138, 98),
-    (178, 24, 43),
-];
-
-fn interpolate(points: &[(u8, u8, u8)], t: f64) -> RGBColor {
-    let t = if t.is_finite() {
-        t.clamp(0.0, 1.0)
-    } else {
-        0.5
-    };
-    let s = t * (points.len() - 1) as f64;
-    let i = (s.floor() as usize).min(points.len() - 2);
-    let w = s - i as f64;
-    let mix = |a: u8, b: u8| (a as f64 + w * (b as f64 - a as f64)).round() as u8;
-    let (a, b) = (points[i], points[i + 1]);
-    RGBColor(mix(a.0, b.0), mix(a.1, b.1), mix(a.2, b.2))
-}
 
 /// A colour scale mapping values in `[lo, hi]` to colours.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -68,13 +46,19 @@ impl ColorScale {
         ColorScale { lo, hi, diverging }
     }
 
-    /// Colour of value `v` (clamped to the scale).
+    /// Colour of value `v` (clamped to the scale; the middle colour for a
+    /// value that is not finite).
     pub fn color(&self, v: f64) -> RGBColor {
         let t = (v - self.lo) / (self.hi - self.lo);
-        if self.diverging {
-            interpolate(&DIVERGING, t)
+        let t = if t.is_finite() {
+            t.clamp(0.0, 1.0)
         } else {
-            interpolate(&VIRIDIS, t)
+            0.5
+        };
+        if self.diverging {
+            DIVERGING.get_color(t)
+        } else {
+            ViridisRGB.get_color(t)
         }
     }
 }
@@ -97,6 +81,12 @@ pub(crate) type Segment = ((f64, f64), (f64, f64));
 /// grid `xs × ys` by marching squares with linear interpolation along cell
 /// edges; saddle cells are resolved by the sign of the cell mean. Cells
 /// with a non-finite corner are skipped; mismatched sizes give no segments.
+///
+/// Not the `contour` crate: its port of d3-contour builds closed rings,
+/// closing each level set along the border of the grid, and compares a
+/// value that is not finite as below every threshold, so it would draw
+/// lines along the edge of the plot and around the cells where a barrier
+/// is not defined.
 pub(crate) fn marching_squares_zero(xs: &[f64], ys: &[f64], values: &[f64]) -> Vec<Segment> {
     let (nx, ny) = (xs.len(), ys.len());
     let mut out = Vec::new();

@@ -11,7 +11,7 @@ use plotters::coord::ranged1d::{DefaultFormatting, KeyPointHint};
 use plotters::coord::Shift;
 use plotters::prelude::*;
 
-/// Converts any plotters error into an `anyhow` error.
+/// Converts any plotters error into this crate's error.
 pub(super) fn de<E: std::fmt::Debug>(e: E) -> crate::Error {
     err!("drawing failed: {e:?}")
 }

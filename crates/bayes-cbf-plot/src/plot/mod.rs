@@ -48,25 +48,17 @@ pub const GREY: usize = 11;
 /// Palette index of red (the paper's training-point colour).
 pub const RED: usize = 3;
 
-/// The palette: Tableau-10 colours, then black and grey. Indices wrap.
-const PALETTE: [RGBColor; 12] = [
-    RGBColor(31, 119, 180),
-    RGBColor(255, 127, 14),
-    RGBColor(44, 160, 44),
-    RGBColor(214, 39, 40),
-    RGBColor(148, 103, 189),
-    RGBColor(140, 86, 75),
-    RGBColor(227, 119, 194),
-    RGBColor(127, 127, 127),
-    RGBColor(188, 189, 34),
-    RGBColor(23, 190, 207),
-    RGBColor(0, 0, 0),
-    RGBColor(110, 110, 110),
+/// The palette as `0xRRGGBB`: Tableau-10 colours, then black and grey.
+/// Indices wrap.
+const PALETTE: [u32; 12] = [
+    0x1f77b4, 0xff7f0e, 0x2ca02c, 0xd62728, 0x9467bd, 0x8c564b, 0xe377c2, 0x7f7f7f, 0xbcbd22,
+    0x17becf, 0x000000, 0x6e6e6e,
 ];
 
 /// Colour of palette index `i` (wrapping).
 pub fn palette(i: usize) -> RGBColor {
-    PALETTE[i % PALETTE.len()]
+    let c = PALETTE[i % PALETTE.len()];
+    RGBColor((c >> 16) as u8, (c >> 8) as u8, c as u8)
 }
 
 /// Marker shape of a [`Layer::Scatter`].
@@ -315,6 +307,24 @@ pub struct Figure {
 }
 
 impl Figure {
+    /// `panels` (row-major) on a `grid = (rows, cols)` under `title`, at
+    /// `size = (width, height)` pixels.
+    pub fn grid(
+        size: (u32, u32),
+        grid: (usize, usize),
+        title: impl Into<String>,
+        panels: Vec<Panel>,
+    ) -> Self {
+        Figure {
+            width: size.0,
+            height: size.1,
+            rows: grid.0,
+            cols: grid.1,
+            title: Some(title.into()),
+            panels,
+        }
+    }
+
     /// A figure holding one panel.
     pub fn single(width: u32, height: u32, panel: Panel) -> Self {
         Figure {

@@ -48,7 +48,7 @@ use std::time::Instant;
 /// How to read the memory figures (copied into `summary.json`).
 const ALLOCATOR_NOTE: &str = "glibc raises its mmap threshold to the size of the largest \
 block freed so far (up to 32 MB), after which large temporaries (the refits' k x k Gram \
-matrices, the chunks' step records) come from the heap, which fragments and is not returned: \
+matrices) come from the heap, which fragments and is not returned: \
 with the default allocator settings the peak and current RSS creep up by a few MB over a run \
 even though nothing is kept. \
 Measured on the default 100 000 steps: with \
@@ -218,7 +218,7 @@ pub fn run(
     progress: &dyn Progress,
 ) -> Result<Soak> {
     let (steps, window) = sizes(args.quick, steps, window)?;
-    faer::set_global_parallelism(faer::Par::Seq);
+    bayes_cbf::gp::set_linear_algebra_threads(1);
     let truth = Pendulum::default();
     let hyper = MvgpHyper {
         kernel: Rbf::new(vec![1.0, 1.0, 3.0], 1.0)?,

@@ -415,7 +415,7 @@ fn cases(plan: &Plan) -> Vec<Case> {
 
 /// Runs the experiment (see the module docs), reporting each finished fit.
 pub fn run(args: &ExperimentArgs, progress: &dyn Progress) -> Result<SpeedTest> {
-    faer::set_global_parallelism(faer::Par::Seq);
+    bayes_cbf::gp::set_linear_algebra_threads(1);
     let plan = Plan::new(args.quick);
     let todo = cases(&plan);
     let done = AtomicUsize::new(0);

@@ -762,6 +762,16 @@ impl SafetyController {
         })
     }
 
+    /// The barriers, in the order of their conditions.
+    pub fn barriers(&self) -> &[Arc<dyn DynBarrier>] {
+        &self.barriers
+    }
+
+    /// The control Lyapunov function, if any.
+    pub fn clf(&self) -> Option<&Arc<dyn DynLyapunov>> {
+        self.clf.as_ref()
+    }
+
     /// Turns the online recalibration of the barrier conditions' variances
     /// on (`Some`) or off (see [`super::Recalibrator`]); on, every step's
     /// condition variances are inflated by `κ_i²` and

@@ -147,45 +147,14 @@ impl<K: Kernel> Cogp<K> {
         })
     }
 
-    /// State dimension `n`.
-    pub fn state_dim(&self) -> usize {
-        self.n
-    }
-    /// Control dimension `m`.
-    pub fn control_dim(&self) -> usize {
-        self.m
-    }
+    shared_model_accessors!(CogpHyper<K>);
     /// Number of observations `k` (the Gram matrix is `kn × kn`).
     pub fn len(&self) -> usize {
         self.data.xs.len() / self.n
     }
-    /// No observations.
-    pub fn is_empty(&self) -> bool {
-        self.data.xs.is_empty()
-    }
-    /// Hyperparameters.
-    pub fn hyper(&self) -> &CogpHyper<K> {
-        &self.hyper
-    }
-    /// Prior mean.
-    pub fn prior(&self) -> &PriorMean {
-        &self.prior
-    }
-    /// Input map.
-    pub fn input_map(&self) -> &InputMap {
-        &self.input_map
-    }
     /// Cholesky factor of the `kn × kn` Gram matrix `𝐆`.
     pub fn factor(&self) -> &CholFactor {
         &self.factor
-    }
-    /// Training inputs (row-major `k × n`).
-    pub fn xs(&self) -> &[f64] {
-        &self.data.xs
-    }
-    /// Training targets `ẋ` (row-major `k × n`).
-    pub fn xdot(&self) -> &[f64] {
-        &self.data.xdot
     }
     /// Mapped training inputs (row-major `k × d`).
     pub fn mapped_inputs(&self) -> &[f64] {

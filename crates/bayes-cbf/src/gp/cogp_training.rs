@@ -66,17 +66,7 @@ impl Default for CogpFitSettings {
 impl CogpFitSettings {
     /// Checks the settings.
     pub fn validate(&self) -> Result<(), InputError> {
-        if self.max_iters == 0 {
-            return Err(InputError::invalid("max_iters", 0.0, "must be ≥ 1"));
-        }
-        if self.restarts > 1000 {
-            return Err(InputError::invalid(
-                "restarts",
-                self.restarts as f64,
-                "must be ≤ 1000",
-            ));
-        }
-        Ok(())
+        super::optimise::check_run_settings(self.max_iters, self.restarts)
     }
 }
 

@@ -1,6 +1,46 @@
 //! Gaussian-process models of `F(x)`: the matrix-variate GP (paper, Sec. IV),
 //! its scalar kernels, input maps, prior means and hyperparameter learning.
 
+/// Accessors shared by the MVGP and the CoGP, whose structs hold the same
+/// fields `n`, `m`, `hyper` (of type `$hyper`), `prior`, `input_map` and
+/// `data`; each model has its own `len`.
+macro_rules! shared_model_accessors {
+    ($hyper:ty) => {
+        /// State dimension `n`.
+        pub fn state_dim(&self) -> usize {
+            self.n
+        }
+        /// Control dimension `m`.
+        pub fn control_dim(&self) -> usize {
+            self.m
+        }
+        /// No observations.
+        pub fn is_empty(&self) -> bool {
+            self.len() == 0
+        }
+        /// Hyperparameters.
+        pub fn hyper(&self) -> &$hyper {
+            &self.hyper
+        }
+        /// Prior mean.
+        pub fn prior(&self) -> &PriorMean {
+            &self.prior
+        }
+        /// Input map.
+        pub fn input_map(&self) -> &InputMap {
+            &self.input_map
+        }
+        /// Training inputs (row-major `k × n`).
+        pub fn xs(&self) -> &[f64] {
+            &self.data.xs
+        }
+        /// Training targets `ẋ` (row-major `k × n`).
+        pub fn xdot(&self) -> &[f64] {
+            &self.data.xdot
+        }
+    };
+}
+
 mod cogp;
 mod cogp_training;
 mod data;
@@ -32,4 +72,5 @@ pub use metrics::{held_out_errors, variance_weighted_error, HeldOutErrors};
 pub use model::{DynamicsModel, ModelFitSettings};
 pub use mvgp::{check_spd, Mvgp, MvgpHyper, Posterior, PosteriorWorkspace};
 pub use prior::PriorMean;
+pub use simd::set_linear_algebra_threads;
 pub use training::{fit, FitReport, FitSettings, MvgpLikelihood, Rank};

@@ -118,69 +118,62 @@ pub trait DynamicsModel {
     fn name(&self) -> &str;
 }
 
-impl<K: Kernel> DynamicsModel for Mvgp<K> {
-    fn state_dim(&self) -> usize {
-        Mvgp::state_dim(self)
-    }
-    fn control_dim(&self) -> usize {
-        Mvgp::control_dim(self)
-    }
-    fn len(&self) -> usize {
-        Mvgp::len(self)
-    }
-    fn set_data(&mut self, xs: &[f64], us: &[f64], xdot: &[f64]) -> Result<(), Error> {
-        Mvgp::set_data(self, xs, us, xdot)
-    }
-    fn fit(&mut self, settings: &ModelFitSettings) -> Result<FitReport, Error> {
-        settings.validate()?;
-        fit(self, &settings.to_mvgp())
-    }
-    /// `(M_k(x), B_k(x, x) ⊗ A)`.
-    fn posterior_vec(&self, x: &[f64]) -> Result<(DMatrix<f64>, DMatrix<f64>), InputError> {
-        let post = self.posterior(x)?;
-        let cov = post.B.kronecker(self.row_cov());
-        Ok((post.mean, cov))
-    }
-    fn posterior_mean(&self, x: &[f64]) -> Result<DMatrix<f64>, InputError> {
-        Mvgp::posterior_mean(self, x)
-    }
-    fn log_marginal_likelihood(&self) -> f64 {
-        Mvgp::log_marginal_likelihood(self)
-    }
-    fn name(&self) -> &str {
-        "MVGP"
-    }
+/// Implements [`DynamicsModel`] for a GP model type by its own methods,
+/// with `$fit` (settings from [`ModelFitSettings::$settings`]) and
+/// `$posterior_vec`.
+macro_rules! dynamics_model {
+    ($model:ident, $name:literal, $fit:ident, $settings:ident, $posterior_vec:ident) => {
+        impl<K: Kernel> DynamicsModel for $model<K> {
+            fn state_dim(&self) -> usize {
+                $model::state_dim(self)
+            }
+            fn control_dim(&self) -> usize {
+                $model::control_dim(self)
+            }
+            fn len(&self) -> usize {
+                $model::len(self)
+            }
+            fn set_data(&mut self, xs: &[f64], us: &[f64], xdot: &[f64]) -> Result<(), Error> {
+                $model::set_data(self, xs, us, xdot)
+            }
+            fn fit(&mut self, settings: &ModelFitSettings) -> Result<FitReport, Error> {
+                settings.validate()?;
+                $fit(self, &settings.$settings())
+            }
+            fn posterior_vec(&self, x: &[f64]) -> Result<(DMatrix<f64>, DMatrix<f64>), InputError> {
+                $posterior_vec(self, x)
+            }
+            fn posterior_mean(&self, x: &[f64]) -> Result<DMatrix<f64>, InputError> {
+                $model::posterior_mean(self, x)
+            }
+            fn log_marginal_likelihood(&self) -> f64 {
+                $model::log_marginal_likelihood(self)
+            }
+            fn name(&self) -> &str {
+                $name
+            }
+        }
+    };
 }
 
-impl<K: Kernel> DynamicsModel for Cogp<K> {
-    fn state_dim(&self) -> usize {
-        Cogp::state_dim(self)
-    }
-    fn control_dim(&self) -> usize {
-        Cogp::control_dim(self)
-    }
-    fn len(&self) -> usize {
-        Cogp::len(self)
-    }
-    fn set_data(&mut self, xs: &[f64], us: &[f64], xdot: &[f64]) -> Result<(), Error> {
-        Cogp::set_data(self, xs, us, xdot)
-    }
-    fn fit(&mut self, settings: &ModelFitSettings) -> Result<FitReport, Error> {
-        settings.validate()?;
-        fit_cogp(self, &settings.to_cogp())
-    }
-    /// `(M_k(x), K_k(x, x))`.
-    fn posterior_vec(&self, x: &[f64]) -> Result<(DMatrix<f64>, DMatrix<f64>), InputError> {
-        let post = self.posterior(x)?;
-        Ok((post.mean, post.cov))
-    }
-    fn posterior_mean(&self, x: &[f64]) -> Result<DMatrix<f64>, InputError> {
-        Cogp::posterior_mean(self, x)
-    }
-    fn log_marginal_likelihood(&self) -> f64 {
-        Cogp::log_marginal_likelihood(self)
-    }
-    fn name(&self) -> &str {
-        "CoGP"
-    }
+/// `(M_k(x), B_k(x, x) ⊗ A)`.
+fn mvgp_posterior_vec<K: Kernel>(
+    model: &Mvgp<K>,
+    x: &[f64],
+) -> Result<(DMatrix<f64>, DMatrix<f64>), InputError> {
+    let post = model.posterior(x)?;
+    let cov = post.B.kronecker(model.row_cov());
+    Ok((post.mean, cov))
 }
+
+/// `(M_k(x), K_k(x, x))`.
+fn cogp_posterior_vec<K: Kernel>(
+    model: &Cogp<K>,
+    x: &[f64],
+) -> Result<(DMatrix<f64>, DMatrix<f64>), InputError> {
+    let post = model.posterior(x)?;
+    Ok((post.mean, post.cov))
+}
+
+dynamics_model!(Mvgp, "MVGP", fit, to_mvgp, mvgp_posterior_vec);
+dynamics_model!(Cogp, "CoGP", fit_cogp, to_cogp, cogp_posterior_vec);

@@ -291,41 +291,14 @@ impl<K: Kernel> Mvgp<K> {
         }
     }
 
-    /// State dimension `n`.
-    pub fn state_dim(&self) -> usize {
-        self.n
-    }
-    /// Control dimension `m`.
-    pub fn control_dim(&self) -> usize {
-        self.m
-    }
+    shared_model_accessors!(MvgpHyper<K>);
     /// Number of observations `k`.
     pub fn len(&self) -> usize {
         self.factor.len()
     }
-    /// No observations.
-    pub fn is_empty(&self) -> bool {
-        self.factor.is_empty()
-    }
-    /// Hyperparameters.
-    pub fn hyper(&self) -> &MvgpHyper<K> {
-        &self.hyper
-    }
-    /// Prior mean.
-    pub fn prior(&self) -> &PriorMean {
-        &self.prior
-    }
-    /// Input map.
-    pub fn input_map(&self) -> &InputMap {
-        &self.input_map
-    }
     /// Cholesky factor of `K + σ²I`.
     pub fn factor(&self) -> &CholFactor {
         &self.factor
-    }
-    /// Training inputs (row-major `k × n`).
-    pub fn xs(&self) -> &[f64] {
-        &self.data.xs
     }
     /// Training controls without the leading 1 (`k × m`), freshly collected.
     pub fn controls(&self) -> Vec<f64> {
@@ -335,10 +308,6 @@ impl<K: Kernel> Mvgp<K> {
             .chunks(p)
             .flat_map(|u| u[1..].to_vec())
             .collect()
-    }
-    /// Training targets `ẋ` (row-major `k × n`).
-    pub fn xdot(&self) -> &[f64] {
-        &self.data.xdot
     }
 
     fn push_point(&mut self, x: &[f64], u: &[f64], xdot: &[f64]) {

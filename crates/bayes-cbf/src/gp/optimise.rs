@@ -59,11 +59,27 @@
 //! lifted optimum itself is then one of the plan's candidates, so the full
 //! fit is never worse than the restricted one.
 
-use crate::error::GpError;
+use crate::error::{GpError, InputError};
 use rand_chacha::ChaCha8Rng;
 use rand_distr::{Distribution, StandardNormal};
 use std::collections::VecDeque;
 use std::fmt;
+
+/// Checks the iteration budget and the number of restarts of a fit's
+/// settings: `max_iters ≥ 1`, `restarts ≤ 1000`.
+pub(crate) fn check_run_settings(max_iters: u64, restarts: usize) -> Result<(), InputError> {
+    if max_iters == 0 {
+        return Err(InputError::invalid("max_iters", 0.0, "must be ≥ 1"));
+    }
+    if restarts > 1000 {
+        return Err(InputError::invalid(
+            "restarts",
+            restarts as f64,
+            "must be ≤ 1000",
+        ));
+    }
+    Ok(())
+}
 
 /// Why an objective could not be evaluated at `θ`.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]

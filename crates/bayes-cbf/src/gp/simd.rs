@@ -9,6 +9,19 @@
 //! products, dot products, copies) therefore runs inside [`with_faer`],
 //! which clears that state once the call returns.
 
+/// Sets the threads of the dense linear algebra (faer's global
+/// parallelism) for the whole process: `1` runs factorisations and solves
+/// on the calling thread (what the benchmarks, the experiments and a
+/// control loop on one core want), more uses a rayon pool of that many
+/// threads. `0` is taken as `1`.
+pub fn set_linear_algebra_threads(threads: usize) {
+    faer::set_global_parallelism(if threads <= 1 {
+        faer::Par::Seq
+    } else {
+        faer::Par::rayon(threads)
+    });
+}
+
 /// Runs `f`, a call (or a short run of calls) into faer, then clears the
 /// upper halves of the AVX registers (`vzeroupper`).
 #[inline]

@@ -132,9 +132,7 @@ impl Default for FitSettings {
 impl FitSettings {
     /// Checks the settings.
     pub fn validate(&self) -> Result<(), InputError> {
-        if self.max_iters == 0 {
-            return Err(InputError::invalid("max_iters", 0.0, "must be ≥ 1"));
-        }
+        super::optimise::check_run_settings(self.max_iters, self.restarts)?;
         if !(self.sigma_min.is_finite() && self.sigma_min >= 0.0) {
             return Err(InputError::invalid(
                 "sigma_min",
@@ -147,13 +145,6 @@ impl FitSettings {
                 "warm_range",
                 self.warm_range,
                 "must be ≥ 1",
-            ));
-        }
-        if self.restarts > 1000 {
-            return Err(InputError::invalid(
-                "restarts",
-                self.restarts as f64,
-                "must be ≤ 1000",
             ));
         }
         Ok(())

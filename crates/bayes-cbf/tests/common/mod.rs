@@ -49,6 +49,27 @@ impl ControlAffine for RandomSystem {
     }
 }
 
+/// The cases of the brute-force posterior checks: `n ∈ 1..=3`,
+/// `m ∈ 1..=2`, a zero prior mean and a [`RandomSystem`] one, each with its
+/// own seed.
+pub fn for_each_posterior_case(mut check: impl FnMut(usize, usize, bayes_cbf::gp::PriorMean, u64)) {
+    use bayes_cbf::gp::PriorMean;
+    let mut seed = 0;
+    for n in 1..=3 {
+        for m in 1..=2 {
+            for nonzero_prior in [false, true] {
+                let prior = if nonzero_prior {
+                    PriorMean::System(std::sync::Arc::new(RandomSystem::new(n, m, seed + 100)))
+                } else {
+                    PriorMean::Zero
+                };
+                check(n, m, prior, seed);
+                seed += 1;
+            }
+        }
+    }
+}
+
 /// A random symmetric positive-definite matrix.
 pub fn random_spd(dim: usize, rng: &mut ChaCha8Rng) -> DMatrix<f64> {
     let c = DMatrix::from_fn(dim, dim, |_, _| rng.random_range(-1.0..1.0));

@@ -12,7 +12,8 @@
 //! - relative degree 2: `CBC⁽²⁾ = ∇(L_f h)(x)ᵀ F(x) u̲ + k₀ h(x) + k₁ L_f h(x)`
 //!   with `L_f h = ∇hᵀ f`.
 //!
-//! Gradients are central differences (the CLI does not depend on num-dual).
+//! The condition is [`true_condition`]: the barrier's gradient and Hessian
+//! by automatic differentiation, the truth's `F` and its Jacobian exactly.
 //!
 //! A negative value is a violation of the promise. When the model is exactly
 //! right, the fraction of violated steps is at most `1 − p` in expectation,
@@ -313,7 +314,7 @@ pub(crate) fn setup(system: System, truth: TruthKind, seed: u64, steps: usize) -
         ..LoopSettings::default()
     };
     let truth_seed: u64 = rng.random();
-    match system {
+    let (truth, model, barrier, x0, monitors): (_, _, Arc<dyn DynBarrier>, _, _) = match system {
         System::Vehicle => {
             let (hyper, map) = vehicle_hyper()?;
             let prior = Ackermann {
@@ -334,7 +335,7 @@ pub(crate) fn setup(system: System, truth: TruthKind, seed: u64, steps: usize) -
                 }),
             };
             let model = Mvgp::new(3, 2, hyper, PriorMean::System(Arc::new(prior)), map)?;
-            let barrier: Arc<dyn DynBarrier> = Arc::new(CircleHeading::new(
+            let barrier = Arc::new(CircleHeading::new(
                 OBSTACLE.0,
                 OBSTACLE.1,
                 0.7,
@@ -349,14 +350,7 @@ pub(crate) fn setup(system: System, truth: TruthKind, seed: u64, steps: usize) -
             ];
             let (c, r) = OBSTACLE;
             let monitor: Monitor = Arc::new(move |x: &[f64]| (x[0] - c[0]).hypot(x[1] - c[1]) - r);
-            Ok(Setup {
-                truth: truth_sys,
-                model,
-                barrier,
-                x0,
-                loop_settings,
-                monitors: vec![monitor],
-            })
+            (truth_sys, model, barrier, x0, vec![monitor])
         }
         System::Pendulum => {
             let (hyper, map) = pendulum_hyper()?;
@@ -372,23 +366,24 @@ pub(crate) fn setup(system: System, truth: TruthKind, seed: u64, steps: usize) -
             // the model knows the kinematic row too (interfaces.md, known_rows)
             let model = Mvgp::new(2, 1, hyper, PriorMean::System(Arc::new(prior)), map)?
                 .with_known_rows(&KNOWN_ROWS)?;
-            let barrier: Arc<dyn DynBarrier> = Arc::new(PendulumSector::new(
+            let barrier = Arc::new(PendulumSector::new(
                 SECTOR.0,
                 SECTOR.1,
                 2,
                 K_ALPHA.to_vec(),
             )?);
             let x0 = vec![rng.random_range(-0.6..0.0), rng.random_range(-0.5..0.5)];
-            Ok(Setup {
-                truth: truth_sys,
-                model,
-                barrier,
-                x0,
-                loop_settings,
-                monitors: Vec::new(),
-            })
+            (truth_sys, model, barrier, x0, Vec::new())
         }
-    }
+    };
+    Ok(Setup {
+        truth,
+        model,
+        barrier,
+        x0,
+        loop_settings,
+        monitors,
+    })
 }
 
 /// The safety controller `kind` for `system` (max-margin fallback, bounds).
@@ -679,7 +674,7 @@ mod tests {
     /// covariance (`A` = 1e-14 I; at relative degree 2 the mean of the
     /// condition includes `tr Cov(∇L_f h, F u̲)`), the model's mean of the
     /// condition is the true condition: the library's exact moments against
-    /// this module's finite differences.
+    /// [`true_condition`].
     #[test]
     fn true_condition_matches_the_moments_of_an_exact_model() {
         for system in [System::Vehicle, System::Pendulum] {

@@ -235,7 +235,7 @@ pub fn run_shard(
 ) -> Result<CalibrationPart> {
     shard.validate()?;
     let plan = Plan::new(args.quick, episodes)?;
-    faer::set_global_parallelism(faer::Par::Seq);
+    bayes_cbf::gp::set_linear_algebra_threads(1);
     let start = Instant::now();
     let results = run_shard_tasks(&plan, args.seed, shard, progress);
     Ok(CalibrationPart {
