@@ -5,6 +5,7 @@
 
 use crate::bail;
 use crate::error::{Context, Result};
+use crate::stats::quantile;
 use crate::workloads::{
     ackermann_control, ackermann_control_written, ackermann_data, ackermann_heading_sweep,
     pendulum_control, pendulum_control_written, pendulum_data, ControlWorkload, Written,
@@ -16,11 +17,203 @@ use bayes_cbf::gp::{
 };
 use bayes_cbf::systems::Ackermann;
 use nalgebra::DMatrix;
-use serde_json::{json, Value};
+use serde::{Deserialize, Serialize};
 use std::time::Instant;
 
-fn percentile(v: &mut [f64], q: f64) -> f64 {
-    crate::stats::quantile(v, q)
+/// The result of [`run_bench`]: one row per measurement.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Bench {
+    /// Threads of the dense linear algebra.
+    pub threads: usize,
+    /// Reduced sizes and repetitions.
+    pub quick: bool,
+    /// The measurements.
+    pub rows: Vec<BenchRow>,
+}
+
+/// One measurement of [`run_bench`], tagged by `case`. Times are medians
+/// (`p50`) and 99th percentiles (`p99`) in microseconds (`_us`) or
+/// milliseconds (`_ms`).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(tag = "case", rename_all = "snake_case")]
+pub enum BenchRow {
+    /// One control step (posterior, moments, SOCP) of a workload.
+    ControlStep {
+        /// The workload (`ackermann`, `pendulum`, or either with
+        /// `-expression`: written in the expression language).
+        system: String,
+        /// The barriers' relative degree.
+        relative_degree: usize,
+        /// Observations in the model.
+        k: usize,
+        /// Median.
+        p50_us: f64,
+        /// 99th percentile.
+        p99_us: f64,
+        /// An expression workload: the built-in step's median in the same run.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        builtin_p50_us: Option<f64>,
+        /// An expression workload: its median over the built-in's.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        over_builtin: Option<f64>,
+    },
+    /// One observation added to a model of `k` points.
+    AddObservation(Timing),
+    /// The oldest observation removed from a model of `k + 1` points.
+    RemoveOldest(Timing),
+    /// The posterior at one state.
+    Predict(Timing),
+    /// One triangular solve with the `k × k` factor: the memory-bound cost
+    /// of any exact posterior variance.
+    Floor {
+        /// Observations.
+        k: usize,
+        /// Median.
+        p50_us: f64,
+    },
+    /// A hyperparameter fit of the MVGP or the CoGP.
+    Fit {
+        /// `mvgp` or `cogp`.
+        model: String,
+        /// The data's system.
+        system: String,
+        /// Observations.
+        k: usize,
+        /// L-BFGS iterations.
+        max_iters: u64,
+        /// Median over the repetitions.
+        p50_ms: f64,
+        /// Objective evaluations of the fit.
+        evaluations: usize,
+        /// The CoGP's median over the MVGP's.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        ratio_to_mvgp: Option<f64>,
+    },
+    /// A fit with active bounds against the same fit without them.
+    FitBound {
+        /// The data's system.
+        system: String,
+        /// Observations.
+        k: usize,
+        /// L-BFGS iterations.
+        max_iters: u64,
+        /// Which bounds.
+        bound: String,
+        /// Evaluations without the bounds.
+        evaluations_free: usize,
+        /// Evaluations with them.
+        evaluations_bound: usize,
+        /// Their ratio.
+        evaluations_ratio: f64,
+        /// Time without the bounds.
+        free_ms: f64,
+        /// Time with them.
+        bound_ms: f64,
+    },
+    /// One likelihood-and-gradient evaluation of a fit against its floor.
+    FitEvaluation {
+        /// The data's system.
+        system: String,
+        /// Observations.
+        k: usize,
+        /// Median of an evaluation.
+        p50_ms: f64,
+        /// Median of one Cholesky factorisation and one inverse of the
+        /// same matrix in the same buffers.
+        floor_p50_ms: f64,
+        /// Their ratio.
+        over_floor: f64,
+    },
+    /// A stream of control steps and bounded online updates.
+    Stream {
+        /// The workload.
+        system: String,
+        /// Steps.
+        steps: usize,
+        /// Step (control and update): median.
+        p50_us: f64,
+        /// Step: 99th percentile.
+        p99_us: f64,
+        /// Step: largest.
+        max_us: f64,
+        /// Step median over the first tenth of the stream.
+        p50_us_first_tenth: f64,
+        /// Step median over the last tenth.
+        p50_us_last_tenth: f64,
+        /// Control step: median.
+        control_p50_us: f64,
+        /// Control step: 99th percentile.
+        control_p99_us: f64,
+        /// Update: median.
+        update_p50_us: f64,
+        /// Update: 99th percentile.
+        update_p99_us: f64,
+        /// Steps whose SOCP was infeasible.
+        infeasible_steps: usize,
+        /// Step: 99th percentile of the feasible steps.
+        p99_us_feasible_steps: f64,
+        /// Control step median of the feasible steps.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        control_p50_us_feasible: Option<f64>,
+        /// Control step median of the infeasible steps.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        control_p50_us_infeasible: Option<f64>,
+        /// Their ratio.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        infeasible_over_feasible: Option<f64>,
+        /// How the model's data are bounded.
+        #[serde(flatten)]
+        bound: BoundKey,
+    },
+    /// The prediction quality of a bounded model against the full data.
+    StreamQuality {
+        /// The workload.
+        system: String,
+        /// Observations streamed.
+        steps: usize,
+        /// Observations kept at the end.
+        k_end: usize,
+        /// Update: median.
+        update_p50_us: f64,
+        /// Update: 99th percentile.
+        update_p99_us: f64,
+        /// Root mean square error of `F(x)u̲` on held-out data.
+        rmse_fu: f64,
+        /// Variance-weighted error (Eq. 33) on held-out data.
+        variance_weighted: f64,
+        /// The largest heading interval without a kept point (rad).
+        largest_heading_gap_rad: f64,
+        /// How the model's data are bounded.
+        #[serde(flatten)]
+        bound: BoundKey,
+    },
+}
+
+/// Median and 99th percentile of an operation on a model of `k` points.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Timing {
+    /// The data's system.
+    pub system: String,
+    /// Observations.
+    pub k: usize,
+    /// Median.
+    pub p50_us: f64,
+    /// 99th percentile.
+    pub p99_us: f64,
+}
+
+/// How a stream bounds the model's data: one of the three fields.
+#[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize)]
+pub struct BoundKey {
+    /// A sliding window of this many points.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub window: Option<usize>,
+    /// A budget of this many points.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub budget: Option<usize>,
+    /// All the data.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub full: Option<bool>,
 }
 
 fn round(x: f64) -> f64 {
@@ -35,10 +228,7 @@ fn time_us(reps: usize, mut f: impl FnMut(usize)) -> (f64, f64) {
         f(i);
         t.push(s.elapsed().as_secs_f64() * 1e6);
     }
-    (
-        round(percentile(&mut t, 0.5)),
-        round(percentile(&mut t, 0.99)),
-    )
+    (round(quantile(&t, 0.5)), round(quantile(&t, 0.99)))
 }
 
 fn control_row(
@@ -47,7 +237,7 @@ fn control_row(
     k: usize,
     reps: usize,
     w: &mut ControlWorkload,
-) -> Result<Value> {
+) -> Result<BenchRow> {
     let m = w.model.control_dim();
     let mut out = ControlOutput::new(m, 2);
     let r = w.reference.clone();
@@ -66,9 +256,15 @@ fn control_row(
     if let Some(e) = err {
         bail!("control step ({system}, k = {k}): {e}");
     }
-    Ok(
-        json!({"case": "control_step", "system": system, "relative_degree": rd, "k": k, "p50_us": p50, "p99_us": p99}),
-    )
+    Ok(BenchRow::ControlStep {
+        system: system.into(),
+        relative_degree: rd,
+        k,
+        p50_us: p50,
+        p99_us: p99,
+        builtin_p50_us: None,
+        over_builtin: None,
+    })
 }
 
 /// One control step of `builtin` and of `expr` (the same workload written
@@ -81,7 +277,7 @@ fn expression_row(
     reps: usize,
     builtin: &mut ControlWorkload,
     expr: &mut ControlWorkload,
-) -> Result<Value> {
+) -> Result<BenchRow> {
     let m = builtin.model.control_dim();
     let mut out = ControlOutput::new(m, 2);
     let (mut tb, mut te) = (Vec::with_capacity(reps), Vec::with_capacity(reps));
@@ -106,18 +302,19 @@ fn expression_row(
             te.push(us)
         }
     }
-    let (b50, e50, e99) = (
-        percentile(&mut tb, 0.5),
-        percentile(&mut te, 0.5),
-        percentile(&mut te, 0.99),
-    );
-    Ok(
-        json!({"case": "control_step", "system": format!("{system}-expression"), "relative_degree": rd, "k": k,
-              "p50_us": round(e50), "p99_us": round(e99), "builtin_p50_us": round(b50), "over_builtin": round(e50 / b50)}),
-    )
+    let (b50, e50, e99) = (quantile(&tb, 0.5), quantile(&te, 0.5), quantile(&te, 0.99));
+    Ok(BenchRow::ControlStep {
+        system: format!("{system}-expression"),
+        relative_degree: rd,
+        k,
+        p50_us: round(e50),
+        p99_us: round(e99),
+        builtin_p50_us: Some(round(b50)),
+        over_builtin: Some(round(e50 / b50)),
+    })
 }
 
-fn floor_row(model: &Mvgp, k: usize, reps: usize) -> Value {
+fn floor_row(model: &Mvgp, k: usize, reps: usize) -> BenchRow {
     let mut rhs = nalgebra::DMatrix::<f64>::zeros(k, 1);
     let (p50, _) = time_us(reps, |i| {
         for j in 0..k {
@@ -125,10 +322,10 @@ fn floor_row(model: &Mvgp, k: usize, reps: usize) -> Value {
         }
         model.factor().solve_l_in_place(&mut rhs);
     });
-    json!({"case": "floor", "k": k, "p50_us": p50})
+    BenchRow::Floor { k, p50_us: p50 }
 }
 
-fn fit_rows(system: &str, k: usize, reps: usize, iters: u64) -> Result<Vec<Value>> {
+fn fit_rows(system: &str, k: usize, reps: usize, iters: u64) -> Result<Vec<BenchRow>> {
     let (n, m, d, data, map, prior) = match system {
         "ackermann" => (
             3,
@@ -188,13 +385,19 @@ fn fit_rows(system: &str, k: usize, reps: usize, iters: u64) -> Result<Vec<Value
         .evaluations;
         co.push(s.elapsed().as_secs_f64() * 1e3);
     }
-    let (m50, c50) = (
-        round(percentile(&mut mv, 0.5)),
-        round(percentile(&mut co, 0.5)),
-    );
+    let (m50, c50) = (round(quantile(&mv, 0.5)), round(quantile(&co, 0.5)));
+    let row = |model: &str, p50_ms, evaluations, ratio_to_mvgp| BenchRow::Fit {
+        model: model.into(),
+        system: system.into(),
+        k,
+        max_iters: iters,
+        p50_ms,
+        evaluations,
+        ratio_to_mvgp,
+    };
     Ok(vec![
-        json!({"case": "fit", "model": "mvgp", "system": system, "k": k, "max_iters": iters, "p50_ms": m50, "evaluations": mv_evals}),
-        json!({"case": "fit", "model": "cogp", "system": system, "k": k, "max_iters": iters, "p50_ms": c50, "evaluations": co_evals, "ratio_to_mvgp": round(c50 / m50)}),
+        row("mvgp", m50, mv_evals, None),
+        row("cogp", c50, co_evals, Some(round(c50 / m50))),
     ])
 }
 
@@ -216,7 +419,7 @@ fn pendulum_fit_model(k: usize) -> Result<Mvgp> {
 /// One evaluation of the likelihood and its gradient (the unit of a fit)
 /// against its floor, one Cholesky factorisation and one inverse of the
 /// same `k × k` Gram matrix in the same buffers, interleaved in one run.
-fn fit_evaluation_row(k: usize, reps: usize) -> Result<Value> {
+fn fit_evaluation_row(k: usize, reps: usize) -> Result<BenchRow> {
     let model = pendulum_fit_model(k)?;
     let mut lik = MvgpLikelihood::new(&model, &FitSettings::default())?;
     let theta = lik.start().to_vec();
@@ -231,11 +434,14 @@ fn fit_evaluation_row(k: usize, reps: usize) -> Result<Value> {
         lik.floor()?;
         tf.push(s.elapsed().as_secs_f64() * 1e3);
     }
-    let (e50, f50) = (percentile(&mut te, 0.5), percentile(&mut tf, 0.5));
-    Ok(
-        json!({"case": "fit_evaluation", "system": "pendulum", "k": k, "p50_ms": round(e50),
-              "floor_p50_ms": round(f50), "over_floor": round(e50 / f50)}),
-    )
+    let (e50, f50) = (quantile(&te, 0.5), quantile(&tf, 0.5));
+    Ok(BenchRow::FitEvaluation {
+        system: "pendulum".into(),
+        k,
+        p50_ms: round(e50),
+        floor_p50_ms: round(f50),
+        over_floor: round(e50 / f50),
+    })
 }
 
 /// Fits with active bounds against the same fits without them
@@ -244,7 +450,7 @@ fn fit_evaluation_row(k: usize, reps: usize) -> Result<Value> {
 /// start a factor 3 away from the free optimum whose every scale may move
 /// only 1.5× either way (`warm_range`) against the same warm start without
 /// that box.
-fn fit_bound_rows(k: usize, iters: u64) -> Result<Vec<Value>> {
+fn fit_bound_rows(k: usize, iters: u64) -> Result<Vec<BenchRow>> {
     let run = |model: &mut Mvgp, settings: FitSettings| -> Result<(usize, f64)> {
         let s = Instant::now();
         let r = fit(
@@ -256,11 +462,16 @@ fn fit_bound_rows(k: usize, iters: u64) -> Result<Vec<Value>> {
         )?;
         Ok((r.evaluations, s.elapsed().as_secs_f64() * 1e3))
     };
-    let row = |bound: &str, free: (usize, f64), bounded: (usize, f64)| {
-        json!({"case": "fit_bound", "system": "pendulum", "k": k, "max_iters": iters, "bound": bound,
-              "evaluations_free": free.0, "evaluations_bound": bounded.0,
-              "evaluations_ratio": round(bounded.0 as f64 / free.0 as f64),
-              "free_ms": round(free.1), "bound_ms": round(bounded.1)})
+    let row = |bound: &str, free: (usize, f64), bounded: (usize, f64)| BenchRow::FitBound {
+        system: "pendulum".into(),
+        k,
+        max_iters: iters,
+        bound: bound.into(),
+        evaluations_free: free.0,
+        evaluations_bound: bounded.0,
+        evaluations_ratio: round(bounded.0 as f64 / free.0 as f64),
+        free_ms: round(free.1),
+        bound_ms: round(bounded.1),
     };
     let mut free_model = pendulum_fit_model(k)?;
     let free = run(&mut free_model, FitSettings::default())?;
@@ -328,11 +539,20 @@ impl Bound {
         }
         Ok(())
     }
-    fn json(self, row: &mut Value) {
+    fn key(self) -> BoundKey {
         match self {
-            Bound::Window(w) => row["window"] = json!(w),
-            Bound::Budget(b) => row["budget"] = json!(b),
-            Bound::Full => row["full"] = json!(true),
+            Bound::Window(w) => BoundKey {
+                window: Some(w),
+                ..BoundKey::default()
+            },
+            Bound::Budget(b) => BoundKey {
+                budget: Some(b),
+                ..BoundKey::default()
+            },
+            Bound::Full => BoundKey {
+                full: Some(true),
+                ..BoundKey::default()
+            },
         }
     }
 }
@@ -343,7 +563,7 @@ impl Bound {
 /// the steps whose SOCP was infeasible (they also solve the max-margin
 /// program and iterate for `p*`), `p99_us_feasible_steps` leaves them out,
 /// `infeasible_over_feasible` is the ratio of the median control steps.
-fn stream_row(steps: usize, bound: Bound, size: usize) -> Result<Value> {
+fn stream_row(steps: usize, bound: Bound, size: usize) -> Result<BenchRow> {
     let mut w = ackermann_control(size, 5)?;
     let extra = ackermann_data(steps, 12.0, 6)?;
     let mut out = ControlOutput::new(2, 2);
@@ -379,30 +599,37 @@ fn stream_row(steps: usize, bound: Bound, size: usize) -> Result<Value> {
         control.push(c);
         update.push(t - c);
     }
-    let first: Vec<f64> = times[..steps / 10].to_vec();
-    let last: Vec<f64> = times[steps - steps / 10..].to_vec();
-    let (mut f, mut l) = (first, last);
+    let (f, l) = (&times[..steps / 10], &times[steps - steps / 10..]);
     let max = times.iter().cloned().fold(0.0, f64::max);
-    let mut row = json!({
-        "case": "stream", "system": "ackermann", "steps": steps,
-        "p50_us": round(percentile(&mut times.clone(), 0.5)), "p99_us": round(percentile(&mut times, 0.99)),
-        "max_us": round(max),
-        "p50_us_first_tenth": round(percentile(&mut f, 0.5)), "p50_us_last_tenth": round(percentile(&mut l, 0.5)),
-        "control_p50_us": round(percentile(&mut control.clone(), 0.5)), "control_p99_us": round(percentile(&mut control, 0.99)),
-        "update_p50_us": round(percentile(&mut update.clone(), 0.5)), "update_p99_us": round(percentile(&mut update, 0.99)),
-        "infeasible_steps": infeasible, "p99_us_feasible_steps": round(percentile(&mut feasible, 0.99)),
-    });
-    if !control_infeasible.is_empty() {
-        // the cost of an infeasible step (max-margin program, p*, fallback)
-        // against a feasible one, control step only
-        let fe = percentile(&mut control_feasible, 0.5);
-        let inf = percentile(&mut control_infeasible, 0.5);
-        row["control_p50_us_feasible"] = json!(round(fe));
-        row["control_p50_us_infeasible"] = json!(round(inf));
-        row["infeasible_over_feasible"] = json!(round(inf / fe));
-    }
-    bound.json(&mut row);
-    Ok(row)
+    // the cost of an infeasible step (max-margin program, p*, fallback)
+    // against a feasible one, control step only
+    let (fe, inf) = if control_infeasible.is_empty() {
+        (None, None)
+    } else {
+        (
+            Some(quantile(&control_feasible, 0.5)),
+            Some(quantile(&control_infeasible, 0.5)),
+        )
+    };
+    Ok(BenchRow::Stream {
+        system: "ackermann".into(),
+        steps,
+        p50_us: round(quantile(&times, 0.5)),
+        p99_us: round(quantile(&times, 0.99)),
+        max_us: round(max),
+        p50_us_first_tenth: round(quantile(f, 0.5)),
+        p50_us_last_tenth: round(quantile(l, 0.5)),
+        control_p50_us: round(quantile(&control, 0.5)),
+        control_p99_us: round(quantile(&control, 0.99)),
+        update_p50_us: round(quantile(&update, 0.5)),
+        update_p99_us: round(quantile(&update, 0.99)),
+        infeasible_steps: infeasible,
+        p99_us_feasible_steps: round(quantile(&feasible, 0.99)),
+        control_p50_us_feasible: fe.map(round),
+        control_p50_us_infeasible: inf.map(round),
+        infeasible_over_feasible: fe.zip(inf).map(|(fe, inf)| round(inf / fe)),
+        bound: bound.key(),
+    })
 }
 
 /// Prediction quality of a bounded model against the full data: the
@@ -410,7 +637,7 @@ fn stream_row(steps: usize, bound: Bound, size: usize) -> Result<Value> {
 /// model of `size` points (window, budget) or all of them (full); errors of
 /// the final model on 1 000 uniform held-out states and controls over the
 /// whole heading range, and the time of each online update (add + bound).
-fn quality_rows(steps: usize, size: usize) -> Result<Vec<Value>> {
+fn quality_rows(steps: usize, size: usize) -> Result<Vec<BenchRow>> {
     let data = ackermann_heading_sweep(steps, 12.0, 21)?;
     let test = ackermann_data(1000, 12.0, 22)?;
     let truth = Ackermann { wheelbase: 12.0 };
@@ -442,15 +669,17 @@ fn quality_rows(steps: usize, size: usize) -> Result<Vec<Value>> {
             .map(|w| w[1] - w[0])
             .chain([thetas[0] + 2.0 * std::f64::consts::PI - thetas[thetas.len() - 1]])
             .fold(0.0, f64::max);
-        let mut row = json!({
-            "case": "stream_quality", "system": "ackermann", "steps": steps, "k_end": model.len(),
-            "update_p50_us": round(percentile(&mut times.clone(), 0.5)),
-            "update_p99_us": round(percentile(&mut times, 0.99)),
-            "rmse_fu": (errs.rmse_fu * 1e4).round() / 1e4,
-            "variance_weighted": (errs.variance_weighted * 1e3).round() / 1e3,
-            "largest_heading_gap_rad": (gap * 1e3).round() / 1e3,
-        });
-        bound.json(&mut row);
+        let row = BenchRow::StreamQuality {
+            system: "ackermann".into(),
+            steps,
+            k_end: model.len(),
+            update_p50_us: round(quantile(&times, 0.5)),
+            update_p99_us: round(quantile(&times, 0.99)),
+            rmse_fu: (errs.rmse_fu * 1e4).round() / 1e4,
+            variance_weighted: (errs.variance_weighted * 1e3).round() / 1e3,
+            largest_heading_gap_rad: (gap * 1e3).round() / 1e3,
+            bound: bound.key(),
+        };
         rows.push(row);
     }
     Ok(rows)
@@ -458,9 +687,8 @@ fn quality_rows(steps: usize, size: usize) -> Result<Vec<Value>> {
 
 /// Times every workload on `threads` threads of dense linear algebra
 /// (`quick`: reduced sizes and repetitions, seconds instead of minutes);
-/// `stage` is told what is being measured. Returns
-/// `{"threads", "quick", "rows": [...]}`, one row per measurement.
-pub fn run_bench(quick: bool, threads: usize, stage: &dyn Fn(&str)) -> Result<Value> {
+/// `stage` is told what is being measured.
+pub fn run_bench(quick: bool, threads: usize, stage: &dyn Fn(&str)) -> Result<Bench> {
     if threads == 0 || threads > 256 {
         bail!("--threads = {threads}: must be in 1..=256");
     }
@@ -517,8 +745,14 @@ pub fn run_bench(quick: bool, threads: usize, stage: &dyn Fn(&str)) -> Result<Va
             model.remove_oldest();
             t_remove.push(s.elapsed().as_secs_f64() * 1e6);
         }
-        rows.push(json!({"case": "add_observation", "system": "pendulum", "k": k, "p50_us": round(percentile(&mut t_add, 0.5)), "p99_us": round(percentile(&mut t_add, 0.99))}));
-        rows.push(json!({"case": "remove_oldest", "system": "pendulum", "k": k, "p50_us": round(percentile(&mut t_remove, 0.5)), "p99_us": round(percentile(&mut t_remove, 0.99))}));
+        let timing = |t: &[f64]| Timing {
+            system: "pendulum".into(),
+            k,
+            p50_us: round(quantile(t, 0.5)),
+            p99_us: round(quantile(t, 0.99)),
+        };
+        rows.push(BenchRow::AddObservation(timing(&t_add)));
+        rows.push(BenchRow::RemoveOldest(timing(&t_remove)));
         let mut ws = p.model.workspace();
         let mut post = p.model.posterior(&p.x)?;
         let mut x = p.x.clone();
@@ -526,9 +760,12 @@ pub fn run_bench(quick: bool, threads: usize, stage: &dyn Fn(&str)) -> Result<Va
             x[1] = -0.01 + 1e-3 * (i % 100) as f64;
             let _ = p.model.posterior_into(&x, &mut ws, &mut post);
         });
-        rows.push(
-            json!({"case": "predict", "system": "pendulum", "k": k, "p50_us": p50, "p99_us": p99}),
-        );
+        rows.push(BenchRow::Predict(Timing {
+            system: "pendulum".into(),
+            k,
+            p50_us: p50,
+            p99_us: p99,
+        }));
         rows.push(floor_row(&p.model, k, reps(k)));
     }
     let (fit_k, fit_reps, iters) = if quick { (100, 1, 10) } else { (500, 3, 30) };
@@ -570,5 +807,9 @@ pub fn run_bench(quick: bool, threads: usize, stage: &dyn Fn(&str)) -> Result<Va
     } else {
         quality_rows(4_000, 200)?
     });
-    Ok(json!({"threads": threads, "quick": quick, "rows": rows}))
+    Ok(Bench {
+        threads,
+        quick,
+        rows,
+    })
 }

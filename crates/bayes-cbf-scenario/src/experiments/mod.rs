@@ -141,7 +141,7 @@ impl ExperimentResult {
             ExperimentResult::SpeedTest(r) => json_of(&r.summary),
             ExperimentResult::CovarianceShapes(r) => json_of(&r.summary),
             ExperimentResult::AckermannTriggering(r) => json_of(&r.summary),
-            ExperimentResult::Calibration(r) => r.summary.clone(),
+            ExperimentResult::Calibration(r) => json_of(&r.summary),
             ExperimentResult::Soak(r) => json_of(&r.summary),
         }
     }
@@ -436,15 +436,6 @@ pub(crate) fn linspace(a: f64, b: f64, n: usize) -> Vec<f64> {
     }
 }
 
-/// A JSON number, or `null` for NaN and infinities (JSON has neither).
-pub(crate) fn num(v: f64) -> serde_json::Value {
-    if v.is_finite() {
-        serde_json::json!(v)
-    } else {
-        serde_json::Value::Null
-    }
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -454,7 +445,7 @@ mod tests {
     #[test]
     fn helpers() {
         assert_eq!(linspace(0.0, 1.0, 3), vec![0.0, 0.5, 1.0]);
-        assert_eq!(num(f64::INFINITY), serde_json::Value::Null);
+        assert_eq!(json_of(&f64::INFINITY), serde_json::Value::Null);
         let err = run(
             "nope",
             &ExperimentArgs {

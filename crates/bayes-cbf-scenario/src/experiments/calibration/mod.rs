@@ -74,7 +74,11 @@ use rayon::prelude::*;
 use std::sync::atomic::{AtomicUsize, Ordering};
 use std::time::Instant;
 
-pub use report::{Cell, Series, FLOOR};
+pub use report::{
+    CalibrationSummary, Cell, ConditionViolations, ControllerInfo, EpisodeError, Files, MinH,
+    PairedComparison, ProcessNoise, RowSummary, Series, SolvedActive, ZSummary, FLOOR,
+};
+pub use stats::{Pooled, Proportion};
 
 /// The result of `calibration`.
 #[derive(Debug, Clone, PartialEq)]
@@ -85,7 +89,7 @@ pub struct Calibration {
     /// controller).
     pub console_table: String,
     /// `summary.json`.
-    pub summary: serde_json::Value,
+    pub summary: CalibrationSummary,
     /// `episodes.csv`: one line per episode and controller.
     pub tables: Vec<Table>,
 }

@@ -8,10 +8,12 @@ use super::episode::{
     FEATURES, INTERNAL_STEP, NOISE, NORMAL_QUANTILES, PROCESS_NOISE_MIS, PROCESS_NOISE_WELL,
 };
 use super::stats::{cluster_interval, pooled, proportion, sign_test_p, wilson};
+use super::stats::{Pooled, Proportion};
 use super::{Plan, Task};
 use crate::experiments::Table;
-use crate::experiments::{num, quantile, ExperimentArgs};
-use serde_json::{json, Value};
+use crate::experiments::{quantile, ExperimentArgs};
+use serde::{Deserialize, Serialize};
+use std::collections::BTreeMap;
 use std::fmt::Write as _;
 
 /// Everything counted for one (system, truth, controller).
@@ -127,67 +129,182 @@ pub(super) fn tables(plan: &Plan, results: &[(Task, EpisodeStats)]) -> Vec<Row> 
     rows
 }
 
-fn row_json(r: &Row) -> Value {
+/// The summary of one (system, truth, controller).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct RowSummary {
+    /// `vehicle` or `pendulum`.
+    pub system: String,
+    /// `well_specified` or `mis_specified`.
+    pub truth: String,
+    /// The controller's name.
+    pub controller: String,
+    /// Its probability `p`.
+    pub p: f64,
+    /// Whether it is the mean CBF (`c(p) = 0`).
+    pub mean_cbf: bool,
+    /// `1 − p`, the rate the controller promises not to exceed per solved
+    /// step; none for the mean CBF.
+    pub requested_violation_rate: Option<f64>,
+    /// Episodes run to the end.
+    pub episodes: usize,
+    /// Episodes that failed.
+    pub errors: usize,
+    /// Step records with a value that is not finite.
+    pub non_finite_records: usize,
+    /// Episodes with `h < 0` on the fine grid.
+    pub episodes_violating_h: Proportion,
+    /// Steps with `h < 0` on the fine grid.
+    pub steps_violating_h: Pooled,
+    /// Steps whose true condition was violated.
+    pub true_condition_violated: ConditionViolations,
+    /// Standardised true conditions `z = (C_true − E[C]) / √Var[C]`.
+    pub standardised_condition: SolvedActive<Option<ZSummary>>,
+    /// Steps whose SOCP was infeasible.
+    pub infeasible_steps: Pooled,
+    /// Episodes in which the fallback was used.
+    pub episodes_with_fallback: Proportion,
+    /// Episodes that entered an obstacle (vehicle).
+    pub collisions: Option<Proportion>,
+    /// Episodes that reached the goal (vehicle).
+    pub goal_reached: Option<Proportion>,
+    /// The episodes' smallest `h`.
+    pub min_h: MinH,
+}
+
+/// A pair of values over solved steps and over active steps.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct SolvedActive<T> {
+    /// Over the steps whose SOCP was solved.
+    pub solved_steps: T,
+    /// Over the solved steps whose chance constraint was active.
+    pub active_steps: T,
+}
+
+/// Violated true conditions.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ConditionViolations {
+    /// Over solved steps.
+    pub solved_steps: Pooled,
+    /// Over active steps.
+    pub active_steps: Pooled,
+    /// Over active steps from step 100 of each episode on.
+    pub active_steps_after_burn_in: Pooled,
+    /// The violations the model expected, `Σ Φ(−E/√Var)`.
+    pub expected_by_the_model: SolvedActive<f64>,
+}
+
+/// Distribution of the standardised conditions.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ZSummary {
+    /// Steps.
+    pub steps: usize,
+    /// Mean of `z`.
+    pub mean: f64,
+    /// Standard deviation of `z`.
+    pub sd: f64,
+    /// Fractions of `z` below the normal quantiles of these probabilities.
+    pub fraction_below_normal_quantile: BTreeMap<String, Proportion>,
+    /// The violations the model expected.
+    pub expected_violations: f64,
+}
+
+/// The episodes' smallest barrier values.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct MinH {
+    /// Median.
+    pub median: f64,
+    /// 10 % quantile.
+    pub q10: f64,
+    /// Smallest.
+    pub min: f64,
+}
+
+fn row_summary(r: &Row) -> RowSummary {
     let episodes = r.episodes();
     let with_fallback = r.infeasible.iter().filter(|(k, _)| *k > 0).count();
     let collisions = r.min_distance.iter().filter(|d| **d < 0.0).count();
     let goal = r.goal.iter().filter(|g| **g).count();
-    json!({
-        "system": r.system.name(),
-        "truth": r.truth.name(),
-        "controller": r.controller.name,
-        "p": r.controller.p,
-        "mean_cbf": r.controller.mean,
-        "requested_violation_rate": r.requested(),
-        "episodes": episodes,
-        "errors": r.errors,
-        "non_finite_records": r.non_finite,
-        "episodes_violating_h": proportion(r.episodes_violating(), episodes),
-        "steps_violating_h": pooled(&r.h_steps),
-        "true_condition_violated": {
-            "solved_steps": pooled(&r.cbc),
-            "active_steps": pooled(&r.active),
-            "active_steps_after_burn_in": pooled(&r.active_late),
-            "expected_by_the_model": {"solved_steps": num(r.z[0].expected), "active_steps": num(r.z[1].expected)},
+    RowSummary {
+        system: r.system.name().into(),
+        truth: r.truth.name().into(),
+        controller: r.controller.name.into(),
+        p: r.controller.p,
+        mean_cbf: r.controller.mean,
+        requested_violation_rate: r.requested(),
+        episodes,
+        errors: r.errors,
+        non_finite_records: r.non_finite,
+        episodes_violating_h: proportion(r.episodes_violating(), episodes),
+        steps_violating_h: pooled(&r.h_steps),
+        true_condition_violated: ConditionViolations {
+            solved_steps: pooled(&r.cbc),
+            active_steps: pooled(&r.active),
+            active_steps_after_burn_in: pooled(&r.active_late),
+            expected_by_the_model: SolvedActive {
+                solved_steps: r.z[0].expected,
+                active_steps: r.z[1].expected,
+            },
         },
-        "standardised_condition": {"solved_steps": z_json(&r.z[0]), "active_steps": z_json(&r.z[1])},
-        "infeasible_steps": pooled(&r.infeasible),
-        "episodes_with_fallback": proportion(with_fallback, episodes),
-        "collisions": if r.min_distance.is_empty() { Value::Null } else { proportion(collisions, r.min_distance.len()) },
-        "goal_reached": if r.goal.is_empty() { Value::Null } else { proportion(goal, r.goal.len()) },
-        "min_h": {
-            "median": num(quantile(&r.min_h, 0.5)),
-            "q10": num(quantile(&r.min_h, 0.1)),
-            "min": num(r.min_h.iter().cloned().fold(f64::INFINITY, f64::min)),
+        standardised_condition: SolvedActive {
+            solved_steps: z_summary(&r.z[0]),
+            active_steps: z_summary(&r.z[1]),
         },
-    })
+        infeasible_steps: pooled(&r.infeasible),
+        episodes_with_fallback: proportion(with_fallback, episodes),
+        collisions: (!r.min_distance.is_empty())
+            .then(|| proportion(collisions, r.min_distance.len())),
+        goal_reached: (!r.goal.is_empty()).then(|| proportion(goal, r.goal.len())),
+        min_h: MinH {
+            median: quantile(&r.min_h, 0.5),
+            q10: quantile(&r.min_h, 0.1),
+            min: r.min_h.iter().cloned().fold(f64::INFINITY, f64::min),
+        },
+    }
 }
 
 /// Mean, standard deviation and lower-tail fractions of standardised
 /// conditions, and the violations the model expected.
-fn z_json(z: &ZStats) -> Value {
+fn z_summary(z: &ZStats) -> Option<ZSummary> {
     if z.n == 0 {
-        return Value::Null;
+        return None;
     }
     let (mean, sd) = z.mean_sd();
-    let below: serde_json::Map<String, Value> = NORMAL_QUANTILES
-        .iter()
-        .zip(z.below)
-        .map(|((q, _), k)| (format!("{q}"), proportion(k, z.n)))
-        .collect();
-    json!({
-        "steps": z.n,
-        "mean": num(mean),
-        "sd": num(sd),
-        "fraction_below_normal_quantile": below,
-        "expected_violations": num(z.expected),
+    Some(ZSummary {
+        steps: z.n,
+        mean,
+        sd,
+        fraction_below_normal_quantile: NORMAL_QUANTILES
+            .iter()
+            .zip(z.below)
+            .map(|((q, _), k)| (format!("{q}"), proportion(k, z.n)))
+            .collect(),
+        expected_violations: z.expected,
     })
+}
+
+/// The paired episode comparison of the mean CBF with one Bayes CBF.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct PairedComparison {
+    /// `vehicle` or `pendulum`.
+    pub system: String,
+    /// `well_specified` or `mis_specified`.
+    pub truth: String,
+    /// The Bayes CBF's name.
+    pub bayes: String,
+    /// Episodes where only the mean CBF reached `h < 0`.
+    pub only_mean_cbf_violates: usize,
+    /// Episodes where only the Bayes CBF did.
+    pub only_bayes_cbf_violates: usize,
+    /// Episodes where both did.
+    pub both_violate: usize,
+    /// One-sided exact sign test that the mean CBF violates more often.
+    pub p_value_mean_violates_more: f64,
 }
 
 /// Paired episode comparison of the mean CBF with each Bayes CBF of the
 /// same (system, truth): discordant episodes and the one-sided exact sign
 /// test that the mean CBF violates more often.
-fn paired(rows: &[Row]) -> Vec<Value> {
+fn paired(rows: &[Row]) -> Vec<PairedComparison> {
     let mut out = Vec::new();
     for mean in rows.iter().filter(|r| r.controller.mean) {
         for bayes in rows
@@ -203,15 +320,15 @@ fn paired(rows: &[Row]) -> Vec<Value> {
                     _ => {}
                 }
             }
-            out.push(json!({
-                "system": mean.system.name(),
-                "truth": mean.truth.name(),
-                "bayes": bayes.controller.name,
-                "only_mean_cbf_violates": only_mean,
-                "only_bayes_cbf_violates": only_bayes,
-                "both_violate": both,
-                "p_value_mean_violates_more": sign_test_p(only_mean, only_mean + only_bayes),
-            }));
+            out.push(PairedComparison {
+                system: mean.system.name().into(),
+                truth: mean.truth.name().into(),
+                bayes: bayes.controller.name.into(),
+                only_mean_cbf_violates: only_mean,
+                only_bayes_cbf_violates: only_bayes,
+                both_violate: both,
+                p_value_mean_violates_more: sign_test_p(only_mean, only_mean + only_bayes),
+            });
         }
     }
     out
@@ -229,6 +346,99 @@ step, so with an exactly right model the expected rate over solved steps is at m
 and on active steps (slack <= 1e-5) it is 1 - p for the Gaussian factor (relative degree 1) \
 and at most 1 - p for Cantelli's (relative degree 2, distribution free).";
 
+/// `summary.json` of `calibration` (see the module docs).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct CalibrationSummary {
+    /// `calibration`.
+    pub scenario: String,
+    /// The seed.
+    pub seed: u64,
+    /// Quick mode.
+    pub quick: bool,
+    /// Episodes per (system, truth).
+    pub episodes: usize,
+    /// Control steps per episode, by system.
+    pub steps_per_episode: BTreeMap<String, usize>,
+    /// Control period (s).
+    pub dt: f64,
+    /// RK4 step of the simulation (s).
+    pub internal_step: f64,
+    /// The model's noise `σ`.
+    pub model_noise: f64,
+    /// Process noise of the truths.
+    pub process_noise: ProcessNoise,
+    /// Noise on the measured `ẋ` (none: process noise only).
+    pub xdot_measurement_noise: f64,
+    /// Random Fourier features of a well-specified truth.
+    pub random_fourier_features: usize,
+    /// Slack below which a constraint counts as active.
+    pub active_slack: f64,
+    /// The controllers compared.
+    pub controllers: Vec<ControllerInfo>,
+    /// How the mean CBF is run.
+    pub mean_cbf_note: String,
+    /// The intervals.
+    pub ci_method: String,
+    /// What a violated true condition is.
+    pub true_condition_note: String,
+    /// One row per (system, truth, controller).
+    pub rows: Vec<RowSummary>,
+    /// The mean CBF against each Bayes CBF.
+    pub paired_mean_vs_bayes: Vec<PairedComparison>,
+    /// Episodes that failed.
+    pub errors: Vec<EpisodeError>,
+    /// Worker threads.
+    pub threads: usize,
+    /// Wall time of the experiment (s).
+    pub wall_seconds: f64,
+    /// The files written beside the summary.
+    pub files: Files,
+}
+
+/// Process noise of the truths.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ProcessNoise {
+    /// Well specified.
+    pub well_specified: f64,
+    /// Mis-specified.
+    pub mis_specified: f64,
+}
+
+/// A compared controller.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ControllerInfo {
+    /// Its name.
+    pub name: String,
+    /// Its `p`.
+    pub p: f64,
+    /// Whether it is the mean CBF.
+    pub mean_cbf: bool,
+}
+
+/// An episode that failed.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct EpisodeError {
+    /// `vehicle` or `pendulum`.
+    pub system: String,
+    /// `well_specified` or `mis_specified`.
+    pub truth: String,
+    /// Episode index.
+    pub episode: usize,
+    /// The controller's name.
+    pub controller: String,
+    /// What failed.
+    pub error: String,
+}
+
+/// The files written beside the summary.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Files {
+    /// The calibration plot.
+    pub plot: String,
+    /// One line per episode and controller.
+    pub episodes: String,
+}
+
 /// The summary (see the module docs of `calibration`).
 pub(super) fn summary(
     args: &ExperimentArgs,
@@ -236,40 +446,62 @@ pub(super) fn summary(
     rows: &[Row],
     results: &[(Task, EpisodeStats)],
     wall: f64,
-) -> Value {
-    let errors: Vec<Value> = results
+) -> CalibrationSummary {
+    let errors = results
         .iter()
         .filter_map(|(t, s)| {
-            s.error.as_ref().map(|e| {
-                json!({"system": t.system.name(), "truth": t.truth.name(), "episode": t.episode,
-                       "controller": CONTROLLERS[t.controller].name, "error": e})
+            s.error.as_ref().map(|e| EpisodeError {
+                system: t.system.name().into(),
+                truth: t.truth.name().into(),
+                episode: t.episode,
+                controller: CONTROLLERS[t.controller].name.into(),
+                error: e.clone(),
             })
         })
         .collect();
-    json!({
-        "scenario": "calibration",
-        "seed": args.seed,
-        "quick": args.quick,
-        "episodes": plan.episodes,
-        "steps_per_episode": plan.systems.iter().map(|(s, n)| (s.name().to_string(), json!(n))).collect::<serde_json::Map<String, Value>>(),
-        "dt": DT,
-        "internal_step": INTERNAL_STEP,
-        "model_noise": NOISE,
-        "process_noise": {"well_specified": PROCESS_NOISE_WELL, "mis_specified": PROCESS_NOISE_MIS},
-        "xdot_measurement_noise": 0.0,
-        "random_fourier_features": FEATURES,
-        "active_slack": ACTIVE_SLACK,
-        "controllers": CONTROLLERS.iter().map(|c| json!({"name": c.name, "p": c.p, "mean_cbf": c.mean})).collect::<Vec<Value>>(),
-        "mean_cbf_note": "the mean CBF has c(p) = 0: the SOCP gets p = 0.5 at relative degree 1 (Gaussian factor) and p = 1e-9 (Cantelli c = 3e-5) at relative degree 2",
-        "ci_method": CI_NOTE,
-        "true_condition_note": CONDITION_NOTE,
-        "rows": rows.iter().map(row_json).collect::<Vec<Value>>(),
-        "paired_mean_vs_bayes": paired(rows),
-        "errors": errors,
-        "threads": rayon::current_num_threads(),
-        "wall_seconds": num(wall),
-        "files": {"plot": "calibration.png", "episodes": "episodes.csv"},
-    })
+    CalibrationSummary {
+        scenario: "calibration".into(),
+        seed: args.seed,
+        quick: args.quick,
+        episodes: plan.episodes,
+        steps_per_episode: plan
+            .systems
+            .iter()
+            .map(|(s, n)| (s.name().to_string(), *n))
+            .collect(),
+        dt: DT,
+        internal_step: INTERNAL_STEP,
+        model_noise: NOISE,
+        process_noise: ProcessNoise {
+            well_specified: PROCESS_NOISE_WELL,
+            mis_specified: PROCESS_NOISE_MIS,
+        },
+        xdot_measurement_noise: 0.0,
+        random_fourier_features: FEATURES,
+        active_slack: ACTIVE_SLACK,
+        controllers: CONTROLLERS
+            .iter()
+            .map(|c| ControllerInfo {
+                name: c.name.into(),
+                p: c.p,
+                mean_cbf: c.mean,
+            })
+            .collect(),
+        mean_cbf_note: "the mean CBF has c(p) = 0: the SOCP gets p = 0.5 at relative degree 1 \
+            (Gaussian factor) and p = 1e-9 (Cantelli c = 3e-5) at relative degree 2"
+            .into(),
+        ci_method: CI_NOTE.into(),
+        true_condition_note: CONDITION_NOTE.into(),
+        rows: rows.iter().map(row_summary).collect(),
+        paired_mean_vs_bayes: paired(rows),
+        errors,
+        threads: rayon::current_num_threads(),
+        wall_seconds: wall,
+        files: Files {
+            plot: "calibration.png".into(),
+            episodes: "episodes.csv".into(),
+        },
+    }
 }
 
 /// A fixed-width table of the main rates for the terminal.

@@ -1,7 +1,6 @@
 //! Binomial confidence intervals and the exact sign test used by the
 //! calibration report.
 
-use serde_json::{json, Value};
 use statrs::distribution::{Binomial, DiscreteCDF};
 
 /// `z` of a two-sided 95 % interval, `Φ⁻¹(0.975)`.
@@ -47,28 +46,50 @@ pub(crate) fn sign_test_p(k: usize, n: usize) -> f64 {
     }
 }
 
-/// `{"count", "of", "rate", "ci95"}` of a binomial proportion (Wilson).
-pub(crate) fn proportion(k: usize, n: usize) -> Value {
+/// A binomial proportion with its 95 % Wilson interval.
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct Proportion {
+    /// Successes.
+    pub count: usize,
+    /// Trials.
+    pub of: usize,
+    /// `count / of`; `None` without trials.
+    pub rate: Option<f64>,
+    /// 95 % Wilson score interval.
+    pub ci95: [f64; 2],
+}
+
+/// A rate pooled over episodes: the [`Proportion`] of all their steps, and
+/// a cluster-robust interval by episode (`None` with fewer than 2).
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct Pooled {
+    /// The proportion of all steps.
+    #[serde(flatten)]
+    pub all: Proportion,
+    /// 95 % cluster-robust interval.
+    pub ci95_clustered: Option<[f64; 2]>,
+}
+
+/// The proportion `k / n` with its Wilson interval.
+pub(crate) fn proportion(k: usize, n: usize) -> Proportion {
     let (lo, hi) = wilson(k, n);
-    json!({
-        "count": k,
-        "of": n,
-        "rate": if n > 0 { json!(k as f64 / n as f64) } else { Value::Null },
-        "ci95": [lo, hi],
-    })
+    Proportion {
+        count: k,
+        of: n,
+        rate: (n > 0).then(|| k as f64 / n as f64),
+        ci95: [lo, hi],
+    }
 }
 
 /// [`proportion`] of pooled per-episode counts `(k_e, n_e)`, with the
-/// cluster-robust interval as well (`ci95_clustered`).
-pub(crate) fn pooled(counts: &[(usize, usize)]) -> Value {
+/// cluster-robust interval as well.
+pub(crate) fn pooled(counts: &[(usize, usize)]) -> Pooled {
     let k: usize = counts.iter().map(|c| c.0).sum();
     let n: usize = counts.iter().map(|c| c.1).sum();
-    let mut v = proportion(k, n);
-    v["ci95_clustered"] = match cluster_interval(counts) {
-        Some((lo, hi)) => json!([lo, hi]),
-        None => Value::Null,
-    };
-    v
+    Pooled {
+        all: proportion(k, n),
+        ci95_clustered: cluster_interval(counts).map(|(lo, hi)| [lo, hi]),
+    }
 }
 
 #[cfg(test)]
