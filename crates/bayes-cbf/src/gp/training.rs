@@ -771,7 +771,12 @@ pub fn fit<K: Kernel>(model: &mut Mvgp<K>, settings: &FitSettings) -> Result<Fit
         th0[off_sigma] = (th0[off_sigma] + std::f64::consts::LN_10).min(sigma_max);
     }
     // one run per start, ending when an iteration improves −log p by less
-    // than 1e-9 relative, or at a stall
+    // than 1e-9 relative, or at a stall. The CoGP fit resumes after stalls
+    // and pre-fits a diagonal model (same harness, `fit_cogp`): its Σ has
+    // (n(1+m))² entries and its landscape many flat valleys. The MVGP's
+    // few parameters do not need it: with four resumptions and 1e-12 the
+    // pendulum fit at k = 500 and the scalar one at k = 1000 reach the same
+    // likelihood (to 2·10⁻⁵ relative) with 4-24 % more evaluations.
     let run = RunSettings {
         max_iters: settings.max_iters,
         stall_resumes: 0,
