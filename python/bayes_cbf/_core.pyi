@@ -1,15 +1,17 @@
 """Type stubs of the compiled module bayes_cbf._core."""
 
 from os import PathLike
-from typing import Any, Literal, Mapping, Optional, Sequence, Union
+from typing import Any, Callable, Final, Literal, Mapping, Optional, Protocol, Sequence, Union
 
 import numpy as np
 import numpy.typing as npt
+from typing_extensions import Self
 
 ArrayLike = npt.ArrayLike
 F64 = npt.NDArray[np.float64]
 Rank = Union[Literal["full", "diag"], int]
 Path = Union[str, PathLike[str]]
+Gains = Optional[Sequence[float]]
 
 __version__: str
 
@@ -19,117 +21,95 @@ class InputError(ValueError):
 class NumericalError(RuntimeError):
     """A numerical failure (factorisation, optimiser)."""
 
-class MVGP:
-    """Matrix-variate GP of F(x) = [f(x) g(x)]: vec F ~ GP(vec M0, B k0 ⊗ A), noise σ² A."""
+class _GaussianProcess(Protocol):
+    """What MVGP and CoGP share: a GP model of F(x) = [f(x) g(x)] with its data."""
 
-    def __init__(
-        self,
-        state_dim: int,
-        control_dim: int,
-        lengthscales: ArrayLike,
-        A: ArrayLike,
-        B: ArrayLike,
-        noise_sigma: float,
-        prior_mean: Optional[dict[str, Any]] = None,
-        input_map: Optional[list[Any]] = None,
-        variance: float = 1.0,
-        known_rows: Optional[Sequence[int]] = None,
-    ) -> None: ...
-    def fit(
-        self,
-        X: ArrayLike,
-        U: ArrayLike,
-        Xdot: ArrayLike,
-        rank_a: Rank = "full",
-        rank_b: Rank = "full",
-        max_iters: int = 100,
-        seed: int = 0,
-        restarts: int = 0,
-        sigma_min: float = 0.0,
-    ) -> "MVGP":
+    def fit(self, X: ArrayLike, U: ArrayLike, Xdot: ArrayLike) -> Self:
         """Learns the hyperparameters on (X, U, Xdot), which replace the data; returns self."""
     @property
     def fit_report(self) -> Optional[dict[str, float]]: ...
     def predict(self, Xq: ArrayLike) -> tuple[F64, F64]:
+        """Posterior means (q, n, 1+m) and covariances at the rows of Xq."""
+    def log_marginal_likelihood(self) -> float: ...
+    @property
+    def state_dim(self) -> int: ...
+    @property
+    def control_dim(self) -> int: ...
+    def __len__(self) -> int: ...
+
+class MVGP(_GaussianProcess):
+    """Matrix-variate GP of F(x) = [f(x) g(x)]: vec F ~ GP(vec M0, B k0 ⊗ A), noise σ² A."""
+
+    def __init__(
+        self, state_dim: int, control_dim: int, lengthscales: ArrayLike,
+        A: ArrayLike, B: ArrayLike, noise_sigma: float,
+        prior_mean: Optional[dict[str, Any]] = None, input_map: Optional[list[Any]] = None,
+        variance: float = 1.0, known_rows: Optional[Sequence[int]] = None,
+    ) -> None: ...
+    def fit(
+        self, X: ArrayLike, U: ArrayLike, Xdot: ArrayLike,
+        rank_a: Rank = "full", rank_b: Rank = "full",
+        max_iters: int = 100, seed: int = 0, restarts: int = 0, sigma_min: float = 0.0,
+    ) -> Self: ...
+    def predict(self, Xq: ArrayLike) -> tuple[F64, F64]:
         """Means (q, n, 1+m) and B_k(x, x) (q, 1+m, 1+m); Cov(vec F(x)) = B_k ⊗ A."""
+    def rust_predict_time_s(self, Xq: ArrayLike, repeats: int = 5) -> float: ...
     def add_observation(self, x: ArrayLike, u: ArrayLike, xdot: ArrayLike) -> None: ...
     def remove_oldest(self) -> None: ...
-    def log_marginal_likelihood(self) -> float: ...
     def save(self, path: Path) -> None: ...
     @staticmethod
     def load(path: Path) -> "MVGP": ...
     @staticmethod
     def from_json(text: str) -> "MVGP": ...
     def to_json(self) -> str: ...
-    @property
-    def state_dim(self) -> int: ...
-    @property
-    def control_dim(self) -> int: ...
-    @property
-    def A(self) -> F64: ...
-    @property
-    def B(self) -> F64: ...
-    @property
-    def known_rows(self) -> list[int]: ...
-    @property
-    def row_cov(self) -> F64:
-        """A with the known rows and columns zeroed: Cov(vec F(x)) = B_k(x, x) ⊗ row_cov."""
-    @property
-    def lengthscales(self) -> F64: ...
-    @property
-    def variance(self) -> float: ...
-    @property
-    def noise_sigma(self) -> float: ...
-    @property
-    def X(self) -> F64: ...
-    @property
-    def U(self) -> F64: ...
-    @property
-    def Xdot(self) -> F64: ...
-    def __len__(self) -> int: ...
+    A: Final[F64]
+    """Row covariance A (n × n)."""
+    B: Final[F64]
+    """Column covariance B ((1+m) × (1+m))."""
+    known_rows: Final[list[int]]
+    """Rows of F known exactly from the prior mean."""
+    row_cov: Final[F64]
+    """A with the known rows and columns zeroed: Cov(vec F(x)) = B_k(x, x) ⊗ row_cov."""
+    lengthscales: Final[F64]
+    """Kernel lengthscales."""
+    variance: Final[float]
+    """Kernel output scale."""
+    noise_sigma: Final[float]
+    """Noise scale σ."""
+    X: Final[F64]
+    """The training states (k, n)."""
+    U: Final[F64]
+    """The training controls (k, m)."""
+    Xdot: Final[F64]
+    """The training derivatives (k, n)."""
 
-class CoGP:
+class CoGP(_GaussianProcess):
     """Coregionalisation GP baseline: vec F ~ GP(vec M0, k0 Σ), noise S."""
 
     def __init__(
-        self,
-        state_dim: int,
-        control_dim: int,
-        lengthscales: ArrayLike,
-        Sigma: Optional[ArrayLike] = None,
-        S: Optional[ArrayLike] = None,
-        prior_mean: Optional[dict[str, Any]] = None,
-        input_map: Optional[list[Any]] = None,
+        self, state_dim: int, control_dim: int, lengthscales: ArrayLike,
+        Sigma: Optional[ArrayLike] = None, S: Optional[ArrayLike] = None,
+        prior_mean: Optional[dict[str, Any]] = None, input_map: Optional[list[Any]] = None,
         variance: float = 1.0,
     ) -> None: ...
     def fit(
-        self,
-        X: ArrayLike,
-        U: ArrayLike,
-        Xdot: ArrayLike,
-        rank_sigma: Rank = "full",
-        rank_s: Rank = "full",
-        max_iters: int = 100,
-        seed: int = 0,
-        restarts: int = 0,
-    ) -> "CoGP": ...
-    @property
-    def fit_report(self) -> Optional[dict[str, float]]: ...
+        self, X: ArrayLike, U: ArrayLike, Xdot: ArrayLike,
+        rank_sigma: Rank = "full", rank_s: Rank = "full",
+        max_iters: int = 100, seed: int = 0, restarts: int = 0,
+    ) -> Self: ...
     def predict(self, Xq: ArrayLike) -> tuple[F64, F64]:
         """Means (q, n, 1+m) and covariances of vec F(x) (q, n(1+m), n(1+m))."""
-    def log_marginal_likelihood(self) -> float: ...
-    @property
-    def state_dim(self) -> int: ...
-    @property
-    def control_dim(self) -> int: ...
-    @property
-    def Sigma(self) -> F64: ...
-    @property
-    def S(self) -> F64: ...
-    def __len__(self) -> int: ...
+    Sigma: Final[F64]
+    """Output covariance Σ (n(1+m) square)."""
+    S: Final[F64]
+    """Noise covariance S (n × n)."""
 
 class Barrier:
-    """A control barrier function; the safe set is {x : h(x) >= 0}."""
+    """A control barrier function; the safe set is {x : h(x) >= 0}.
+
+    Every constructor takes the class-K gains as `alpha` (relative degree 1)
+    or `k_alpha` (one gain per derivative order, relative degree >= 2).
+    """
 
     @staticmethod
     def from_json(text: str) -> "Barrier": ...
@@ -137,82 +117,50 @@ class Barrier:
     def load(path: Path) -> "Barrier": ...
     @staticmethod
     def pendulum_sector(
-        theta_c: float,
-        delta: float,
-        relative_degree: int = 2,
-        alpha: Optional[float] = None,
-        k_alpha: Optional[Sequence[float]] = None,
+        theta_c: float, delta: float,
+        relative_degree: int = 2, alpha: Optional[float] = None, k_alpha: Gains = None,
     ) -> "Barrier": ...
     @staticmethod
     def pendulum_sector_edge(
-        theta_c: float,
-        delta: float,
-        edge: Literal["upper", "lower"],
-        relative_degree: int = 2,
-        alpha: Optional[float] = None,
-        k_alpha: Optional[Sequence[float]] = None,
+        theta_c: float, delta: float, edge: Literal["upper", "lower"],
+        relative_degree: int = 2, alpha: Optional[float] = None, k_alpha: Gains = None,
     ) -> "Barrier": ...
     @staticmethod
     def circle_heading(
-        center: Sequence[float],
-        radius: float,
-        q1: float,
-        q2: float,
-        relative_degree: int = 1,
-        alpha: Optional[float] = None,
-        k_alpha: Optional[Sequence[float]] = None,
+        center: Sequence[float], radius: float, q1: float, q2: float,
+        relative_degree: int = 1, alpha: Optional[float] = None, k_alpha: Gains = None,
     ) -> "Barrier": ...
     @staticmethod
     def disc(
-        state_dim: int,
-        indices: Sequence[int],
-        center: Sequence[float],
-        radius: float,
-        relative_degree: int = 1,
-        alpha: Optional[float] = None,
-        k_alpha: Optional[Sequence[float]] = None,
+        state_dim: int, indices: Sequence[int], center: Sequence[float], radius: float,
+        relative_degree: int = 1, alpha: Optional[float] = None, k_alpha: Gains = None,
     ) -> "Barrier": ...
     @staticmethod
     def half_space(
-        normal: Sequence[float],
-        offset: float,
-        relative_degree: int = 1,
-        alpha: Optional[float] = None,
-        k_alpha: Optional[Sequence[float]] = None,
+        normal: Sequence[float], offset: float,
+        relative_degree: int = 1, alpha: Optional[float] = None, k_alpha: Gains = None,
     ) -> "Barrier": ...
     @staticmethod
     def expression(
-        h: str,
-        state: Sequence[str],
-        params: Optional[Mapping[str, float]] = None,
-        relative_degree: int = 1,
-        alpha: Optional[float] = None,
-        k_alpha: Optional[Sequence[float]] = None,
+        h: str, state: Sequence[str], params: Optional[Mapping[str, float]] = None,
+        relative_degree: int = 1, alpha: Optional[float] = None, k_alpha: Gains = None,
     ) -> "Barrier":
         """h written as an expression over the named states (exact derivatives)."""
-        ...
     @staticmethod
     def callback(
-        h: Any,
-        grad: Any,
-        hess: Any = None,
-        state_dim: int = 2,
-        relative_degree: int = 1,
-        alpha: float = 1.0,
-        k_alpha: Optional[Sequence[float]] = None,
+        h: Callable[[F64], float], grad: Callable[[F64], ArrayLike],
+        hess: Optional[Callable[[F64], ArrayLike]] = None, state_dim: int = 2,
+        relative_degree: int = 1, alpha: float = 1.0, k_alpha: Gains = None,
         name: str = "callback",
     ) -> "Barrier": ...
     def value(self, x: ArrayLike) -> float: ...
     def gradient(self, x: ArrayLike) -> F64: ...
     def hessian(self, x: ArrayLike) -> F64: ...
-    @property
-    def state_dim(self) -> int: ...
-    @property
-    def relative_degree(self) -> int: ...
-    @property
-    def gains(self) -> list[float]: ...
-    @property
-    def name(self) -> str: ...
+    state_dim: Final[int]
+    relative_degree: Final[int]
+    gains: Final[list[float]]
+    """Class-K gains: [alpha] or k_alpha."""
+    name: Final[str]
     def to_json(self) -> Optional[str]: ...
 
 class CLF:
@@ -233,13 +181,16 @@ class CLF:
         ...
 
 class FilterResult:
-    u: F64
-    status: Literal["optimal", "infeasible"]
-    p_star: Optional[float]
-    fallback: Optional[str]
-    violated: Optional[list[int]]
-    constraints: list[dict[str, Any]]
-    solve_time_us: float
+    """The result of one filter step."""
+
+    u: Final[F64]
+    status: Final[Literal["optimal", "infeasible"]]
+    p_star: Final[Optional[float]]
+    fallback: Final[Optional[str]]
+    violated: Final[Optional[list[int]]]
+    constraints: Final[list[dict[str, Any]]]
+    """Per barrier: barrier, relative_degree, mean, std, c and slack."""
+    solve_time_us: Final[float]
 
 class SafetyFilter:
     """The chance-constrained CBF(-CLF) SOCP safety filter."""
@@ -264,10 +215,9 @@ class SafetyFilter:
         x_d: Optional[ArrayLike] = None,
         xdot_d: Optional[ArrayLike] = None,
     ) -> FilterResult: ...
-    @property
-    def model(self) -> MVGP: ...
-    @property
-    def barrier_names(self) -> list[str]: ...
+    def rust_step_time_us(self, x: ArrayLike, u_ref: ArrayLike, repeats: int = 1000) -> float: ...
+    model: Final[MVGP]
+    barrier_names: Final[list[str]]
 
 def moments(
     model: MVGP,

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 import bayes_cbf as bc
-from conftest import pendulum_data
+from conftest import DELTA, THETA_C, assert_same_controls, gains, sector
 
 
 def sector_callbacks(theta_c: float, delta: float):
@@ -23,18 +23,11 @@ def sector_callbacks(theta_c: float, delta: float):
     return h, grad, hess
 
 
-@pytest.fixture(scope="module")
-def model():
-    X, U, Xdot = pendulum_data(40, seed=2)
-    return bc.MVGP(2, 1, [1.0, 1.0], np.eye(2), np.eye(2), 0.1).fit(X, U, Xdot, max_iters=30)
-
-
 @pytest.mark.parametrize("degree", [1, 2])
 def test_callback_moments_equal_the_builtin(model, degree):
-    kw = {"alpha": 2.0} if degree == 1 else {"k_alpha": [1.0, 3.0]}
-    builtin = bc.Barrier.pendulum_sector(0.7854, 0.3927, relative_degree=degree, **kw)
-    h, g, H = sector_callbacks(0.7854, 0.3927)
-    cb = bc.Barrier.callback(h, g, H, state_dim=2, relative_degree=degree, **kw)
+    builtin = sector(degree)
+    h, g, H = sector_callbacks(THETA_C, DELTA)
+    cb = bc.Barrier.callback(h, g, H, state_dim=2, relative_degree=degree, **gains(degree))
     rng = np.random.default_rng(0)
     for _ in range(5):
         x, u = rng.uniform(-3, 3, 2), rng.uniform(-5, 5, 1)
@@ -47,15 +40,10 @@ def test_callback_moments_equal_the_builtin(model, degree):
 
 
 def test_callback_controls_equal_the_builtin(model):
-    builtin = bc.Barrier.pendulum_sector(0.7854, 0.3927, relative_degree=2, k_alpha=[1.0, 3.0])
-    h, g, H = sector_callbacks(0.7854, 0.3927)
-    cb = bc.Barrier.callback(h, g, H, state_dim=2, relative_degree=2, k_alpha=[1.0, 3.0])
-    f1 = bc.SafetyFilter(model, [builtin], probability=0.95, u_min=[-10.0], u_max=[10.0])
-    f2 = bc.SafetyFilter(model, [cb], probability=0.95, u_min=[-10.0], u_max=[10.0])
-    for x in ([0.2, 1.0], [1.3, -2.0], [0.5, 0.5]):
-        r1, r2 = f1.filter(np.array(x), [5.0]), f2.filter(np.array(x), [5.0])
-        assert r1.status == r2.status
-        np.testing.assert_allclose(r1.u, r2.u, atol=1e-8)
+    builtin = sector(2)
+    h, g, H = sector_callbacks(THETA_C, DELTA)
+    cb = bc.Barrier.callback(h, g, H, state_dim=2, relative_degree=2, **gains(2))
+    assert_same_controls(model, builtin, cb, atol=1e-8)
 
 
 def test_check_derivatives_accepts_right_and_rejects_wrong():
@@ -83,7 +71,7 @@ def test_a_raising_callback_is_an_input_error_naming_it(model):
 
 
 def test_sector_edges_are_linear_in_the_angle_from_the_centre():
-    tc, d = 0.7854, 0.3927
+    tc, d = THETA_C, DELTA
     up = bc.Barrier.pendulum_sector_edge(tc, d, "upper", k_alpha=[1.0, 3.0])
     lo = bc.Barrier.pendulum_sector_edge(tc, d, "lower", k_alpha=[1.0, 3.0])
     for s in np.linspace(d, 2 * np.pi - d, 9):

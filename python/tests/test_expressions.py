@@ -9,23 +9,17 @@ import numpy as np
 import pytest
 
 import bayes_cbf as bc
-from conftest import pendulum_data
+from conftest import DELTA, THETA_C, assert_same_controls, gains, pendulum_data, sector
 
 SECTOR = "cos(delta) - cos(theta - theta_c)"
-PARAMS = {"theta_c": 0.7854, "delta": 0.3927}
-
-
-@pytest.fixture(scope="module")
-def model():
-    X, U, Xdot = pendulum_data(40, seed=2)
-    return bc.MVGP(2, 1, [1.0, 1.0], np.eye(2), np.eye(2), 0.1).fit(X, U, Xdot, max_iters=30)
+PARAMS = {"theta_c": THETA_C, "delta": DELTA}
 
 
 @pytest.mark.parametrize("degree", [1, 2])
 def test_expression_barrier_equals_the_builtin(model, degree):
-    kw = {"alpha": 2.0} if degree == 1 else {"k_alpha": [1.0, 3.0]}
-    builtin = bc.Barrier.pendulum_sector(0.7854, 0.3927, relative_degree=degree, **kw)
-    expr = bc.Barrier.expression(SECTOR, ["theta", "omega"], PARAMS, relative_degree=degree, **kw)
+    builtin = sector(degree)
+    expr = bc.Barrier.expression(SECTOR, ["theta", "omega"], PARAMS, relative_degree=degree,
+                                 **gains(degree))
     assert expr.state_dim == 2 and expr.relative_degree == degree
     rng = np.random.default_rng(1)
     for _ in range(10):
@@ -43,15 +37,10 @@ def test_expression_barrier_equals_the_builtin(model, degree):
 
 
 def test_expression_filter_equals_the_builtin(model):
-    builtin = bc.Barrier.pendulum_sector(0.7854, 0.3927, relative_degree=2, k_alpha=[1.0, 3.0])
+    builtin = sector(2)
     expr = bc.Barrier.expression(SECTOR, ["theta", "omega"], PARAMS, relative_degree=2,
                                  k_alpha=[1.0, 3.0])
-    f1 = bc.SafetyFilter(model, [builtin], probability=0.95, u_min=[-10.0], u_max=[10.0])
-    f2 = bc.SafetyFilter(model, [expr], probability=0.95, u_min=[-10.0], u_max=[10.0])
-    for x in ([0.2, 1.0], [1.3, -2.0], [0.5, 0.5]):
-        r1, r2 = f1.filter(np.array(x), [5.0]), f2.filter(np.array(x), [5.0])
-        assert r1.status == r2.status
-        np.testing.assert_allclose(r1.u, r2.u, atol=1e-9)
+    assert_same_controls(model, builtin, expr, atol=1e-9)
 
 
 def test_expression_prior_mean_equals_the_pendulum_prior():

@@ -1,11 +1,15 @@
 //! numpy arrays in and out, and the library's errors as typed Python
 //! exceptions. No maths here: shapes, dtypes and names only.
 
+use nalgebra::DMatrix;
 use numpy::ndarray::{ArrayD, IxDyn};
 use numpy::{IntoPyArray, PyArrayDyn, PyReadonlyArrayDyn, PyUntypedArrayMethods};
 use pyo3::exceptions::{PyOSError, PyValueError};
 use pyo3::prelude::*;
 use pyo3::types::PyDict;
+
+/// A numpy array of float64 (any shape), as returned to Python.
+pub type NdArray<'py> = Bound<'py, PyArrayDyn<f64>>;
 
 pyo3::create_exception!(
     bayes_cbf,
@@ -102,30 +106,47 @@ pub fn row_major<'a>(arr: &'a PyReadonlyArrayDyn<'_, f64>) -> std::borrow::Cow<'
     }
 }
 
-/// A vector of exactly `len` finite entries (`len = None`: any length).
-pub fn vector(obj: &Bound<'_, PyAny>, field: &str, len: Option<usize>) -> PyResult<Vec<f64>> {
+/// Calls `f` with the entries of a vector of exactly `len` finite entries
+/// (`len = None`: any length), borrowed from numpy when C-contiguous.
+fn with_vector<R>(
+    obj: &Bound<'_, PyAny>,
+    field: &str,
+    len: Option<usize>,
+    f: impl FnOnce(&[f64]) -> R,
+) -> PyResult<R> {
     let arr = array(obj, field, 1)?;
-    let v = row_major(&arr).into_owned();
-    if let Some(len) = len {
-        if v.len() != len {
-            return Err(input_err(format!(
-                "{field}: expected {len} entries, got {}",
-                v.len()
-            )));
-        }
+    let v = row_major(&arr);
+    if let Some(len) = len.filter(|&len| len != v.len()) {
+        return Err(input_err(format!(
+            "{field}: expected {len} entries, got {}",
+            v.len()
+        )));
     }
     check_finite(field, &v, 1)?;
-    Ok(v)
+    Ok(f(&v))
 }
 
-/// A `rows × cols` matrix (either may be `None`: any) as rows, entries
-/// finite. Returns the row-major entries and the shape.
-pub fn matrix(
+/// A vector of exactly `len` finite entries (`len = None`: any length).
+pub fn vector(obj: &Bound<'_, PyAny>, field: &str, len: Option<usize>) -> PyResult<Vec<f64>> {
+    with_vector(obj, field, len, <[f64]>::to_vec)
+}
+
+/// Copies a vector of exactly `out.len()` finite entries into `out`,
+/// without allocating when the array is C-contiguous.
+pub fn copy_into(obj: &Bound<'_, PyAny>, field: &str, out: &mut [f64]) -> PyResult<()> {
+    with_vector(obj, field, Some(out.len()), |v| out.copy_from_slice(v))
+}
+
+/// Calls `f` with the row-major entries and the shape of a `rows × cols`
+/// matrix (either may be `None`: any) of finite entries, borrowed from
+/// numpy when C-contiguous.
+pub fn with_matrix<R>(
     obj: &Bound<'_, PyAny>,
     field: &str,
     rows: Option<usize>,
     cols: Option<usize>,
-) -> PyResult<(Vec<f64>, usize, usize)> {
+    f: impl FnOnce(&[f64], usize, usize) -> R,
+) -> PyResult<R> {
     let arr = array(obj, field, 2)?;
     let (r, c) = (arr.shape()[0], arr.shape()[1]);
     if rows.is_some_and(|x| x != r) || cols.is_some_and(|x| x != c) {
@@ -136,9 +157,27 @@ pub fn matrix(
             want(cols)
         )));
     }
-    let v = row_major(&arr).into_owned();
+    let v = row_major(&arr);
     check_finite(field, &v, c)?;
-    Ok((v, r, c))
+    Ok(f(&v, r, c))
+}
+
+/// A `rows × cols` matrix (either may be `None`: any) as rows, entries
+/// finite. Returns the row-major entries and the shape.
+pub fn matrix(
+    obj: &Bound<'_, PyAny>,
+    field: &str,
+    rows: Option<usize>,
+    cols: Option<usize>,
+) -> PyResult<(Vec<f64>, usize, usize)> {
+    with_matrix(obj, field, rows, cols, |v, r, c| (v.to_vec(), r, c))
+}
+
+/// A square `d × d` matrix of finite entries.
+pub fn square(obj: &Bound<'_, PyAny>, field: &str, d: usize) -> PyResult<DMatrix<f64>> {
+    with_matrix(obj, field, Some(d), Some(d), |v, _, _| {
+        DMatrix::from_row_slice(d, d, v)
+    })
 }
 
 /// Rejects NaN and infinities, naming the entry (`field[i][j]` for rows of
@@ -161,27 +200,24 @@ pub fn rows(v: &[f64], cols: usize) -> Vec<Vec<f64>> {
 }
 
 /// A numpy array of `shape` owning `data` (row-major), without a copy.
-pub fn to_numpy<'py>(
-    py: Python<'py>,
-    data: Vec<f64>,
-    shape: &[usize],
-) -> PyResult<Bound<'py, PyArrayDyn<f64>>> {
+pub fn to_numpy<'py>(py: Python<'py>, data: Vec<f64>, shape: &[usize]) -> PyResult<NdArray<'py>> {
     let a = ArrayD::from_shape_vec(IxDyn(shape), data)
         .map_err(|e| NumericalError::new_err(format!("internal shape error: {e}")))?;
     Ok(a.into_pyarray(py))
 }
 
-/// A numpy array of a nalgebra matrix, row-major.
-pub fn matrix_to_numpy<'py>(
-    py: Python<'py>,
-    m: &nalgebra::DMatrix<f64>,
-) -> PyResult<Bound<'py, PyArrayDyn<f64>>> {
-    let (r, c) = m.shape();
-    let mut v = Vec::with_capacity(r * c);
-    for i in 0..r {
-        v.extend(m.row(i).iter());
+/// Appends the rows of `m` to `out` (row-major order).
+pub fn extend_rows(out: &mut Vec<f64>, m: &DMatrix<f64>) {
+    for row in m.row_iter() {
+        out.extend(row.iter());
     }
-    to_numpy(py, v, &[r, c])
+}
+
+/// A numpy array of a nalgebra matrix, row-major.
+pub fn matrix_to_numpy<'py>(py: Python<'py>, m: &DMatrix<f64>) -> PyResult<NdArray<'py>> {
+    let mut v = Vec::with_capacity(m.len());
+    extend_rows(&mut v, m);
+    to_numpy(py, v, &[m.nrows(), m.ncols()])
 }
 
 /// Python JSON text of `obj` (a dict or list), for fields whose format is

@@ -2,26 +2,24 @@
 //! file (`model.json`) of the scenario crate, and the fits.
 
 use crate::convert::{
-    array, check_finite, core_err, input_err, json_of, matrix, matrix_to_numpy, row_major, rows,
-    scenario_err, to_numpy, vector,
+    core_err, extend_rows, input_err, json_of, matrix, matrix_to_numpy, rows, scenario_err, square,
+    to_numpy, vector, with_matrix, NdArray,
 };
 use bayes_cbf::gp::{
-    fit, fit_cogp, Cogp, CogpFitSettings, CogpHyper, FitReport, FitSettings, Mvgp, Posterior, Rank,
-    Rbf,
+    fit, fit_cogp, Cogp, CogpFitSettings, CogpHyper, FitReport, FitSettings, Mvgp, Posterior,
+    PosteriorWorkspace, Rank, Rbf,
 };
 use bayes_cbf_scenario::input_map_spec::{to_input_map, FeatureSpec};
 use bayes_cbf_scenario::io::write_atomic;
 use bayes_cbf_scenario::model_file::ModelFile;
 use bayes_cbf_scenario::parse::parse_rank;
 use bayes_cbf_scenario::prior_spec::PriorSpec;
-use numpy::PyArrayDyn;
-use numpy::PyUntypedArrayMethods;
 use pyo3::prelude::*;
 use pyo3::types::PyDict;
 use std::path::PathBuf;
 
 /// Two numpy arrays (the posterior means and covariances of `predict`).
-type ArrayPair<'py> = (Bound<'py, PyArrayDyn<f64>>, Bound<'py, PyArrayDyn<f64>>);
+type ArrayPair<'py> = (NdArray<'py>, NdArray<'py>);
 
 /// The prior mean from `None` or a dict in the model file's format.
 fn prior_of(obj: Option<&Bound<'_, PyAny>>) -> PyResult<PriorSpec> {
@@ -91,6 +89,132 @@ fn report_dict<'py>(py: Python<'py>, r: &FitReport) -> PyResult<Bound<'py, PyDic
     Ok(d)
 }
 
+/// The posterior at every row of `Xq (q, n)`, the GIL released: `each(x,
+/// means, covs)` appends the mean (`n × p`) and the covariance (`c × c`) at
+/// `x`; returned as arrays `(q, n, p)` and `(q, c, c)`.
+#[allow(non_snake_case)]
+fn predict_rows<'py>(
+    Xq: &Bound<'py, PyAny>,
+    (n, p, c): (usize, usize, usize),
+    mut each: impl FnMut(&[f64], &mut Vec<f64>, &mut Vec<f64>) -> Result<(), bayes_cbf::InputError>
+        + Send,
+) -> PyResult<ArrayPair<'py>> {
+    let py = Xq.py();
+    let (q, means, covs) = with_matrix(Xq, "Xq", None, Some(n), |xs, q, _| {
+        py.detach(|| -> Result<_, bayes_cbf::InputError> {
+            let mut means = Vec::with_capacity(q * n * p);
+            let mut covs = Vec::with_capacity(q * c * c);
+            for x in xs.chunks(n.max(1)).take(q) {
+                each(x, &mut means, &mut covs)?;
+            }
+            Ok((q, means, covs))
+        })
+    })?
+    .map_err(core_err)?;
+    Ok((
+        to_numpy(py, means, &[q, n, p])?,
+        to_numpy(py, covs, &[q, c, c])?,
+    ))
+}
+
+/// A posterior workspace of `model` and a posterior to write into.
+fn posterior_buffers(model: &Mvgp) -> (PosteriorWorkspace, Posterior) {
+    let (n, p) = (model.state_dim(), model.control_dim() + 1);
+    let post = Posterior {
+        mean: nalgebra::DMatrix::zeros(n, p),
+        B: nalgebra::DMatrix::zeros(p, p),
+    };
+    (model.workspace(), post)
+}
+
+/// The `#[pymethods]` that `MVGP` and `CoGP` share: `fit` (named rank
+/// settings, then `max_iters`, `seed`, `restarts` and the model's extra
+/// settings, with their defaults), `fit_report`, `log_marginal_likelihood`,
+/// `state_dim`, `control_dim` and `len`. `$fit` is the library's fit of the
+/// model and `$settings` its settings.
+macro_rules! gp_methods {
+    (
+        $(#[doc = $doc:tt])*
+        $class:ident: fit = $fit:ident($settings:ident {
+            $rank_1:ident, $rank_2:ident $(, $extra:ident: $ty:ty = $default:tt)*
+        })
+    ) => {
+        #[pymethods]
+        impl $class {
+            $(#[doc = $doc])*
+            #[pyo3(signature = (
+                X, U, Xdot, $rank_1=RankArg::full(), $rank_2=RankArg::full(), max_iters=100,
+                seed=0, restarts=0 $(, $extra=$default)*
+            ))]
+            #[allow(non_snake_case, clippy::too_many_arguments)]
+            fn fit<'py>(
+                mut slf: PyRefMut<'py, Self>,
+                X: &Bound<'py, PyAny>,
+                U: &Bound<'py, PyAny>,
+                Xdot: &Bound<'py, PyAny>,
+                $rank_1: RankArg,
+                $rank_2: RankArg,
+                max_iters: u64,
+                seed: u64,
+                restarts: usize,
+                $($extra: $ty,)*
+            ) -> PyResult<PyRefMut<'py, Self>> {
+                let py = X.py();
+                let (n, m) = (slf.model.state_dim(), slf.model.control_dim());
+                let (xs, us, xd) = data_of(X, U, Xdot, n, m)?;
+                let settings = $settings {
+                    $rank_1: rank_of(&$rank_1, stringify!($rank_1))?,
+                    $rank_2: rank_of(&$rank_2, stringify!($rank_2))?,
+                    max_iters,
+                    restarts,
+                    seed,
+                    $($extra,)*
+                    ..$settings::default()
+                };
+                settings.validate().map_err(core_err)?;
+                let model = &mut slf.model;
+                let report = py
+                    .detach(|| -> Result<FitReport, bayes_cbf::Error> {
+                        model.set_data(&xs, &us, &xd)?;
+                        $fit(model, &settings)
+                    })
+                    .map_err(core_err)?;
+                slf.last_fit = Some(report);
+                Ok(slf)
+            }
+
+            /// Report of the last `fit` (`initial_log_likelihood`,
+            /// `log_likelihood`, `evaluations`, `starts`), or `None`.
+            #[getter]
+            fn fit_report<'py>(&self, py: Python<'py>) -> PyResult<Option<Bound<'py, PyDict>>> {
+                self.last_fit.as_ref().map(|r| report_dict(py, r)).transpose()
+            }
+
+            /// `log p(Ẋ | X, U)` under the current hyperparameters.
+            fn log_marginal_likelihood(&self) -> f64 {
+                self.model.log_marginal_likelihood()
+            }
+
+            /// State dimension `n`.
+            #[getter]
+            fn state_dim(&self) -> usize {
+                self.model.state_dim()
+            }
+
+            /// Control dimension `m`.
+            #[getter]
+            fn control_dim(&self) -> usize {
+                self.model.control_dim()
+            }
+
+            /// The number of observations `k`.
+            fn __len__(&self) -> usize {
+                self.model.len()
+            }
+        }
+    };
+}
+
 /// Matrix-variate GP model of `F(x) = [f(x) g(x)]` (paper, Sec. IV):
 /// `vec F(x) ~ GP(vec M0(x), B k0(x, x') ⊗ A)`, noise `σ² A`.
 ///
@@ -120,6 +244,13 @@ impl PyMvgp {
     fn file(&self) -> ModelFile {
         ModelFile::from_model(&self.model, &self.prior)
     }
+}
+
+gp_methods! {
+    /// Learns the hyperparameters by maximising the log marginal likelihood
+    /// (L-BFGS) on the data `X (k, n)`, `U (k, m)`, `Xdot (k, n)`, which
+    /// replace the model's data. Returns `self`.
+    PyMvgp: fit = fit(FitSettings { rank_a, rank_b, sigma_min: f64 = 0.0 })
 }
 
 #[pymethods]
@@ -161,101 +292,20 @@ impl PyMvgp {
         Self::from_file(&file)
     }
 
-    /// Learns the hyperparameters by maximising the log marginal likelihood
-    /// (L-BFGS) on the data `X (k, n)`, `U (k, m)`, `Xdot (k, n)`, which
-    /// replace the model's data. Returns `self`.
-    #[pyo3(signature = (X, U, Xdot, rank_a=RankArg::full(), rank_b=RankArg::full(), max_iters=100, seed=0, restarts=0, sigma_min=0.0))]
-    #[allow(non_snake_case, clippy::too_many_arguments)]
-    fn fit<'py>(
-        mut slf: PyRefMut<'py, Self>,
-        X: &Bound<'py, PyAny>,
-        U: &Bound<'py, PyAny>,
-        Xdot: &Bound<'py, PyAny>,
-        rank_a: RankArg,
-        rank_b: RankArg,
-        max_iters: u64,
-        seed: u64,
-        restarts: usize,
-        sigma_min: f64,
-    ) -> PyResult<PyRefMut<'py, Self>> {
-        let py = X.py();
-        let (n, m) = (slf.model.state_dim(), slf.model.control_dim());
-        let (xs, us, xd) = data_of(X, U, Xdot, n, m)?;
-        let settings = FitSettings {
-            rank_a: rank_of(&rank_a, "rank_a")?,
-            rank_b: rank_of(&rank_b, "rank_b")?,
-            max_iters,
-            restarts,
-            seed,
-            sigma_min,
-            ..FitSettings::default()
-        };
-        settings.validate().map_err(core_err)?;
-        let model = &mut slf.model;
-        let report = py.detach(|| -> Result<FitReport, bayes_cbf::Error> {
-            model.set_data(&xs, &us, &xd)?;
-            fit(model, &settings)
-        });
-        let report = report.map_err(core_err)?;
-        slf.last_fit = Some(report);
-        Ok(slf)
-    }
-
-    /// Report of the last `fit` (`initial_log_likelihood`, `log_likelihood`,
-    /// `evaluations`, `starts`), or `None`.
-    #[getter]
-    fn fit_report<'py>(&self, py: Python<'py>) -> PyResult<Option<Bound<'py, PyDict>>> {
-        self.last_fit
-            .as_ref()
-            .map(|r| report_dict(py, r))
-            .transpose()
-    }
-
     /// Posterior at the rows of `Xq (q, n)`: the means `M_k(x)` as
     /// `(q, n, 1+m)` and `B_k(x, x)` as `(q, 1+m, 1+m)`, with
     /// `Cov(vec F(x)) = B_k(x, x) ⊗ A` (paper, Prop. 1).
     #[allow(non_snake_case)]
-    fn predict<'py>(&self, py: Python<'py>, Xq: &Bound<'py, PyAny>) -> PyResult<ArrayPair<'py>> {
-        let (n, m) = (self.model.state_dim(), self.model.control_dim());
-        let p = m + 1;
-        // borrowed from numpy when C-contiguous (no copy)
-        let arr = array(Xq, "Xq", 2)?;
-        let q = arr.shape()[0];
-        if arr.shape()[1] != n {
-            return Err(input_err(format!(
-                "Xq: expected shape (any, {n}), got ({q}, {})",
-                arr.shape()[1]
-            )));
-        }
-        let xs = row_major(&arr);
-        check_finite("Xq", &xs, n)?;
-        let xs: &[f64] = &xs;
+    fn predict<'py>(&self, Xq: &Bound<'py, PyAny>) -> PyResult<ArrayPair<'py>> {
         let model = &self.model;
-        let (means, bs) = py
-            .detach(|| -> Result<_, bayes_cbf::InputError> {
-                let mut ws = model.workspace();
-                let mut post = Posterior {
-                    mean: nalgebra::DMatrix::zeros(n, p),
-                    B: nalgebra::DMatrix::zeros(p, p),
-                };
-                let (mut means, mut bs) =
-                    (Vec::with_capacity(q * n * p), Vec::with_capacity(q * p * p));
-                for x in xs.chunks(n.max(1)).take(q) {
-                    model.posterior_into(x, &mut ws, &mut post)?;
-                    for i in 0..n {
-                        means.extend(post.mean.row(i).iter());
-                    }
-                    for i in 0..p {
-                        bs.extend(post.B.row(i).iter());
-                    }
-                }
-                Ok((means, bs))
-            })
-            .map_err(core_err)?;
-        Ok((
-            to_numpy(py, means, &[q, n, p])?,
-            to_numpy(py, bs, &[q, p, p])?,
-        ))
+        let p = model.control_dim() + 1;
+        let (mut ws, mut post) = posterior_buffers(model);
+        predict_rows(Xq, (model.state_dim(), p, p), |x, means, bs| {
+            model.posterior_into(x, &mut ws, &mut post)?;
+            extend_rows(means, &post.mean);
+            extend_rows(bs, &post.B);
+            Ok(())
+        })
     }
 
     /// Median wall time (s) of the library computing the posterior at every
@@ -269,16 +319,11 @@ impl PyMvgp {
         Xq: &Bound<'_, PyAny>,
         repeats: usize,
     ) -> PyResult<f64> {
-        let (n, m) = (self.model.state_dim(), self.model.control_dim());
-        let p = m + 1;
-        let (xs, _, _) = matrix(Xq, "Xq", None, Some(n))?;
         let model = &self.model;
+        let n = model.state_dim();
+        let (xs, _, _) = matrix(Xq, "Xq", None, Some(n))?;
         py.detach(|| -> Result<f64, bayes_cbf::InputError> {
-            let mut ws = model.workspace();
-            let mut post = Posterior {
-                mean: nalgebra::DMatrix::zeros(n, p),
-                B: nalgebra::DMatrix::zeros(p, p),
-            };
+            let (mut ws, mut post) = posterior_buffers(model);
             let mut times = Vec::new();
             for _ in 0..repeats.max(1) {
                 let t = std::time::Instant::now();
@@ -318,11 +363,6 @@ impl PyMvgp {
         Ok(())
     }
 
-    /// `log p(Ẋ | X, U)` under the current hyperparameters.
-    fn log_marginal_likelihood(&self) -> f64 {
-        self.model.log_marginal_likelihood()
-    }
-
     /// Writes the model file (`model.json`, the CLI's format) completely or
     /// not at all.
     fn save(&self, py: Python<'_>, path: PathBuf) -> PyResult<()> {
@@ -350,35 +390,25 @@ impl PyMvgp {
         self.file().to_json().map_err(scenario_err)
     }
 
-    /// State dimension `n`.
-    #[getter]
-    fn state_dim(&self) -> usize {
-        self.model.state_dim()
-    }
-    /// Control dimension `m`.
-    #[getter]
-    fn control_dim(&self) -> usize {
-        self.model.control_dim()
-    }
     /// Row covariance `A` (`n × n`).
     #[getter(A)]
-    fn a<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyArrayDyn<f64>>> {
+    fn a<'py>(&self, py: Python<'py>) -> PyResult<NdArray<'py>> {
         matrix_to_numpy(py, &self.model.hyper().A)
     }
     /// The row covariance of the posterior, `A` with the known rows and
     /// columns zeroed: `Cov(vec F(x)) = B_k(x, x) ⊗ row_cov`.
     #[getter]
-    fn row_cov<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyArrayDyn<f64>>> {
+    fn row_cov<'py>(&self, py: Python<'py>) -> PyResult<NdArray<'py>> {
         matrix_to_numpy(py, self.model.row_cov())
     }
     /// Column covariance `B` (`(1+m) × (1+m)`).
     #[getter(B)]
-    fn b<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyArrayDyn<f64>>> {
+    fn b<'py>(&self, py: Python<'py>) -> PyResult<NdArray<'py>> {
         matrix_to_numpy(py, &self.model.hyper().B)
     }
     /// Kernel lengthscales.
     #[getter]
-    fn lengthscales<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyArrayDyn<f64>>> {
+    fn lengthscales<'py>(&self, py: Python<'py>) -> PyResult<NdArray<'py>> {
         let ls = self.model.hyper().kernel.lengthscales().to_vec();
         let d = ls.len();
         to_numpy(py, ls, &[d])
@@ -400,24 +430,21 @@ impl PyMvgp {
     }
     /// The training states `(k, n)`.
     #[getter(X)]
-    fn x<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyArrayDyn<f64>>> {
+    fn x<'py>(&self, py: Python<'py>) -> PyResult<NdArray<'py>> {
         let (k, n) = (self.model.len(), self.model.state_dim());
         to_numpy(py, self.model.xs().to_vec(), &[k, n])
     }
     /// The training controls `(k, m)`.
     #[getter(U)]
-    fn u<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyArrayDyn<f64>>> {
+    fn u<'py>(&self, py: Python<'py>) -> PyResult<NdArray<'py>> {
         let (k, m) = (self.model.len(), self.model.control_dim());
         to_numpy(py, self.model.controls(), &[k, m])
     }
     /// The training derivatives `(k, n)`.
     #[getter(Xdot)]
-    fn xdot<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyArrayDyn<f64>>> {
+    fn xdot<'py>(&self, py: Python<'py>) -> PyResult<NdArray<'py>> {
         let (k, n) = (self.model.len(), self.model.state_dim());
         to_numpy(py, self.model.xdot().to_vec(), &[k, n])
-    }
-    fn __len__(&self) -> usize {
-        self.model.len()
     }
     fn __repr__(&self) -> String {
         format!(
@@ -441,6 +468,12 @@ impl PyMvgp {
 pub struct PyCogp {
     model: Cogp,
     last_fit: Option<FitReport>,
+}
+
+gp_methods! {
+    /// Learns `Σ`, `S` and the kernel on `X (k, n)`, `U (k, m)`,
+    /// `Xdot (k, n)`, which replace the model's data. Returns `self`.
+    PyCogp: fit = fit_cogp(CogpFitSettings { rank_sigma, rank_s })
 }
 
 #[pymethods]
@@ -467,10 +500,7 @@ impl PyCogp {
         let big = n * (m + 1);
         let sq = |obj: Option<&Bound<'_, PyAny>>, field: &str, d: usize, default: f64| {
             obj.filter(|o| !o.is_none())
-                .map(|o| {
-                    matrix(o, field, Some(d), Some(d))
-                        .map(|(v, _, _)| nalgebra::DMatrix::from_row_slice(d, d, &v))
-                })
+                .map(|o| square(o, field, d))
                 .unwrap_or_else(|| Ok(nalgebra::DMatrix::identity(d, d) * default))
         };
         let hyper = CogpHyper {
@@ -488,112 +518,29 @@ impl PyCogp {
         })
     }
 
-    /// Learns `Σ`, `S` and the kernel on `X (k, n)`, `U (k, m)`,
-    /// `Xdot (k, n)`, which replace the model's data. Returns `self`.
-    #[pyo3(signature = (X, U, Xdot, rank_sigma=RankArg::full(), rank_s=RankArg::full(), max_iters=100, seed=0, restarts=0))]
-    #[allow(non_snake_case, clippy::too_many_arguments)]
-    fn fit<'py>(
-        mut slf: PyRefMut<'py, Self>,
-        X: &Bound<'py, PyAny>,
-        U: &Bound<'py, PyAny>,
-        Xdot: &Bound<'py, PyAny>,
-        rank_sigma: RankArg,
-        rank_s: RankArg,
-        max_iters: u64,
-        seed: u64,
-        restarts: usize,
-    ) -> PyResult<PyRefMut<'py, Self>> {
-        let py = X.py();
-        let (n, m) = (slf.model.state_dim(), slf.model.control_dim());
-        let (xs, us, xd) = data_of(X, U, Xdot, n, m)?;
-        let settings = CogpFitSettings {
-            rank_sigma: rank_of(&rank_sigma, "rank_sigma")?,
-            rank_s: rank_of(&rank_s, "rank_s")?,
-            max_iters,
-            restarts,
-            seed,
-            ..CogpFitSettings::default()
-        };
-        settings.validate().map_err(core_err)?;
-        let model = &mut slf.model;
-        let report = py
-            .detach(|| -> Result<FitReport, bayes_cbf::Error> {
-                model.set_data(&xs, &us, &xd)?;
-                fit_cogp(model, &settings)
-            })
-            .map_err(core_err)?;
-        slf.last_fit = Some(report);
-        Ok(slf)
-    }
-
-    /// Report of the last `fit`, or `None`.
-    #[getter]
-    fn fit_report<'py>(&self, py: Python<'py>) -> PyResult<Option<Bound<'py, PyDict>>> {
-        self.last_fit
-            .as_ref()
-            .map(|r| report_dict(py, r))
-            .transpose()
-    }
-
     /// Posterior at the rows of `Xq (q, n)`: the means `(q, n, 1+m)` and the
     /// full covariances of `vec F(x)` (column-major vec), `(q, n(1+m), n(1+m))`.
     #[allow(non_snake_case)]
-    fn predict<'py>(&self, py: Python<'py>, Xq: &Bound<'py, PyAny>) -> PyResult<ArrayPair<'py>> {
-        let (n, m) = (self.model.state_dim(), self.model.control_dim());
-        let (p, big) = (m + 1, n * (m + 1));
-        let (xs, q, _) = matrix(Xq, "Xq", None, Some(n))?;
+    fn predict<'py>(&self, Xq: &Bound<'py, PyAny>) -> PyResult<ArrayPair<'py>> {
         let model = &self.model;
-        let (means, covs) = py
-            .detach(|| -> Result<_, bayes_cbf::InputError> {
-                let (mut means, mut covs) = (
-                    Vec::with_capacity(q * n * p),
-                    Vec::with_capacity(q * big * big),
-                );
-                for x in xs.chunks(n).take(q) {
-                    let post = model.posterior(x)?;
-                    for i in 0..n {
-                        means.extend(post.mean.row(i).iter());
-                    }
-                    for i in 0..big {
-                        covs.extend(post.cov.row(i).iter());
-                    }
-                }
-                Ok((means, covs))
-            })
-            .map_err(core_err)?;
-        Ok((
-            to_numpy(py, means, &[q, n, p])?,
-            to_numpy(py, covs, &[q, big, big])?,
-        ))
+        let (n, p) = (model.state_dim(), model.control_dim() + 1);
+        predict_rows(Xq, (n, p, n * p), |x, means, covs| {
+            let post = model.posterior(x)?;
+            extend_rows(means, &post.mean);
+            extend_rows(covs, &post.cov);
+            Ok(())
+        })
     }
 
-    /// `log p(Ẋ | X, U)` under the current hyperparameters.
-    fn log_marginal_likelihood(&self) -> f64 {
-        self.model.log_marginal_likelihood()
-    }
-
-    /// State dimension `n`.
-    #[getter]
-    fn state_dim(&self) -> usize {
-        self.model.state_dim()
-    }
-    /// Control dimension `m`.
-    #[getter]
-    fn control_dim(&self) -> usize {
-        self.model.control_dim()
-    }
     /// Output covariance `Σ` (`n(1+m)` square).
     #[getter(Sigma)]
-    fn sigma<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyArrayDyn<f64>>> {
+    fn sigma<'py>(&self, py: Python<'py>) -> PyResult<NdArray<'py>> {
         matrix_to_numpy(py, &self.model.hyper().Sigma)
     }
     /// Noise covariance `S` (`n × n`).
     #[getter(S)]
-    fn s<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyArrayDyn<f64>>> {
+    fn s<'py>(&self, py: Python<'py>) -> PyResult<NdArray<'py>> {
         matrix_to_numpy(py, &self.model.hyper().S)
-    }
-    fn __len__(&self) -> usize {
-        self.model.len()
     }
     fn __repr__(&self) -> String {
         format!(

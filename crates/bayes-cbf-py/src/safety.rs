@@ -2,14 +2,16 @@
 //! barrier files of the scenario crate, [`CallbackBarrier`] and the
 //! library's [`SafetyController`].
 
-use crate::convert::{core_err, input_err, matrix, scenario_err, to_numpy, vector};
+use crate::convert::{
+    copy_into, core_err, input_err, scenario_err, square, to_numpy, vector, NdArray,
+};
 use crate::models::PyMvgp;
 use bayes_cbf::barrier::{ArrayFn, CallbackBarrier, DynBarrier, DynLyapunov, McSettings, ValueFn};
 use bayes_cbf::control::{ControlOutput, Fallback, SafetyController, SafetySettings};
 use bayes_cbf_scenario::barrier_file::{BarrierSpec, EdgeSpec};
 use bayes_cbf_scenario::queries::{check_barrier, condition_moments, status_parts};
 use bayes_cbf_scenario::scenario::ClfSpec;
-use numpy::{PyArray1, PyArrayDyn};
+use numpy::PyArray1;
 use pyo3::prelude::*;
 use pyo3::types::PyDict;
 use std::path::PathBuf;
@@ -25,7 +27,18 @@ pub struct PyBarrier {
     pub(crate) barrier: Arc<dyn DynBarrier>,
     /// The barrier-file description, for barriers built from one.
     spec: Option<BarrierSpec>,
+    /// Name in reports.
+    #[pyo3(get, name = "name")]
     pub(crate) label: String,
+    /// State dimension `n`.
+    #[pyo3(get)]
+    state_dim: usize,
+    /// Relative degree `r`.
+    #[pyo3(get)]
+    relative_degree: usize,
+    /// Class-K gains (`[α]` or `k_α`).
+    #[pyo3(get)]
+    gains: Vec<f64>,
 }
 
 /// Calls `f(x)` in Python with `x` as a numpy array.
@@ -47,122 +60,7 @@ impl PyBarrier {
     #[staticmethod]
     fn load(path: PathBuf) -> PyResult<Self> {
         let (spec, barrier) = BarrierSpec::load(&path).map_err(scenario_err)?;
-        Ok(Self {
-            barrier,
-            spec: Some(spec),
-            label: path.display().to_string(),
-        })
-    }
-
-    /// `h = cos(δ) − cos(θ − θ_c)`: keeps the pendulum angle out of the
-    /// sector of half-width `delta` around `theta_c` (paper, Sec. VII-A).
-    #[staticmethod]
-    #[pyo3(signature = (theta_c, delta, relative_degree=2, alpha=None, k_alpha=None))]
-    fn pendulum_sector(
-        theta_c: f64,
-        delta: f64,
-        relative_degree: usize,
-        alpha: Option<f64>,
-        k_alpha: Option<Vec<f64>>,
-    ) -> PyResult<Self> {
-        Self::of_spec(BarrierSpec::PendulumSector {
-            theta_c,
-            delta,
-            relative_degree,
-            alpha,
-            k_alpha,
-        })
-    }
-
-    /// One edge of the sector `theta_c ± delta`, linear in
-    /// `φ = (θ − θ_c) mod 2π`: `h = φ − δ` (`edge="upper"`) or
-    /// `h = 2π − δ − φ` (`edge="lower"`); the two edges together keep the
-    /// pendulum in the free arc with a control-invariant safe set.
-    #[staticmethod]
-    #[pyo3(signature = (theta_c, delta, edge, relative_degree=2, alpha=None, k_alpha=None))]
-    fn pendulum_sector_edge(
-        theta_c: f64,
-        delta: f64,
-        edge: &str,
-        relative_degree: usize,
-        alpha: Option<f64>,
-        k_alpha: Option<Vec<f64>>,
-    ) -> PyResult<Self> {
-        let edge: EdgeSpec = edge.parse().map_err(scenario_err)?;
-        Self::of_spec(BarrierSpec::PendulumSectorEdge {
-            theta_c,
-            delta,
-            edge,
-            relative_degree,
-            alpha,
-            k_alpha,
-        })
-    }
-
-    /// The Ackermann obstacle barrier with heading term (paper, Sec. VII-B).
-    #[staticmethod]
-    #[pyo3(signature = (center, radius, q1, q2, relative_degree=1, alpha=None, k_alpha=None))]
-    fn circle_heading(
-        center: [f64; 2],
-        radius: f64,
-        q1: f64,
-        q2: f64,
-        relative_degree: usize,
-        alpha: Option<f64>,
-        k_alpha: Option<Vec<f64>>,
-    ) -> PyResult<Self> {
-        Self::of_spec(BarrierSpec::CircleHeading {
-            center,
-            radius,
-            q1,
-            q2,
-            relative_degree,
-            alpha,
-            k_alpha,
-        })
-    }
-
-    /// `h = ‖x[indices] − center‖² − radius²`: stay out of a disc.
-    #[staticmethod]
-    #[pyo3(signature = (state_dim, indices, center, radius, relative_degree=1, alpha=None, k_alpha=None))]
-    #[allow(clippy::too_many_arguments)]
-    fn disc(
-        state_dim: usize,
-        indices: [usize; 2],
-        center: [f64; 2],
-        radius: f64,
-        relative_degree: usize,
-        alpha: Option<f64>,
-        k_alpha: Option<Vec<f64>>,
-    ) -> PyResult<Self> {
-        Self::of_spec(BarrierSpec::Disc {
-            state_dim,
-            indices,
-            center,
-            radius,
-            relative_degree,
-            alpha,
-            k_alpha,
-        })
-    }
-
-    /// `h = normalᵀx − offset`: stay in a half-space.
-    #[staticmethod]
-    #[pyo3(signature = (normal, offset, relative_degree=1, alpha=None, k_alpha=None))]
-    fn half_space(
-        normal: Vec<f64>,
-        offset: f64,
-        relative_degree: usize,
-        alpha: Option<f64>,
-        k_alpha: Option<Vec<f64>>,
-    ) -> PyResult<Self> {
-        Self::of_spec(BarrierSpec::HalfSpace {
-            normal,
-            offset,
-            relative_degree,
-            alpha,
-            k_alpha,
-        })
+        Ok(Self::new(barrier, Some(spec), path.display().to_string()))
     }
 
     /// A barrier written as an expression over the named states `state`
@@ -266,77 +164,35 @@ impl PyBarrier {
         let hsf = hess.map(|f| array_fn(f, "hess", n * n));
         let b =
             CallbackBarrier::new(name, n, relative_degree, gains, hf, gf, hsf).map_err(core_err)?;
-        Ok(Self {
-            barrier: Arc::new(b),
-            spec: None,
-            label: name.to_string(),
-        })
+        Ok(Self::new(Arc::new(b), None, name.to_string()))
     }
 
     /// `h(x)`.
     fn value(&self, py: Python<'_>, x: &Bound<'_, PyAny>) -> PyResult<f64> {
-        let x = vector(x, "x", Some(self.barrier.state_dim()))?;
+        let x = vector(x, "x", Some(self.state_dim))?;
         let b = &self.barrier;
         let v = py.detach(|| b.value(&x));
         self.check(v)
     }
 
     /// `∇h(x)` by automatic differentiation (or the callback).
-    fn gradient<'py>(
-        &self,
-        py: Python<'py>,
-        x: &Bound<'py, PyAny>,
-    ) -> PyResult<Bound<'py, PyArrayDyn<f64>>> {
-        let n = self.barrier.state_dim();
-        let x = vector(x, "x", Some(n))?;
-        let b = &self.barrier;
-        let (h, g) = py.detach(|| {
-            let mut g = vec![0.0; n];
+    fn gradient<'py>(&self, x: &Bound<'py, PyAny>) -> PyResult<NdArray<'py>> {
+        let n = self.state_dim;
+        self.derivative(x, &[n], |b, x, g| {
             let mut scratch = vec![num_dual::Dual64::from(0.0); n];
-            (b.gradient(&x, &mut g, &mut scratch), g)
-        });
-        self.check(h)?;
-        to_numpy(py, g, &[n])
+            b.gradient(x, g, &mut scratch)
+        })
     }
 
     /// `∇²h(x)` by automatic differentiation (or the callback).
-    fn hessian<'py>(
-        &self,
-        py: Python<'py>,
-        x: &Bound<'py, PyAny>,
-    ) -> PyResult<Bound<'py, PyArrayDyn<f64>>> {
-        let n = self.barrier.state_dim();
-        let x = vector(x, "x", Some(n))?;
-        let b = &self.barrier;
-        let (h, hs) = py.detach(|| {
-            let (mut g, mut hs) = (vec![0.0; n], vec![0.0; n * n]);
-            let mut scratch = vec![num_dual::HyperDual64::from(0.0); n];
-            (b.hessian(&x, &mut g, &mut hs, &mut scratch), hs)
-        });
-        self.check(h)?;
-        to_numpy(py, hs, &[n, n])
+    fn hessian<'py>(&self, x: &Bound<'py, PyAny>) -> PyResult<NdArray<'py>> {
+        let n = self.state_dim;
+        self.derivative(x, &[n, n], |b, x, hs| {
+            let (mut g, mut scratch) = (vec![0.0; n], vec![num_dual::HyperDual64::from(0.0); n]);
+            b.hessian(x, &mut g, hs, &mut scratch)
+        })
     }
 
-    /// State dimension `n`.
-    #[getter]
-    fn state_dim(&self) -> usize {
-        self.barrier.state_dim()
-    }
-    /// Relative degree `r`.
-    #[getter]
-    fn relative_degree(&self) -> usize {
-        self.barrier.relative_degree()
-    }
-    /// Class-K gains (`[α]` or `k_α`).
-    #[getter]
-    fn gains(&self) -> Vec<f64> {
-        self.barrier.gains().to_vec()
-    }
-    /// Name in reports.
-    #[getter]
-    fn name(&self) -> String {
-        self.label.clone()
-    }
     /// The barrier-file JSON, or `None` for a callback barrier.
     fn to_json(&self) -> PyResult<Option<String>> {
         self.spec
@@ -347,23 +203,115 @@ impl PyBarrier {
     fn __repr__(&self) -> String {
         format!(
             "Barrier('{}', state_dim={}, relative_degree={})",
-            self.label,
-            self.barrier.state_dim(),
-            self.barrier.relative_degree()
+            self.label, self.state_dim, self.relative_degree
         )
     }
 }
 
+/// The built-in barriers of barrier files as static constructors of
+/// `Barrier`: `name(fields..., relative_degree=r, alpha=None,
+/// k_alpha=None)` describes the barrier-file variant `Variant` with those
+/// fields, and the library builds and validates it ([`BarrierSpec::build`]).
+macro_rules! builtin_barriers {
+    ($(
+        $(#[doc = $doc:tt])*
+        $name:ident(
+            $($(#[pyo3(from_py_with = $with:ident)])? $field:ident: $ty:ty),*
+        ) = $variant:ident, relative_degree = $rd:tt;
+    )*) => {
+        #[pymethods]
+        impl PyBarrier {$(
+            $(#[doc = $doc])*
+            #[staticmethod]
+            #[pyo3(signature = ($($field,)* relative_degree=$rd, alpha=None, k_alpha=None))]
+            #[allow(clippy::too_many_arguments)]
+            fn $name(
+                $($(#[pyo3(from_py_with = $with)])? $field: $ty,)*
+                relative_degree: usize,
+                alpha: Option<f64>,
+                k_alpha: Option<Vec<f64>>,
+            ) -> PyResult<Self> {
+                Self::of_spec(BarrierSpec::$variant {
+                    $($field,)*
+                    relative_degree,
+                    alpha,
+                    k_alpha,
+                })
+            }
+        )*}
+    };
+}
+
+builtin_barriers! {
+    /// `h = cos(δ) − cos(θ − θ_c)`: keeps the pendulum angle out of the
+    /// sector of half-width `delta` around `theta_c` (paper, Sec. VII-A).
+    pendulum_sector(theta_c: f64, delta: f64) = PendulumSector, relative_degree = 2;
+
+    /// One edge of the sector `theta_c ± delta`, linear in
+    /// `φ = (θ − θ_c) mod 2π`: `h = φ − δ` (`edge="upper"`) or
+    /// `h = 2π − δ − φ` (`edge="lower"`); the two edges together keep the
+    /// pendulum in the free arc with a control-invariant safe set.
+    pendulum_sector_edge(
+        theta_c: f64,
+        delta: f64,
+        #[pyo3(from_py_with = edge_of)] edge: EdgeSpec
+    ) = PendulumSectorEdge, relative_degree = 2;
+
+    /// The Ackermann obstacle barrier with heading term (paper, Sec. VII-B).
+    circle_heading(center: [f64; 2], radius: f64, q1: f64, q2: f64) = CircleHeading,
+        relative_degree = 1;
+
+    /// `h = ‖x[indices] − center‖² − radius²`: stay out of a disc.
+    disc(state_dim: usize, indices: [usize; 2], center: [f64; 2], radius: f64) = Disc,
+        relative_degree = 1;
+
+    /// `h = normalᵀx − offset`: stay in a half-space.
+    half_space(normal: Vec<f64>, offset: f64) = HalfSpace, relative_degree = 1;
+}
+
+/// The `edge` of a sector edge, `"upper"` or `"lower"` (as in barrier files).
+fn edge_of(obj: &Bound<'_, PyAny>) -> PyResult<EdgeSpec> {
+    obj.extract::<String>()?.parse().map_err(scenario_err)
+}
+
 impl PyBarrier {
+    /// The wrapper of `barrier`, described by `spec` (barrier files) and
+    /// named `label` in reports.
+    fn new(barrier: Arc<dyn DynBarrier>, spec: Option<BarrierSpec>, label: String) -> Self {
+        Self {
+            state_dim: barrier.state_dim(),
+            relative_degree: barrier.relative_degree(),
+            gains: barrier.gains().to_vec(),
+            barrier,
+            spec,
+            label,
+        }
+    }
+
     /// The barrier a barrier-file description builds (fields validated).
     fn of_spec(spec: BarrierSpec) -> PyResult<Self> {
         let barrier = spec.build().map_err(scenario_err)?;
         let label = barrier.name().to_string();
-        Ok(Self {
-            barrier,
-            spec: Some(spec),
-            label,
-        })
+        Ok(Self::new(barrier, Some(spec), label))
+    }
+
+    /// A derivative of `h` at `x`, of `shape`: `eval(barrier, x, out)`
+    /// writes it into `out` and returns `h(x)`, the GIL released.
+    fn derivative<'py>(
+        &self,
+        x: &Bound<'py, PyAny>,
+        shape: &[usize],
+        eval: impl FnOnce(&dyn DynBarrier, &[f64], &mut [f64]) -> f64 + Send,
+    ) -> PyResult<NdArray<'py>> {
+        let py = x.py();
+        let x = vector(x, "x", Some(self.state_dim))?;
+        let b = self.barrier.as_ref();
+        let (h, out) = py.detach(|| {
+            let mut out = vec![0.0; shape.iter().product()];
+            (eval(b, &x, &mut out), out)
+        });
+        self.check(h)?;
+        to_numpy(py, out, shape)
     }
 
     /// Turns a callback's recorded failure or a non-finite value into an
@@ -642,8 +590,7 @@ impl PySafetyFilter {
         settings.u_min = u_min.map(|v| vector(v, "u_min", Some(m))).transpose()?;
         settings.u_max = u_max.map(|v| vector(v, "u_max", Some(m))).transpose()?;
         if let Some(r) = R {
-            let (v, _, _) = matrix(r, "R", Some(m), Some(m))?;
-            settings.r = nalgebra::DMatrix::from_row_slice(m, m, &v);
+            settings.r = square(r, "R", m)?;
         }
         settings.fallback = Fallback::parse(fallback).map_err(core_err)?;
         let degrees = bs.iter().map(|b| b.relative_degree()).collect();
@@ -675,29 +622,7 @@ impl PySafetyFilter {
         xdot_d: Option<&Bound<'_, PyAny>>,
     ) -> PyResult<PyFilterResult> {
         let started = Instant::now();
-        copy_into(x, "x", &mut self.x)?;
-        copy_into(u_ref, "u_ref", &mut self.u_ref)?;
-        let with_ref = x_d.is_some() || xdot_d.is_some();
-        if let Some(v) = x_d {
-            copy_into(v, "x_d", &mut self.xd)?;
-        }
-        if let Some(v) = xdot_d {
-            copy_into(v, "xdot_d", &mut self.xd_dot)?;
-        }
-        let model = self.model.bind(py).borrow();
-        let m = &model.model;
-        let Self {
-            ctrl,
-            out,
-            x,
-            u_ref,
-            xd,
-            xd_dot,
-            ..
-        } = self;
-        let reference = with_ref.then_some((xd.as_slice(), xd_dot.as_slice()));
-        py.detach(|| ctrl.step(m, x, u_ref, reference, out))
-            .map_err(core_err)?;
+        self.with_step((x, u_ref, x_d, xdot_d), |step| step())?;
         let (status, fallback, p_star, violated) = status_parts(&self.out);
         let reports = self
             .labels
@@ -724,33 +649,20 @@ impl PySafetyFilter {
     #[pyo3(signature = (x, u_ref, repeats=1000))]
     fn rust_step_time_us(
         &mut self,
-        py: Python<'_>,
         x: &Bound<'_, PyAny>,
         u_ref: &Bound<'_, PyAny>,
         repeats: usize,
     ) -> PyResult<f64> {
-        copy_into(x, "x", &mut self.x)?;
-        copy_into(u_ref, "u_ref", &mut self.u_ref)?;
-        let model = self.model.bind(py).borrow();
-        let m = &model.model;
-        let Self {
-            ctrl,
-            out,
-            x,
-            u_ref,
-            ..
-        } = self;
-        py.detach(|| {
+        self.with_step((x, u_ref, None, None), |step| {
             let mut times = Vec::with_capacity(repeats.max(1));
             for _ in 0..repeats.max(1) {
                 let t = Instant::now();
-                ctrl.step(m, x, u_ref, None, out)?;
+                step()?;
                 times.push(t.elapsed().as_secs_f64() * 1e6);
             }
             times.sort_by(f64::total_cmp);
             Ok(times[times.len() / 2])
         })
-        .map_err(|e: bayes_cbf::Error| core_err(e))
     }
 
     /// The model the filter reads at every step.
@@ -766,18 +678,51 @@ impl PySafetyFilter {
     }
 }
 
-/// Copies a 1-D array of exactly `out.len()` finite entries into `out`.
-fn copy_into(obj: &Bound<'_, PyAny>, field: &str, out: &mut [f64]) -> PyResult<()> {
-    let arr = crate::convert::array(obj, field, 1)?;
-    let v = crate::convert::row_major(&arr);
-    if v.len() != out.len() {
-        return Err(input_err(format!(
-            "{field}: expected {} entries, got {}",
-            out.len(),
-            v.len()
-        )));
+/// One step of the library's controller on the filter's buffers.
+type Step<'a> = dyn FnMut() -> Result<(), bayes_cbf::Error> + 'a;
+
+/// The inputs of a filter step: `x`, `u_ref` and, when given, the CLF
+/// reference `x_d` and `xdot_d`.
+type StepInputs<'a, 'py> = (
+    &'a Bound<'py, PyAny>,
+    &'a Bound<'py, PyAny>,
+    Option<&'a Bound<'py, PyAny>>,
+    Option<&'a Bound<'py, PyAny>>,
+);
+
+impl PySafetyFilter {
+    /// Copies `x`, `u_ref` and the CLF reference `x_d`, `xdot_d` (when
+    /// given) into the filter's buffers, then calls `run(step)` with the GIL
+    /// released, where `step()` is one step of the controller on them into
+    /// `self.out`.
+    fn with_step<R: Send>(
+        &mut self,
+        (x, u_ref, x_d, xdot_d): StepInputs<'_, '_>,
+        run: impl FnOnce(&mut Step<'_>) -> Result<R, bayes_cbf::Error> + Send,
+    ) -> PyResult<R> {
+        let py = x.py();
+        copy_into(x, "x", &mut self.x)?;
+        copy_into(u_ref, "u_ref", &mut self.u_ref)?;
+        let with_ref = x_d.is_some() || xdot_d.is_some();
+        if let Some(v) = x_d {
+            copy_into(v, "x_d", &mut self.xd)?;
+        }
+        if let Some(v) = xdot_d {
+            copy_into(v, "xdot_d", &mut self.xd_dot)?;
+        }
+        let model = self.model.bind(py).borrow();
+        let m = &model.model;
+        let Self {
+            ctrl,
+            out,
+            x,
+            u_ref,
+            xd,
+            xd_dot,
+            ..
+        } = self;
+        let reference = with_ref.then_some((xd.as_slice(), xd_dot.as_slice()));
+        py.detach(|| run(&mut || ctrl.step(m, x, u_ref, reference, out)))
+            .map_err(core_err)
     }
-    crate::convert::check_finite(field, &v, 1)?;
-    out.copy_from_slice(&v);
-    Ok(())
 }
