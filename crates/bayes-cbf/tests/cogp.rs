@@ -13,23 +13,11 @@ use bayes_cbf::gp::{
 use bayes_cbf::sim::sample_uniform;
 use bayes_cbf::systems::{DynSystem, Pendulum};
 use bayes_cbf::{Error, InputError};
-use common::{random_spd, rel_diff, RandomSystem};
+use common::{random_spd, rel_diff, selection, RandomSystem};
 use nalgebra::{DMatrix, DVector};
 use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use std::sync::Arc;
-
-/// Selection matrix `P_i = u̲_iᵀ ⊗ I_n` so that `F(x_i) u̲_i = P_i vec F(x_i)`.
-fn selection(u: &[f64], n: usize) -> DMatrix<f64> {
-    let p = u.len();
-    let mut s = DMatrix::zeros(n, n * p);
-    for c in 0..p {
-        for i in 0..n {
-            s[(i, i + n * c)] = u[c];
-        }
-    }
-    s
-}
 
 struct Problem {
     xs: Vec<f64>,

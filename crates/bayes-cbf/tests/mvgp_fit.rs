@@ -166,8 +166,9 @@ fn pendulum_fit_predicts_held_out_within_five_percent() {
     let sys = Pendulum::default();
     let mut rng = ChaCha8Rng::seed_from_u64(1);
     let (lo, hi) = ([-std::f64::consts::PI, -6.0], [std::f64::consts::PI, 6.0]);
-    let train = sample_uniform(&sys, &lo, &hi, &[-15.0], &[15.0], 200, 0.01, &mut rng).unwrap();
-    let test = sample_uniform(&sys, &lo, &hi, &[-15.0], &[15.0], 200, 0.0, &mut rng).unwrap();
+    let [train, test] = [0.01, 0.0].map(|noise| {
+        sample_uniform(&sys, &lo, &hi, &[-15.0], &[15.0], 200, noise, &mut rng).unwrap()
+    });
     let mut model = pendulum_mvgp(&train);
     fit(&mut model, &FitSettings::default()).unwrap();
     let e = held_out_relative_rmse(&model, &sys, &test);
@@ -183,28 +184,9 @@ fn ackermann_fit_predicts_held_out_within_five_percent() {
         [-3.0, -3.0, -std::f64::consts::PI],
         [3.0, 3.0, std::f64::consts::PI],
     );
-    let train = sample_uniform(
-        &sys,
-        &lo,
-        &hi,
-        &[-1.0, -1.0],
-        &[1.0, 1.0],
-        200,
-        0.01,
-        &mut rng,
-    )
-    .unwrap();
-    let test = sample_uniform(
-        &sys,
-        &lo,
-        &hi,
-        &[-1.0, -1.0],
-        &[1.0, 1.0],
-        200,
-        0.0,
-        &mut rng,
-    )
-    .unwrap();
+    let [train, test] = [0.01, 0.0].map(|noise| {
+        sample_uniform(&sys, &lo, &hi, &[-1.0; 2], &[1.0; 2], 200, noise, &mut rng).unwrap()
+    });
     let mut model = Mvgp::new(
         3,
         2,

@@ -6,7 +6,7 @@ mod common;
 
 use bayes_cbf::gp::{InputMap, Kernel, Mvgp, MvgpHyper, PriorMean, Rbf};
 use bayes_cbf::systems::DynSystem;
-use common::{random_spd, rel_diff};
+use common::{random_spd, rel_diff, selection};
 use nalgebra::{DMatrix, DVector};
 use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -18,18 +18,6 @@ struct Case {
     k: usize,
     prior: PriorMean,
     input_map: InputMap,
-}
-
-/// Selection matrix `S_i = u̲_iᵀ ⊗ I_n` so that `F(x_i) u̲_i = S_i vec F(x_i)`.
-fn selection(u: &[f64], n: usize) -> DMatrix<f64> {
-    let p = u.len();
-    let mut s = DMatrix::zeros(n, n * p);
-    for c in 0..p {
-        for i in 0..n {
-            s[(i, i + n * c)] = u[c];
-        }
-    }
-    s
 }
 
 fn check_case(case: Case, seed: u64) {

@@ -184,87 +184,91 @@ impl BarrierSpec {
         self.build_in(None)
     }
 
-    /// Builds the barrier of a system whose states are named `state` (an
-    /// expression without its own names uses them).
-    pub fn build_in(&self, state: Option<&[String]>) -> Result<Arc<dyn DynBarrier>> {
-        Ok(match self {
+    /// `(relative_degree, alpha, k_alpha)`, the fields every variant has.
+    fn order(&self) -> (usize, &Option<f64>, &Option<Vec<f64>>) {
+        match self {
             BarrierSpec::PendulumSector {
-                theta_c,
-                delta,
                 relative_degree,
                 alpha,
                 k_alpha,
-            } => Arc::new(PendulumSector::new(
-                *theta_c,
-                *delta,
-                *relative_degree,
-                gains(*relative_degree, alpha, k_alpha)?,
-            )?),
+                ..
+            }
+            | BarrierSpec::PendulumSectorEdge {
+                relative_degree,
+                alpha,
+                k_alpha,
+                ..
+            }
+            | BarrierSpec::CircleHeading {
+                relative_degree,
+                alpha,
+                k_alpha,
+                ..
+            }
+            | BarrierSpec::Disc {
+                relative_degree,
+                alpha,
+                k_alpha,
+                ..
+            }
+            | BarrierSpec::HalfSpace {
+                relative_degree,
+                alpha,
+                k_alpha,
+                ..
+            }
+            | BarrierSpec::Expression {
+                relative_degree,
+                alpha,
+                k_alpha,
+                ..
+            } => (*relative_degree, alpha, k_alpha),
+        }
+    }
+
+    /// Builds the barrier of a system whose states are named `state` (an
+    /// expression without its own names uses them).
+    pub fn build_in(&self, state: Option<&[String]>) -> Result<Arc<dyn DynBarrier>> {
+        let (r, alpha, k_alpha) = self.order();
+        let gains = gains(r, alpha, k_alpha)?;
+        Ok(match self {
+            BarrierSpec::PendulumSector { theta_c, delta, .. } => {
+                Arc::new(PendulumSector::new(*theta_c, *delta, r, gains)?)
+            }
             BarrierSpec::PendulumSectorEdge {
                 theta_c,
                 delta,
                 edge,
-                relative_degree,
-                alpha,
-                k_alpha,
+                ..
             } => Arc::new(PendulumSectorEdge::new(
                 *theta_c,
                 *delta,
                 (*edge).into(),
-                *relative_degree,
-                gains(*relative_degree, alpha, k_alpha)?,
+                r,
+                gains,
             )?),
             BarrierSpec::CircleHeading {
                 center,
                 radius,
                 q1,
                 q2,
-                relative_degree,
-                alpha,
-                k_alpha,
-            } => Arc::new(CircleHeading::new(
-                *center,
-                *radius,
-                *q1,
-                *q2,
-                *relative_degree,
-                gains(*relative_degree, alpha, k_alpha)?,
-            )?),
+                ..
+            } => Arc::new(CircleHeading::new(*center, *radius, *q1, *q2, r, gains)?),
             BarrierSpec::Disc {
                 state_dim,
                 indices,
                 center,
                 radius,
-                relative_degree,
-                alpha,
-                k_alpha,
-            } => Arc::new(Disc::new(
-                *state_dim,
-                *indices,
-                *center,
-                *radius,
-                *relative_degree,
-                gains(*relative_degree, alpha, k_alpha)?,
-            )?),
-            BarrierSpec::HalfSpace {
-                normal,
-                offset,
-                relative_degree,
-                alpha,
-                k_alpha,
-            } => Arc::new(HalfSpace::new(
-                normal.clone(),
-                *offset,
-                *relative_degree,
-                gains(*relative_degree, alpha, k_alpha)?,
-            )?),
+                ..
+            } => Arc::new(Disc::new(*state_dim, *indices, *center, *radius, r, gains)?),
+            BarrierSpec::HalfSpace { normal, offset, .. } => {
+                Arc::new(HalfSpace::new(normal.clone(), *offset, r, gains)?)
+            }
             BarrierSpec::Expression {
                 state: own,
                 params,
                 h,
-                relative_degree,
-                alpha,
-                k_alpha,
+                ..
             } => {
                 let names: &[String] = match (own, state) {
                     (Some(own), Some(sys)) if own.len() != sys.len() => bail!(
@@ -278,14 +282,7 @@ impl BarrierSpec {
                         bail!("an expression barrier needs \"state\" (the state names)")
                     }
                 };
-                let params = params.pairs();
-                Arc::new(ExpressionBarrier::new(
-                    names,
-                    &params,
-                    h,
-                    *relative_degree,
-                    gains(*relative_degree, alpha, k_alpha)?,
-                )?)
+                Arc::new(ExpressionBarrier::new(names, &params.pairs(), h, r, gains)?)
             }
         })
     }
@@ -299,27 +296,16 @@ impl BarrierSpec {
                 crate::err!("state index {i} out of range ({} state names)", state.len())
             })
         };
-        let (params, h, relative_degree, alpha, k_alpha) = match self {
-            BarrierSpec::PendulumSector {
-                theta_c,
-                delta,
-                relative_degree,
-                alpha,
-                k_alpha,
-            } => (
+        let (params, h) = match self {
+            BarrierSpec::PendulumSector { theta_c, delta, .. } => (
                 Params::of(&[("theta_c", *theta_c), ("delta", *delta)]),
                 format!("cos(delta) - cos({} - theta_c)", name(0)?),
-                relative_degree,
-                alpha,
-                k_alpha,
             ),
             BarrierSpec::PendulumSectorEdge {
                 theta_c,
                 delta,
                 edge,
-                relative_degree,
-                alpha,
-                k_alpha,
+                ..
             } => {
                 // (θ − θ_c) mod 2π, with its jump at θ_c as the built-in's
                 let phi = format!(
@@ -330,39 +316,25 @@ impl BarrierSpec {
                     EdgeSpec::Upper => format!("{phi} - delta"),
                     EdgeSpec::Lower => format!("2*pi - delta - {phi}"),
                 };
-                (
-                    Params::of(&[("theta_c", *theta_c), ("delta", *delta)]),
-                    h,
-                    relative_degree,
-                    alpha,
-                    k_alpha,
-                )
+                (Params::of(&[("theta_c", *theta_c), ("delta", *delta)]), h)
             }
             BarrierSpec::CircleHeading {
                 center,
                 radius,
                 q1,
                 q2,
-                relative_degree,
-                alpha,
-                k_alpha,
+                ..
             } => {
                 let (x, y, th) = (name(0)?, name(1)?, name(2)?);
                 (
                     Params::of(&[("cx", center[0]), ("cy", center[1]), ("r", *radius), ("q1", *q1), ("q2", *q2)]),
                     format!("q1*(({x} - cx)^2 + ({y} - cy)^2 - r^2) + q2*cos({th} - atan2({y} - cy, {x} - cx))"),
-                    relative_degree,
-                    alpha,
-                    k_alpha,
                 )
             }
             BarrierSpec::Disc {
                 indices,
                 center,
                 radius,
-                relative_degree,
-                alpha,
-                k_alpha,
                 ..
             } => (
                 Params::of(&[("cx", center[0]), ("cy", center[1]), ("r", *radius)]),
@@ -371,17 +343,8 @@ impl BarrierSpec {
                     name(indices[0])?,
                     name(indices[1])?
                 ),
-                relative_degree,
-                alpha,
-                k_alpha,
             ),
-            BarrierSpec::HalfSpace {
-                normal,
-                offset,
-                relative_degree,
-                alpha,
-                k_alpha,
-            } => {
+            BarrierSpec::HalfSpace { normal, offset, .. } => {
                 let mut terms = Vec::new();
                 let mut params = vec![("offset".to_string(), *offset)];
                 for (i, w) in normal.iter().enumerate() {
@@ -391,18 +354,16 @@ impl BarrierSpec {
                 (
                     Params(params.into_iter().collect()),
                     format!("{} - offset", terms.join(" + ")),
-                    relative_degree,
-                    alpha,
-                    k_alpha,
                 )
             }
             BarrierSpec::Expression { .. } => return Ok(self.clone()),
         };
+        let (relative_degree, alpha, k_alpha) = self.order();
         Ok(BarrierSpec::Expression {
             state: None,
             params,
             h,
-            relative_degree: *relative_degree,
+            relative_degree,
             alpha: *alpha,
             k_alpha: k_alpha.clone(),
         })

@@ -171,42 +171,36 @@ impl<'a> Parser<'a> {
     fn sum(&mut self) -> Result<u32, InputError> {
         let col = self.peek().col;
         self.enter(col)?;
-        let mut a = self.product()?;
-        loop {
-            match self.peek().tok {
-                Tok::Op('+') => {
-                    self.pos += 1;
-                    let b = self.product()?;
-                    a = self.push(Node::Add(a, b));
-                }
-                Tok::Op('-') => {
-                    self.pos += 1;
-                    let b = self.product()?;
-                    a = self.push(Node::Sub(a, b));
-                }
-                _ => break,
-            }
-        }
+        let a = self.left_assoc(Self::product, |op| match op {
+            '+' => Some(Node::Add),
+            '-' => Some(Node::Sub),
+            _ => None,
+        })?;
         self.depth -= 1;
         Ok(a)
     }
 
     fn product(&mut self) -> Result<u32, InputError> {
-        let mut a = self.unary()?;
-        loop {
-            match self.peek().tok {
-                Tok::Op('*') => {
-                    self.pos += 1;
-                    let b = self.unary()?;
-                    a = self.push(Node::Mul(a, b));
-                }
-                Tok::Op('/') => {
-                    self.pos += 1;
-                    let b = self.unary()?;
-                    a = self.push(Node::Div(a, b));
-                }
-                _ => break,
-            }
+        self.left_assoc(Self::unary, |op| match op {
+            '*' => Some(Node::Mul),
+            '/' => Some(Node::Div),
+            _ => None,
+        })
+    }
+
+    /// `operand (op operand)*`, left-associative, for the operators that
+    /// `node` gives a node for.
+    fn left_assoc(
+        &mut self,
+        operand: fn(&mut Self) -> Result<u32, InputError>,
+        node: fn(char) -> Option<fn(u32, u32) -> Node>,
+    ) -> Result<u32, InputError> {
+        let mut a = operand(self)?;
+        while let Tok::Op(op) = self.peek().tok {
+            let Some(make) = node(op) else { break };
+            self.pos += 1;
+            let b = operand(self)?;
+            a = self.push(make(a, b));
         }
         Ok(a)
     }

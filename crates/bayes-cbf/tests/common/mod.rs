@@ -70,6 +70,18 @@ pub fn for_each_posterior_case(mut check: impl FnMut(usize, usize, bayes_cbf::gp
     }
 }
 
+/// Selection matrix `P = u̲ᵀ ⊗ I_n` so that `F(x) u̲ = P vec F(x)`.
+pub fn selection(u: &[f64], n: usize) -> DMatrix<f64> {
+    let p = u.len();
+    let mut s = DMatrix::zeros(n, n * p);
+    for c in 0..p {
+        for i in 0..n {
+            s[(i, i + n * c)] = u[c];
+        }
+    }
+    s
+}
+
 /// A random symmetric positive-definite matrix.
 pub fn random_spd(dim: usize, rng: &mut ChaCha8Rng) -> DMatrix<f64> {
     let c = DMatrix::from_fn(dim, dim, |_, _| rng.random_range(-1.0..1.0));
