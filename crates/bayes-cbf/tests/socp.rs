@@ -171,15 +171,29 @@ fn feasible_program(
     (cbcs, clc, filter, u_ref)
 }
 
-#[test]
-fn solution_satisfies_constraints_and_kkt() {
-    let mut rng = ChaCha8Rng::seed_from_u64(1);
-    for trial in 0..20 {
+/// Solves `trials` random strictly feasible programs ([`feasible_program`]),
+/// checks that each is `Optimal` and satisfies the KKT conditions to 10⁻⁶,
+/// and hands each program's barrier moments and output to `check`.
+fn solve_feasible_programs(
+    seed: u64,
+    trials: usize,
+    mut check: impl FnMut(usize, &[ConditionMoments], &ControlOutput),
+) {
+    let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    for trial in 0..trials {
         let (cbcs, clc, mut filter, u_ref) = feasible_program(trial, &mut rng);
         let (m, nb) = (u_ref.len(), cbcs.len());
         let mut out = ControlOutput::new(m, nb);
         filter.solve(&cbcs, Some(&clc), &u_ref, &mut out).unwrap();
         assert_eq!(out.status, ControlStatus::Optimal, "trial {trial}");
+        check_kkt(&filter, 1e-6);
+        check(trial, &cbcs, &out);
+    }
+}
+
+#[test]
+fn solution_satisfies_constraints_and_kkt() {
+    solve_feasible_programs(1, 20, |trial, cbcs, out| {
         for (k, rep) in out.constraints.iter().enumerate() {
             assert!(
                 rep.slack >= -1e-6,
@@ -195,8 +209,7 @@ fn solution_satisfies_constraints_and_kkt() {
         }
         assert!(out.clf.unwrap().slack >= -1e-6);
         assert!(out.u.iter().all(|u| (-3.0 - 1e-7..=3.0 + 1e-7).contains(u)));
-        check_kkt(&filter, 1e-6);
-    }
+    });
 }
 
 /// One control, one barrier: the feasible set is an interval (the SCBC is
@@ -568,15 +581,7 @@ fn bad_settings_are_rejected() {
 /// a false infeasibility (3 %).
 #[test]
 fn random_feasible_programs_are_solved_to_full_accuracy() {
-    let mut rng = ChaCha8Rng::seed_from_u64(11);
-    for trial in 0..600 {
-        let (cbcs, clc, mut filter, u_ref) = feasible_program(trial, &mut rng);
-        let (m, nb) = (u_ref.len(), cbcs.len());
-        let mut out = ControlOutput::new(m, nb);
-        filter.solve(&cbcs, Some(&clc), &u_ref, &mut out).unwrap();
-        assert_eq!(out.status, ControlStatus::Optimal, "trial {trial}");
-        check_kkt(&filter, 1e-6);
-    }
+    solve_feasible_programs(11, 600, |_, _, _| {});
 }
 
 /// The filter solves each step's own data: the answer to a program does not

@@ -98,6 +98,14 @@ pub fn figures(r: &AckermannTriggering, dir: &Path) -> Result<Vec<PathBuf>> {
     let sweep = &r.summary.zeta_sweep;
     let zs: Vec<f64> = sweep.iter().map(|s| s.zeta).collect();
     let col = |f: fn(&ZetaRun) -> f64| -> Vec<f64> { sweep.iter().map(f).collect() };
+    let at_each = |what: &str, ys: Vec<f64>, color: usize| Layer::Scatter {
+        name: Some(format!("{what}, run at each ζ")),
+        xs: zs.clone(),
+        ys,
+        color,
+        size: 5,
+        shape: PointShape::Circle,
+    };
     let mut zp = Panel::new(
         "Inter-trigger time against the margin ζ",
         "ζ",
@@ -113,22 +121,8 @@ pub fn figures(r: &AckermannTriggering, dir: &Path) -> Result<Vec<PathBuf>> {
             0,
         ),
         Layer::line("numerical, same data", dense.clone(), curve_n.clone(), 1),
-        Layer::Scatter {
-            name: Some("analytic, run at each ζ".into()),
-            xs: zs.clone(),
-            ys: col(|s| s.tau_analytic_median_s),
-            color: 0,
-            size: 5,
-            shape: PointShape::Circle,
-        },
-        Layer::Scatter {
-            name: Some("numerical, run at each ζ".into()),
-            xs: zs.clone(),
-            ys: col(|s| s.tau_numerical_median_s),
-            color: 1,
-            size: 5,
-            shape: PointShape::Circle,
-        },
+        at_each("analytic", col(|s| s.tau_analytic_median_s), 0),
+        at_each("numerical", col(|s| s.tau_numerical_median_s), 1),
     ];
     let mut gp = Panel::new("Runs at each ζ (fixed step, learning)", "ζ", "distance (m)");
     gp.log_x = true;

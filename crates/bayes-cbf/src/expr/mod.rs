@@ -375,30 +375,28 @@ mod names {
                 || self.reserved.iter().any(|(r, _)| r == name)
         }
 
+        /// Checks that `name` (of `field`) is a name and not yet taken;
+        /// `why` follows the error that it is.
+        fn check_new(&self, field: &str, name: &str, why: &str) -> Result<(), InputError> {
+            check_name(field, name)?;
+            if self.taken(name) {
+                let message = format!("the name '{name}' is given twice{why}");
+                return Err(error(field, None, message));
+            }
+            Ok(())
+        }
+
         /// Adds a variable (its index is the current [`len`](Self::len)).
         pub fn add_var(&mut self, name: &str) -> Result<(), InputError> {
-            check_name("state", name)?;
-            if self.taken(name) {
-                return Err(error(
-                    "state",
-                    None,
-                    format!("the name '{name}' is given twice"),
-                ));
-            }
+            self.check_new("state", name, "")?;
             self.vars.push(name.to_string());
             Ok(())
         }
 
         /// Adds a parameter.
         pub fn add_param(&mut self, name: &str, value: f64) -> Result<(), InputError> {
-            check_name("params", name)?;
-            if self.taken(name) {
-                return Err(error(
-                    "params",
-                    None,
-                    format!("the name '{name}' is given twice (a parameter cannot shadow a state or control)"),
-                ));
-            }
+            let why = " (a parameter cannot shadow a state or control)";
+            self.check_new("params", name, why)?;
             if !value.is_finite() {
                 return Err(InputError::invalid(
                     &format!("params.{name}"),

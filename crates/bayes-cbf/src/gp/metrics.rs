@@ -77,28 +77,38 @@ fn check_inputs(
             format!("n = {}, m = {}", truth.state_dim(), truth.control_dim()),
         ));
     }
-    let t = xs.len() / n;
-    if t == 0 || xs.len() != t * n {
+    let t = check_rows("xs", xs, n, None)?;
+    if let Some(us) = us {
+        check_rows("us", us, m, Some(t))?;
+    }
+    Ok(t)
+}
+
+/// Checks that `values` holds `rows` rows (with `None`, at least one) of
+/// `width` finite values, and returns the number of rows.
+fn check_rows(
+    field: &str,
+    values: &[f64],
+    width: usize,
+    rows: Option<usize>,
+) -> Result<usize, InputError> {
+    let t = rows.unwrap_or(values.len() / width.max(1));
+    if t == 0 || values.len() != t * width {
+        let expected = match rows {
+            Some(t) => format!("{t} × {width} values"),
+            None => format!("|T| × {width} values with |T| ≥ 1"),
+        };
         return Err(InputError::shape(
-            "xs",
-            format!("|T| × {n} values with |T| ≥ 1"),
-            format!("{} values", xs.len()),
+            field,
+            expected,
+            format!("{} values", values.len()),
         ));
     }
     for j in 0..t {
-        check_finite(&format!("xs[{j}]"), &xs[j * n..(j + 1) * n])?;
-    }
-    if let Some(us) = us {
-        if us.len() != t * m {
-            return Err(InputError::shape(
-                "us",
-                format!("{t} × {m} values"),
-                format!("{} values", us.len()),
-            ));
-        }
-        for j in 0..t {
-            check_finite(&format!("us[{j}]"), &us[j * m..(j + 1) * m])?;
-        }
+        check_finite(
+            &format!("{field}[{j}]"),
+            &values[j * width..(j + 1) * width],
+        )?;
     }
     Ok(t)
 }
