@@ -50,6 +50,10 @@ pub enum BenchRow {
         p50_us: f64,
         /// 99th percentile.
         p99_us: f64,
+        /// Steps whose SOCP was infeasible (timed with the fallback and
+        /// `p*`), of the built-in workloads.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        infeasible_steps: Option<usize>,
         /// An expression workload: the built-in step's median in the same run.
         #[serde(default, skip_serializing_if = "Option::is_none")]
         builtin_p50_us: Option<f64>,
@@ -242,7 +246,7 @@ fn control_row(
     let mut out = ControlOutput::new(m, 2);
     let r = w.reference.clone();
     let mut x = w.x.clone();
-    let mut err = None;
+    let (mut err, mut infeasible) = (None, 0);
     let (p50, p99) = time_us(reps, |i| {
         x[0] = w.x[0] + 1e-4 * (i % 50) as f64;
         let reference = r.as_ref().map(|(a, b)| (a.as_slice(), b.as_slice()));
@@ -252,6 +256,7 @@ fn control_row(
         {
             err = Some(e);
         }
+        infeasible += usize::from(out.is_infeasible());
     });
     if let Some(e) = err {
         bail!("control step ({system}, k = {k}): {e}");
@@ -262,6 +267,7 @@ fn control_row(
         k,
         p50_us: p50,
         p99_us: p99,
+        infeasible_steps: Some(infeasible),
         builtin_p50_us: None,
         over_builtin: None,
     })
@@ -309,6 +315,7 @@ fn expression_row(
         k,
         p50_us: round(e50),
         p99_us: round(e99),
+        infeasible_steps: None,
         builtin_p50_us: Some(round(b50)),
         over_builtin: Some(round(e50 / b50)),
     })
