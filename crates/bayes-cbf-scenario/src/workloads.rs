@@ -54,7 +54,7 @@ pub fn ackermann_data(k: usize, wheelbase: f64, seed: u64) -> Result<Dataset> {
 /// control uniform in `[−1, 1]²`, `ẋ = F(x)u̲ + N(0, 0.01² I)`. With the
 /// kernel on θ only, a sliding window of `w ≪ k` points sees only the
 /// last `2πw/k` radians of heading: the workload that separates a window
-/// from a budget (README, "Performance").
+/// from a budget (docs/performance.md).
 pub fn ackermann_heading_sweep(k: usize, wheelbase: f64, seed: u64) -> Result<Dataset> {
     let sys = Ackermann { wheelbase };
     let mut rng = ChaCha8Rng::seed_from_u64(seed);

@@ -57,7 +57,7 @@
 //! hyperparameters); a window suits dynamics that drift. On a stream whose
 //! heading sweeps once around the circle, a 200-point budget predicts
 //! `F(x)u̲` over all headings with 80× less error than a 200-point window
-//! and 3× more than all 4 000 points (README, "Performance").
+//! and 3× more than all 4 000 points (docs/performance.md).
 
 use super::Mvgp;
 use crate::gp::kernel::Kernel;
