@@ -2,12 +2,13 @@
 
 use crate::logger::hold_warnings;
 use anyhow::{bail, Context, Result};
-use bayes_cbf::gp::{fit, FitReport, FitSettings, InputMap, Mvgp, MvgpHyper, Rbf};
+use bayes_cbf::gp::{fit, FitReport, InputMap};
 use bayes_cbf_scenario::csv_data::{read_dataset, Layout};
+use bayes_cbf_scenario::fitting::{fit_settings, initial_model};
 use bayes_cbf_scenario::input_map_spec::{parse_input_map, to_input_map};
 use bayes_cbf_scenario::io::write_atomic;
 use bayes_cbf_scenario::model_file::ModelFile;
-use bayes_cbf_scenario::parse::{parse_indices, parse_rank, parse_vector, rank_name};
+use bayes_cbf_scenario::parse::{parse_indices, parse_vector, rank_name};
 use bayes_cbf_scenario::prior_spec::PriorSpec;
 use clap::Args;
 use nalgebra::DMatrix;
@@ -93,19 +94,6 @@ pub struct PredictArgs {
     pub out: Option<PathBuf>,
 }
 
-/// Builds the initial MVGP of `fit`: unit lengthscales and variance, `A = I`,
-/// `B = I`, `σ = 0.1`.
-pub fn initial_model(n: usize, m: usize, prior: &PriorSpec, input_map: InputMap) -> Result<Mvgp> {
-    let d = input_map.output_dim(n);
-    let hyper = MvgpHyper {
-        kernel: Rbf::new(vec![1.0; d], 1.0)?,
-        A: DMatrix::identity(n, n),
-        B: DMatrix::identity(m + 1, m + 1),
-        sigma: 0.1,
-    };
-    Ok(Mvgp::new(n, m, hyper, prior.to_prior()?, input_map)?)
-}
-
 /// Runs `bayes-cbf fit`.
 pub fn run_fit(a: &FitArgs) -> Result<()> {
     let (n, m) = (a.state_dim, a.control_dim);
@@ -123,16 +111,13 @@ pub fn run_fit(a: &FitArgs) -> Result<()> {
             to_input_map(Some(&spec))
         }
     };
-    let settings = FitSettings {
-        rank_a: parse_rank("--rank-a", &a.rank_a)?,
-        rank_b: parse_rank("--rank-b", &a.rank_b)?,
-        max_iters: a.max_iters,
-        restarts: a.restarts,
-        seed: a.seed,
-        sigma_min: a.sigma_min,
-        ..FitSettings::default()
-    };
-    settings.validate().context("fit settings")?;
+    let settings = fit_settings(
+        [("--rank-a", &a.rank_a), ("--rank-b", &a.rank_b)],
+        a.max_iters,
+        a.restarts,
+        a.seed,
+        a.sigma_min,
+    )?;
     let (layout, angles) = if a.time_series {
         let angles = match &a.angle_index {
             Some(s) => parse_indices("--angle-index", s, n)?,

@@ -4,7 +4,7 @@
 
 mod common;
 
-use common::{run, scratch_dir};
+use common::{assert_fails, run, scratch_dir, words};
 use std::path::Path;
 
 /// The model file of `interfaces.md`, valid; bad cases edit one thing.
@@ -186,19 +186,7 @@ const MODEL_TEXTS: &[(&str, &[&str])] = &[
 
 /// Asserts a failed run with one `error:` line containing every `expect`.
 fn check(args: &[&str], expect: &[&str], case: &str) {
-    let out = run(args);
-    assert!(!out.status.success(), "{case}: accepted");
-    assert!(!out.stderr.contains("panicked"), "{case}: {}", out.stderr);
-    let lines: Vec<&str> = out.stderr.lines().collect();
-    assert_eq!(lines.len(), 1, "{case}: one line expected: {}", out.stderr);
-    assert!(lines[0].starts_with("error: "), "{case}: {}", out.stderr);
-    for e in expect {
-        assert!(
-            out.stderr.contains(e),
-            "{case}: expected '{e}' in: {}",
-            out.stderr
-        );
-    }
+    assert_fails(&run(args), expect, case);
 }
 
 fn path_str(dir: &Path, name: &str) -> String {
@@ -312,17 +300,10 @@ fn bad_data_files_are_rejected_with_line_and_column() {
         );
         std::fs::write(&data, text).unwrap();
         let args = [
-            "fit",
-            "--data",
-            &data,
-            "--state-dim",
-            "2",
-            "--control-dim",
-            "1",
-            "--out",
-            &out,
+            &words("fit --state-dim 2 --control-dim 1 --data")[..],
+            &[&data, "--out", &out],
         ];
-        check(&args, expect, &format!("csv {i}: {text}"));
+        check(&args.concat(), expect, &format!("csv {i}: {text}"));
         assert!(!Path::new(&out).exists(), "csv {i}: no output on failure");
     }
 }
@@ -333,122 +314,68 @@ fn bad_fit_options_are_rejected() {
     let (data, out) = (path_str(&dir, "good.csv"), path_str(&dir, "never.json"));
     std::fs::write(&data, GOOD_CSV).unwrap();
     let series = path_str(&dir, "series.csv");
-    std::fs::write(
-        &series,
-        "t,x1,x2,u1\n0.0,0.1,0.2,0.5\n0.01,0.1,0.2,0.5\n0.01,0.1,0.2,0.5\n",
-    )
-    .unwrap();
+    let text = "t,x1,x2,u1\n0.0,0.1,0.2,0.5\n0.01,0.1,0.2,0.5\n0.01,0.1,0.2,0.5\n";
+    std::fs::write(&series, text).unwrap();
     let missing = path_str(&dir, "missing.csv");
-    const D: [&str; 4] = ["--state-dim", "2", "--control-dim", "1"];
-    let cases: &[(&[&str], &[&str])] = &[
+    // (data file, options after `--state-dim 2 --control-dim 1` unless they
+    // give a dimension, stderr must contain)
+    let cases: &[(&str, &str, &[&str])] = &[
         (
-            &["--state-dim", "1", "--control-dim", "1"],
+            &data,
+            "--state-dim 1 --control-dim 1",
             &["header has 5 columns", "need 3", "x1,u1,xdot1"],
         ),
+        (&data, "--state-dim 0 --control-dim 1", &["--state-dim"]),
         (
-            &["--state-dim", "0", "--control-dim", "1"],
-            &["--state-dim"],
-        ),
-        (
-            &["--state-dim", "two", "--control-dim", "1"],
+            &data,
+            "--state-dim two --control-dim 1",
             &["--state-dim", "two"],
         ),
-        (&["--control-dim", "1"], &["--state-dim"]),
+        (&data, "--control-dim 1", &["--state-dim"]),
         (
-            &[
-                D[0],
-                D[1],
-                D[2],
-                D[3],
-                "--prior-mean",
-                "{\"type\": \"quadrotor\"}",
-            ],
+            &data,
+            r#"--prior-mean {"type":"quadrotor"}"#,
             &["--prior-mean", "quadrotor"],
         ),
         (
-            &[
-                D[0],
-                D[1],
-                D[2],
-                D[3],
-                "--prior-mean",
-                "{\"type\": \"pendulum\"",
-            ],
+            &data,
+            r#"--prior-mean {"type":"pendulum""#,
             &["--prior-mean", "not valid JSON"],
         ),
         (
-            &[D[0], D[1], D[2], D[3], "--prior-mean", "nope.json"],
+            &data,
+            "--prior-mean nope.json",
             &["--prior-mean", "nope.json"],
         ),
-        (&[D[0], D[1], D[2], D[3], "--rank-a", "0"], &["--rank-a"]),
+        (&data, "--rank-a 0", &["--rank-a"]),
+        (&data, "--rank-b lots", &["--rank-b", "lots"]),
+        (&data, "--input-map 5", &["--input-map[0]", "out of range"]),
+        (&data, "--input-map tan:0", &["--input-map[0]", "tan"]),
         (
-            &[D[0], D[1], D[2], D[3], "--rank-b", "lots"],
-            &["--rank-b", "lots"],
-        ),
-        (
-            &[D[0], D[1], D[2], D[3], "--input-map", "5"],
-            &["--input-map[0]", "out of range"],
-        ),
-        (
-            &[D[0], D[1], D[2], D[3], "--input-map", "tan:0"],
-            &["--input-map[0]", "tan"],
-        ),
-        (
-            &[D[0], D[1], D[2], D[3], "--angle-index", "0"],
+            &data,
+            "--angle-index 0",
             &["--angle-index", "--time-series"],
         ),
+        (&data, "--max-iters 0", &["max_iters"]),
+        (&data, "--sigma-min -1", &["sigma_min"]),
+        (&data, "--colour red", &["--colour"]),
+        (&series, "--time-series", &["t[2]", "strictly increasing"]),
         (
-            &[D[0], D[1], D[2], D[3], "--max-iters", "0"],
-            &["max_iters"],
+            &series,
+            "--time-series --angle-index 2",
+            &["--angle-index[0]", "out of range"],
         ),
-        (
-            &[D[0], D[1], D[2], D[3], "--sigma-min", "-1"],
-            &["sigma_min"],
-        ),
-        (&[D[0], D[1], D[2], D[3], "--colour", "red"], &["--colour"]),
+        (&missing, "", &["cannot read data file"]),
     ];
-    for (extra, expect) in cases {
-        let mut args = vec!["fit", "--data", data.as_str(), "--out", out.as_str()];
-        args.extend_from_slice(extra);
-        check(&args, expect, &format!("{extra:?}"));
-        assert!(!Path::new(&out).exists(), "{extra:?}: no output on failure");
+    for (data, opts, expect) in cases {
+        let mut args = vec!["fit", "--data", data, "--out", &out];
+        if !opts.contains("-dim ") {
+            args.extend(["--state-dim", "2", "--control-dim", "1"]);
+        }
+        args.extend(words(opts));
+        check(&args, expect, opts);
+        assert!(!Path::new(&out).exists(), "{opts}: no output on failure");
     }
-    let ts = [
-        "fit",
-        "--data",
-        &series,
-        D[0],
-        D[1],
-        D[2],
-        D[3],
-        "--time-series",
-        "--out",
-        &out,
-    ];
-    check(&ts, &["t[2]", "strictly increasing"], "time series");
-    let ts = [
-        "fit",
-        "--data",
-        &series,
-        D[0],
-        D[1],
-        D[2],
-        D[3],
-        "--time-series",
-        "--angle-index",
-        "2",
-        "--out",
-        &out,
-    ];
-    check(&ts, &["--angle-index[0]", "out of range"], "angle index");
-    check(
-        &[
-            "fit", "--data", &missing, D[0], D[1], D[2], D[3], "--out", &out,
-        ],
-        &["cannot read data file"],
-        "missing",
-    );
     check(&["frobnicate"], &["frobnicate"], "unknown subcommand");
     check(&["demo", "--grid", "1"], &["--grid"], "demo grid");
-    assert!(!Path::new(&out).exists());
 }

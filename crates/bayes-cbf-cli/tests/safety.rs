@@ -6,7 +6,7 @@ mod common;
 
 use bayes_cbf::barrier::{cbc_moments, ConditionMoments, MomentWorkspace, PendulumSector};
 use bayes_cbf::gp::{InputMap, Mvgp, MvgpHyper, PriorMean, Rbf};
-use common::{run_in, scratch_dir};
+use common::{assert_fails, run_in, scratch_dir, words, Scratch};
 use nalgebra::DMatrix;
 use serde_json::Value;
 use std::path::Path;
@@ -22,8 +22,20 @@ const MODEL: &str = r#"{
 const SECTOR: &str = r#"{"type": "pendulum_sector", "theta_c": 0.7854, "delta": 0.3927, "relative_degree": 2, "k_alpha": [1.0, 3.0]}"#;
 const SECTOR_RD1: &str = r#"{"type": "pendulum_sector", "theta_c": 0.7854, "delta": 0.3927, "relative_degree": 1, "alpha": 2.0}"#;
 
-fn write(dir: &Path, name: &str, text: &str) {
-    std::fs::write(dir.join(name), text).unwrap();
+/// A scratch directory holding `model.json` (`MODEL`) and `files`.
+fn setup(name: &str, files: &[(&str, &str)]) -> Scratch {
+    let dir = scratch_dir(name);
+    for (file, text) in [("model.json", MODEL)].iter().chain(files) {
+        std::fs::write(dir.join(file), text).unwrap();
+    }
+    dir
+}
+
+/// Runs `bayes-cbf ARGS` in `dir` and returns the JSON it prints.
+fn json_out(dir: &Path, args: &str) -> Value {
+    let r = run_in(dir, &words(args));
+    assert!(r.status.success(), "{args}: {}", r.stderr);
+    serde_json::from_str(&r.stdout).unwrap()
 }
 
 fn library_model() -> Mvgp {
@@ -45,24 +57,11 @@ fn library_model() -> Mvgp {
 
 #[test]
 fn moments_match_the_library() {
-    let dir = scratch_dir("moments");
-    write(&dir, "model.json", MODEL);
-    write(&dir, "barrier.json", SECTOR);
-    let r = run_in(
+    let dir = setup("moments", &[("barrier.json", SECTOR)]);
+    let v = json_out(
         &dir,
-        &[
-            "moments",
-            "--model",
-            "model.json",
-            "--barrier",
-            "barrier.json",
-            "--x",
-            "1.2,-0.4",
-            "--u=-0.7",
-        ],
+        "moments --model model.json --barrier barrier.json --x 1.2,-0.4 --u=-0.7",
     );
-    assert!(r.status.success(), "{}", r.stderr);
-    let v: Value = serde_json::from_str(&r.stdout).unwrap();
     assert_eq!(v["relative_degree"], 2);
     let model = library_model();
     let b = PendulumSector::new(0.7854, 0.3927, 2, vec![1.0, 3.0]).unwrap();
@@ -77,36 +76,12 @@ fn moments_match_the_library() {
 
 #[test]
 fn control_returns_a_safe_optimal_input() {
-    let dir = scratch_dir("control");
-    write(&dir, "model.json", MODEL);
-    write(&dir, "b1.json", SECTOR_RD1);
-    // ω ≥ −10
-    write(
-        &dir,
-        "b2.json",
-        r#"{"type": "half_space", "normal": [0.0, 1.0], "offset": -10.0, "relative_degree": 1, "alpha": 1.0}"#,
-    );
-    let r = run_in(
-        &dir,
-        &[
-            "control",
-            "--model",
-            "model.json",
-            "--barrier",
-            "b1.json",
-            "--barrier",
-            "b2.json",
-            "--x",
-            "2.5,0.0",
-            "--probability",
-            "0.9",
-            "--u-ref=-3",
-            "--zeta",
-            "0.01",
-        ],
-    );
-    assert!(r.status.success(), "{}", r.stderr);
-    let v: Value = serde_json::from_str(&r.stdout).unwrap();
+    // b2: ω ≥ −10
+    let b2 = r#"{"type": "half_space", "normal": [0.0, 1.0], "offset": -10.0, "relative_degree": 1, "alpha": 1.0}"#;
+    let dir = setup("control", &[("b1.json", SECTOR_RD1), ("b2.json", b2)]);
+    let args = "control --model model.json --barrier b1.json --barrier b2.json --x 2.5,0.0 \
+                --probability 0.9 --u-ref=-3 --zeta 0.01";
+    let v = json_out(&dir, args);
     assert_eq!(v["status"], "optimal");
     assert_eq!(v["u"].as_array().unwrap().len(), 1);
     let cons = v["constraints"].as_array().unwrap();
@@ -129,31 +104,11 @@ fn control_returns_a_safe_optimal_input() {
 
 #[test]
 fn control_reports_infeasibility_and_fallback() {
-    let dir = scratch_dir("control_infeasible");
-    write(&dir, "model.json", MODEL);
-    write(&dir, "b.json", SECTOR);
+    let dir = setup("control_infeasible", &[("b.json", SECTOR)]);
     // deep inside the unsafe sector with tight bounds: no input satisfies the condition
-    let r = run_in(
-        &dir,
-        &[
-            "control",
-            "--model",
-            "model.json",
-            "--barrier",
-            "b.json",
-            "--x",
-            "0.7854,-3.0",
-            "--probability",
-            "0.999",
-            "--u-min=-0.1",
-            "--u-max",
-            "0.1",
-            "--fallback",
-            "brake",
-        ],
-    );
-    assert!(r.status.success(), "{}", r.stderr);
-    let v: Value = serde_json::from_str(&r.stdout).unwrap();
+    let args = "control --model model.json --barrier b.json --x 0.7854,-3.0 --probability 0.999 \
+                --u-min=-0.1 --u-max 0.1 --fallback brake";
+    let v = json_out(&dir, args);
     assert_eq!(v["status"], "infeasible");
     assert_eq!(v["fallback"], "brake");
     assert_eq!(v["u"][0].as_f64().unwrap(), 0.0);
@@ -165,236 +120,61 @@ fn control_reports_infeasibility_and_fallback() {
 
 #[test]
 fn bad_safety_input_names_the_field() {
-    let dir = scratch_dir("safety_errors");
-    write(&dir, "model.json", MODEL);
-    write(&dir, "b.json", SECTOR);
-    write(
-        &dir,
-        "bad_k.json",
-        r#"{"type": "pendulum_sector", "theta_c": 0.7854, "delta": 0.3927, "relative_degree": 2, "k_alpha": [1.0]}"#,
+    let dir = setup(
+        "safety_errors",
+        &[
+            ("b.json", SECTOR),
+            (
+                "bad_k.json",
+                r#"{"type": "pendulum_sector", "theta_c": 0.7854, "delta": 0.3927, "relative_degree": 2, "k_alpha": [1.0]}"#,
+            ),
+            (
+                "ackermann.json",
+                r#"{"type": "circle_heading", "center": [0, 0], "radius": 1, "q1": 0.7, "q2": 0.3, "relative_degree": 1, "alpha": 5}"#,
+            ),
+            (
+                "unknown.json",
+                r#"{"type": "pendulum_sector", "theta_c": 0.7854, "delta": 0.3927, "relative_degree": 1, "alpha": 1, "gamma": 2}"#,
+            ),
+            ("empty.json", ""),
+        ],
     );
-    write(
-        &dir,
-        "ackermann.json",
-        r#"{"type": "circle_heading", "center": [0, 0], "radius": 1, "q1": 0.7, "q2": 0.3, "relative_degree": 1, "alpha": 5}"#,
-    );
-    write(
-        &dir,
-        "unknown.json",
-        r#"{"type": "pendulum_sector", "theta_c": 0.7854, "delta": 0.3927, "relative_degree": 1, "alpha": 1, "gamma": 2}"#,
-    );
-    write(&dir, "empty.json", "");
-    let base = ["control", "--model", "model.json", "--x", "1.4,0.0"];
-    let cases: Vec<(Vec<&str>, &str)> = vec![
-        (
-            [&base[..], &["--barrier", "b.json", "--probability", "1.5"]].concat(),
-            "probability",
-        ),
-        (
-            [
-                &base[..],
-                &["--barrier", "b.json", "--probability", "0.9", "--zeta=-1"],
-            ]
-            .concat(),
-            "zeta",
-        ),
-        (
-            [
-                &base[..],
-                &[
-                    "--barrier",
-                    "b.json",
-                    "--probability",
-                    "0.9",
-                    "--u-min",
-                    "1",
-                    "--u-max",
-                    "0",
-                ],
-            ]
-            .concat(),
-            "u-min",
-        ),
-        (
-            [
-                &base[..],
-                &[
-                    "--barrier",
-                    "b.json",
-                    "--probability",
-                    "0.9",
-                    "--u-min",
-                    "1",
-                ],
-            ]
-            .concat(),
-            "u_min",
-        ),
-        (
-            [
-                &base[..],
-                &[
-                    "--barrier",
-                    "b.json",
-                    "--probability",
-                    "0.9",
-                    "--u-ref",
-                    "1,2",
-                ],
-            ]
-            .concat(),
-            "--u-ref",
-        ),
-        (
-            [
-                &base[..],
-                &[
-                    "--barrier",
-                    "b.json",
-                    "--probability",
-                    "0.9",
-                    "--fallback",
-                    "panic",
-                ],
-            ]
-            .concat(),
-            "fallback",
-        ),
-        (
-            [
-                &base[..],
-                &["--barrier", "bad_k.json", "--probability", "0.9"],
-            ]
-            .concat(),
-            "k_alpha",
-        ),
-        (
-            [
-                &base[..],
-                &["--barrier", "ackermann.json", "--probability", "0.9"],
-            ]
-            .concat(),
-            "state dimension",
-        ),
-        (
-            [
-                &base[..],
-                &["--barrier", "unknown.json", "--probability", "0.9"],
-            ]
-            .concat(),
-            "gamma",
-        ),
-        (
-            [
-                &base[..],
-                &["--barrier", "empty.json", "--probability", "0.9"],
-            ]
-            .concat(),
-            "empty",
-        ),
-        (
-            [
-                &base[..],
-                &["--barrier", "missing.json", "--probability", "0.9"],
-            ]
-            .concat(),
-            "missing.json",
-        ),
-        (
-            vec![
-                "moments",
-                "--model",
-                "model.json",
-                "--barrier",
-                "b.json",
-                "--x",
-                "1,nan",
-                "--u",
-                "0",
-            ],
-            "--x",
-        ),
-        (
-            vec![
-                "moments",
-                "--model",
-                "model.json",
-                "--barrier",
-                "b.json",
-                "--x",
-                "1,0",
-                "--u",
-                "0,1",
-            ],
-            "--u",
-        ),
-    ];
-    for (args, field) in cases {
-        let r = run_in(&dir, &args);
-        assert!(!r.status.success(), "{args:?} should fail");
-        assert!(!r.stderr.contains("panicked"), "{args:?}: {}", r.stderr);
-        assert!(
-            r.stderr.contains(field),
-            "{args:?}: '{}' should name {field}",
-            r.stderr.trim()
-        );
-        assert_eq!(
-            r.stderr.trim().lines().count(),
-            1,
-            "{args:?}: one line: {}",
-            r.stderr
-        );
+    let fails = |args: &str, field: &str| {
+        assert_fails(&run_in(&dir, &words(args)), &[field], args);
+    };
+    for (barrier_and_options, field) in [
+        ("b.json --probability 1.5", "probability"),
+        ("b.json --probability 0.9 --zeta=-1", "zeta"),
+        ("b.json --probability 0.9 --u-min 1 --u-max 0", "u-min"),
+        ("b.json --probability 0.9 --u-min 1", "u_min"),
+        ("b.json --probability 0.9 --u-ref 1,2", "--u-ref"),
+        ("b.json --probability 0.9 --fallback panic", "fallback"),
+        ("bad_k.json --probability 0.9", "k_alpha"),
+        ("ackermann.json --probability 0.9", "state dimension"),
+        ("unknown.json --probability 0.9", "gamma"),
+        ("empty.json --probability 0.9", "empty"),
+        ("missing.json --probability 0.9", "missing.json"),
+    ] {
+        let control = "control --model model.json --x 1.4,0.0 --barrier";
+        fails(&format!("{control} {barrier_and_options}"), field);
     }
+    let moments = "moments --model model.json --barrier b.json";
+    fails(&format!("{moments} --x 1,nan --u 0"), "--x");
+    fails(&format!("{moments} --x 1,0 --u 0,1"), "--u");
 }
 
 #[test]
 fn moments_beyond_relative_degree_two_use_monte_carlo() {
-    let dir = scratch_dir("moments_mc");
-    write(&dir, "model.json", MODEL);
-    write(
-        &dir,
-        "b3.json",
-        r#"{"type": "half_space", "normal": [1.0, 0.0], "offset": -2.0, "relative_degree": 3, "k_alpha": [1.0, 3.0, 3.0]}"#,
-    );
-    let args = [
-        "moments",
-        "--model",
-        "model.json",
-        "--barrier",
-        "b3.json",
-        "--x",
-        "0.5,0.1",
-        "--u",
-        "0.3",
-        "--samples",
-        "3000",
-        "--seed",
-        "4",
-    ];
-    let r = run_in(&dir, &args);
-    assert!(r.status.success(), "{}", r.stderr);
-    let v: Value = serde_json::from_str(&r.stdout).unwrap();
+    let b3 = r#"{"type": "half_space", "normal": [1.0, 0.0], "offset": -2.0, "relative_degree": 3, "k_alpha": [1.0, 3.0, 3.0]}"#;
+    let dir = setup("moments_mc", &[("b3.json", b3)]);
+    let args = "moments --model model.json --barrier b3.json --x 0.5,0.1 --u 0.3 --samples";
+    let v = json_out(&dir, &format!("{args} 3000 --seed 4"));
     assert_eq!(v["method"], "monte_carlo");
     assert_eq!(v["samples"], 3000);
     assert!(v["mean_se"].as_f64().unwrap() > 0.0 && v["variance_se"].as_f64().unwrap() > 0.0);
     // deterministic given the seed
-    assert_eq!(run_in(&dir, &args).stdout, r.stdout);
-    let exact = run_in(
-        &dir,
-        &[
-            "moments",
-            "--model",
-            "model.json",
-            "--barrier",
-            "b3.json",
-            "--x",
-            "0.5,0.1",
-            "--u",
-            "0.3",
-            "--samples",
-            "1",
-        ],
-    );
+    assert_eq!(json_out(&dir, &format!("{args} 3000 --seed 4")), v);
+    let exact = run_in(&dir, &words(&format!("{args} 1")));
     assert!(
         !exact.status.success() && exact.stderr.contains("--samples"),
         "{}",

@@ -21,6 +21,7 @@ pub mod bench;
 pub mod error;
 pub mod exact;
 pub mod experiments;
+pub mod fitting;
 pub mod formats;
 pub mod io;
 pub mod queries;

@@ -66,3 +66,51 @@ pub fn run_in(cwd: &Path, args: &[&str]) -> Run {
 pub fn run(args: &[&str]) -> Run {
     run_in(&std::env::temp_dir(), args)
 }
+
+/// The JSON file at `path`.
+pub fn read_json(path: &Path) -> serde_json::Value {
+    let text = std::fs::read_to_string(path).unwrap_or_else(|e| panic!("{path:?}: {e}"));
+    serde_json::from_str(&text).unwrap_or_else(|e| panic!("{path:?}: {e}"))
+}
+
+/// A PNG file of some size is at `path`.
+pub fn is_png(path: &Path) -> bool {
+    std::fs::read(path).is_ok_and(|b| b.len() > 1000 && &b[1..4] == b"PNG")
+}
+
+/// Runs `bayes-cbf run NAME --out DIR EXTRA...` into a fresh scratch
+/// directory; returns it, `DIR` and the `summary.json` written there.
+pub fn run_into(name: &str, extra: &[&str]) -> (Scratch, PathBuf, serde_json::Value) {
+    let dir = scratch_dir(name);
+    let out = dir.join("out");
+    let mut args = vec!["run", name, "--out", out.to_str().unwrap()];
+    args.extend_from_slice(extra);
+    let r = run(&args);
+    assert!(r.status.success(), "{args:?}: {}", r.stderr);
+    let summary = read_json(&out.join("summary.json"));
+    assert_eq!(summary["scenario"], name, "{summary}");
+    (dir, out, summary)
+}
+
+/// The words of `line` (a command line whose values hold no spaces).
+pub fn words(line: &str) -> Vec<&str> {
+    line.split_whitespace().collect()
+}
+
+/// Asserts that `r` failed with one `error: ...` line on stderr containing
+/// every string of `expect`, and no panic.
+#[track_caller]
+pub fn assert_fails(r: &Run, expect: &[&str], case: &str) {
+    assert!(!r.status.success(), "{case}: accepted");
+    assert!(!r.stderr.contains("panicked"), "{case}: {}", r.stderr);
+    let lines: Vec<&str> = r.stderr.lines().collect();
+    assert_eq!(lines.len(), 1, "{case}: one line expected: {}", r.stderr);
+    assert!(lines[0].starts_with("error: "), "{case}: {}", r.stderr);
+    for e in expect {
+        assert!(
+            r.stderr.contains(e),
+            "{case}: expected '{e}' in: {}",
+            r.stderr
+        );
+    }
+}

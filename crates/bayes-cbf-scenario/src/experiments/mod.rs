@@ -15,6 +15,7 @@
 pub mod ackermann_triggering;
 pub mod calibration;
 pub mod covariance_shapes;
+pub mod learning_demo;
 pub mod pendulum_learning;
 pub mod soak;
 pub mod speed_test;
