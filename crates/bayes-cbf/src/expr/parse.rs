@@ -25,6 +25,9 @@ enum Tok<'a> {
     End,
 }
 
+/// The constructor of a binary operator's node from its operands.
+type BinaryNode = fn(u32, u32) -> Node;
+
 /// A token with its 1-based column (in characters).
 struct Token<'a> {
     tok: Tok<'a>,
@@ -193,7 +196,7 @@ impl<'a> Parser<'a> {
     fn left_assoc(
         &mut self,
         operand: fn(&mut Self) -> Result<u32, InputError>,
-        node: fn(char) -> Option<fn(u32, u32) -> Node>,
+        node: fn(char) -> Option<BinaryNode>,
     ) -> Result<u32, InputError> {
         let mut a = operand(self)?;
         while let Tok::Op(op) = self.peek().tok {
