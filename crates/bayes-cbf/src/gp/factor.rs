@@ -650,4 +650,97 @@ mod tests {
             Err(GpError::IllConditioned { .. })
         ));
     }
+
+    /// `L Lᵀ` equals `G` plus the recorded jitter on the diagonal.
+    fn assert_reproduces(f: &CholFactor, g: MatRef<'_, f64>, tol: f64) {
+        let l = f.l();
+        let llt = &l * l.transpose();
+        for j in 0..f.len() {
+            for i in 0..f.len() {
+                let want = g[(i, j)] + if i == j { f.jitter()[i] } else { 0.0 };
+                assert!((llt[(i, j)] - want).abs() < tol, "({i},{j})");
+            }
+        }
+    }
+
+    /// The escalation takes the first level of [`JITTER_LEVELS`], relative to
+    /// the *mean* diagonal, at which every pivot clears `L_jj² > 10⁻¹⁰
+    /// (G_jj + jitter)`. `[[2, 2], [2, 2]] ⊕ [8]` (mean diagonal 4) has a
+    /// zero pivot: a jitter `j` gives `L_11² = 2j − j²/(2+j)·…≈ 2j`, below
+    /// the floor `10⁻¹⁰ (2 + j)` at level 10⁻¹² (`j = 4·10⁻¹²`) and above it
+    /// at 10⁻¹⁰ (`j = 4·10⁻¹⁰`).
+    #[test]
+    fn jitter_is_the_first_level_that_clears_the_pivot_floor() {
+        let mut g = Mat::<f64>::zeros(3, 3);
+        for (i, j) in [(0, 0), (0, 1), (1, 0), (1, 1)] {
+            g[(i, j)] = 2.0;
+        }
+        g[(2, 2)] = 8.0;
+        let f = CholFactor::factor(g.as_ref(), 3).unwrap();
+        assert_eq!(f.jitter(), &[4e-10; 3]);
+        assert_eq!(f.max_jitter(), 4e-10);
+        assert_reproduces(&f, g.as_ref(), 1e-14);
+        // a pivot just above the floor needs none, one just below it does:
+        // [[1, 1 − δ], [1 − δ, 1]] has L_11² = 2δ − δ²
+        for (delta, jitter) in [(1e-9, 0.0), (2e-11, 1e-10)] {
+            let h = Mat::<f64>::from_fn(2, 2, |i, j| if i == j { 1.0 } else { 1.0 - delta });
+            let f = CholFactor::factor(h.as_ref(), 2).unwrap();
+            assert_eq!(f.max_jitter(), jitter, "δ = {delta}");
+            assert_reproduces(&f, h.as_ref(), 1e-14);
+        }
+        // without escalation the same matrix is an error
+        assert!(CholFactor::factor_with(g.as_ref(), 3, Jitter::Exact(1.0)).is_err());
+    }
+
+    /// A near-duplicate appended online (`G_kk = d(1 − 10⁻⁹)` below the
+    /// `sq = d` that the existing row explains): its pivot `G_kk + j − sq ≈
+    /// d(level − 10⁻⁹)` is negative at the levels 10⁻¹² and 10⁻¹⁰ and first
+    /// clears the floor `10⁻¹⁰ (G_kk + j)` at 10⁻⁸, relative to the new
+    /// diagonal entry itself.
+    #[test]
+    fn an_appended_near_duplicate_gets_the_jitter_of_its_own_diagonal() {
+        for d in [0.25, 4.0] {
+            let diag = d * (1.0 - 1e-9);
+            let g = Mat::<f64>::from_fn(2, 2, |i, j| if i == 1 && j == 1 { diag } else { d });
+            let mut f = CholFactor::factor(g.as_ref().submatrix(0, 0, 1, 1), 1).unwrap();
+            let mut scratch = vec![0.0; 4];
+            f.append(&[d], diag, &mut scratch).unwrap();
+            assert_eq!(f.len(), 2);
+            assert_eq!(f.jitter(), &[0.0, 1e-8 * diag]);
+            assert_reproduces(&f, g.as_ref(), 1e-12 * d);
+        }
+        // an appended entry that no jitter can make positive is an error
+        let mut f = CholFactor::factor(Mat::<f64>::identity(1, 1).as_ref(), 1).unwrap();
+        let mut scratch = vec![0.0; 4];
+        assert!(matches!(
+            f.append(&[2.0], 1.0, &mut scratch),
+            Err(GpError::IllConditioned { size: 2, .. })
+        ));
+        assert_eq!(f.len(), 1);
+    }
+
+    /// The small API: emptiness, triangular solves against dense ones, and
+    /// removing the only row.
+    #[test]
+    fn solves_lengths_and_removal() {
+        let g = random_spd(6, 9);
+        let mut f = CholFactor::factor(g.as_ref(), 6).unwrap();
+        assert!(!f.is_empty() && CholFactor::default().is_empty());
+        let l = f.l();
+        let b = DMatrix::from_fn(6, 2, |i, c| (i as f64 + 0.5 * c as f64).cos());
+        let mut x = b.clone();
+        f.solve_l_in_place(&mut x);
+        assert!((&l * &x - &b).abs().max() < 1e-12);
+        let mut y = b.clone();
+        f.solve_lt_in_place(&mut y);
+        assert!((l.transpose() * &y - &b).abs().max() < 1e-12);
+        let mut scratch = vec![0.0; 24];
+        let mut one = CholFactor::factor(g.as_ref().submatrix(0, 0, 1, 1), 1).unwrap();
+        one.remove_first(&mut scratch);
+        assert!(one.is_empty());
+        one.remove_first(&mut scratch);
+        assert!(one.is_empty() && one.len() == 0);
+        f.remove_first(&mut scratch);
+        assert_eq!(f.len(), 5);
+    }
 }

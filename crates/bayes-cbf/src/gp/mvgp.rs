@@ -759,3 +759,77 @@ pub(crate) fn add_data_part(
         }
     });
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn hyper(sigma: f64) -> MvgpHyper {
+        MvgpHyper {
+            kernel: Rbf::new(vec![1.0], 1.0).unwrap(),
+            A: DMatrix::identity(1, 1),
+            B: DMatrix::identity(2, 2),
+            sigma,
+        }
+    }
+
+    /// `check_spd`: both dimensions checked; symmetry within `10⁻⁹ (1 +
+    /// max(|a_ij|, |a_ji|))`, a tolerance that is absolute below 1 and
+    /// relative above; positive definiteness.
+    #[test]
+    fn spd_check_boundaries() {
+        let m = |a: f64, b: f64, c: f64, d: f64| DMatrix::from_row_slice(2, 2, &[a, b, c, d]);
+        for (r, c) in [(2, 3), (3, 2), (1, 1)] {
+            let e = check_spd("B", &DMatrix::identity(r, c), 2).unwrap_err();
+            assert!(matches!(e, InputError::Shape { .. }), "{r}×{c}: {e}");
+        }
+        // within the tolerance: accepted
+        assert!(check_spd("B", &m(1.0, 0.01, 0.01 + 5e-10, 1.0), 2).is_ok());
+        assert!(check_spd("B", &m(100.0, 50.0, 50.0 + 5e-8, 100.0), 2).is_ok());
+        // beyond it: not symmetric
+        for bad in [
+            m(1.0, 0.01, 0.01 + 3e-9, 1.0),
+            m(100.0, 50.0, 50.0 + 2e-7, 100.0),
+        ] {
+            let e = check_spd("B", &bad, 2).unwrap_err().to_string();
+            assert!(e.contains("not symmetric"), "{e}");
+        }
+        // symmetric but indefinite, and not finite
+        let e = check_spd("A", &m(1.0, 2.0, 2.0, 1.0), 2)
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("A") && e.contains("eigenvalue"), "{e}");
+        assert!(check_spd("A", &m(1.0, f64::NAN, f64::NAN, 1.0), 2).is_err());
+    }
+
+    /// The noise scale must be finite and positive.
+    #[test]
+    fn noise_scale_must_be_finite_and_positive() {
+        assert!(hyper(0.1).validate(1, 1, 1).is_ok());
+        for sigma in [0.0, -0.1, f64::INFINITY, f64::NAN] {
+            let e = hyper(sigma).validate(1, 1, 1).unwrap_err().to_string();
+            assert!(e.contains("noise_sigma"), "σ = {sigma}: {e}");
+        }
+    }
+
+    /// The rows known exactly are reported in order, and none by default.
+    #[test]
+    fn known_rows_are_reported() {
+        let model = Mvgp::new(
+            2,
+            1,
+            {
+                let mut h = hyper(0.1);
+                h.kernel = Rbf::new(vec![1.0, 1.0], 1.0).unwrap();
+                h.A = DMatrix::identity(2, 2);
+                h
+            },
+            PriorMean::Zero,
+            InputMap::Identity,
+        )
+        .unwrap();
+        assert!(model.known_rows().is_empty());
+        let model = model.with_known_rows(&[1]).unwrap();
+        assert_eq!(model.known_rows(), &[1]);
+    }
+}
