@@ -739,7 +739,7 @@ mod tests {
         one.remove_first(&mut scratch);
         assert!(one.is_empty());
         one.remove_first(&mut scratch);
-        assert!(one.is_empty() && one.len() == 0);
+        assert_eq!(one.len(), 0);
         f.remove_first(&mut scratch);
         assert_eq!(f.len(), 5);
     }
