@@ -250,6 +250,57 @@ fn non_finite_evaluations_are_errors_naming_the_entry() {
     assert!(err.contains("h of barrier 'root' = NaN"), "{err}");
 }
 
+/// An observation whose prior mean fails to evaluate is rejected and
+/// leaves the model as it was: the same data, factor and posterior, and the
+/// next observation is learned as by a model that never saw the bad one.
+#[test]
+fn a_rejected_observation_leaves_the_model_unchanged() {
+    let prior = || {
+        PriorMean::System(Arc::new(
+            ExpressionSystem::new(
+                &["theta", "omega"],
+                &["u"],
+                &[],
+                &["omega", "log(theta)"],
+                &[vec!["0"], vec!["1"]],
+                &[],
+            )
+            .unwrap(),
+        ))
+    };
+    let hyper = MvgpHyper {
+        kernel: Rbf::new(vec![1.0, 1.0], 1.0).unwrap(),
+        A: nalgebra::DMatrix::identity(2, 2),
+        B: nalgebra::DMatrix::identity(2, 2),
+        sigma: 0.1,
+    };
+    let new = || Mvgp::new(2, 1, hyper.clone(), prior(), InputMap::Identity).unwrap();
+    let (mut model, mut clean) = (new(), new());
+    for m in [&mut model, &mut clean] {
+        m.add_observation(&[0.5, 0.1], &[0.3], &[0.1, -0.2])
+            .unwrap();
+    }
+    let err = model
+        .add_observation(&[-0.5, 0.0], &[0.2], &[0.0, 0.1])
+        .unwrap_err()
+        .to_string();
+    assert!(err.contains("NaN"), "{err}");
+    assert_eq!(model.len(), 1);
+    assert_eq!(
+        (model.xs(), model.xdot(), model.controls()),
+        (clean.xs(), clean.xdot(), clean.controls())
+    );
+    for m in [&mut model, &mut clean] {
+        m.add_observation(&[0.8, -0.3], &[0.1], &[-0.3, 0.4])
+            .unwrap();
+    }
+    let (a, b) = (
+        model.posterior(&[0.7, 0.0]).unwrap(),
+        clean.posterior(&[0.7, 0.0]).unwrap(),
+    );
+    assert_eq!((a.mean, a.B), (b.mean, b.B));
+}
+
 #[test]
 fn bad_expressions_are_typed_errors() {
     let cases: Vec<(Result<(), bayes_cbf::InputError>, &str)> = vec![
