@@ -681,12 +681,16 @@ mod tests {
         assert_eq!(f.max_jitter(), 4e-10);
         assert_reproduces(&f, g.as_ref(), 1e-14);
         // a pivot just above the floor needs none, one just below it does:
-        // [[1, 1 − δ], [1 − δ, 1]] has L_11² = 2δ − δ²
-        for (delta, jitter) in [(1e-9, 0.0), (2e-11, 1e-10)] {
-            let h = Mat::<f64>::from_fn(2, 2, |i, j| if i == j { 1.0 } else { 1.0 - delta });
-            let f = CholFactor::factor(h.as_ref(), 2).unwrap();
-            assert_eq!(f.max_jitter(), jitter, "δ = {delta}");
-            assert_reproduces(&f, h.as_ref(), 1e-14);
+        // s [[1, 1 − δ], [1 − δ, 1]] has L_11² = s (2δ − δ²), against the
+        // floor 10⁻¹⁰ s, whatever the scale s
+        for s in [1.0, 1e4] {
+            for (delta, jitter) in [(1e-9, 0.0), (2e-11, 1e-10 * s)] {
+                let h =
+                    Mat::<f64>::from_fn(2, 2, |i, j| s * if i == j { 1.0 } else { 1.0 - delta });
+                let f = CholFactor::factor(h.as_ref(), 2).unwrap();
+                assert_eq!(f.max_jitter(), jitter, "δ = {delta}, s = {s}");
+                assert_reproduces(&f, h.as_ref(), 1e-14 * s);
+            }
         }
         // without escalation the same matrix is an error
         assert!(CholFactor::factor_with(g.as_ref(), 3, Jitter::Exact(1.0)).is_err());
@@ -709,6 +713,16 @@ mod tests {
             assert_eq!(f.jitter(), &[0.0, 1e-8 * diag]);
             assert_reproduces(&f, g.as_ref(), 1e-12 * d);
         }
+        // the floor scales with the new diagonal entry: a pivot of 10⁻¹² d
+        // clears 10⁻¹⁰ d only with the jitter 10⁻¹⁰ d (d = 10⁴)
+        let d = 1e4;
+        let diag = d * (1.0 + 1e-12);
+        let g = Mat::<f64>::from_fn(2, 2, |i, j| if i == 1 && j == 1 { diag } else { d });
+        let mut f = CholFactor::factor(g.as_ref().submatrix(0, 0, 1, 1), 1).unwrap();
+        let mut scratch = vec![0.0; 4];
+        f.append(&[d], diag, &mut scratch).unwrap();
+        assert_eq!(f.jitter(), &[0.0, 1e-10 * diag]);
+        assert_reproduces(&f, g.as_ref(), 1e-12 * d);
         // an appended entry that no jitter can make positive is an error
         let mut f = CholFactor::factor(Mat::<f64>::identity(1, 1).as_ref(), 1).unwrap();
         let mut scratch = vec![0.0; 4];
