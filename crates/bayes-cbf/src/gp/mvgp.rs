@@ -812,6 +812,41 @@ mod tests {
         }
     }
 
+    /// A workspace sized for the model is used as it is (no reallocation),
+    /// also when the data fill its capacity exactly (32 observations: the
+    /// capacity doubles 16 → 32); one made before the model grew past it is
+    /// regrown on use and gives the posterior of a fresh one.
+    #[test]
+    fn a_stale_workspace_is_regrown_and_a_fitting_one_kept() {
+        let mut model = Mvgp::new(1, 1, hyper(0.1), PriorMean::Zero, InputMap::Identity).unwrap();
+        let mut stale = model.workspace();
+        let mut out = Posterior {
+            mean: DMatrix::zeros(1, 2),
+            B: DMatrix::zeros(2, 2),
+        };
+        for j in 0..32 {
+            let x = 0.1 * j as f64 - 2.0;
+            model
+                .add_observation(&[x], &[(0.7 * x).cos()], &[x.sin() + 0.5 * x])
+                .unwrap();
+        }
+        let x = [0.33];
+        let want = model.posterior(&x).unwrap();
+        model.posterior_into(&x, &mut stale, &mut out).unwrap();
+        assert_eq!(out.mean, want.mean);
+        assert_eq!(out.B, want.B);
+        // the regrown workspace fits: used in place from now on
+        let (kvec, w) = (stale.kvec.as_ptr(), stale.w.as_ptr());
+        model.posterior_into(&[-1.2], &mut stale, &mut out).unwrap();
+        assert_eq!((stale.kvec.as_ptr(), stale.w.as_ptr()), (kvec, w));
+        let mut fitting = model.workspace();
+        assert_eq!(fitting.kvec.len(), model.len());
+        let (kvec, w) = (fitting.kvec.as_ptr(), fitting.w.as_ptr());
+        model.posterior_into(&x, &mut fitting, &mut out).unwrap();
+        assert_eq!((fitting.kvec.as_ptr(), fitting.w.as_ptr()), (kvec, w));
+        assert_eq!(out.mean, want.mean);
+    }
+
     /// The rows known exactly are reported in order, and none by default.
     #[test]
     fn known_rows_are_reported() {
