@@ -815,7 +815,9 @@ mod tests {
     /// A workspace sized for the model is used as it is (no reallocation),
     /// also when the data fill its capacity exactly (32 observations: the
     /// capacity doubles 16 → 32); one made before the model grew past it is
-    /// regrown on use and gives the posterior of a fresh one.
+    /// regrown on use and gives the posterior of a fresh one. An output of
+    /// the right shape is written in place too, one of the wrong shape
+    /// resized.
     #[test]
     fn a_stale_workspace_is_regrown_and_a_fitting_one_kept() {
         let mut model = Mvgp::new(1, 1, hyper(0.1), PriorMean::Zero, InputMap::Identity).unwrap();
@@ -842,9 +844,18 @@ mod tests {
         let mut fitting = model.workspace();
         assert_eq!(fitting.kvec.len(), model.len());
         let (kvec, w) = (fitting.kvec.as_ptr(), fitting.w.as_ptr());
+        let (mean, b) = (out.mean.as_ptr(), out.B.as_ptr());
         model.posterior_into(&x, &mut fitting, &mut out).unwrap();
         assert_eq!((fitting.kvec.as_ptr(), fitting.w.as_ptr()), (kvec, w));
+        assert_eq!((out.mean.as_ptr(), out.B.as_ptr()), (mean, b));
         assert_eq!(out.mean, want.mean);
+        // an output of the wrong shape is resized
+        let mut empty = Posterior {
+            mean: DMatrix::zeros(0, 0),
+            B: DMatrix::zeros(0, 0),
+        };
+        model.posterior_into(&x, &mut fitting, &mut empty).unwrap();
+        assert_eq!((empty.mean, empty.B), (want.mean, want.B));
     }
 
     /// The rows known exactly are reported in order, and none by default.
