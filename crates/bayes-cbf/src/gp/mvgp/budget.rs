@@ -227,3 +227,87 @@ impl<K: Kernel> Mvgp<K> {
         Some(best)
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::REFRESH_PER_POINT;
+    use crate::gp::{InputMap, Mvgp, MvgpHyper, PriorMean, Rbf};
+    use nalgebra::DMatrix;
+
+    fn hyper(lengthscale: f64) -> MvgpHyper {
+        MvgpHyper {
+            kernel: Rbf::new(vec![lengthscale], 1.0).unwrap(),
+            A: DMatrix::identity(1, 1),
+            B: DMatrix::identity(2, 2),
+            sigma: 0.1,
+        }
+    }
+
+    /// A scalar model with the observations `j0..j1` of a fixed sequence
+    /// (states spread over `[−3, 3)` by the golden ratio).
+    fn add(model: &mut Mvgp, j: usize) {
+        let x = 6.0 * (j as f64 * 0.618_033_988_749_895).fract() - 3.0;
+        model
+            .add_observation(&[x], &[(0.7 * x).cos()], &[x.sin()])
+            .unwrap();
+    }
+
+    fn exact_diag(m: &Mvgp) -> Vec<f64> {
+        let inv = m.factor().inverse();
+        (0..m.len()).map(|j| inv[(j, j)]).collect()
+    }
+
+    fn assert_diag(m: &mut Mvgp) {
+        let exact = exact_diag(m);
+        let tracked = m.gram_inverse_diagonal();
+        assert_eq!(tracked.len(), exact.len());
+        for (a, b) in tracked.iter().zip(&exact) {
+            assert!((a - b).abs() < 1e-9 * b.abs(), "{a} vs {b}");
+        }
+    }
+
+    /// The maintained `diag(G⁻¹)` is recomputed exactly once its updates
+    /// (appends and removals alike) exceed `64 max(k, 16)`, checked after
+    /// each change: with 17 points tracked and then add/remove pairs, the
+    /// removal of pair `i` sees `2i` updates against `64 · 17 = 1088` (the
+    /// appends' `2i − 1` against `64 · 18` never bind), which pair 544
+    /// meets and pair 545 exceeds.
+    #[test]
+    fn the_tracked_diagonal_is_recomputed_after_64_updates_per_point() {
+        let mut m = Mvgp::new(1, 1, hyper(1.0), PriorMean::Zero, InputMap::Identity).unwrap();
+        for j in 0..17 {
+            add(&mut m, j);
+        }
+        assert_diag(&mut m);
+        assert_eq!(m.info.updates, 0);
+        let threshold = REFRESH_PER_POINT * 17;
+        for i in 1..=threshold / 2 {
+            add(&mut m, 16 + i);
+            m.remove_oldest();
+        }
+        assert_eq!(m.info.updates, threshold, "no recomputation yet");
+        assert_diag(&mut m);
+        add(&mut m, 17 + threshold / 2);
+        m.remove_oldest();
+        assert_eq!(m.info.updates, 0, "recomputed");
+        assert!(m.info.tracked);
+        assert_diag(&mut m);
+    }
+
+    /// New hyperparameters refactorise and stop the tracking: the next
+    /// request computes `diag(G⁻¹)` of the new Gram matrix.
+    #[test]
+    fn new_hyperparameters_restart_the_tracking() {
+        let mut m = Mvgp::new(1, 1, hyper(1.0), PriorMean::Zero, InputMap::Identity).unwrap();
+        for j in 0..12 {
+            add(&mut m, j);
+        }
+        assert_diag(&mut m);
+        add(&mut m, 12);
+        assert_eq!(m.info.updates, 1);
+        m.set_hyper(hyper(0.3)).unwrap();
+        assert!(!m.info.tracked);
+        assert_diag(&mut m);
+        assert_eq!(m.info.updates, 0);
+    }
+}
