@@ -5,9 +5,10 @@
 mod common;
 
 use bayes_cbf::barrier::{
-    cbc_moments, mc_cbc_moments, ConditionMoments, HalfSpace, McSettings, MomentWorkspace,
-    PendulumSector,
+    cbc_moments, mc_cbc_moments, ConditionMoments, DynBarrier, HalfSpace, McSettings,
+    MomentWorkspace, PendulumSector,
 };
+use bayes_cbf::control::{ControlOutput, SafetyController, SafetySettings};
 use bayes_cbf::gp::{InputMap, Mvgp, MvgpHyper, PriorMean, Rbf};
 use bayes_cbf::systems::{ControlAffine, DynSystem};
 use common::random_spd;
@@ -162,6 +163,45 @@ fn relative_degree_three_triple_integrator() {
     ws.update(&model, &x, 2).unwrap();
     let err = cbc_moments(&mut ws, &b, &mut ConditionMoments::zeros(1)).unwrap_err();
     assert!(err.to_string().contains("relative_degree"), "{err}");
+}
+
+/// The controller computes a relative-degree-3 condition by Monte Carlo
+/// with a fresh deterministic seed each step: step `s` (from 0) draws with
+/// the configured seed plus `s`, so two steps at the same state give the
+/// moments of `mc_cbc_moments` at seeds 5 and 6, which differ.
+#[test]
+fn the_controller_draws_a_fresh_seed_each_step() {
+    let prior: Arc<dyn DynSystem> = Arc::new(TripleIntegrator);
+    let hyper = MvgpHyper {
+        kernel: Rbf::new(vec![1.0; 3], 1.0).unwrap(),
+        A: DMatrix::identity(3, 3),
+        B: DMatrix::identity(2, 2) * 0.3,
+        sigma: 0.1,
+    };
+    let model = Mvgp::new(3, 1, hyper, PriorMean::System(prior), InputMap::Identity).unwrap();
+    let barrier = HalfSpace::new(vec![1.0, 0.0, 0.0], 0.5, 3, vec![1.0, 3.0, 3.0]).unwrap();
+    let x = [1.3, -0.4, 0.25];
+    let settings = |seed| McSettings {
+        samples: 200,
+        step: 1e-2,
+        seed,
+    };
+    let barriers: Vec<Arc<dyn DynBarrier>> = vec![Arc::new(barrier.clone())];
+    let mut ctrl = SafetyController::new(3, 1, barriers, None, SafetySettings::new(1)).unwrap();
+    ctrl.set_monte_carlo(settings(5));
+    let mut out = ControlOutput::new(1, 1);
+    let mut seen = Vec::new();
+    for seed in [5, 6] {
+        ctrl.step(&model, &x, &[0.0], None, &mut out).unwrap();
+        let want = mc_cbc_moments(&model, &barrier, &x, &settings(seed))
+            .unwrap()
+            .moments;
+        let got = &ctrl.barrier_moments()[0];
+        assert_eq!(got.e, want.e, "step with seed {seed}");
+        assert_eq!(got.cov, want.cov, "step with seed {seed}");
+        seen.push(want.e);
+    }
+    assert_ne!(seen[0], seen[1], "the two seeds drew the same moments");
 }
 
 #[test]
