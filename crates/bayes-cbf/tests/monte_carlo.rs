@@ -123,16 +123,22 @@ fn check_relative_degree_two(known: &[usize]) {
     }
 }
 
-#[test]
-fn relative_degree_three_triple_integrator() {
+/// An MVGP without data whose prior mean is the triple integrator, with
+/// `B = b I` (a nearly deterministic posterior for small `b`).
+fn triple_integrator_model(b: f64) -> Mvgp {
     let prior: Arc<dyn DynSystem> = Arc::new(TripleIntegrator);
     let hyper = MvgpHyper {
         kernel: Rbf::new(vec![1.0; 3], 1.0).unwrap(),
         A: DMatrix::identity(3, 3),
-        B: DMatrix::identity(2, 2) * 1e-16,
+        B: DMatrix::identity(2, 2) * b,
         sigma: 0.1,
     };
-    let model = Mvgp::new(3, 1, hyper, PriorMean::System(prior), InputMap::Identity).unwrap();
+    Mvgp::new(3, 1, hyper, PriorMean::System(prior), InputMap::Identity).unwrap()
+}
+
+#[test]
+fn relative_degree_three_triple_integrator() {
+    let model = triple_integrator_model(1e-16);
     let c = 0.5;
     let gains = vec![1.0, 3.0, 3.0];
     let b = HalfSpace::new(vec![1.0, 0.0, 0.0], c, 3, gains.clone()).unwrap();
@@ -171,14 +177,7 @@ fn relative_degree_three_triple_integrator() {
 /// moments of `mc_cbc_moments` at seeds 5 and 6, which differ.
 #[test]
 fn the_controller_draws_a_fresh_seed_each_step() {
-    let prior: Arc<dyn DynSystem> = Arc::new(TripleIntegrator);
-    let hyper = MvgpHyper {
-        kernel: Rbf::new(vec![1.0; 3], 1.0).unwrap(),
-        A: DMatrix::identity(3, 3),
-        B: DMatrix::identity(2, 2) * 0.3,
-        sigma: 0.1,
-    };
-    let model = Mvgp::new(3, 1, hyper, PriorMean::System(prior), InputMap::Identity).unwrap();
+    let model = triple_integrator_model(0.3);
     let barrier = HalfSpace::new(vec![1.0, 0.0, 0.0], 0.5, 3, vec![1.0, 3.0, 3.0]).unwrap();
     let x = [1.3, -0.4, 0.25];
     let settings = |seed| McSettings {

@@ -243,13 +243,24 @@ mod tests {
         }
     }
 
-    /// A scalar model with the observations `j0..j1` of a fixed sequence
-    /// (states spread over `[−3, 3)` by the golden ratio).
+    /// Adds observation `j` of a fixed sequence (states spread over
+    /// `[−3, 3)` by the golden ratio).
     fn add(model: &mut Mvgp, j: usize) {
         let x = 6.0 * (j as f64 * 0.618_033_988_749_895).fract() - 3.0;
         model
             .add_observation(&[x], &[(0.7 * x).cos()], &[x.sin()])
             .unwrap();
+    }
+
+    /// The model with the first `k` observations, `diag(G⁻¹)` tracked.
+    fn tracked(k: usize) -> Mvgp {
+        let mut m = Mvgp::new(1, 1, hyper(1.0), PriorMean::Zero, InputMap::Identity).unwrap();
+        for j in 0..k {
+            add(&mut m, j);
+        }
+        assert_diag(&mut m);
+        assert_eq!(m.info.updates, 0);
+        m
     }
 
     fn exact_diag(m: &Mvgp) -> Vec<f64> {
@@ -274,12 +285,7 @@ mod tests {
     /// meets and pair 545 exceeds.
     #[test]
     fn the_tracked_diagonal_is_recomputed_after_64_updates_per_point() {
-        let mut m = Mvgp::new(1, 1, hyper(1.0), PriorMean::Zero, InputMap::Identity).unwrap();
-        for j in 0..17 {
-            add(&mut m, j);
-        }
-        assert_diag(&mut m);
-        assert_eq!(m.info.updates, 0);
+        let mut m = tracked(17);
         let threshold = REFRESH_PER_POINT * 17;
         for i in 1..=threshold / 2 {
             add(&mut m, 16 + i);
@@ -298,11 +304,7 @@ mod tests {
     /// request computes `diag(G⁻¹)` of the new Gram matrix.
     #[test]
     fn new_hyperparameters_restart_the_tracking() {
-        let mut m = Mvgp::new(1, 1, hyper(1.0), PriorMean::Zero, InputMap::Identity).unwrap();
-        for j in 0..12 {
-            add(&mut m, j);
-        }
-        assert_diag(&mut m);
+        let mut m = tracked(12);
         add(&mut m, 12);
         assert_eq!(m.info.updates, 1);
         m.set_hyper(hyper(0.3)).unwrap();
