@@ -279,13 +279,15 @@ fn a_rejected_observation_leaves_the_model_unchanged() {
     for m in [&mut model, &mut clean] {
         m.add_observation(&[0.5, 0.1], &[0.3], &[0.1, -0.2])
             .unwrap();
+        m.add_observation(&[1.5, 0.4], &[-0.6], &[0.2, 0.3])
+            .unwrap();
     }
     let err = model
         .add_observation(&[-0.5, 0.0], &[0.2], &[0.0, 0.1])
         .unwrap_err()
         .to_string();
     assert!(err.contains("NaN"), "{err}");
-    assert_eq!(model.len(), 1);
+    assert_eq!(model.len(), 2);
     assert_eq!(
         (model.xs(), model.xdot(), model.controls()),
         (clean.xs(), clean.xdot(), clean.controls())
