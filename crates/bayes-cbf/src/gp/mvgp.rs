@@ -813,11 +813,11 @@ mod tests {
     }
 
     /// A workspace sized for the model is used as it is (no reallocation),
-    /// also when the data fill its capacity exactly (32 observations: the
-    /// capacity doubles 16 → 32); one made before the model grew past it is
-    /// regrown on use and gives the posterior of a fresh one. An output of
-    /// the right shape is written in place too, one of the wrong shape
-    /// resized.
+    /// with spare capacity (20 points in 32) and when the data fill it
+    /// exactly (32 observations: the capacity doubles 16 → 32); one made
+    /// before the model grew past it is regrown on use and gives the
+    /// posterior of a fresh one. An output of the right shape is written in
+    /// place too, one of the wrong shape resized.
     #[test]
     fn a_stale_workspace_is_regrown_and_a_fitting_one_kept() {
         let mut model = Mvgp::new(1, 1, hyper(0.1), PriorMean::Zero, InputMap::Identity).unwrap();
@@ -831,6 +831,14 @@ mod tests {
             model
                 .add_observation(&[x], &[(0.7 * x).cos()], &[x.sin() + 0.5 * x])
                 .unwrap();
+            if j == 19 {
+                // 20 points in a capacity of 32
+                let mut ws = model.workspace();
+                assert_eq!(ws.kvec.len(), 32);
+                let (kvec, w) = (ws.kvec.as_ptr(), ws.w.as_ptr());
+                model.posterior_into(&[0.1], &mut ws, &mut out).unwrap();
+                assert_eq!((ws.kvec.as_ptr(), ws.w.as_ptr()), (kvec, w));
+            }
         }
         let x = [0.33];
         let want = model.posterior(&x).unwrap();
