@@ -107,17 +107,16 @@ impl<K: Kernel> Mvgp<K> {
             ws.dz[j] = map.derivative(j, x);
         }
         let kk = |a: usize, bb: usize, ws: &JointWorkspace| -> f64 {
-            // ∂_a ∂'_b k0(φ(x), φ(x')) at x' = x, in state coordinates
+            // ∂_a ∂'_b k0(φ(x), φ(x')) at x' = x, in state coordinates. By
+            // the kernel's symmetry ∂'k0(z, z) = ∂k0(z, z): both first-order
+            // blocks are the gradient at the diagonal (zero for a stationary
+            // kernel such as the RBF, not for others)
             match (a, bb) {
                 (0, 0) => k00,
-                (i, 0) => (0..d)
+                (i, 0) | (0, i) => (0..d)
                     .filter(|&j| map.source(j) == i - 1)
                     .map(|j| ws.gk[j] * ws.dz[j])
                     .sum(),
-                (0, i) => -(0..d)
-                    .filter(|&j| map.source(j) == i - 1)
-                    .map(|j| ws.gk[j] * ws.dz[j])
-                    .sum::<f64>(),
                 (i, l) => {
                     let mut s = 0.0;
                     for r in 0..d {
