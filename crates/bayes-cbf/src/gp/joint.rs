@@ -191,3 +191,55 @@ impl<K: Kernel> Mvgp<K> {
         Ok(out)
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::gp::{InputMap, MvgpHyper, PriorMean, Rbf};
+
+    /// Fitting buffers are used in place (no reallocation), also when the
+    /// data fill the capacity exactly (32 observations); a workspace made
+    /// before the model grew is regrown; an output with either matrix of
+    /// the wrong shape is resized. Every case gives the fresh posterior.
+    #[test]
+    fn buffers_are_kept_when_they_fit_and_regrown_when_not() {
+        let hyper = MvgpHyper {
+            kernel: Rbf::new(vec![1.0, 1.0], 1.0).unwrap(),
+            A: DMatrix::identity(2, 2),
+            B: DMatrix::identity(2, 2),
+            sigma: 0.1,
+        };
+        let mut model = Mvgp::new(2, 1, hyper, PriorMean::Zero, InputMap::Identity).unwrap();
+        let mut stale = model.joint_workspace();
+        for j in 0..32 {
+            let t = 0.2 * j as f64 - 3.0;
+            model
+                .add_observation(&[t, t.cos()], &[0.5 * t], &[t.sin(), 0.3 * t])
+                .unwrap();
+        }
+        let x = [0.4, -0.2];
+        let want = model.joint_posterior(&x).unwrap();
+        let mut out = JointPosterior::zeros(2, 1);
+        model
+            .joint_posterior_into(&x, &mut stale, &mut out)
+            .unwrap();
+        assert_eq!(out, want);
+        let mut ws = model.joint_workspace();
+        assert_eq!(ws.omega.nrows(), model.len());
+        let ptrs = |ws: &JointWorkspace, out: &JointPosterior| {
+            (ws.omega.as_ptr(), out.mean.as_ptr(), out.c.as_ptr())
+        };
+        let before = ptrs(&ws, &out);
+        model.joint_posterior_into(&x, &mut ws, &mut out).unwrap();
+        assert_eq!(ptrs(&ws, &out), before);
+        assert_eq!(out, want);
+        for (mean, c) in [((2, 6), (5, 5)), ((1, 6), (6, 6)), ((0, 0), (0, 0))] {
+            let mut bad = JointPosterior {
+                mean: DMatrix::zeros(mean.0, mean.1),
+                c: DMatrix::zeros(c.0, c.1),
+            };
+            model.joint_posterior_into(&x, &mut ws, &mut bad).unwrap();
+            assert_eq!(bad, want, "mean {mean:?}, c {c:?}");
+        }
+    }
+}
