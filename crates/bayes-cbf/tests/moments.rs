@@ -505,3 +505,56 @@ fn lemma_4_as_printed_swaps_one_trace() {
         "MC {var} printed {printed} ± {se}: the swap {swap} is not visible"
     );
 }
+
+/// `ConditionMoments::from_parts` validates what it is given: `e` with at
+/// least two entries, a square `cov` of the same size, finite, symmetric
+/// within `10⁻⁹ max(s, 1)` and with no eigenvalue below `−10⁻⁹ s` (`s`
+/// the largest absolute eigenvalue, so the tolerances scale with `cov`),
+/// and a relative degree of at least 1; the factor satisfies `vᵀv = cov`.
+#[test]
+fn condition_moments_from_parts_validates_its_parts() {
+    let m = |s: f64, rows: &[f64]| DMatrix::from_row_slice(3, 3, rows) * s;
+    let e = vec![0.5, 1.0, -2.0];
+    let field = |r: Result<ConditionMoments, bayes_cbf::InputError>| r.unwrap_err().to_string();
+    // a rank-one covariance (zero eigenvalues) and one at scale 10⁴ with an
+    // eigenvalue of −10⁻⁸, inside −10⁻⁹ · 10⁴: accepted
+    let c = DVector::from_vec(vec![1.0, -0.5, 2.0]);
+    let near_psd = m(1e4, &[1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, -1e-12]);
+    for cov in [&c * c.transpose(), near_psd] {
+        let mom = ConditionMoments::from_parts(e.clone(), cov.clone(), 2).unwrap();
+        assert!((mom.v.transpose() * &mom.v - &cov).abs().max() < 1e-9 * cov.abs().max());
+        assert_eq!((mom.e, mom.relative_degree), (e.clone(), 2));
+    }
+    // an eigenvalue of −10⁻⁶ at scale 1, and an asymmetry beyond the
+    // tolerance at scale 10⁴: rejected
+    let indefinite = m(1.0, &[1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, -1e-6]);
+    let asymmetric = m(1e4, &[1.0, 2e-9, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0]);
+    for cov in [indefinite, asymmetric] {
+        let err = field(ConditionMoments::from_parts(e.clone(), cov, 1));
+        assert!(err.contains("cov") && err.contains("semidefinite"), "{err}");
+    }
+    // within the symmetry tolerance: accepted
+    let nearly = m(1e4, &[1.0, 5e-14, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0]);
+    assert!(ConditionMoments::from_parts(e.clone(), nearly, 1).is_ok());
+    let id = || DMatrix::identity(3, 3);
+    assert!(field(ConditionMoments::from_parts(
+        vec![1.0],
+        DMatrix::identity(1, 1),
+        1
+    ))
+    .contains('e'));
+    assert!(ConditionMoments::from_parts(vec![1.0, 2.0], DMatrix::identity(2, 2), 1).is_ok());
+    assert!(field(ConditionMoments::from_parts(
+        e.clone(),
+        DMatrix::identity(2, 2),
+        1
+    ))
+    .contains("cov"));
+    assert!(field(ConditionMoments::from_parts(
+        vec![f64::NAN, 0.0, 0.0],
+        id(),
+        1
+    ))
+    .contains('e'));
+    assert!(field(ConditionMoments::from_parts(e.clone(), id(), 0)).contains("relative_degree"));
+}
