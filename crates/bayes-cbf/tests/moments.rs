@@ -558,3 +558,41 @@ fn condition_moments_from_parts_validates_its_parts() {
     .contains('e'));
     assert!(field(ConditionMoments::from_parts(e.clone(), id(), 0)).contains("relative_degree"));
 }
+
+/// Misuse of the moment functions is an error naming what is wrong: a
+/// barrier of another state dimension, a relative-degree-2 barrier on a
+/// workspace prepared for degree 1, a CLF reference of the wrong length
+/// (either of `x_d` and `ẋ_d`).
+#[test]
+fn moment_functions_reject_misuse() {
+    let m2 = model(2, 1, PriorMean::Zero, 6, 41);
+    let mut ws = MomentWorkspace::new(&m2);
+    ws.update(&m2, &[0.3, -0.2], 1).unwrap();
+    let mut out = ConditionMoments::zeros(1);
+    let rd2 = PendulumSector::new(0.7854, 0.3927, 2, vec![1.0, 3.0]).unwrap();
+    let err = cbc_moments(&mut ws, &rd2, &mut out)
+        .unwrap_err()
+        .to_string();
+    assert!(err.contains("relative_degree"), "{err}");
+    let rd1 = PendulumSector::new(0.7854, 0.3927, 1, vec![2.0]).unwrap();
+    assert!(cbc_moments(&mut ws, &rd1, &mut out).is_ok());
+    let wide = bayes_cbf::barrier::HalfSpace::new(vec![1.0, 0.0, 0.0], 0.5, 1, vec![1.0]).unwrap();
+    let err = cbc_moments(&mut ws, &wide, &mut out)
+        .unwrap_err()
+        .to_string();
+    assert!(err.contains("barrier state dimension"), "{err}");
+
+    let m3 = model(3, 2, PriorMean::Zero, 6, 42);
+    let mut ws = MomentWorkspace::new(&m3);
+    ws.update(&m3, &[-1.0, -0.5, 0.3], 1).unwrap();
+    let clf = AckermannClf::new(0.9, 1.5, 10.0).unwrap();
+    let mut out = ConditionMoments::zeros(2);
+    let (good, short) = ([0.0, 0.2, 0.7], [0.0, 0.2]);
+    assert!(clc_moments(&mut ws, &clf, &good, &good, &mut out).is_ok());
+    for (xd, xd_dot) in [(&good[..], &short[..]), (&short[..], &good[..])] {
+        let err = clc_moments(&mut ws, &clf, xd, xd_dot, &mut out)
+            .unwrap_err()
+            .to_string();
+        assert!(err.contains("reference"), "{err}");
+    }
+}
