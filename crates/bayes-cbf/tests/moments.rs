@@ -596,3 +596,18 @@ fn moment_functions_reject_misuse() {
         assert!(err.contains("reference"), "{err}");
     }
 }
+
+/// `c(p)` is defined on the open interval `0 < p < 1`: both ends and
+/// anything outside are errors naming the probability.
+#[test]
+fn quantile_factor_needs_a_probability_strictly_between_0_and_1() {
+    use bayes_cbf::barrier::quantile_factor;
+    for r in [1, 2] {
+        for p in [0.0, 1.0, -0.1, 1.1, f64::NAN, f64::INFINITY] {
+            let err = quantile_factor(p, r).unwrap_err().to_string();
+            assert!(err.contains("probability"), "p = {p}: {err}");
+        }
+    }
+    assert_eq!(quantile_factor(0.5, 1).unwrap(), 0.0);
+    assert_eq!(quantile_factor(0.5, 2).unwrap(), 1.0);
+}
