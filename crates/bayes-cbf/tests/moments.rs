@@ -611,3 +611,32 @@ fn quantile_factor_needs_a_probability_strictly_between_0_and_1() {
     assert_eq!(quantile_factor(0.5, 1).unwrap(), 0.0);
     assert_eq!(quantile_factor(0.5, 2).unwrap(), 1.0);
 }
+
+/// `unmodelled_lgh_std` is `√(∇hᵀ A ∇h · max_{c ≥ 1} B_k,cc)`, recomputed
+/// here from central differences of `h`, the model's `A` and the
+/// posterior's `B_k` at the same state.
+#[test]
+fn unmodelled_lgh_std_matches_its_formula() {
+    let model = model(2, 1, PriorMean::Zero, 6, 43);
+    let x = [0.9, -0.4];
+    let mut ws = MomentWorkspace::new(&model);
+    ws.update(&model, &x, 2).unwrap();
+    let rd2 = PendulumSector::new(0.7854, 0.3927, 2, vec![1.0, 3.0]).unwrap();
+    cbc_moments(&mut ws, &rd2, &mut ConditionMoments::zeros(1)).unwrap();
+    let h = 1e-6;
+    let grad: Vec<f64> = (0..2)
+        .map(|i| {
+            let (mut a, mut b) = (x, x);
+            a[i] += h;
+            b[i] -= h;
+            (DynBarrier::value(&rd2, &a) - DynBarrier::value(&rd2, &b)) / (2.0 * h)
+        })
+        .collect();
+    let g = DVector::from_vec(grad);
+    let q = (g.transpose() * &model.hyper().A * &g)[(0, 0)];
+    let b = model.posterior(&x).unwrap().B[(1, 1)];
+    let want = (q * b).sqrt();
+    let got = bayes_cbf::barrier::unmodelled_lgh_std(&ws);
+    assert!(want > 1e-3, "{want}");
+    assert!((got - want).abs() < 1e-6 * want, "{got} vs {want}");
+}
