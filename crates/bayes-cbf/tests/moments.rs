@@ -52,6 +52,18 @@ impl Barrier for Quadratic {
     }
 }
 
+/// `∇f(x)` by central differences of step `h`.
+fn central_gradient(f: impl Fn(&[f64]) -> f64, x: &[f64], h: f64) -> Vec<f64> {
+    (0..x.len())
+        .map(|i| {
+            let (mut a, mut b) = (x.to_vec(), x.to_vec());
+            a[i] += h;
+            b[i] -= h;
+            (f(&a) - f(&b)) / (2.0 * h)
+        })
+        .collect()
+}
+
 fn model(n: usize, m: usize, prior: PriorMean, k: usize, seed: u64) -> Mvgp {
     let mut rng = ChaCha8Rng::seed_from_u64(seed);
     let hyper = MvgpHyper {
@@ -367,14 +379,7 @@ fn clf_moments_match_monte_carlo_and_time_derivative() {
     // V and its derivatives by finite differences
     let v = |x: &[f64], xd: &[f64]| clf.v(x, xd);
     let hh = 1e-6;
-    let g: Vec<f64> = (0..3)
-        .map(|i| {
-            let (mut a, mut b) = (x, x);
-            a[i] += hh;
-            b[i] -= hh;
-            (v(&a, &xd) - v(&b, &xd)) / (2.0 * hh)
-        })
-        .collect();
+    let g = central_gradient(|y| v(y, &xd), &x, hh);
     let xdp: Vec<f64> = (0..3).map(|i| xd[i] + hh * xd_dot[i]).collect();
     let xdm: Vec<f64> = (0..3).map(|i| xd[i] - hh * xd_dot[i]).collect();
     let dvdt = (v(&x, &xdp) - v(&x, &xdm)) / (2.0 * hh);
@@ -624,15 +629,7 @@ fn unmodelled_lgh_std_matches_its_formula() {
     let rd2 = PendulumSector::new(0.7854, 0.3927, 2, vec![1.0, 3.0]).unwrap();
     cbc_moments(&mut ws, &rd2, &mut ConditionMoments::zeros(1)).unwrap();
     let h = 1e-6;
-    let grad: Vec<f64> = (0..2)
-        .map(|i| {
-            let (mut a, mut b) = (x, x);
-            a[i] += h;
-            b[i] -= h;
-            (DynBarrier::value(&rd2, &a) - DynBarrier::value(&rd2, &b)) / (2.0 * h)
-        })
-        .collect();
-    let g = DVector::from_vec(grad);
+    let g = DVector::from_vec(central_gradient(|y| DynBarrier::value(&rd2, y), &x, h));
     let q = (g.transpose() * &model.hyper().A * &g)[(0, 0)];
     let b = model.posterior(&x).unwrap().B[(1, 1)];
     let want = (q * b).sqrt();
