@@ -196,9 +196,9 @@ fn expression_clf_equals_the_ackermann_clf() {
     );
 }
 
-#[test]
-fn non_finite_evaluations_are_errors_naming_the_entry() {
-    let sys = ExpressionSystem::new(
+/// `θ̇ = ω`, `ω̇ = log θ + u`: not finite for `θ ≤ 0`.
+fn log_theta_system() -> ExpressionSystem {
+    ExpressionSystem::new(
         &["theta", "omega"],
         &["u"],
         &[],
@@ -206,7 +206,12 @@ fn non_finite_evaluations_are_errors_naming_the_entry() {
         &[vec!["0"], vec!["1"]],
         &[],
     )
-    .unwrap();
+    .unwrap()
+}
+
+#[test]
+fn non_finite_evaluations_are_errors_naming_the_entry() {
+    let sys = log_theta_system();
     let mut f = [0.0; 4];
     sys.eval_f64(&[0.5, 0.0], &mut f);
     assert!(sys.take_error().is_none());
@@ -255,19 +260,7 @@ fn non_finite_evaluations_are_errors_naming_the_entry() {
 /// next observation is learned as by a model that never saw the bad one.
 #[test]
 fn a_rejected_observation_leaves_the_model_unchanged() {
-    let prior = || {
-        PriorMean::System(Arc::new(
-            ExpressionSystem::new(
-                &["theta", "omega"],
-                &["u"],
-                &[],
-                &["omega", "log(theta)"],
-                &[vec!["0"], vec!["1"]],
-                &[],
-            )
-            .unwrap(),
-        ))
-    };
+    let prior = || PriorMean::System(Arc::new(log_theta_system()));
     let hyper = MvgpHyper {
         kernel: Rbf::new(vec![1.0, 1.0], 1.0).unwrap(),
         A: nalgebra::DMatrix::identity(2, 2),
