@@ -1,6 +1,7 @@
 //! Safety controllers: the chance-constrained CLF-CBF SOCP (paper, Prop. 2
 //! and Prop. 4), typed infeasibility (Remark 2) and declared fallbacks.
 
+mod dense_cone;
 mod filter;
 mod recalibration;
 mod self_trigger;

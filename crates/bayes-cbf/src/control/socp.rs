@@ -1,5 +1,6 @@
-//! The safety SOCP (paper, Prop. 2 and Prop. 4) on Clarabel, built once and
-//! updated in place each step.
+//! The safety SOCP (paper, Prop. 2 and Prop. 4), built once and updated in
+//! place each step; solved by the dense interior-point method of
+//! [`dense_cone`](super::dense_cone), with Clarabel as the fallback.
 //!
 //! Variables `x = [u; δ]` (δ only with a CLF). With `u̲ = [1; u]`:
 //!
@@ -12,8 +13,9 @@
 //!
 //! Prop. 2 writes the objective through an epigraph variable,
 //! `min y s.t. ‖[R(u − û); √λ δ]‖ ≤ y`; the quadratic objective used here has
-//! the same minimiser and is handled natively by Clarabel.
+//! the same minimiser and is handled natively by both solvers.
 
+use super::dense_cone::{Cone, DenseConeSolver, DenseStatus};
 use crate::barrier::ConditionMoments;
 use clarabel::algebra::CscMatrix;
 use clarabel::solver::{DefaultSettings, DefaultSolver, IPSolver, SolverStatus, SupportedConeT};
@@ -64,6 +66,14 @@ impl SolveStatus {
     }
 }
 
+/// The solver whose solution [`ConeProgram::x`] returns.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Answer {
+    Dense,
+    /// Clarabel without (0) or with (1) iterative refinement.
+    Clarabel(usize),
+}
+
 /// A conic program of fixed sparsity whose values are updated in place.
 pub(crate) struct ConeProgram {
     shape: SocpShape,
@@ -79,8 +89,11 @@ pub(crate) struct ConeProgram {
     /// `[fast, refined]`: without and with iterative refinement
     /// ([`settings`](Self::settings)).
     solvers: [Option<DefaultSolver<f64>>; 2],
+    /// The dense solver tried first ([`solve`](Self::solve)), built on first
+    /// use.
+    dense: Option<DenseConeSolver>,
     /// Which solver produced the last answer.
-    last: usize,
+    last: Answer,
     a_pattern: (Vec<usize>, Vec<usize>),
     p_pattern: (Vec<usize>, Vec<usize>),
     cones: Vec<SupportedConeT<f64>>,
@@ -152,7 +165,8 @@ impl ConeProgram {
             p_nz: vec![0.0; prow.len()],
             per_col,
             solvers: [None, None],
-            last: 0,
+            dense: None,
+            last: Answer::Clarabel(0),
             a_pattern: (colptr, rowval),
             p_pattern: (pcol, prow),
             cones,
@@ -323,16 +337,70 @@ impl ConeProgram {
         true
     }
 
-    /// Solves with the current data: the fast solver first, the refined one
-    /// if the fast one does not report `Solved` (see
-    /// [`settings`](Self::settings)). The first call builds the solvers,
-    /// later calls update them in place.
+    /// Solves with the current data: the dense solver first
+    /// ([`DenseConeSolver`]: the same homogeneous-embedding iteration and
+    /// tolerances as Clarabel, without the sparse machinery), which answers
+    /// when it converges to full accuracy or certifies infeasibility; else
+    /// Clarabel's fast solver, then its refined one if the fast one does not
+    /// report `Solved` (see [`settings`](Self::settings)). The first call
+    /// builds the solvers, later calls update them in place.
     pub(crate) fn solve(&mut self) -> SolveStatus {
+        match self.solve_dense() {
+            DenseStatus::Solved => {
+                self.last = Answer::Dense;
+                return SolveStatus::Optimal;
+            }
+            DenseStatus::PrimalInfeasible => {
+                self.last = Answer::Dense;
+                return SolveStatus::Infeasible;
+            }
+            DenseStatus::DualInfeasible | DenseStatus::Failed => {}
+        }
+        self.solve_clarabel()
+    }
+
+    /// Copies the data into the dense solver (built on first use) and
+    /// solves.
+    fn solve_dense(&mut self) -> DenseStatus {
+        let nv = self.q.len();
+        let dense = self.dense.get_or_insert_with(|| {
+            let cones: Vec<Cone> = self
+                .cones
+                .iter()
+                .map(|c| match c {
+                    SupportedConeT::SecondOrderConeT(d) => Cone::SecondOrder(*d),
+                    SupportedConeT::NonnegativeConeT(d) => Cone::NonNegative(*d),
+                    other => unreachable!("the safety SOCPs have no {other:?} cone"),
+                })
+                .collect();
+            DenseConeSolver::new(nv, &cones)
+        });
+        dense.a.fill(0.0);
+        for j in 0..nv {
+            for t in self.a_pattern.0[j]..self.a_pattern.0[j + 1] {
+                dense.a[self.a_pattern.1[t] * nv + j] = self.a_nz[t];
+            }
+        }
+        dense.p.fill(0.0);
+        for j in 0..nv {
+            for t in self.p_pattern.0[j]..self.p_pattern.0[j + 1] {
+                let i = self.p_pattern.1[t];
+                dense.p[i * nv + j] = self.p_nz[t];
+                dense.p[j * nv + i] = self.p_nz[t];
+            }
+        }
+        dense.q.copy_from_slice(&self.q);
+        dense.b.copy_from_slice(&self.b);
+        dense.solve()
+    }
+
+    /// Clarabel: the fast solver, then the refined one.
+    fn solve_clarabel(&mut self) -> SolveStatus {
         let mut fast = SolveStatus::Failed;
         if self.load(0) {
             if let Some(s) = self.solvers[0].as_mut() {
                 s.solve();
-                self.last = 0;
+                self.last = Answer::Clarabel(0);
                 if s.solution.status == SolverStatus::Solved {
                     return SolveStatus::Optimal;
                 }
@@ -348,7 +416,7 @@ impl ConeProgram {
         s.solve();
         let refined = SolveStatus::from_clarabel(s.solution.status);
         if refined.is_solved() || !fast.is_solved() {
-            self.last = 1;
+            self.last = Answer::Clarabel(1);
             refined
         } else {
             fast
@@ -356,17 +424,26 @@ impl ConeProgram {
     }
 
     pub(crate) fn x(&self) -> &[f64] {
-        self.solvers[self.last]
-            .as_ref()
-            .map(|s| s.solution.x.as_slice())
-            .unwrap_or(&[])
+        match self.last {
+            Answer::Dense => self.dense.as_ref().map(|d| d.x()).unwrap_or(&[]),
+            Answer::Clarabel(i) => self.solvers[i]
+                .as_ref()
+                .map(|s| s.solution.x.as_slice())
+                .unwrap_or(&[]),
+        }
     }
 
     /// Primal slack `s` and dual `z` of the last solve (for KKT checks).
     pub(crate) fn duals(&self) -> (&[f64], &[f64]) {
-        match self.solvers[self.last].as_ref() {
-            Some(s) => (s.solution.s.as_slice(), s.solution.z.as_slice()),
-            None => (&[], &[]),
+        match self.last {
+            Answer::Dense => match self.dense.as_ref() {
+                Some(d) => (d.s(), d.z()),
+                None => (&[], &[]),
+            },
+            Answer::Clarabel(i) => match self.solvers[i].as_ref() {
+                Some(s) => (s.solution.s.as_slice(), s.solution.z.as_slice()),
+                None => (&[], &[]),
+            },
         }
     }
 
