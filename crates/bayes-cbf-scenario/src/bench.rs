@@ -564,13 +564,62 @@ impl Bound {
     }
 }
 
+/// One stream's timings (µs) and its infeasible steps.
+struct StreamStats {
+    /// Step p50, p99, max, p50 of the first and of the last tenth; control
+    /// p50, p99; update p50, p99; p99 of the feasible steps.
+    times: [f64; 10],
+    /// Control-step medians of the feasible and the infeasible steps.
+    split: Option<(f64, f64)>,
+    infeasible: usize,
+}
+
 /// A stream of `steps` Ackermann states (uniform): one control step and one
 /// bounded online update per state, timed together (`p50_us`, `p99_us`,
 /// `max_us`) and apart (`control_*`, `update_*`); `infeasible_steps` counts
 /// the steps whose SOCP was infeasible (they also solve the max-margin
 /// program and iterate for `p*`), `p99_us_feasible_steps` leaves them out,
 /// `infeasible_over_feasible` is the ratio of the median control steps.
-fn stream_row(steps: usize, bound: Bound, size: usize) -> Result<BenchRow> {
+/// The stream runs `repeats` times from the same model; each figure is the
+/// median over the repeats (a shared machine's preemptions land in the
+/// tail of one run, not of all).
+fn stream_row(steps: usize, bound: Bound, size: usize, repeats: usize) -> Result<BenchRow> {
+    let runs = (0..repeats.max(1))
+        .map(|_| stream_once(steps, bound, size))
+        .collect::<Result<Vec<_>>>()?;
+    let med = |f: &dyn Fn(&StreamStats) -> f64| {
+        let v: Vec<f64> = runs.iter().map(f).collect();
+        round(quantile(&v, 0.5))
+    };
+    let t = |i: usize| med(&|r: &StreamStats| r.times[i]);
+    let split = runs[0].split.map(|_| {
+        let fe = med(&|r: &StreamStats| r.split.map_or(f64::NAN, |s| s.0));
+        let inf = med(&|r: &StreamStats| r.split.map_or(f64::NAN, |s| s.1));
+        (fe, inf)
+    });
+    Ok(BenchRow::Stream {
+        system: "ackermann".into(),
+        steps,
+        p50_us: t(0),
+        p99_us: t(1),
+        max_us: t(2),
+        p50_us_first_tenth: t(3),
+        p50_us_last_tenth: t(4),
+        control_p50_us: t(5),
+        control_p99_us: t(6),
+        update_p50_us: t(7),
+        update_p99_us: t(8),
+        infeasible_steps: runs[0].infeasible,
+        p99_us_feasible_steps: t(9),
+        control_p50_us_feasible: split.map(|s| s.0),
+        control_p50_us_infeasible: split.map(|s| s.1),
+        infeasible_over_feasible: split.map(|(fe, inf)| round(inf / fe)),
+        bound: bound.key(),
+    })
+}
+
+/// One run of the stream of [`stream_row`].
+fn stream_once(steps: usize, bound: Bound, size: usize) -> Result<StreamStats> {
     let mut w = ackermann_control(size, 5)?;
     let extra = ackermann_data(steps, 12.0, 6)?;
     let mut out = ControlOutput::new(2, 2);
@@ -610,32 +659,27 @@ fn stream_row(steps: usize, bound: Bound, size: usize) -> Result<BenchRow> {
     let max = times.iter().cloned().fold(0.0, f64::max);
     // the cost of an infeasible step (max-margin program, p*, fallback)
     // against a feasible one, control step only
-    let (fe, inf) = if control_infeasible.is_empty() {
-        (None, None)
-    } else {
+    let split = (!control_infeasible.is_empty()).then(|| {
         (
-            Some(quantile(&control_feasible, 0.5)),
-            Some(quantile(&control_infeasible, 0.5)),
+            quantile(&control_feasible, 0.5),
+            quantile(&control_infeasible, 0.5),
         )
-    };
-    Ok(BenchRow::Stream {
-        system: "ackermann".into(),
-        steps,
-        p50_us: round(quantile(&times, 0.5)),
-        p99_us: round(quantile(&times, 0.99)),
-        max_us: round(max),
-        p50_us_first_tenth: round(quantile(f, 0.5)),
-        p50_us_last_tenth: round(quantile(l, 0.5)),
-        control_p50_us: round(quantile(&control, 0.5)),
-        control_p99_us: round(quantile(&control, 0.99)),
-        update_p50_us: round(quantile(&update, 0.5)),
-        update_p99_us: round(quantile(&update, 0.99)),
-        infeasible_steps: infeasible,
-        p99_us_feasible_steps: round(quantile(&feasible, 0.99)),
-        control_p50_us_feasible: fe.map(round),
-        control_p50_us_infeasible: inf.map(round),
-        infeasible_over_feasible: fe.zip(inf).map(|(fe, inf)| round(inf / fe)),
-        bound: bound.key(),
+    });
+    Ok(StreamStats {
+        times: [
+            quantile(&times, 0.5),
+            quantile(&times, 0.99),
+            max,
+            quantile(f, 0.5),
+            quantile(l, 0.5),
+            quantile(&control, 0.5),
+            quantile(&control, 0.99),
+            quantile(&update, 0.5),
+            quantile(&update, 0.99),
+            quantile(&feasible, 0.99),
+        ],
+        split,
+        infeasible,
     })
 }
 
@@ -790,14 +834,16 @@ pub fn run_bench(quick: bool, threads: usize, stage: &dyn Fn(&str)) -> Result<Be
         rows.push(fit_evaluation_row(k, reps)?);
     }
     stage("streams");
-    let (steps, bounds): (usize, &[(Bound, usize)]) = if quick {
+    let (steps, repeats, bounds): (usize, usize, &[(Bound, usize)]) = if quick {
         (
             2_000,
+            1,
             &[(Bound::Window(200), 200), (Bound::Budget(200), 200)],
         )
     } else {
         (
             20_000,
+            3,
             &[
                 (Bound::Window(1_000), 1_000),
                 (Bound::Window(200), 200),
@@ -806,7 +852,7 @@ pub fn run_bench(quick: bool, threads: usize, stage: &dyn Fn(&str)) -> Result<Be
         )
     };
     for &(bound, size) in bounds {
-        rows.push(stream_row(steps, bound, size)?);
+        rows.push(stream_row(steps, bound, size, repeats)?);
     }
     stage("stream quality");
     rows.extend(if quick {
