@@ -672,3 +672,155 @@ impl SelfTriggered {
         })
     }
 }
+
+#[cfg(test)]
+mod tests {
+    //! The private helpers of the hold against independent references, and
+    //! the checks of the settings field by field.
+    use super::*;
+
+    /// `Σ_{j ≥ 2} (ls)^j / j! / l`, the series of `(e^{ls} − 1 − ls)/l`,
+    /// summed to convergence.
+    fn excess_series(l: f64, s: f64) -> f64 {
+        let x = l * s;
+        let (mut term, mut sum) = (x * x / 2.0, 0.0f64);
+        let mut j = 2.0;
+        while term.abs() > 1e-18 * sum.abs() || sum == 0.0 {
+            sum += term;
+            j += 1.0;
+            term *= x / j;
+            if j > 200.0 {
+                break;
+            }
+        }
+        sum / l
+    }
+
+    fn field_of(e: InputError) -> String {
+        match e {
+            InputError::Invalid { field, .. } => field,
+            other => panic!("expected Invalid, got {other:?}"),
+        }
+    }
+
+    #[test]
+    fn excess_matches_its_series_on_both_branches() {
+        for l in [0.5, 3.0, 40.0] {
+            for x in [1e-9, 1e-6, 3e-5, 9.9e-5, 1e-4, 1.01e-4, 1e-3, 0.1, 1.0, 5.0] {
+                let s = x / l;
+                let (got, want) = (excess(l, s), excess_series(l, s));
+                assert!(
+                    (got - want).abs() <= 1e-11 * want,
+                    "l = {l}, ls = {x}: {got} against {want}"
+                );
+            }
+        }
+        assert_eq!(excess(0.0, 0.3), 0.0);
+    }
+
+    #[test]
+    fn log1p_over_matches_its_definition_and_limit() {
+        for (l, a) in [
+            (2.0, 0.1),
+            (0.5, 3.0),
+            (1e-3, 1e-2),
+            (10.0, 1e-6),
+            (1e-6, 1e7),
+        ] {
+            let want = (1.0f64 + l * a).ln() / l;
+            let got = log1p_over(l, a);
+            assert!(
+                (got - want).abs() <= 1e-9 * want,
+                "{l}, {a}: {got} against {want}"
+            );
+        }
+        // below l·a = 1e-12 the limit a (error of order l a² / 2)
+        assert_eq!(log1p_over(0.0, 0.25), 0.25);
+        assert_eq!(log1p_over(1e-14, 0.25), 0.25);
+        assert_eq!(log1p_over(3.0, f64::INFINITY), f64::INFINITY);
+    }
+
+    #[test]
+    fn tau_formulas_at_literal_values() {
+        // ln(1 + 2·0.01/((0.5·(2 + 1) + 0.3·0.2)·0.2))/2
+        let want = (1.0f64 + 2.0 * 0.01 / ((0.5 * 3.0 + 0.3 * 0.2) * 0.2)).ln() / 2.0;
+        let got = tau_relative_degree_one(2.0, 0.01, 1.0, 0.5, 0.3, 0.2);
+        assert!((got - want).abs() < 1e-15);
+        assert_eq!(tau_relative_degree_one(2.0, 0.0, 1.0, 0.5, 0.3, 0.2), 0.0);
+        assert_eq!(
+            tau_relative_degree_one(2.0, 0.01, 1.0, 0.5, 0.3, 0.0),
+            f64::INFINITY
+        );
+        let want = (1.0f64 + 2.0 * 0.05 / (0.5 * 0.2)).ln() / 2.0;
+        assert!((tau_relative_degree_r(2.0, 0.05, 0.5, 0.2) - want).abs() < 1e-15);
+        assert_eq!(tau_relative_degree_r(2.0, -0.1, 0.5, 0.2), 0.0);
+        assert_eq!(tau_relative_degree_r(2.0, 0.05, 0.0, 0.2), f64::INFINITY);
+    }
+
+    #[test]
+    fn tau_source_names_round_trip() {
+        for t in [TauSource::Analytic, TauSource::Numerical] {
+            assert_eq!(TauSource::parse(t.name()), Ok(t));
+        }
+        assert_ne!(TauSource::Analytic.name(), TauSource::Numerical.name());
+        assert_eq!(
+            field_of(TauSource::parse("both").unwrap_err()),
+            "trigger.tau_from"
+        );
+    }
+
+    #[test]
+    fn tilde_p_adds_twice_delta_l_inside_the_unit_interval() {
+        let mut t = TriggerSettings::new(vec![0.1, 0.1]);
+        t.lipschitz.delta_l = 0.01;
+        assert!((t.tilde_p(0.9).unwrap() - 0.92).abs() < 1e-15);
+        for p in [0.98, 0.99, -0.02, -0.5] {
+            assert_eq!(
+                field_of(t.tilde_p(p).unwrap_err()),
+                "controller.probability"
+            );
+        }
+    }
+
+    #[test]
+    fn settings_reject_each_bad_field_by_name() {
+        let good = TriggerSettings::new(vec![0.2, 0.1]);
+        assert!(good.validate(2).is_ok());
+        let mut zero_zeta = good.clone();
+        zero_zeta.zeta = 0.0;
+        zero_zeta.zeta_b = 0.0;
+        assert!(zero_zeta.validate(2).is_ok());
+        let mut equal = good.clone();
+        equal.tau_max = equal.tau_min;
+        assert!(equal.validate(2).is_ok());
+        type Edit = fn(&mut TriggerSettings);
+        let cases: [(Edit, &str); 11] = [
+            (|t| t.lipschitz.sides[1] = 0.0, "trigger.cuboid[1]"),
+            (|t| t.zeta = -1e-3, "zeta"),
+            (|t| t.zeta = f64::NAN, "zeta"),
+            (|t| t.zeta_b = -1e-3, "trigger.zeta_b"),
+            (|t| t.zeta_b = f64::INFINITY, "trigger.zeta_b"),
+            (|t| t.tau_min = 0.0, "trigger.tau_min"),
+            (|t| t.tau_min = f64::INFINITY, "trigger.tau_min"),
+            (|t| t.tau_max = 0.5 * t.tau_min, "trigger.tau_max"),
+            (|t| t.tau_max = f64::INFINITY, "trigger.tau_max"),
+            (
+                |t| {
+                    t.tau_from = TauSource::Numerical;
+                    t.lipschitz.samples = 0;
+                },
+                "trigger.samples",
+            ),
+            (|t| t.lipschitz.delta_l = 0.0, "delta_l"),
+        ];
+        for (edit, field) in cases {
+            let mut t = good.clone();
+            edit(&mut t);
+            assert_eq!(field_of(t.validate(2).unwrap_err()), field);
+        }
+        let mut numerical = good.clone();
+        numerical.tau_from = TauSource::Numerical;
+        numerical.lipschitz.samples = 1;
+        assert!(numerical.validate(2).is_ok());
+    }
+}
