@@ -478,3 +478,138 @@ impl ConeProgram {
         &self.cones
     }
 }
+
+#[cfg(test)]
+mod tests {
+    //! The two solvers of [`ConeProgram`] on the same sequence of programs:
+    //! the dense one and the Clarabel fallback must agree, whatever the
+    //! programs solved before.
+    use super::*;
+    use rand::{RngExt, SeedableRng};
+    use rand_chacha::ChaCha8Rng;
+
+    /// Random data in the program's pattern: `P = 2RᵀR + I`-like, `A`
+    /// random, `b = Ax₀ + s₀` with `s₀` interior (strictly feasible).
+    fn randomise(p: &mut ConeProgram, rng: &mut ChaCha8Rng) {
+        for v in p.a_nz.iter_mut() {
+            *v = rng.random_range(-1.0..1.0);
+        }
+        let nv = p.q.len();
+        for j in 0..nv {
+            for t in p.p_pattern.0[j]..p.p_pattern.0[j + 1] {
+                let i = p.p_pattern.1[t];
+                p.p_nz[t] = if i == j {
+                    if p.max_margin && j == nv - 1 {
+                        0.0
+                    } else {
+                        rng.random_range(1.0..3.0)
+                    }
+                } else {
+                    rng.random_range(-0.3..0.3)
+                };
+            }
+        }
+        for (i, v) in p.q.iter_mut().enumerate() {
+            *v = if p.max_margin && i == nv - 1 {
+                -1.0
+            } else {
+                rng.random_range(-2.0..2.0)
+            };
+        }
+        let (a, _, _, _) = p.dense();
+        let x0: Vec<f64> = (0..nv).map(|_| rng.random_range(-0.5..0.5)).collect();
+        let mut row = 0;
+        for c in p.cones.clone() {
+            let d = match c {
+                SupportedConeT::SecondOrderConeT(d) | SupportedConeT::NonnegativeConeT(d) => d,
+                _ => unreachable!(),
+            };
+            // s₀: (‖tail‖ + margin, tail) for a SOC, positive entries else
+            let tail: Vec<f64> = (1..d).map(|_| rng.random_range(-1.0..1.0)).collect();
+            for k in 0..d {
+                let s0 = match c {
+                    SupportedConeT::SecondOrderConeT(_) if k == 0 => {
+                        tail.iter().map(|t| t * t).sum::<f64>().sqrt() + rng.random_range(0.01..1.0)
+                    }
+                    SupportedConeT::SecondOrderConeT(_) => tail[k - 1],
+                    _ => rng.random_range(0.01..1.0),
+                };
+                let ax: f64 = (0..nv).map(|j| a[(row + k, j)] * x0[j]).sum();
+                p.b[row + k] = ax + s0;
+            }
+            row += d;
+        }
+    }
+
+    fn objective(p: &ConeProgram, x: &[f64]) -> f64 {
+        let (_, _, pm, q) = p.dense();
+        let n = x.len();
+        let mut v = 0.0;
+        for i in 0..n {
+            v += q[i] * x[i];
+            for j in 0..n {
+                v += 0.5 * x[i] * pm[(i, j)] * x[j];
+            }
+        }
+        v
+    }
+
+    #[test]
+    fn dense_solver_and_clarabel_fallback_agree_along_a_sequence() {
+        let mut rng = ChaCha8Rng::seed_from_u64(7);
+        for (max_margin, bounds) in [(false, true), (false, false), (true, true)] {
+            let shape = SocpShape {
+                m: 2,
+                barriers: 2,
+                clf: true,
+                bounds,
+            };
+            let mut p = ConeProgram::new(shape, max_margin);
+            let mut compared = 0;
+            for trial in 0..150 {
+                randomise(&mut p, &mut rng);
+                let dense = p.solve_dense();
+                let xd = p.dense.as_ref().unwrap().x().to_vec();
+                let clarabel = p.solve_clarabel();
+                if dense == DenseStatus::DualInfeasible {
+                    // an unbounded max-margin program
+                    assert_eq!(clarabel, SolveStatus::Unbounded, "trial {trial}");
+                    continue;
+                }
+                assert_eq!(dense, DenseStatus::Solved, "trial {trial}");
+                assert_eq!(clarabel, SolveStatus::Optimal, "trial {trial}");
+                let xc = p.x().to_vec();
+                // both stop at a relative gap of 1e-8: x agrees to about
+                // its square root, the objective to the gap
+                let scale = 1.0 + xc.iter().map(|v| v * v).sum::<f64>().sqrt();
+                for (a, b) in xd.iter().zip(&xc) {
+                    assert!(
+                        (a - b).abs() < 1e-4 * scale,
+                        "{max_margin} {bounds} trial {trial}: {a} against {b}"
+                    );
+                }
+                // Clarabel answers from the current data alone: a solver
+                // built for this program gives the same x
+                let mut fresh = ConeProgram::new(shape, max_margin);
+                fresh.a_nz.copy_from_slice(&p.a_nz);
+                fresh.b.copy_from_slice(&p.b);
+                fresh.q.copy_from_slice(&p.q);
+                fresh.p_nz.copy_from_slice(&p.p_nz);
+                assert_eq!(fresh.solve_clarabel(), SolveStatus::Optimal);
+                for (a, b) in fresh.x().iter().zip(&xc) {
+                    assert!(
+                        (a - b).abs() <= 1e-12 * scale,
+                        "trial {trial}: {a} against {b}"
+                    );
+                }
+                let (od, oc) = (objective(&p, &xd), objective(&p, &xc));
+                assert!(
+                    (od - oc).abs() < 1e-7 * (1.0 + oc.abs()),
+                    "{max_margin} {bounds} trial {trial}: objective {od} against {oc}"
+                );
+                compared += 1;
+            }
+            assert!(compared >= 100, "{compared} programs compared");
+        }
+    }
+}
