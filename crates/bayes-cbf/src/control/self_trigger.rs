@@ -783,6 +783,33 @@ mod tests {
     }
 
     #[test]
+    fn the_shifted_barrier_is_h_minus_zeta_b_and_forwards_the_rest() {
+        use crate::barrier::{PendulumSectorEdge, SectorEdge};
+        let inner: Arc<dyn DynBarrier> = Arc::new(
+            PendulumSectorEdge::new(0.8, 0.4, SectorEdge::Upper, 2, vec![4.0, 3.0]).unwrap(),
+        );
+        let b = ShiftedBarrier::new(inner.clone(), 0.05);
+        for x in [[0.3, -0.2], [1.4, 0.7]] {
+            assert_eq!(b.value(&x), inner.value(&x) - 0.05);
+            let d = |v: f64, e: f64| Dual64::new(v, e);
+            let xd = [d(x[0], 1.0), d(x[1], 0.0)];
+            let (got, want) = (b.value_dual(&xd), inner.value_dual(&xd));
+            assert_eq!((got.re, got.eps), (want.re - 0.05, want.eps));
+            let h = |v: f64, e1: f64, e2: f64| HyperDual64::new(v, e1, e2, 0.0);
+            let xh = [h(x[0], 1.0, 1.0), h(x[1], 0.0, 0.0)];
+            let (got, want) = (b.value_hyper(&xh), inner.value_hyper(&xh));
+            assert_eq!(
+                (got.re, got.eps1, got.eps2, got.eps1eps2),
+                (want.re - 0.05, want.eps1, want.eps2, want.eps1eps2)
+            );
+        }
+        assert_eq!(b.state_dim(), 2);
+        assert_eq!(b.relative_degree(), 2);
+        assert_eq!(b.gains(), &[4.0, 3.0]);
+        assert_eq!(b.name(), inner.name());
+    }
+
+    #[test]
     fn settings_reject_each_bad_field_by_name() {
         let good = TriggerSettings::new(vec![0.2, 0.1]);
         assert!(good.validate(2).is_ok());
