@@ -488,3 +488,56 @@ fn relative_degree_two_trigger_uses_prop_5() {
         check_tau_and_hold(&r, by_formula, &[0.2, 0.2], &st.trigger);
     }
 }
+
+/// `tau_from = numerical` holds for the numerical `τ_k` (clamped), the
+/// analytic one staying in the report; `velocity_bound` names `u` when its
+/// length does not fit the model.
+#[test]
+fn the_numerical_estimate_sets_the_hold_when_chosen() {
+    use bayes_cbf::control::{velocity_bound, TauSource};
+    use bayes_cbf::error::{Error, InputError};
+    let model = learned_model(4);
+    let (x, u) = ([0.1, 0.3], [-0.4]);
+    let b = Quadratic {
+        n: 2,
+        c: 0.5,
+        g: [0.2, 0.4],
+        q: [[1.0, 0.2], [0.2, 0.6]],
+        rd: 1,
+        gains: vec![1.5],
+    };
+    let mut s = settings(vec![0.3, 0.3]);
+    s.zeta = 0.05;
+    s.lipschitz.samples = 10;
+    s.tau_from = TauSource::Numerical;
+    s.tau_min = 1e-6;
+    s.tau_max = 10.0;
+    let barrier: Arc<dyn DynBarrier> = Arc::new(b);
+    let mut rng = ChaCha8Rng::seed_from_u64(9);
+    let r = evaluate_trigger(&model, &x, &u, &[barrier], None, &s, &mut rng).unwrap();
+    let numerical = r
+        .tau_numerical
+        .expect("sampled Jacobians give a numerical τ");
+    // the numerical L_f is below the analytic bound: a longer τ
+    assert!(
+        numerical > r.tau_analytic,
+        "{numerical} vs {}",
+        r.tau_analytic
+    );
+    assert_eq!(r.hold, numerical.clamp(s.tau_min, s.tau_max));
+    assert_eq!(r.clamped_low, numerical < s.tau_min);
+
+    match velocity_bound(&model, &x, &[0.1, 0.2], 0.01) {
+        Err(Error::Input(InputError::Shape {
+            field,
+            expected,
+            got,
+        })) => {
+            assert_eq!(
+                (field.as_str(), expected.as_str(), got.as_str()),
+                ("u", "1", "2")
+            );
+        }
+        other => panic!("expected a shape error, got {other:?}"),
+    }
+}

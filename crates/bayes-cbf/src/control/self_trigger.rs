@@ -454,7 +454,7 @@ pub fn velocity_bound(
     let post = model.posterior(x)?;
     let (n, p) = (model.state_dim(), u.len() + 1);
     if post.mean.ncols() != p {
-        return Err(InputError::shape("u", p - 1, u.len()).into());
+        return Err(InputError::shape("u", post.mean.ncols() - 1, u.len()).into());
     }
     let ubar = |c: usize| if c == 0 { 1.0 } else { u[c - 1] };
     let mu: Vec<f64> = (0..n)
@@ -755,6 +755,53 @@ mod tests {
         assert!((tau_relative_degree_r(2.0, 0.05, 0.5, 0.2) - want).abs() < 1e-15);
         assert_eq!(tau_relative_degree_r(2.0, -0.1, 0.5, 0.2), 0.0);
         assert_eq!(tau_relative_degree_r(2.0, 0.05, 0.0, 0.2), f64::INFINITY);
+    }
+
+    /// The root of `b s + X((e^{Ls} − 1)/L − s) = w` by bisection on the
+    /// plain formula (`L > 0`, the root in `(0, 10)`).
+    fn reach_root(l: f64, w: f64, b: f64, xdot: f64) -> f64 {
+        let f = |s: f64| b * s + xdot * ((l * s).exp() - 1.0 - l * s) / l - w;
+        let (mut lo, mut hi) = (0.0, 10.0);
+        for _ in 0..200 {
+            let mid = 0.5 * (lo + hi);
+            if f(mid) <= 0.0 {
+                lo = mid;
+            } else {
+                hi = mid;
+            }
+        }
+        lo
+    }
+
+    #[test]
+    fn tau_in_cuboid_solves_its_equation_with_and_without_an_upper_bound() {
+        // L = 0: the straight line, s = min w_i / b_i
+        let t = tau_in_cuboid(0.0, &[0.1, 0.3], &[0.5, 0.5], 0.7, f64::INFINITY);
+        assert!((t - 0.2).abs() < 1e-12, "{t}");
+        assert!((tau_in_cuboid(0.0, &[0.1, 0.3], &[0.5, 0.5], 0.7, 5.0) - 0.2).abs() < 1e-12);
+        // L > 0: the binding coordinate's root
+        let (l, xdot) = (3.0, 0.9);
+        let want = reach_root(l, 0.1, 0.6, xdot).min(reach_root(l, 0.25, 0.8, xdot));
+        for upper in [1.0, 7.5, f64::INFINITY] {
+            let got = tau_in_cuboid(l, &[0.1, 0.25], &[0.6, 0.8], xdot, upper);
+            assert!(
+                (got - want).abs() < 1e-12 * want,
+                "{upper}: {got} against {want}"
+            );
+        }
+        // an upper bound below the root is the answer
+        assert_eq!(
+            tau_in_cuboid(l, &[0.1, 0.25], &[0.6, 0.8], xdot, 0.5 * want),
+            0.5 * want
+        );
+        // a root beyond the first guess of 1 s: the bracket is widened
+        let t = tau_in_cuboid(0.0, &[0.1], &[0.01], 0.01, f64::INFINITY);
+        assert!((t - 10.0).abs() < 1e-11, "{t}");
+        // at rest the state never leaves
+        assert_eq!(
+            tau_in_cuboid(l, &[0.1], &[0.0], 0.0, f64::INFINITY),
+            f64::INFINITY
+        );
     }
 
     #[test]
