@@ -113,13 +113,6 @@ impl Point {
             kappa: 1.0,
         }
     }
-    fn copy_from(&mut self, o: &Self) {
-        self.x.copy_from_slice(&o.x);
-        self.s.copy_from_slice(&o.s);
-        self.z.copy_from_slice(&o.z);
-        self.tau = o.tau;
-        self.kappa = o.kappa;
-    }
 }
 
 /// Residuals and the measures of convergence of one iterate.
@@ -154,7 +147,6 @@ pub(crate) struct DenseConeSolver {
     pub(crate) q: Vec<f64>,
     pub(crate) b: Vec<f64>,
     v: Point,
-    prev: Point,
     step: Point,
     rhs: Point,
     /// `r_x`, `r_z`, `Px`, `−Aᵀz`, `Ax + s`.
@@ -218,7 +210,6 @@ impl DenseConeSolver {
             q: vec![0.0; n],
             b: vec![0.0; m],
             v: Point::new(n, m),
-            prev: Point::new(n, m),
             step: Point::new(n, m),
             rhs: Point::new(n, m),
             rx: vec![0.0; n],
@@ -322,7 +313,6 @@ impl DenseConeSolver {
             if alpha <= MIN_TERMINATE_STEP {
                 break;
             }
-            self.prev.copy_from(&self.v);
             self.prev_meas = self.meas.clone();
             self.add_step(alpha);
         }
