@@ -1170,6 +1170,16 @@ mod tests {
     /// Clarabel's answer to the same program (its default settings, with
     /// equilibration), `AlmostSolved` read as `Solved`.
     fn clarabel(s: &DenseConeSolver, cones: &[Cone]) -> (SolverStatus, Vec<f64>, f64) {
+        let (status, x, obj, _) = clarabel_with(s, cones, true);
+        (status, x, obj)
+    }
+
+    /// [`clarabel`] with or without equilibration, and its iterations.
+    fn clarabel_with(
+        s: &DenseConeSolver,
+        cones: &[Cone],
+        equilibrate: bool,
+    ) -> (SolverStatus, Vec<f64>, f64, u32) {
         let (n, m) = (s.n, s.m);
         let dense_to_csc = |rows: usize, vals: &[f64], upper: bool| {
             let mut colptr = vec![0];
@@ -1197,6 +1207,7 @@ mod tests {
             .collect();
         let settings = DefaultSettings {
             verbose: false,
+            equilibrate_enable: equilibrate,
             ..DefaultSettings::default()
         };
         let mut solver = DefaultSolver::new(&p, &s.q, &a, &s.b, &kinds, settings).unwrap();
@@ -1208,7 +1219,7 @@ mod tests {
             SolverStatus::AlmostDualInfeasible => SolverStatus::DualInfeasible,
             other => other,
         };
-        (status, sol.x.clone(), sol.obj_val)
+        (status, sol.x.clone(), sol.obj_val, sol.iterations)
     }
 
     fn objective(s: &DenseConeSolver) -> f64 {
@@ -1290,6 +1301,38 @@ mod tests {
                 );
             }
         }
+    }
+
+    /// The same iteration as Clarabel's (start, centring, corrector, step
+    /// fraction, termination): on strictly feasible programs without
+    /// equilibration both take the same number of iterations, up to the
+    /// rounding of their different linear algebra.
+    #[test]
+    fn iterations_follow_clarabels() {
+        let mut rng = ChaCha8Rng::seed_from_u64(5);
+        let (mut same, mut total, mut worst) = (0, 0, 0i64);
+        for _ in 0..300 {
+            let (n, cones, mut s) = random_case(&mut rng, 5);
+            if s.q.len() == n && s.p[n * n - 1] == 0.0 {
+                continue; // the max-margin shape can be unbounded
+            }
+            let x0: Vec<f64> = (0..n).map(|_| normal(&mut rng)).collect();
+            let s0 = interior(&mut rng, &cones);
+            for r in 0..s.m {
+                s.b[r] = dot(&s.a[r * n..(r + 1) * n], &x0) + s0[r];
+            }
+            let (cs, _, _, ci) = clarabel_with(&s, &cones, false);
+            if cs != SolverStatus::Solved {
+                continue;
+            }
+            assert_eq!(s.solve(), DenseStatus::Solved);
+            let d = s.iterations as i64 - ci as i64;
+            total += 1;
+            same += usize::from(d == 0);
+            worst = worst.max(d.abs());
+        }
+        assert!(total >= 200 && same * 10 >= total * 9, "{same} of {total}");
+        assert!(worst <= 2, "{worst}");
     }
 
     #[test]
