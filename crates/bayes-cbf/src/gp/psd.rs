@@ -119,10 +119,12 @@ impl PsdParam {
     }
 
     /// Bounds of the parameters around a start matrix `m` (module docs):
-    /// `log L_ii ∈ [max(ln √m_ii − ln R, ln √max_j m_jj + ln C), ln √m_ii +
-    /// ln R]` with `R = range` ([`SCALE_RANGE`] for a cold start) and `C` =
-    /// [`CONDITION`], `log v_i` in twice that interval; factor entries are
-    /// free.
+    /// `log L_ii ∈ [l_i, max(ln √m_ii + ln R, l_i)]` with
+    /// `l_i = max(ln √m_ii − ln R, ln √max_j m_jj + ln C)`, `R = range`
+    /// ([`SCALE_RANGE`] for a cold start) and `C` = [`CONDITION`]; `log v_i`
+    /// in twice that interval; factor entries are free. An entry further
+    /// below the largest than `C R` may rise to the floor: the interval is
+    /// never empty.
     pub fn bounds(&self, m: &DMatrix<f64>, range: f64, lo: &mut [f64], hi: &mut [f64]) {
         let r = range.ln();
         let log_var = |i: usize| {
@@ -139,12 +141,14 @@ impl PsdParam {
             (*l, *h) = match *e {
                 Entry::LogFactorDiag(i) => {
                     let c = 0.5 * log_var(i);
-                    ((c - r).max(floor), c + r)
+                    let l = (c - r).max(floor);
+                    (l, (c + r).max(l))
                 }
                 Entry::Factor(..) => (f64::NEG_INFINITY, f64::INFINITY),
                 Entry::LogDiag(i) => {
                     let c = log_var(i);
-                    ((c - 2.0 * r).max(2.0 * floor), c + 2.0 * r)
+                    let l = (c - 2.0 * r).max(2.0 * floor);
+                    (l, (c + 2.0 * r).max(l))
                 }
             };
         }
@@ -347,6 +351,34 @@ mod tests {
             assert!(p.matrix(&th).cholesky().is_some(), "{p:?}");
             for (l, h) in lo.iter().zip(&hi) {
                 assert!(l < h);
+            }
+        }
+    }
+
+    #[test]
+    fn a_narrow_range_below_the_floor_rises_to_it() {
+        // √m_11 = 1e-6 of √m_00: with range 10 its interval [1e-7, 1e-5]
+        // (relative) lies wholly below the floor C = 1e-4, which wins
+        let m = DMatrix::from_diagonal(&nalgebra::DVector::from_vec(vec![1.0, 1e-12]));
+        let floor = CONDITION.ln();
+        for p in [
+            PsdParam::new(2, Rank::Full),
+            PsdParam::new(2, Rank::Diagonal),
+        ] {
+            let (mut lo, mut hi) = (vec![0.0; p.len()], vec![0.0; p.len()]);
+            p.bounds(&m, 10.0, &mut lo, &mut hi);
+            for (e, (l, h)) in p.entries.iter().zip(lo.iter().zip(&hi)) {
+                match *e {
+                    Entry::LogFactorDiag(1) => assert_eq!((*l, *h), (floor, floor)),
+                    Entry::LogDiag(1) => assert_eq!((*l, *h), (2.0 * floor, 2.0 * floor)),
+                    Entry::LogFactorDiag(0) => {
+                        assert_eq!((*l, *h), (-(10f64.ln()), 10f64.ln()))
+                    }
+                    Entry::LogDiag(0) => {
+                        assert_eq!((*l, *h), (-2.0 * 10f64.ln(), 2.0 * 10f64.ln()))
+                    }
+                    _ => assert!(l <= h),
+                }
             }
         }
     }
