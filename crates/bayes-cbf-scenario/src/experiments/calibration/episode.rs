@@ -501,7 +501,7 @@ fn run_inner(
         System::Pendulum => Box::new(IntoSector),
     };
     let barriers = [s.barrier.clone()];
-    let r = ClosedLoop::new(
+    let mut lp = ClosedLoop::new(
         s.truth.as_ref(),
         s.model.clone(),
         &mut ctrl,
@@ -510,42 +510,26 @@ fn run_inner(
         &s.x0,
         &s.loop_settings,
     )
-    .map(|l| l.with_monitors(&s.monitors))
-    .and_then(|l| l.run(&mut |_, _: &_| {}))
-    .context("closed loop")?;
-    let moments = replay_moments(&s, &r).context("replaying the model's moments")?;
-    Ok(summarise(system, &s, &r, &moments))
-}
-
-/// The mean and standard deviation of the barrier condition at each step's
-/// state and applied control, under the model that chose the control.
-///
-/// Without a window the model at step `k` holds the first `data_size_k`
-/// observations of the final model, in order (observations the loop could
-/// not absorb never entered it), so it is rebuilt by the same O(k²) growth.
-fn replay_moments(s: &Setup, r: &LoopResult) -> Result<Vec<(f64, f64)>> {
-    let fin = &r.model;
-    let (n, m) = (fin.state_dim(), fin.control_dim());
-    let (xs, us, xd) = (fin.xs(), fin.controls(), fin.xdot());
-    let mut model = s.model.clone();
-    let mut ws = MomentWorkspace::new(&model);
-    let mut mom = ConditionMoments::zeros(m);
-    let degree = s.barrier.relative_degree().min(2);
-    let mut out = Vec::with_capacity(r.records.len());
-    for rec in &r.records {
-        while model.len() < rec.data_size {
-            let j = model.len();
-            model.add_observation(
-                &xs[j * n..(j + 1) * n],
-                &us[j * m..(j + 1) * m],
-                &xd[j * n..(j + 1) * n],
-            )?;
-        }
-        ws.update(&model, &rec.x, degree)?;
-        cbc_moments(&mut ws, s.barrier.as_ref(), &mut mom)?;
-        out.push((mom.mean(&rec.u), mom.variance(&rec.u).sqrt()));
+    .context("closed loop")?
+    .with_monitors(&s.monitors);
+    // the condition's moments under the model that chooses each step's
+    // control (hyperparameters refitted or not), at the applied control
+    let b = s.barrier.as_ref();
+    let degree = b.relative_degree().min(2);
+    let mut ws = MomentWorkspace::new(lp.model());
+    let mut mom = ConditionMoments::zeros(lp.model().control_dim());
+    let mut moments = Vec::with_capacity(steps);
+    let mut records = Vec::with_capacity(steps);
+    while !lp.is_finished() {
+        ws.update(lp.model(), lp.state(), degree)
+            .context("the model's moments")?;
+        cbc_moments(&mut ws, b, &mut mom).context("the model's moments")?;
+        let rec = lp.step().context("closed loop")?;
+        moments.push((mom.mean(&rec.u), mom.variance(&rec.u).sqrt()));
+        records.push(rec.clone());
     }
-    Ok(out)
+    let r = lp.finish(records);
+    Ok(summarise(system, &s, &r, &moments))
 }
 
 /// Steps of an episode before its active-step rate is counted again
