@@ -84,6 +84,24 @@ pub fn check_finite(field: &str, v: &[f64]) -> Result<(), InputError> {
     }
 }
 
+/// Checks that `v` is finite and `> 0`, naming `field`.
+pub fn check_positive(field: &str, v: f64) -> Result<(), InputError> {
+    if v.is_finite() && v > 0.0 {
+        Ok(())
+    } else {
+        Err(InputError::invalid(field, v, "must be finite and > 0"))
+    }
+}
+
+/// Checks that `v` is finite and `≥ 0`, naming `field`.
+pub fn check_nonnegative(field: &str, v: f64) -> Result<(), InputError> {
+    if v.is_finite() && v >= 0.0 {
+        Ok(())
+    } else {
+        Err(InputError::invalid(field, v, "must be finite and ≥ 0"))
+    }
+}
+
 /// Numerical failures of Gaussian-process computations.
 #[derive(Debug, Clone, Error, PartialEq)]
 #[non_exhaustive]
@@ -120,4 +138,27 @@ pub enum Error {
     /// Numerical failure in the GP layer.
     #[error(transparent)]
     Gp(#[from] GpError),
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn scalar_checks_name_the_field_and_reject_nan_infinity_and_the_boundary() {
+        for v in [1e-300, 1.0, 1e300] {
+            assert_eq!(check_positive("a", v), Ok(()));
+            assert_eq!(check_nonnegative("a", v), Ok(()));
+        }
+        assert_eq!(check_nonnegative("a", 0.0), Ok(()));
+        for v in [0.0, -1.0, f64::NAN, f64::INFINITY, f64::NEG_INFINITY] {
+            let e = check_positive("p.q", v).unwrap_err();
+            assert_eq!(e, InputError::invalid("p.q", v, "must be finite and > 0"));
+        }
+        for v in [-1e-300, f64::NAN, f64::INFINITY] {
+            let e = check_nonnegative("r", v).unwrap_err();
+            assert_eq!(e, InputError::invalid("r", v, "must be finite and ≥ 0"));
+            assert!(e.to_string().contains('r'));
+        }
+    }
 }

@@ -1,18 +1,12 @@
 //! Built-in barrier functions.
 
 use super::{validate_gains, Barrier};
-use crate::error::{check_finite, InputError};
+use crate::error::{check_finite, check_positive, InputError};
 use num_dual::DualNum;
 
 /// Checks an obstacle radius: finite and positive.
 fn check_radius(radius: f64) -> Result<(), InputError> {
-    if !(radius.is_finite() && radius > 0.0) {
-        return Err(InputError::invalid(
-            "radius",
-            radius,
-            "must be finite and > 0",
-        ));
-    }
+    check_positive("radius", radius)?;
     Ok(())
 }
 

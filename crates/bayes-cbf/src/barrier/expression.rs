@@ -2,7 +2,7 @@
 //! (interfaces.md, "Expressions").
 
 use super::{validate_gains, Barrier, Lyapunov};
-use crate::error::InputError;
+use crate::error::{check_nonnegative, InputError};
 use crate::expr::{real_parts, Expr, Failure, Names};
 use num_dual::DualNum;
 
@@ -157,13 +157,7 @@ impl ExpressionClf {
         for (p, value) in params {
             names.add_param(p.as_ref(), *value)?;
         }
-        if !(gamma.is_finite() && gamma >= 0.0) {
-            return Err(InputError::invalid(
-                "gamma",
-                gamma,
-                "must be finite and ≥ 0",
-            ));
-        }
+        check_nonnegative("gamma", gamma)?;
         Ok(Self {
             n: state.len(),
             v: Expr::parse("V", v, &names)?,

@@ -17,7 +17,7 @@
 
 use super::moments::ConditionMoments;
 use super::DynBarrier;
-use crate::error::{Error, InputError};
+use crate::error::{check_positive, Error, InputError};
 use crate::gp::{Kernel, Mvgp};
 use nalgebra::DMatrix;
 use rand::SeedableRng;
@@ -119,9 +119,7 @@ pub fn mc_cbc_moments<K: Kernel>(
     if settings.samples < 2 {
         return Err(InputError::invalid("samples", settings.samples as f64, "must be ≥ 2").into());
     }
-    if !(settings.step.is_finite() && settings.step > 0.0) {
-        return Err(InputError::invalid("step", settings.step, "must be finite and > 0").into());
-    }
+    check_positive("step", settings.step)?;
     let s = settings.step;
     let rf = r - 1; // radius of the lattice where F is drawn
     let rh = r; // radius where h is evaluated

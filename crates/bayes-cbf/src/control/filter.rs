@@ -6,7 +6,7 @@ use crate::barrier::{
     cbc_moments, clc_moments, factor_probability, mc_cbc_moments, quantile_factor,
     ConditionMoments, DynBarrier, DynLyapunov, McSettings, MomentWorkspace,
 };
-use crate::error::{check_finite, Error, InputError};
+use crate::error::{check_finite, check_nonnegative, check_positive, Error, InputError};
 use crate::gp::{Kernel, Mvgp};
 use nalgebra::DMatrix;
 use std::sync::Arc;
@@ -94,20 +94,8 @@ impl SafetySettings {
     /// Checks ranges and shapes for control dimension `m`.
     pub fn validate(&self, m: usize) -> Result<(), InputError> {
         quantile_factor(self.probability, 1)?;
-        if !(self.zeta.is_finite() && self.zeta >= 0.0) {
-            return Err(InputError::invalid(
-                "zeta",
-                self.zeta,
-                "must be finite and ≥ 0",
-            ));
-        }
-        if !(self.lambda.is_finite() && self.lambda > 0.0) {
-            return Err(InputError::invalid(
-                "lambda",
-                self.lambda,
-                "must be finite and > 0",
-            ));
-        }
+        check_nonnegative("zeta", self.zeta)?;
+        check_positive("lambda", self.lambda)?;
         if self.r.shape() != (m, m) {
             return Err(InputError::shape(
                 "R",

@@ -36,7 +36,7 @@
 //! "Conformal PID control for time series prediction", NeurIPS 2023
 //! (quantile tracking).
 
-use crate::error::InputError;
+use crate::error::{check_positive, InputError};
 
 /// Settings of the online recalibration.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -60,13 +60,7 @@ impl Default for RecalibrationSettings {
 impl RecalibrationSettings {
     /// Checks the ranges.
     pub fn validate(&self) -> Result<(), InputError> {
-        if !(self.rate.is_finite() && self.rate > 0.0) {
-            return Err(InputError::invalid(
-                "recalibration.rate",
-                self.rate,
-                "must be finite and > 0",
-            ));
-        }
+        check_positive("recalibration.rate", self.rate)?;
         if !(self.max_inflation.is_finite() && self.max_inflation >= 1.0) {
             return Err(InputError::invalid(
                 "recalibration.max_inflation",

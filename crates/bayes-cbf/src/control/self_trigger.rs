@@ -78,7 +78,7 @@
 
 use super::{ConstraintReport, SafetyController, SafetySettings};
 use crate::barrier::{DynBarrier, DynLyapunov};
-use crate::error::{Error, InputError};
+use crate::error::{check_positive, Error, InputError};
 use crate::gp::lipschitz::{grid_nodes, grid_sup_estimate};
 use crate::gp::{LipschitzEstimate, LipschitzSettings, Mvgp};
 use num_dual::{Dual64, HyperDual64};
@@ -178,13 +178,7 @@ impl TriggerSettings {
                 return Err(InputError::invalid(name, v, "must be finite and ≥ 0"));
             }
         }
-        if !(self.tau_min.is_finite() && self.tau_min > 0.0) {
-            return Err(InputError::invalid(
-                "trigger.tau_min",
-                self.tau_min,
-                "must be finite and > 0",
-            ));
-        }
+        check_positive("trigger.tau_min", self.tau_min)?;
         if !(self.tau_max.is_finite() && self.tau_max >= self.tau_min) {
             return Err(InputError::invalid(
                 "trigger.tau_max",

@@ -4,7 +4,7 @@
 //! (paper, Sec. VI, Lemma 5); the Lipschitz bound needs the same (Lemma 3);
 //! hyperparameter learning needs `∂k/∂ log θ`.
 
-use crate::error::InputError;
+use crate::error::{check_positive, InputError};
 
 /// A stationary or non-stationary scalar kernel on `R^d`.
 ///
@@ -98,21 +98,9 @@ impl Rbf {
             ));
         }
         for (i, &l) in lengthscales.iter().enumerate() {
-            if !(l.is_finite() && l > 0.0) {
-                return Err(InputError::invalid(
-                    &format!("kernel.lengthscales[{i}]"),
-                    l,
-                    "must be finite and > 0",
-                ));
-            }
+            check_positive(&format!("kernel.lengthscales[{i}]"), l)?;
         }
-        if !(variance.is_finite() && variance > 0.0) {
-            return Err(InputError::invalid(
-                "kernel.variance",
-                variance,
-                "must be finite and > 0",
-            ));
-        }
+        check_positive("kernel.variance", variance)?;
         let inv_l2 = lengthscales.iter().map(|l| 1.0 / (l * l)).collect();
         Ok(Self {
             lengthscales,

@@ -75,7 +75,7 @@
 use super::input_map::{Feature, InputMap};
 use super::kernel::{Kernel, Rbf};
 use super::mvgp::Mvgp;
-use crate::error::{check_finite, Error, InputError};
+use crate::error::{check_finite, check_nonnegative, Error, InputError};
 use faer::Mat;
 use nalgebra::{DMatrix, SymmetricEigen};
 use num_dual::Dual64;
@@ -123,13 +123,7 @@ impl LipschitzSettings {
             return Err(InputError::shape("cuboid", n, self.sides.len()));
         }
         for (i, &s) in self.sides.iter().enumerate() {
-            if !(s.is_finite() && s >= 0.0) {
-                return Err(InputError::invalid(
-                    &format!("cuboid[{i}]"),
-                    s,
-                    "must be finite and ≥ 0",
-                ));
-            }
+            check_nonnegative(&format!("cuboid[{i}]"), s)?;
         }
         if self.grid < 2 {
             return Err(InputError::invalid("grid", self.grid as f64, "must be ≥ 2"));

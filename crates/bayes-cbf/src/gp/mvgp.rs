@@ -7,7 +7,7 @@ use super::input_map::InputMap;
 use super::kernel::{Kernel, Rbf};
 use super::prior::PriorMean;
 use super::simd::with_faer;
-use crate::error::{Error, GpError, InputError};
+use crate::error::{check_positive, Error, GpError, InputError};
 use faer::Mat;
 use nalgebra::DMatrix;
 use std::sync::OnceLock;
@@ -98,13 +98,7 @@ impl<K: Kernel> MvgpHyper<K> {
         }
         check_spd("A", &self.A, n)?;
         check_spd("B", &self.B, m + 1)?;
-        if !(self.sigma.is_finite() && self.sigma > 0.0) {
-            return Err(InputError::invalid(
-                "noise_sigma",
-                self.sigma,
-                "must be finite and > 0",
-            ));
-        }
+        check_positive("noise_sigma", self.sigma)?;
         Ok(())
     }
 }

@@ -54,7 +54,7 @@ use super::optimise::{
 use super::psd::{PsdParam, SCALE_RANGE};
 use super::simd::with_faer;
 use super::theta::{input_spreads, kernel_bounds, kernel_from_free, pack_free, start_from_inputs};
-use crate::error::{Error, GpError, InputError};
+use crate::error::{check_nonnegative, Error, GpError, InputError};
 use faer::linalg::triangular_solve::{
     solve_lower_triangular_in_place, solve_upper_triangular_in_place,
 };
@@ -133,13 +133,7 @@ impl FitSettings {
     /// Checks the settings.
     pub fn validate(&self) -> Result<(), InputError> {
         super::optimise::check_run_settings(self.max_iters, self.restarts)?;
-        if !(self.sigma_min.is_finite() && self.sigma_min >= 0.0) {
-            return Err(InputError::invalid(
-                "sigma_min",
-                self.sigma_min,
-                "must be finite and ≥ 0",
-            ));
-        }
+        check_nonnegative("sigma_min", self.sigma_min)?;
         if self.warm_range.is_nan() || self.warm_range < 1.0 {
             return Err(InputError::invalid(
                 "warm_range",

@@ -11,7 +11,7 @@ use crate::control::{
     evaluate_trigger, ControlOutput, ControlStatus, RecalibrationSettings, SafetyController,
     TriggerReport, TriggerSettings,
 };
-use crate::error::{Error, InputError};
+use crate::error::{check_nonnegative, check_positive, Error, InputError};
 use crate::gp::{fit, FitSettings, Mvgp};
 use crate::systems::{wrap_angle, DynSystem};
 use rand::SeedableRng;
@@ -135,19 +135,11 @@ impl Default for LoopSettings {
 impl LoopSettings {
     /// Checks the settings.
     pub fn validate(&self) -> Result<(), InputError> {
-        if !(self.dt.is_finite() && self.dt > 0.0) {
-            return Err(InputError::invalid("dt", self.dt, "must be finite and > 0"));
-        }
+        check_positive("dt", self.dt)?;
         if self.steps == 0 {
             return Err(InputError::invalid("steps", 0.0, "must be ≥ 1"));
         }
-        if !(self.xdot_noise.is_finite() && self.xdot_noise >= 0.0) {
-            return Err(InputError::invalid(
-                "xdot_noise",
-                self.xdot_noise,
-                "must be finite and ≥ 0",
-            ));
-        }
+        check_nonnegative("xdot_noise", self.xdot_noise)?;
         match self.data {
             DataPolicy::Window(w) if w < 2 => {
                 return Err(InputError::invalid("window", w as f64, "must be ≥ 2"));

@@ -1,7 +1,7 @@
 //! Training data for learning `F(x)`: samples of `(x, u, ẋ)`.
 
 use super::{SimSettings, Simulator};
-use crate::error::InputError;
+use crate::error::{check_nonnegative, check_positive, InputError};
 use crate::systems::DynSystem;
 use rand::{Rng, RngExt};
 use rand_distr::{Distribution, StandardNormal};
@@ -86,13 +86,7 @@ pub fn sample_uniform<R: Rng + ?Sized>(
             ));
         }
     }
-    if !(noise.is_finite() && noise >= 0.0) {
-        return Err(InputError::invalid(
-            "noise",
-            noise,
-            "must be finite and ≥ 0",
-        ));
-    }
+    check_nonnegative("noise", noise)?;
     let mut ds = Dataset {
         n,
         m,
@@ -144,9 +138,7 @@ pub fn simulate_trajectory<R: Rng + ?Sized>(
     if x0.len() != n {
         return Err(InputError::shape("x0", n, x0.len()));
     }
-    if !(dt.is_finite() && dt > 0.0) {
-        return Err(InputError::invalid("dt", dt, "must be finite and > 0"));
-    }
+    check_positive("dt", dt)?;
     if k < 2 {
         return Err(InputError::invalid(
             "k",

@@ -16,7 +16,7 @@ pub use reference::{
     ConstantReference, EpsilonGreedy, LinearFeedback, Reference, ReferenceOut, StraightLinePlanner,
 };
 
-use crate::error::InputError;
+use crate::error::{check_nonnegative, check_positive, InputError};
 use crate::systems::{wrap_angle, DynSystem};
 use rand::Rng;
 use rand_distr::{Distribution, StandardNormal};
@@ -49,20 +49,8 @@ impl Default for SimSettings {
 impl SimSettings {
     /// Validated constructor.
     pub fn new(internal_step: f64, process_noise: f64) -> Result<Self, InputError> {
-        if !(internal_step.is_finite() && internal_step > 0.0) {
-            return Err(InputError::invalid(
-                "internal_step",
-                internal_step,
-                "must be finite and > 0",
-            ));
-        }
-        if !(process_noise.is_finite() && process_noise >= 0.0) {
-            return Err(InputError::invalid(
-                "process_noise",
-                process_noise,
-                "must be finite and >= 0",
-            ));
-        }
+        check_positive("internal_step", internal_step)?;
+        check_nonnegative("process_noise", process_noise)?;
         Ok(Self {
             internal_step,
             process_noise,

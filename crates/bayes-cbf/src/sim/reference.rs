@@ -1,6 +1,6 @@
 //! Reference controls `û` and time-varying CLF references `x_d(t)`.
 
-use crate::error::InputError;
+use crate::error::{check_positive, InputError};
 use rand::RngExt;
 use rand_chacha::ChaCha8Rng;
 
@@ -60,13 +60,7 @@ impl EpsilonGreedy {
                 ));
             }
         }
-        if !(decay.is_finite() && decay > 0.0) {
-            return Err(InputError::invalid(
-                "epsilon_greedy.decay",
-                decay,
-                "must be finite and > 0",
-            ));
-        }
+        check_positive("epsilon_greedy.decay", decay)?;
         Ok(Self { lo, hi, decay })
     }
 }
@@ -111,13 +105,7 @@ impl StraightLinePlanner {
         }
         crate::error::check_finite("start", &start)?;
         crate::error::check_finite("goal", &goal)?;
-        if !(duration.is_finite() && duration > 0.0) {
-            return Err(InputError::invalid(
-                "planner.duration",
-                duration,
-                "must be finite and > 0",
-            ));
-        }
+        check_positive("planner.duration", duration)?;
         Ok(Self {
             start,
             goal,
