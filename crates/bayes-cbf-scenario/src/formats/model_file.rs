@@ -106,10 +106,17 @@ fn to_matrix(
     if m.len() != rows {
         bail!("{field} has {} rows, expected {rows} ({what})", m.len());
     }
-    for (i, r) in m.iter().enumerate() {
-        if r.len() != cols {
+    check_rows(field, m, cols, what)?;
+    Ok(DMatrix::from_fn(rows, cols, |i, j| m[i][j]))
+}
+
+/// Checks that every row of `field` has `width` finite entries (`what`
+/// names the width).
+fn check_rows(field: &str, rows: &[Vec<f64>], width: usize, what: &str) -> Result<()> {
+    for (i, r) in rows.iter().enumerate() {
+        if r.len() != width {
             bail!(
-                "{field}[{i}] has {} entries, expected {cols} ({what})",
+                "{field}[{i}] has {} entries, expected {width} ({what})",
                 r.len()
             );
         }
@@ -117,7 +124,7 @@ fn to_matrix(
             bail!("{field}[{i}][{j}] = {} is not finite", r[j]);
         }
     }
-    Ok(DMatrix::from_fn(rows, cols, |i, j| m[i][j]))
+    Ok(())
 }
 
 fn rows_of(m: &DMatrix<f64>) -> Vec<Vec<f64>> {
@@ -243,17 +250,7 @@ impl ModelFile {
                     rows.len()
                 );
             }
-            for (j, r) in rows.iter().enumerate() {
-                if r.len() != width {
-                    bail!(
-                        "{field}[{j}] has {} entries, expected {width} ({dim})",
-                        r.len()
-                    );
-                }
-                if let Some(i) = r.iter().position(|v| !v.is_finite()) {
-                    bail!("{field}[{j}][{i}] = {} is not finite", r[i]);
-                }
-            }
+            check_rows(field, rows, width, dim)?;
         }
         let flat = |rows: &Vec<Vec<f64>>| rows.iter().flatten().copied().collect::<Vec<f64>>();
         Ok((

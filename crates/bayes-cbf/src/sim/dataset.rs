@@ -68,22 +68,12 @@ pub fn sample_uniform<R: Rng + ?Sized>(
         }
         crate::error::check_finite(name, v)?;
     }
-    for i in 0..n {
-        if x_lo[i] > x_hi[i] {
-            return Err(InputError::invalid(
-                &format!("x_lo[{i}]"),
-                x_lo[i],
-                "must be ≤ x_hi",
-            ));
-        }
-    }
-    for i in 0..m {
-        if u_lo[i] > u_hi[i] {
-            return Err(InputError::invalid(
-                &format!("u_lo[{i}]"),
-                u_lo[i],
-                "must be ≤ u_hi",
-            ));
+    for (name, lo, hi, reason) in [
+        ("x_lo", x_lo, x_hi, "must be ≤ x_hi"),
+        ("u_lo", u_lo, u_hi, "must be ≤ u_hi"),
+    ] {
+        if let Some(i) = (0..lo.len()).find(|&i| lo[i] > hi[i]) {
+            return Err(InputError::invalid(&format!("{name}[{i}]"), lo[i], reason));
         }
     }
     check_nonnegative("noise", noise)?;
@@ -184,4 +174,35 @@ pub fn simulate_trajectory<R: Rng + ?Sized>(
     }
     ds.xdot = xd;
     Ok(ds)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::systems::Pendulum;
+    use rand::SeedableRng;
+    use rand_chacha::ChaCha8Rng;
+
+    #[test]
+    fn bad_boxes_and_noise_are_errors_naming_the_field() {
+        let sys = Pendulum::default();
+        let mut rng = ChaCha8Rng::seed_from_u64(0);
+        let mut draw = |xl: [f64; 2], ul: f64, noise: f64| {
+            sample_uniform(&sys, &xl, &[1.0, 1.0], &[ul], &[1.0], 5, noise, &mut rng)
+        };
+        assert!(draw([-1.0, -1.0], -1.0, 0.0).is_ok());
+        let want = |f: &str, v: f64, r: &str| Err(InputError::invalid(f, v, r));
+        assert_eq!(
+            draw([-1.0, 2.0], -1.0, 0.1),
+            want("x_lo[1]", 2.0, "must be ≤ x_hi")
+        );
+        assert_eq!(
+            draw([-1.0, 0.0], 3.0, 0.1),
+            want("u_lo[0]", 3.0, "must be ≤ u_hi")
+        );
+        assert_eq!(
+            draw([-1.0, 0.0], 0.0, -0.1),
+            want("noise", -0.1, "must be finite and ≥ 0")
+        );
+    }
 }
