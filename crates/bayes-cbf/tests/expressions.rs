@@ -333,3 +333,18 @@ fn bad_expressions_are_typed_errors() {
         assert!(msg.contains(want), "{msg} should contain {want}");
     }
 }
+
+#[test]
+fn no_state_or_no_control_is_an_error_naming_it() {
+    let none: [&str; 0] = [];
+    let state_err = bayes_cbf::InputError::invalid("state", 0.0, "at least one state is needed");
+    let e = ExpressionBarrier::new(&none, &[], "1", 1, vec![1.0]).unwrap_err();
+    assert_eq!(e, state_err);
+    let e = ExpressionSystem::new(&none, &["u"], &[], &none, &[], &none).unwrap_err();
+    assert_eq!(e, state_err);
+    let e = ExpressionSystem::new(&["x"], &none, &[], &["x"], &[vec![]], &none).unwrap_err();
+    assert_eq!(
+        e,
+        bayes_cbf::InputError::invalid("control", 0.0, "at least one control is needed")
+    );
+}

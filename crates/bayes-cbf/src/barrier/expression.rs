@@ -8,17 +8,7 @@ use num_dual::DualNum;
 
 /// Variables `state` and parameters `params` of an expression.
 fn names<S: AsRef<str>>(state: &[S], params: &[(S, f64)]) -> Result<Names, InputError> {
-    if state.is_empty() {
-        return Err(InputError::invalid(
-            "state",
-            0.0,
-            "at least one state is needed",
-        ));
-    }
-    let mut names = Names::default();
-    for s in state {
-        names.add_var(s.as_ref())?;
-    }
+    let mut names = Names::states(state)?;
     for (p, v) in params {
         names.add_param(p.as_ref(), *v)?;
     }

@@ -369,6 +369,22 @@ mod names {
             Ok(names)
         }
 
+        /// The variables `state`, at least one.
+        pub fn states<S: AsRef<str>>(state: &[S]) -> Result<Self, InputError> {
+            if state.is_empty() {
+                return Err(InputError::invalid(
+                    "state",
+                    0.0,
+                    "at least one state is needed",
+                ));
+            }
+            let mut names = Self::default();
+            for s in state {
+                names.add_var(s.as_ref())?;
+            }
+            Ok(names)
+        }
+
         fn taken(&self, name: &str) -> bool {
             self.vars.iter().any(|v| v == name)
                 || self.params.iter().any(|(p, _)| p == name)

@@ -59,23 +59,13 @@ impl ExpressionSystem {
         angles: &[S],
     ) -> Result<Self, InputError> {
         let (n, m) = (state.len(), control.len());
-        if n == 0 {
-            return Err(InputError::invalid(
-                "state",
-                0.0,
-                "at least one state is needed",
-            ));
-        }
+        let mut names = Names::states(state)?;
         if m == 0 {
             return Err(InputError::invalid(
                 "control",
                 0.0,
                 "at least one control is needed",
             ));
-        }
-        let mut names = Names::default();
-        for s in state {
-            names.add_var(s.as_ref())?;
         }
         for c in control {
             names.reserve(
