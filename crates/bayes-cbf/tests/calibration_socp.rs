@@ -68,9 +68,11 @@ fn active_control(
     x: &[f64],
     p: f64,
     expected_c: f64,
+    predictive: bool,
 ) -> f64 {
     let mut settings = SafetySettings::new(1);
     settings.probability = p;
+    settings.predictive = predictive;
     let mut ctrl = SafetyController::new(2, 1, vec![barrier], None, settings).unwrap();
     let mut out = ControlOutput::new(1, 1);
     ctrl.step(gp, x, &[0.0], None, &mut out).unwrap();
@@ -115,7 +117,7 @@ fn relative_degree_one_violation_rate_is_one_minus_p() {
     for (p, c) in [(0.9, 1.2815515655446004), (0.99, 2.3263478740408408)] {
         for (t, x) in [[0.1, 0.3], [0.6, 0.5]].iter().enumerate() {
             let b: Arc<dyn DynBarrier> = Arc::new(barrier.clone());
-            let u = active_control(&gp, b, x, p, c);
+            let u = active_control(&gp, b, x, p, c, false);
             let post = gp.posterior(x).unwrap();
             let lb = psd_sqrt(&post.B);
             let h = barrier.value(x);
@@ -132,6 +134,53 @@ fn relative_degree_one_violation_rate_is_one_minus_p() {
                 "p = {p}, x = {x:?}: violation rate {rate} outside {} ± {half}",
                 1.0 - p
             );
+        }
+    }
+}
+
+/// The predictive condition ([`SafetySettings::predictive`]): at the
+/// returned control the condition as realised over a step,
+/// `∇hᵀ(F u̲ + ε) + αh` with `ε ~ N(0, σ² A)` the model's observation noise,
+/// fails with probability exactly `1 − p`.
+#[test]
+fn predictive_relative_degree_one_realised_violation_rate_is_one_minus_p() {
+    let mut gp = model(43);
+    let mut hyper = gp.hyper().clone();
+    hyper.sigma = 0.5; // noise comparable to the posterior spread
+    gp.set_hyper(hyper).unwrap();
+    let barrier = HalfSpace::new(vec![1.0, 0.6], -0.2, 1, vec![1.5]).unwrap();
+    let la = gp.row_cov_factor().unwrap();
+    let sigma = gp.hyper().sigma;
+    for (p, c) in [(0.9, 1.2815515655446004), (0.99, 2.3263478740408408)] {
+        for (t, x) in [[0.1, 0.3], [0.6, 0.5]].iter().enumerate() {
+            let b: Arc<dyn DynBarrier> = Arc::new(barrier.clone());
+            let u = active_control(&gp, b, x, p, c, true);
+            let post = gp.posterior(x).unwrap();
+            let lb = psd_sqrt(&post.B);
+            let h = barrier.value(x);
+            let grad = DVector::from_column_slice(&barrier.normal);
+            let ubar = DVector::from_column_slice(&[1.0, u]);
+            let realised = |rng: &mut ChaCha8Rng| {
+                let z = DMatrix::from_fn(2, 2, |_, _| StandardNormal.sample(rng));
+                let e = DVector::from_fn(2, |_, _| StandardNormal.sample(rng));
+                let f = &post.mean + &la * z * lb.transpose();
+                let eps = &la * e * sigma;
+                grad.dot(&(f * &ubar + eps)) + DynBarrier::gains(&barrier)[0] * h
+            };
+            let (rate, half) = violation_rate(200 + t as u64, p, realised);
+            assert!(
+                (rate - (1.0 - p)).abs() <= half,
+                "p = {p}, x = {x:?}: realised violation rate {rate} outside {} ± {half}",
+                1.0 - p
+            );
+            // the latent condition (F alone) is met more often: the noise
+            // widened the margin
+            let (latent, half) = violation_rate(300 + t as u64, p, |rng| {
+                let z = DMatrix::from_fn(2, 2, |_, _| StandardNormal.sample(rng));
+                let f = &post.mean + &la * z * lb.transpose();
+                grad.dot(&(f * &ubar)) + DynBarrier::gains(&barrier)[0] * h
+            });
+            assert!(latent < (1.0 - p) - half, "{latent}");
         }
     }
 }
@@ -179,7 +228,7 @@ fn relative_degree_two_violation_rate_is_at_most_one_minus_p() {
     let la = gp.row_cov_factor().unwrap();
     for (t, x) in [[0.1, 0.2], [0.3, -0.2]].iter().enumerate() {
         let b: Arc<dyn DynBarrier> = Arc::new(Ring { ..ring });
-        let u = active_control(&gp, b, x, p, c);
+        let u = active_control(&gp, b, x, p, c, false);
         let joint = gp.joint_posterior(x).unwrap();
         let lc = psd_sqrt(&joint.c);
         let h = ring.value(x);

@@ -6,8 +6,8 @@
 mod common;
 
 use bayes_cbf::barrier::{
-    cbc_moments, clc_moments, AckermannClf, Barrier, ConditionMoments, DynBarrier, DynLyapunov,
-    Lyapunov, MomentWorkspace, PendulumSector,
+    add_observation_noise, cbc_moments, clc_moments, AckermannClf, Barrier, ConditionMoments,
+    DynBarrier, DynLyapunov, Lyapunov, MomentWorkspace, PendulumSector,
 };
 use bayes_cbf::gp::{InputMap, Kernel, Mvgp, MvgpHyper, PriorMean, Rbf};
 use bayes_cbf::systems::{Ackermann, DynSystem, Pendulum};
@@ -636,4 +636,67 @@ fn unmodelled_lgh_std_matches_its_formula() {
     let got = bayes_cbf::barrier::unmodelled_lgh_std(&ws);
     assert!(want > 1e-3, "{want}");
     assert!((got - want).abs() < 1e-6 * want, "{got} vs {want}");
+}
+
+/// The predictive moments of a relative-degree-1 condition against Monte
+/// Carlo of the realised condition `∇hᵀ(F u̲ + ε) + α h`, with `F` drawn
+/// from the posterior and `ε ~ N(0, σ² A)` drawn independently; and the
+/// error for relative degree 2.
+#[test]
+fn predictive_moments_match_monte_carlo_of_the_realised_condition() {
+    for (seed, (n, m)) in [(2usize, 1usize), (3, 2)].into_iter().enumerate() {
+        let model = model(n, m, PriorMean::Zero, 9, 40 + seed as u64);
+        let mut rng = ChaCha8Rng::seed_from_u64(50 + seed as u64);
+        let qa = DMatrix::from_fn(n, n, |_, _| rng.random_range(-1.0..1.0));
+        let b = Quadratic {
+            q: &qa + qa.transpose(),
+            b: (0..n).map(|_| rng.random_range(-1.0..1.0)).collect(),
+            c: 0.3,
+            r: 1,
+            gains: vec![2.0],
+        };
+        let x: Vec<f64> = (0..n).map(|_| rng.random_range(-1.0..1.0)).collect();
+        let u: Vec<f64> = (0..m).map(|_| rng.random_range(-1.0..1.0)).collect();
+        let mut ws = MomentWorkspace::new(&model);
+        ws.update(&model, &x, 1).unwrap();
+        let mut latent = ConditionMoments::zeros(m);
+        cbc_moments(&mut ws, &b, &mut latent).unwrap();
+        let mut out = latent.clone();
+        add_observation_noise(&ws, &mut out).unwrap();
+        // the noise adds σ² ∇hᵀA∇h to the variance at every control
+        let (h, g, _) = grad_hess(&b, &x);
+        let gv = DVector::from_column_slice(&g);
+        let hyper = model.hyper();
+        let added = hyper.sigma.powi(2) * gv.dot(&(&hyper.A * &gv));
+        assert!(added > 1e-3, "{added}");
+        assert_eq!(out.mean(&u), latent.mean(&u));
+        let want = latent.variance(&u) + added;
+        assert!((out.variance(&u) - want).abs() < 1e-12 * want, "{n}");
+        let vtv = out.v.transpose() * &out.v;
+        assert!((vtv - &out.cov).abs().max() < 1e-9 * out.cov.abs().max());
+        // Monte Carlo of the realised condition
+        let noise = (&hyper.A * hyper.sigma.powi(2)).cholesky().unwrap().l();
+        let p = m + 1;
+        let mut nrng = ChaCha8Rng::seed_from_u64(60 + seed as u64);
+        let (mc_mean, mc_var, se_mean, se_var) = monte_carlo(&model, &x, 100_000, 70, |bf| {
+            let eps = &noise * DVector::from_fn(n, |_, _| StandardNormal.sample(&mut nrng));
+            let latent_c = cbc_direct(bf, n, p, h, &g, &DMatrix::zeros(n, n), &[2.0], 1, &u);
+            latent_c + gv.dot(&eps)
+        });
+        assert!((out.mean(&u) - mc_mean).abs() < 4.0 * se_mean, "{mc_mean}");
+        assert!(
+            (out.variance(&u) - mc_var).abs() < 4.0 * se_var,
+            "{} against {mc_var} ± {se_var}",
+            out.variance(&u)
+        );
+    }
+    // relative degree 2: no observation noise is defined
+    let model = model(2, 1, PriorMean::Zero, 5, 80);
+    let rd2 = PendulumSector::new(0.7854, 0.3927, 2, vec![1.0, 3.0]).unwrap();
+    let mut ws = MomentWorkspace::new(&model);
+    ws.update(&model, &[0.3, 0.1], 2).unwrap();
+    let mut out = ConditionMoments::zeros(1);
+    cbc_moments(&mut ws, &rd2, &mut out).unwrap();
+    let e = add_observation_noise(&ws, &mut out).unwrap_err();
+    assert!(e.to_string().contains("relative_degree"), "{e}");
 }

@@ -35,8 +35,8 @@ pub use clf::{AckermannClf, DynLyapunov, Lyapunov};
 pub use condition::true_condition;
 pub use expression::{ExpressionBarrier, ExpressionClf};
 pub use moments::{
-    cbc_moments, clc_moments, factor_probability, quantile_factor, unmodelled_lgh_std,
-    ConditionMoments, MomentWorkspace,
+    add_observation_noise, cbc_moments, clc_moments, factor_probability, quantile_factor,
+    unmodelled_lgh_std, ConditionMoments, MomentWorkspace,
 };
 pub use monte_carlo::{mc_cbc_moments, McMoments, McSettings};
 

@@ -172,6 +172,8 @@ pub struct MomentWorkspace {
     s: DMatrix<f64>,
     mu: Vec<f64>,
     a_mat: DMatrix<f64>,
+    /// The model's noise scale `σ²` (observation noise `σ² A`).
+    noise: f64,
 }
 
 impl MomentWorkspace {
@@ -201,6 +203,7 @@ impl MomentWorkspace {
             s: DMatrix::zeros(r, r),
             mu: vec![0.0; r],
             a_mat: DMatrix::zeros(n, n),
+            noise: 0.0,
         }
     }
 
@@ -230,6 +233,7 @@ impl MomentWorkspace {
         }
         self.x.copy_from_slice(x);
         self.a_mat.copy_from(model.row_cov());
+        self.noise = model.hyper().sigma * model.hyper().sigma;
         Ok(())
     }
 
@@ -383,6 +387,41 @@ pub fn cbc_moments(
     if nrm < 1e-9 * scale {
         log::warn!("barrier '{}': L_g L_f^(r-1) h ≈ 0 at x = {:?} (|e_u| = {nrm:.2e}); is relative degree {r} right?", barrier.name(), ws.x);
     }
+    Ok(())
+}
+
+/// Turns the moments of a relative-degree-1 condition that
+/// [`cbc_moments`] just wrote with `ws` into those of the condition *as
+/// realised over the step*, `∇hᵀ ẋ_obs + α h` with `ẋ_obs = F u̲ + ε`,
+/// `ε ~ N(0, σ² A)` independent of `F`: the model's own observation noise,
+/// which for process noise is the disturbance that moves the state over
+/// the hold. Since `u̲₀ = 1`,
+/// `Var = (u̲ᵀ B_k u̲ + σ²) ∇hᵀA∇h = u̲ᵀ (B_k + σ² e₀e₀ᵀ) u̲ · ∇hᵀA∇h`:
+/// `σ² ∇hᵀA∇h` is added to `cov₀₀` and the factor recomputed; the mean is
+/// unchanged. An error for moments of relative degree ≠ 1 (the noise of a
+/// higher derivative of `h` is not defined by the model).
+pub fn add_observation_noise(
+    ws: &MomentWorkspace,
+    out: &mut ConditionMoments,
+) -> Result<(), Error> {
+    if out.relative_degree != 1 {
+        return Err(InputError::invalid(
+            "relative_degree",
+            out.relative_degree as f64,
+            "the observation noise enters conditions of relative degree 1 only",
+        )
+        .into());
+    }
+    let (g, a) = (&ws.grad, &ws.a_mat);
+    let n = g.len();
+    let mut gag = 0.0;
+    for i in 0..n {
+        for j in 0..n {
+            gag += g[i] * a[(i, j)] * g[j];
+        }
+    }
+    out.cov[(0, 0)] += ws.noise * gag;
+    psd_factor(&out.cov, &mut out.v);
     Ok(())
 }
 

@@ -3,8 +3,8 @@
 use super::recalibration::{RecalibrationSettings, Recalibrator};
 use super::socp::{ConeProgram, SocpShape, SolveStatus};
 use crate::barrier::{
-    cbc_moments, clc_moments, factor_probability, mc_cbc_moments, quantile_factor,
-    ConditionMoments, DynBarrier, DynLyapunov, McSettings, MomentWorkspace,
+    add_observation_noise, cbc_moments, clc_moments, factor_probability, mc_cbc_moments,
+    quantile_factor, ConditionMoments, DynBarrier, DynLyapunov, McSettings, MomentWorkspace,
 };
 use crate::error::{check_finite, check_nonnegative, check_positive, Error, InputError};
 use crate::gp::{Kernel, Mvgp};
@@ -73,6 +73,12 @@ pub struct SafetySettings {
     pub fallback: Fallback,
     /// Absolute tolerance of `p*`: its iteration stops when a step gains less.
     pub p_star_tol: f64,
+    /// Promise each relative-degree-1 condition as realised over the step,
+    /// observation noise included ([`add_observation_noise`]): the model's
+    /// noise `σ² A` adds `σ² ∇hᵀA∇h` to the condition's variance, so that
+    /// process noise that moves the state during the hold is covered too.
+    /// `false` (the paper): the posterior of `F` alone.
+    pub predictive: bool,
 }
 
 impl SafetySettings {
@@ -88,6 +94,7 @@ impl SafetySettings {
             u_max: None,
             fallback: Fallback::MaxMargin,
             p_star_tol: 1e-5,
+            predictive: false,
         }
     }
 
@@ -807,6 +814,9 @@ impl SafetyController {
                 continue;
             };
             cbc_moments(ws, b.as_ref(), &mut rc.post)?;
+            if self.filter.settings.predictive && rc.post.relative_degree == 1 {
+                add_observation_noise(ws, &mut rc.post)?;
+            }
             let after = (rc.post.mean(&rc.u), rc.post.variance(&rc.u));
             let c = quantile_factor(p, b.relative_degree())?;
             rc.inflation.update(i, before, after, c, 1.0 - p);
@@ -860,6 +870,9 @@ impl SafetyController {
         for (b, mom) in self.barriers.iter().zip(self.cbcs.iter_mut()) {
             if b.relative_degree() <= 2 {
                 cbc_moments(ws, b.as_ref(), mom)?;
+                if self.filter.settings.predictive && mom.relative_degree == 1 {
+                    add_observation_noise(ws, mom)?;
+                }
             } else {
                 // no closed form: Monte Carlo over joint posterior draws,
                 // a fresh deterministic seed each step
