@@ -31,6 +31,7 @@ use bayes_cbf::sim::{
 };
 use bayes_cbf::systems::{wrap_angle, Ackermann, DynSystem, GpSample, Pendulum};
 use nalgebra::DMatrix;
+use num_dual::Dual64;
 use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use std::f64::consts::PI;
@@ -123,31 +124,45 @@ pub(crate) struct ControllerKind {
     /// Online recalibration of the condition's variance
     /// ([`bayes_cbf::control::Recalibrator`], default settings).
     pub recalibrate: bool,
+    /// The condition as realised over the step, the model's observation
+    /// noise included ([`SafetySettings::predictive`]).
+    pub predictive: bool,
 }
 
-/// Bayes CBF at p ∈ {0.9, 0.99, 0.999} with the posterior as it is and
-/// with online recalibration, and the mean CBF.
-pub(crate) const CONTROLLERS: [ControllerKind; 7] = [
-    bayes("bayes-cbf p=0.9", 0.9, false),
-    bayes("bayes-cbf p=0.99", 0.99, false),
-    bayes("bayes-cbf p=0.999", 0.999, false),
-    bayes("bayes-cbf p=0.9 recalibrated", 0.9, true),
-    bayes("bayes-cbf p=0.99 recalibrated", 0.99, true),
-    bayes("bayes-cbf p=0.999 recalibrated", 0.999, true),
+/// Bayes CBF at p ∈ {0.9, 0.99, 0.999} with the posterior as it is, with
+/// online recalibration, and recalibrated with the predictive condition;
+/// and the mean CBF.
+pub(crate) const CONTROLLERS: [ControllerKind; 10] = [
+    bayes("bayes-cbf p=0.9", 0.9, false, false),
+    bayes("bayes-cbf p=0.99", 0.99, false, false),
+    bayes("bayes-cbf p=0.999", 0.999, false, false),
+    bayes("bayes-cbf p=0.9 recalibrated", 0.9, true, false),
+    bayes("bayes-cbf p=0.99 recalibrated", 0.99, true, false),
+    bayes("bayes-cbf p=0.999 recalibrated", 0.999, true, false),
+    bayes("bayes-cbf p=0.9 recalibrated predictive", 0.9, true, true),
+    bayes("bayes-cbf p=0.99 recalibrated predictive", 0.99, true, true),
+    bayes(
+        "bayes-cbf p=0.999 recalibrated predictive",
+        0.999,
+        true,
+        true,
+    ),
     ControllerKind {
         name: "mean-cbf",
         p: 0.5,
         mean: true,
         recalibrate: false,
+        predictive: false,
     },
 ];
 
-const fn bayes(name: &'static str, p: f64, recalibrate: bool) -> ControllerKind {
+const fn bayes(name: &'static str, p: f64, recalibrate: bool, predictive: bool) -> ControllerKind {
     ControllerKind {
         name,
         p,
         mean: false,
         recalibrate,
+        predictive,
     }
 }
 
@@ -407,6 +422,7 @@ pub(crate) fn controller(
     s.u_min = Some(lo);
     s.u_max = Some(hi);
     s.fallback = Fallback::MaxMargin;
+    s.predictive = kind.predictive;
     Ok(SafetyController::new(n, m, vec![barrier.clone()], None, s)?)
 }
 
@@ -435,6 +451,14 @@ pub(crate) struct EpisodeStats {
     /// negative.
     #[serde(default)]
     pub active_violations_late: usize,
+    /// Active steps of a relative-degree-1 barrier (vehicle) whose next
+    /// state was observed.
+    #[serde(default)]
+    pub realised_active_steps: usize,
+    /// Those whose condition as realised over the step, [`realised`], is
+    /// negative.
+    #[serde(default)]
+    pub realised_active_violations: usize,
     /// Steps with an infeasible SOCP (the fallback was applied).
     pub infeasible_steps: usize,
     /// Standardised true conditions `z = (C_true − E[C]) / √Var[C]` of the
@@ -451,6 +475,35 @@ pub(crate) struct EpisodeStats {
     pub non_finite: usize,
     /// The run failed with this error (counted separately).
     pub error: Option<String>,
+}
+
+/// The relative-degree-1 condition as realised over the step from `x` to
+/// `x_next`: `∇h(x)ᵀ (x_next − x)/τ + α h(x)` (angle differences wrapped),
+/// what the predictive condition promises
+/// ([`SafetySettings::predictive`]): the true dynamics and the process
+/// noise of the step both act on it.
+pub(crate) fn realised(
+    truth: &dyn DynSystem,
+    b: &dyn DynBarrier,
+    x: &[f64],
+    x_next: &[f64],
+) -> f64 {
+    let n = x.len();
+    let (mut grad, mut scratch) = (vec![0.0; n], vec![Dual64::from(0.0); 2 * n]);
+    let h = b.gradient(x, &mut grad, &mut scratch);
+    let angles = truth.angle_indices();
+    let rate: f64 = (0..n)
+        .map(|i| {
+            let d = x_next[i] - x[i];
+            let d = if angles.contains(&i) {
+                wrap_angle(d)
+            } else {
+                d
+            };
+            grad[i] * d / DT
+        })
+        .sum();
+    rate + b.gains()[0] * h
 }
 
 /// The true barrier condition at `(x, u)`: [`true_condition`] by automatic
@@ -619,6 +672,12 @@ fn summarise(system: System, s: &Setup, r: &LoopResult, moments: &[(f64, f64)]) 
         st.cbc_violations += violated as usize;
         let active = rec.scbc.first().is_some_and(|&sl| sl <= ACTIVE_SLACK);
         if active {
+            if b.relative_degree() == 1 {
+                let next = r.records.get(k + 1).map_or(&r.final_state, |n| &n.x);
+                st.realised_active_steps += 1;
+                st.realised_active_violations +=
+                    usize::from(realised(s.truth.as_ref(), b, &rec.x, next) < 0.0);
+            }
             st.active_steps += 1;
             st.active_violations += violated as usize;
             if k >= BURN_IN {

@@ -336,18 +336,19 @@ mod tests {
             .build()
             .unwrap()
             .install(|| run_tasks(&plan, 5, &|_, _| {}));
-        assert_eq!(one.len(), 2 * 2 * 2 * 7);
+        let c = CONTROLLERS.len();
+        assert_eq!(one.len(), 2 * 2 * 2 * c);
         assert_eq!(one, two);
         for (t, s) in &one {
             assert!(s.error.is_none(), "{t:?}: {:?}", s.error);
             assert_eq!(s.steps, t.steps);
             assert_eq!(s.non_finite, 0);
         }
-        // the seven controllers share each episode: the same start, so the
+        // the controllers share each episode: the same start, so the
         // same first h
         let seeds: Vec<u64> = one.iter().map(|(t, _)| episode_seed(5, t)).collect();
-        assert_eq!(seeds[0], seeds[6]);
-        assert_ne!(seeds[0], seeds[7]);
+        assert_eq!(seeds[0], seeds[c - 1]);
+        assert_ne!(seeds[0], seeds[c]);
     }
 
     #[test]

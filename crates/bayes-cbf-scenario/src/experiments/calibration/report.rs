@@ -34,6 +34,9 @@ pub(super) struct Row {
     pub active: Vec<(usize, usize)>,
     /// Per episode: the same over active steps from step `BURN_IN` (100) on.
     pub active_late: Vec<(usize, usize)>,
+    /// Per episode: `(violated realised conditions, active steps)`
+    /// (relative degree 1).
+    pub realised: Vec<(usize, usize)>,
     /// Per episode: `(infeasible steps, steps)`.
     pub infeasible: Vec<(usize, usize)>,
     pub min_h: Vec<f64>,
@@ -89,6 +92,7 @@ pub(super) fn tables(plan: &Plan, results: &[(Task, EpisodeStats)]) -> Vec<Row> 
                     cbc: Vec::new(),
                     active: Vec::new(),
                     active_late: Vec::new(),
+                    realised: Vec::new(),
                     infeasible: Vec::new(),
                     min_h: Vec::new(),
                     min_distance: Vec::new(),
@@ -110,6 +114,10 @@ pub(super) fn tables(plan: &Plan, results: &[(Task, EpisodeStats)]) -> Vec<Row> 
                     row.active.push((s.active_violations, s.active_steps));
                     row.active_late
                         .push((s.active_violations_late, s.active_steps_late));
+                    if s.realised_active_steps > 0 {
+                        row.realised
+                            .push((s.realised_active_violations, s.realised_active_steps));
+                    }
                     row.infeasible.push((s.infeasible_steps, s.steps));
                     row.min_h.push(s.min_h);
                     row.non_finite += s.non_finite;
@@ -157,6 +165,11 @@ pub struct RowSummary {
     pub steps_violating_h: Pooled,
     /// Steps whose true condition was violated.
     pub true_condition_violated: ConditionViolations,
+    /// Active steps whose condition as realised over the step,
+    /// `∇h(x_k)ᵀ (x_{k+1} − x_k)/τ + α h(x_k)` (true dynamics and process
+    /// noise), was negative: what the predictive condition promises
+    /// (relative degree 1; none for the pendulum).
+    pub realised_condition_violated: Option<Pooled>,
     /// Standardised true conditions `z = (C_true − E[C]) / √Var[C]`.
     pub standardised_condition: SolvedActive<Option<ZSummary>>,
     /// Steps whose SOCP was infeasible.
@@ -245,6 +258,7 @@ fn row_summary(r: &Row) -> RowSummary {
                 active_steps: r.z[1].expected,
             },
         },
+        realised_condition_violated: (!r.realised.is_empty()).then(|| pooled(&r.realised)),
         standardised_condition: SolvedActive {
             solved_steps: z_summary(&r.z[0]),
             active_steps: z_summary(&r.z[1]),
@@ -522,13 +536,14 @@ pub(super) fn console_table(rows: &[Row]) -> String {
     };
     let _ = writeln!(
         s,
-        "{:<58} {:>6} {:>24} {:>24} {:>24} {:>24} {:>24} {:>12}",
+        "{:<58} {:>6} {:>24} {:>24} {:>24} {:>24} {:>24} {:>24} {:>12}",
         "system / truth / controller",
         "1-p",
         "episodes h<0",
         "true cond.<0 (solved)",
         "true cond.<0 (active)",
         "(active, k >= 100)",
+        "realised cond.<0 (active)",
         "infeasible steps",
         "z mean/sd"
     );
@@ -536,6 +551,7 @@ pub(super) fn console_table(rows: &[Row]) -> String {
         let (cv, cn) = Row::sum(&r.cbc);
         let (av, an) = Row::sum(&r.active);
         let (lv, ln) = Row::sum(&r.active_late);
+        let (rv, rn) = Row::sum(&r.realised);
         let (iv, inn) = Row::sum(&r.infeasible);
         let req = r
             .requested()
@@ -544,13 +560,14 @@ pub(super) fn console_table(rows: &[Row]) -> String {
         let (zm, zsd) = r.z[0].mean_sd();
         let _ = writeln!(
             s,
-            "{:<58} {:>6} {:>24} {:>24} {:>24} {:>24} {:>24} {:>12}",
+            "{:<58} {:>6} {:>24} {:>24} {:>24} {:>24} {:>24} {:>24} {:>12}",
             r.label(),
             req,
             pct(r.episodes_violating(), r.episodes()),
             pct(cv, cn),
             pct(av, an),
             pct(lv, ln),
+            pct(rv, rn),
             pct(iv, inn),
             format!("{zm:.2}/{zsd:.2}")
         );
@@ -660,13 +677,13 @@ pub(super) fn plot_cells(rows: &[Row]) -> Vec<Cell> {
 /// One line per (task): the per-episode counts.
 pub(super) fn episodes_csv(results: &[(Task, EpisodeStats)]) -> Table {
     let mut s = String::from(
-        "system,truth,episode,controller,steps,min_h,steps_h_violated,solved_steps,cbc_violations,active_steps,active_violations,infeasible_steps,min_distance,goal_reached,error\n",
+        "system,truth,episode,controller,steps,min_h,steps_h_violated,solved_steps,cbc_violations,active_steps,active_violations,realised_active_steps,realised_active_violations,infeasible_steps,min_distance,goal_reached,error\n",
     );
     let opt = |v: Option<f64>| v.map(|x| format!("{x}")).unwrap_or_default();
     for (t, e) in results {
         let _ = writeln!(
             s,
-            "{},{},{},{},{},{},{},{},{},{},{},{},{},{},{}",
+            "{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{}",
             t.system.name(),
             t.truth.name(),
             t.episode,
@@ -678,6 +695,8 @@ pub(super) fn episodes_csv(results: &[(Task, EpisodeStats)]) -> Table {
             e.cbc_violations,
             e.active_steps,
             e.active_violations,
+            e.realised_active_steps,
+            e.realised_active_violations,
             e.infeasible_steps,
             opt(e.min_distance),
             e.goal_reached.map(|g| g.to_string()).unwrap_or_default(),
