@@ -532,7 +532,7 @@ pub struct PySafetyFilter {
 #[pymethods]
 impl PySafetyFilter {
     #[new]
-    #[pyo3(signature = (model, barriers, clf=None, probability=0.99, zeta=0.0, u_min=None, u_max=None, R=None, fallback="max_margin", clf_weight=1.0))]
+    #[pyo3(signature = (model, barriers, clf=None, probability=0.99, zeta=0.0, u_min=None, u_max=None, R=None, fallback="max_margin", clf_weight=1.0, predictive=false))]
     #[allow(non_snake_case, clippy::too_many_arguments)]
     fn new(
         model: Bound<'_, PyMvgp>,
@@ -545,6 +545,7 @@ impl PySafetyFilter {
         R: Option<&Bound<'_, PyAny>>,
         fallback: &str,
         clf_weight: f64,
+        predictive: bool,
     ) -> PyResult<Self> {
         let (n, m) = {
             let mm = model.borrow();
@@ -587,6 +588,7 @@ impl PySafetyFilter {
         settings.probability = probability;
         settings.zeta = zeta;
         settings.lambda = clf_weight;
+        settings.predictive = predictive;
         settings.u_min = u_min.map(|v| vector(v, "u_min", Some(m))).transpose()?;
         settings.u_max = u_max.map(|v| vector(v, "u_max", Some(m))).transpose()?;
         if let Some(r) = R {

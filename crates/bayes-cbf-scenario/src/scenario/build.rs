@@ -211,6 +211,7 @@ pub fn build(s: &Scenario) -> Result<Built> {
     settings.probability = c.probability;
     settings.zeta = c.zeta;
     settings.lambda = c.lambda;
+    settings.predictive = c.predictive;
     if let Some(r) = &c.r {
         vector("controller.r", r, m, "the control dimension")?;
         settings.r = DMatrix::from_diagonal(&nalgebra::DVector::from_column_slice(r));
