@@ -638,65 +638,85 @@ fn unmodelled_lgh_std_matches_its_formula() {
     assert!((got - want).abs() < 1e-6 * want, "{got} vs {want}");
 }
 
-/// The predictive moments of a relative-degree-1 condition against Monte
-/// Carlo of the realised condition `∇hᵀ(F u̲ + ε) + α h`, with `F` drawn
-/// from the posterior and `ε ~ N(0, σ² A)` drawn independently; and the
-/// error for relative degree 2.
+/// The predictive moments against Monte Carlo of the realised condition,
+/// `F u̲` replaced by `F u̲ + ε` with `F` (and its Jacobian) drawn from the
+/// joint posterior and `ε ~ N(0, σ² A)` drawn independently: at relative
+/// degree 1 `∇hᵀ(F u̲ + ε) + α h`, at relative degree 2
+/// `∇(L_f h)ᵀ(F u̲ + ε) + k₀ h + k₁ L_f h`; and the error for relative
+/// degree 3.
 #[test]
 fn predictive_moments_match_monte_carlo_of_the_realised_condition() {
     for (seed, (n, m)) in [(2usize, 1usize), (3, 2)].into_iter().enumerate() {
         let model = model(n, m, PriorMean::Zero, 9, 40 + seed as u64);
         let mut rng = ChaCha8Rng::seed_from_u64(50 + seed as u64);
         let qa = DMatrix::from_fn(n, n, |_, _| rng.random_range(-1.0..1.0));
-        let b = Quadratic {
-            q: &qa + qa.transpose(),
-            b: (0..n).map(|_| rng.random_range(-1.0..1.0)).collect(),
-            c: 0.3,
-            r: 1,
-            gains: vec![2.0],
-        };
         let x: Vec<f64> = (0..n).map(|_| rng.random_range(-1.0..1.0)).collect();
         let u: Vec<f64> = (0..m).map(|_| rng.random_range(-1.0..1.0)).collect();
-        let mut ws = MomentWorkspace::new(&model);
-        ws.update(&model, &x, 1).unwrap();
-        let mut latent = ConditionMoments::zeros(m);
-        cbc_moments(&mut ws, &b, &mut latent).unwrap();
-        let mut out = latent.clone();
-        add_observation_noise(&ws, &mut out).unwrap();
-        // the noise adds σ² ∇hᵀA∇h to the variance at every control
-        let (h, g, _) = grad_hess(&b, &x);
-        let gv = DVector::from_column_slice(&g);
         let hyper = model.hyper();
-        let added = hyper.sigma.powi(2) * gv.dot(&(&hyper.A * &gv));
-        assert!(added > 1e-3, "{added}");
-        assert_eq!(out.mean(&u), latent.mean(&u));
-        let want = latent.variance(&u) + added;
-        assert!((out.variance(&u) - want).abs() < 1e-12 * want, "{n}");
-        let vtv = out.v.transpose() * &out.v;
-        assert!((vtv - &out.cov).abs().max() < 1e-9 * out.cov.abs().max());
-        // Monte Carlo of the realised condition
         let noise = (&hyper.A * hyper.sigma.powi(2)).cholesky().unwrap().l();
-        let p = m + 1;
-        let mut nrng = ChaCha8Rng::seed_from_u64(60 + seed as u64);
-        let (mc_mean, mc_var, se_mean, se_var) = monte_carlo(&model, &x, 100_000, 70, |bf| {
-            let eps = &noise * DVector::from_fn(n, |_, _| StandardNormal.sample(&mut nrng));
-            let latent_c = cbc_direct(bf, n, p, h, &g, &DMatrix::zeros(n, n), &[2.0], 1, &u);
-            latent_c + gv.dot(&eps)
-        });
-        assert!((out.mean(&u) - mc_mean).abs() < 4.0 * se_mean, "{mc_mean}");
-        assert!(
-            (out.variance(&u) - mc_var).abs() < 4.0 * se_var,
-            "{} against {mc_var} ± {se_var}",
-            out.variance(&u)
-        );
+        for (r, gains) in [(1usize, vec![2.0]), (2, vec![0.5, 1.5])] {
+            let b = Quadratic {
+                q: &qa + qa.transpose(),
+                b: (0..n).map(|_| rng.random_range(-1.0..1.0)).collect(),
+                c: 0.3,
+                r,
+                gains: gains.clone(),
+            };
+            let mut ws = MomentWorkspace::new(&model);
+            ws.update(&model, &x, r).unwrap();
+            let mut latent = ConditionMoments::zeros(m);
+            cbc_moments(&mut ws, &b, &mut latent).unwrap();
+            let mut out = latent.clone();
+            add_observation_noise(&ws, &mut out).unwrap();
+            // a constant added to the variance, the mean unchanged
+            let added = out.variance(&u) - latent.variance(&u);
+            assert!(added > 1e-3, "{added}");
+            assert_eq!(out.mean(&u), latent.mean(&u));
+            let v0: Vec<f64> = (0..m).map(|i| i as f64 - 0.5).collect();
+            let added0 = out.variance(&v0) - latent.variance(&v0);
+            assert!((added0 - added).abs() < 1e-10 * added, "{added0} {added}");
+            if r == 1 {
+                let (_, g, _) = grad_hess(&b, &x);
+                let gv = DVector::from_column_slice(&g);
+                let want = hyper.sigma.powi(2) * gv.dot(&(&hyper.A * &gv));
+                assert!((added - want).abs() < 1e-10 * want, "{added} {want}");
+            }
+            let vtv = out.v.transpose() * &out.v;
+            assert!((vtv - &out.cov).abs().max() < 1e-9 * out.cov.abs().max());
+            // Monte Carlo of the realised condition
+            let (h, g, hess) = grad_hess(&b, &x);
+            let gv = DVector::from_column_slice(&g);
+            let p = m + 1;
+            let mut nrng = ChaCha8Rng::seed_from_u64(60 + seed as u64);
+            let (mc_mean, mc_var, se_mean, se_var) = monte_carlo(&model, &x, 100_000, 70, |bf| {
+                let eps = &noise * DVector::from_fn(n, |_, _| StandardNormal.sample(&mut nrng));
+                let latent_c = cbc_direct(bf, n, p, h, &g, &hess, &gains, r, &u);
+                // the rate that ε disturbs: ∇h, or ∇(L_f h) = ∇²h f + J_fᵀ∇h
+                let a = if r == 1 {
+                    gv.clone()
+                } else {
+                    let f = DVector::from_fn(n, |i, _| bf[(i, 0)]);
+                    let jf = DMatrix::from_fn(n, n, |l, i| bf[(l, (i + 1) * p)]);
+                    &hess * &f + jf.transpose() * &gv
+                };
+                latent_c + a.dot(&eps)
+            });
+            assert!(
+                (out.mean(&u) - mc_mean).abs() < 4.0 * se_mean,
+                "r = {r}: {mc_mean}"
+            );
+            assert!(
+                (out.variance(&u) - mc_var).abs() < 4.0 * se_var,
+                "r = {r}: {} against {mc_var} ± {se_var}",
+                out.variance(&u)
+            );
+        }
     }
-    // relative degree 2: no observation noise is defined
     let model = model(2, 1, PriorMean::Zero, 5, 80);
-    let rd2 = PendulumSector::new(0.7854, 0.3927, 2, vec![1.0, 3.0]).unwrap();
     let mut ws = MomentWorkspace::new(&model);
     ws.update(&model, &[0.3, 0.1], 2).unwrap();
     let mut out = ConditionMoments::zeros(1);
-    cbc_moments(&mut ws, &rd2, &mut out).unwrap();
+    out.relative_degree = 3;
     let e = add_observation_noise(&ws, &mut out).unwrap_err();
     assert!(e.to_string().contains("relative_degree"), "{e}");
 }

@@ -2,7 +2,7 @@
 //! condition of Secs. V–VI estimates under the GP posterior.
 
 use super::DynBarrier;
-use crate::error::InputError;
+use crate::error::{check_finite, InputError};
 use crate::systems::DynSystem;
 use num_dual::{Dual64, HyperDual64};
 
@@ -30,16 +30,61 @@ pub fn true_condition(
     if u.len() != m {
         return Err(InputError::shape("u", m, u.len()));
     }
-    let rows = n * (1 + m);
-    let mut fbuf = vec![0.0; rows];
+    let mut fbuf = vec![0.0; n * (1 + m)];
     let mut xdot = vec![0.0; n];
     system.xdot(x, u, &mut fbuf, &mut xdot);
+    along(system, barrier, x, &fbuf[..n], &xdot)
+}
+
+/// The barrier condition of `barrier` at `x` as realised over a step in
+/// which the state moved at the observed rate `xdot` (e.g. `(x_{k+1} −
+/// x_k)/τ`): the condition of [`true_condition`] with `F(x)u̲` replaced by
+/// `xdot`, the drift `f` of `system` where the condition needs it:
+///
+/// - relative degree 1: `∇h(x)ᵀ ẋ + α h(x)`;
+/// - relative degree 2: `∇(L_f h)(x)ᵀ ẋ + k₀ h(x) + k₁ L_f h(x)`.
+///
+/// What the predictive condition
+/// ([`SafetySettings::predictive`](crate::control::SafetySettings::predictive))
+/// promises: the true dynamics and the disturbance of the step both act on
+/// it.
+pub fn realised_condition(
+    system: &dyn DynSystem,
+    barrier: &dyn DynBarrier,
+    x: &[f64],
+    xdot: &[f64],
+) -> Result<f64, InputError> {
+    let (n, m) = (system.state_dim(), system.control_dim());
+    if x.len() != n || barrier.state_dim() != n {
+        return Err(InputError::shape("x", n, x.len()));
+    }
+    if xdot.len() != n {
+        return Err(InputError::shape("xdot", n, xdot.len()));
+    }
+    check_finite("x", x)?;
+    check_finite("xdot", xdot)?;
+    let mut fbuf = vec![0.0; n * (1 + m)];
+    let mut f = vec![0.0; n];
+    system.xdot(x, &vec![0.0; m], &mut fbuf, &mut f);
+    along(system, barrier, x, &f, xdot)
+}
+
+/// The condition along the rate `xdot`, with drift `f` (relative degree 2).
+fn along(
+    system: &dyn DynSystem,
+    barrier: &dyn DynBarrier,
+    x: &[f64],
+    f: &[f64],
+    xdot: &[f64],
+) -> Result<f64, InputError> {
+    let n = x.len();
+    let rows = n * (1 + system.control_dim());
     let gains = barrier.gains();
     let mut grad = vec![0.0; n];
     match barrier.relative_degree() {
         1 => {
             let h = barrier.gradient(x, &mut grad, &mut vec![Dual64::from(0.0); n]);
-            Ok(dot(&grad, &xdot) + gains[0] * h)
+            Ok(dot(&grad, xdot) + gains[0] * h)
         }
         2 => {
             let mut hess = vec![0.0; n * n];
@@ -57,7 +102,6 @@ pub fn true_condition(
                 &mut vec![Dual64::from(0.0); n],
                 &mut vec![Dual64::from(0.0); rows],
             );
-            let f = &fbuf[..n];
             let lf = dot(&grad, f);
             // ∇(L_f h)ᵀ ẋ = ẋᵀ ∇²h f + ∇hᵀ J_f ẋ
             let mut d = 0.0;
@@ -138,5 +182,46 @@ mod tests {
             );
         }
         assert!(true_condition(&pend, &s, &[0.0], &[0.0]).is_err());
+    }
+
+    /// Along the true rate `F(x)u̲` the realised condition is the true
+    /// one; it is linear in the rate, and bad rates are errors naming them.
+    #[test]
+    fn realised_condition_along_the_true_rate_is_the_true_condition() {
+        let pend = Pendulum::default();
+        let car = Ackermann { wheelbase: 2.0 };
+        let sector = PendulumSector::new(0.8, 0.3, 2, vec![1.0, 3.0]).unwrap();
+        let disc = CircleHeading::new([-1.0, 0.5], 0.6, 0.7, 0.3, 1, vec![5.0]).unwrap();
+        let cases: [(&dyn DynSystem, &dyn DynBarrier, Vec<f64>, Vec<f64>); 2] = [
+            (&pend, &sector, vec![1.2, -0.4], vec![0.7]),
+            (&car, &disc, vec![0.3, -0.2, 0.4], vec![0.8, -0.3]),
+        ];
+        for (sys, b, x, u) in cases {
+            let n = x.len();
+            let (mut fb, mut xd) = (vec![0.0; n * (1 + u.len())], vec![0.0; n]);
+            sys.xdot(&x, &u, &mut fb, &mut xd);
+            let want = true_condition(sys, b, &x, &u).unwrap();
+            let got = realised_condition(sys, b, &x, &xd).unwrap();
+            assert!(
+                (got - want).abs() < 1e-12 * (1.0 + want.abs()),
+                "{got} {want}"
+            );
+            // affine in the rate: a disturbance d adds its directional part
+            let d: Vec<f64> = (0..n).map(|i| 0.1 * (i as f64 + 1.0)).collect();
+            let plus: Vec<f64> = xd.iter().zip(&d).map(|(a, b)| a + b).collect();
+            let minus: Vec<f64> = xd.iter().zip(&d).map(|(a, b)| a - b).collect();
+            let (p, m) = (
+                realised_condition(sys, b, &x, &plus).unwrap(),
+                realised_condition(sys, b, &x, &minus).unwrap(),
+            );
+            assert!(((p + m) / 2.0 - want).abs() < 1e-12 * (1.0 + want.abs()));
+            assert!((p - m).abs() > 1e-6, "the disturbance must act");
+            let short = realised_condition(sys, b, &x, &xd[..n - 1]).unwrap_err();
+            assert_eq!(short, InputError::shape("xdot", n, n - 1));
+            let mut bad = xd.clone();
+            bad[0] = f64::NAN;
+            let e = realised_condition(sys, b, &x, &bad).unwrap_err();
+            assert!(e.to_string().contains("xdot[0]"), "{e}");
+        }
     }
 }

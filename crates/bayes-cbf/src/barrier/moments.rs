@@ -390,37 +390,58 @@ pub fn cbc_moments(
     Ok(())
 }
 
-/// Turns the moments of a relative-degree-1 condition that
-/// [`cbc_moments`] just wrote with `ws` into those of the condition *as
-/// realised over the step*, `∇hᵀ ẋ_obs + α h` with `ẋ_obs = F u̲ + ε`,
-/// `ε ~ N(0, σ² A)` independent of `F`: the model's own observation noise,
-/// which for process noise is the disturbance that moves the state over
-/// the hold. Since `u̲₀ = 1`,
-/// `Var = (u̲ᵀ B_k u̲ + σ²) ∇hᵀA∇h = u̲ᵀ (B_k + σ² e₀e₀ᵀ) u̲ · ∇hᵀA∇h`:
-/// `σ² ∇hᵀA∇h` is added to `cov₀₀` and the factor recomputed; the mean is
-/// unchanged. An error for moments of relative degree ≠ 1 (the noise of a
-/// higher derivative of `h` is not defined by the model).
+/// Turns the moments of a barrier condition that [`cbc_moments`] just
+/// wrote with `ws` (the same barrier, no other moment computed since) into
+/// those of the condition *as realised over the step*: the rate `F u̲` is
+/// replaced by `ẋ_obs = F u̲ + ε`, `ε ~ N(0, σ² A)` independent of `F`,
+/// the model's own observation noise, which for process noise is the
+/// disturbance that moves the state over the hold
+/// ([`realised_condition`](super::realised_condition) with the true `F`).
+///
+/// - Relative degree 1: `∇hᵀ ẋ_obs + α h` has, since `u̲₀ = 1`,
+///   `Var = (u̲ᵀ B_k u̲ + σ²) ∇hᵀA∇h`: `σ² ∇hᵀA∇h` more.
+/// - Relative degree 2: `∇(L_f h)ᵀ ẋ_obs + k₀ h + k₁ L_f h = C⁽²⁾ + aᵀε`
+///   with `a = ∇(L_f h)` (module docs); `aᵀε` has mean 0, no covariance
+///   with `C⁽²⁾` (`ε` is independent of `𝔽` and centred) and variance
+///   `E[aᵀ σ²A a] = σ² (āᵀAā + tr(A Σ_aa))`.
+///
+/// Either way the term does not depend on `u`: it is added to `cov₀₀`
+/// and the factor recomputed; the mean is unchanged. An error for other
+/// relative degrees.
 pub fn add_observation_noise(
     ws: &MomentWorkspace,
     out: &mut ConditionMoments,
 ) -> Result<(), Error> {
-    if out.relative_degree != 1 {
-        return Err(InputError::invalid(
-            "relative_degree",
-            out.relative_degree as f64,
-            "the observation noise enters conditions of relative degree 1 only",
-        )
-        .into());
-    }
-    let (g, a) = (&ws.grad, &ws.a_mat);
-    let n = g.len();
-    let mut gag = 0.0;
-    for i in 0..n {
-        for j in 0..n {
-            gag += g[i] * a[(i, j)] * g[j];
+    let a = &ws.a_mat;
+    let n = ws.x.len();
+    let mut added = 0.0;
+    match out.relative_degree {
+        1 => {
+            let g = &ws.grad;
+            for i in 0..n {
+                for j in 0..n {
+                    added += g[i] * a[(i, j)] * g[j];
+                }
+            }
+        }
+        // the functionals a_i are the first n of `rd2` (ia(i) = i)
+        2 => {
+            for i in 0..n {
+                for j in 0..n {
+                    added += a[(i, j)] * (ws.mu[i] * ws.mu[j] + ws.s[(i, j)]);
+                }
+            }
+        }
+        r => {
+            return Err(InputError::invalid(
+                "relative_degree",
+                r as f64,
+                "the observation noise is added to conditions of relative degree 1 and 2",
+            )
+            .into());
         }
     }
-    out.cov[(0, 0)] += ws.noise * gag;
+    out.cov[(0, 0)] += ws.noise * added;
     psd_factor(&out.cov, &mut out.v);
     Ok(())
 }

@@ -73,11 +73,13 @@ pub struct SafetySettings {
     pub fallback: Fallback,
     /// Absolute tolerance of `p*`: its iteration stops when a step gains less.
     pub p_star_tol: f64,
-    /// Promise each relative-degree-1 condition as realised over the step,
-    /// observation noise included ([`add_observation_noise`]): the model's
-    /// noise `σ² A` adds `σ² ∇hᵀA∇h` to the condition's variance, so that
-    /// process noise that moves the state during the hold is covered too.
-    /// `false` (the paper): the posterior of `F` alone.
+    /// Promise each barrier condition (relative degree 1 and 2) as realised
+    /// over the step, observation noise included ([`add_observation_noise`]):
+    /// the model's noise `σ² A` widens the condition's variance
+    /// (`σ² ∇hᵀA∇h` at relative degree 1), so that process noise that
+    /// moves the state during the hold is covered too. `false` (the paper):
+    /// the posterior of `F` alone. Barriers of relative degree > 2 (Monte
+    /// Carlo moments) keep the posterior's.
     pub predictive: bool,
 }
 
@@ -814,7 +816,7 @@ impl SafetyController {
                 continue;
             };
             cbc_moments(ws, b.as_ref(), &mut rc.post)?;
-            if self.filter.settings.predictive && rc.post.relative_degree == 1 {
+            if self.filter.settings.predictive {
                 add_observation_noise(ws, &mut rc.post)?;
             }
             let after = (rc.post.mean(&rc.u), rc.post.variance(&rc.u));
@@ -870,7 +872,7 @@ impl SafetyController {
         for (b, mom) in self.barriers.iter().zip(self.cbcs.iter_mut()) {
             if b.relative_degree() <= 2 {
                 cbc_moments(ws, b.as_ref(), mom)?;
-                if self.filter.settings.predictive && mom.relative_degree == 1 {
+                if self.filter.settings.predictive {
                     add_observation_noise(ws, mom)?;
                 }
             } else {
