@@ -28,17 +28,23 @@ def test_predictive_filter_adds_the_observation_noise_to_the_variance(model):
         assert abs(mean - c["mean"]) <= 1e-9 * max(1.0, abs(mean))
 
 
-def test_predictive_filter_ignores_relative_degree_two():
-    # no observation noise is defined for a higher derivative of h: the
-    # condition of a relative-degree-2 barrier is the latent one
-    from conftest import pendulum_data
-
-    X, U, Xdot = pendulum_data(30, seed=2)
-    model = bc.MVGP(2, 1, [1.0, 1.0], np.eye(2), np.eye(2), 0.1).fit(X, U, Xdot, max_iters=10)
+def test_predictive_filter_widens_relative_degree_two_at_every_control(model):
+    # the noise of the realised ∇(L_f h)ᵀ ẋ: a constant added to the
+    # variance, the mean unchanged
     h = sector(2)
-    a = bc.SafetyFilter(model, [h], probability=0.99, u_min=[-20], u_max=[20])
-    b = bc.SafetyFilter(model, [h], probability=0.99, u_min=[-20], u_max=[20], predictive=True)
+    latent = bc.SafetyFilter(model, [h], probability=0.99, u_min=[-20], u_max=[20])
+    pred = bc.SafetyFilter(model, [h], probability=0.99, u_min=[-20], u_max=[20],
+                           predictive=True)
     x = [0.4, 0.1]
-    ra, rb = a.filter(x, [1.0]), b.filter(x, [1.0])
-    assert np.array_equal(ra.u, rb.u)
-    assert ra.constraints[0]["std"] == rb.constraints[0]["std"]
+    added = []
+    for u_ref in ([-15.0], [0.0], [15.0]):
+        r = pred.filter(x, u_ref)
+        mean, var = bc.moments(model, h, x, r.u)
+        c = r.constraints[0]
+        assert abs(mean - c["mean"]) <= 1e-9 * max(1.0, abs(mean))
+        added.append(c["std"] ** 2 - var)
+        rl = latent.filter(x, u_ref)
+        assert abs(rl.constraints[0]["std"] ** 2 - bc.moments(model, h, x, rl.u)[1]) \
+            <= 1e-9 * max(1.0, rl.constraints[0]["std"] ** 2)
+    assert min(added) > 0
+    assert max(added) - min(added) <= 1e-9 * max(added)

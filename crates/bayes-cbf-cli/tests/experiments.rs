@@ -32,7 +32,8 @@ fn experiments_write_their_files() {
     let (_dir, out, _) = run_into("calibration", &["--quick", "--episodes", "1"]);
     assert!(is_png(&out.join("calibration.png")));
     let csv = std::fs::read_to_string(out.join("episodes.csv")).unwrap();
-    assert_eq!(csv.lines().count(), 1 + 2 * 2 * 7);
+    // one line per (system, truth, episode, controller): 10 controllers
+    assert_eq!(csv.lines().count(), 1 + 2 * 2 * 10);
 
     let (_dir, _, s) = run_into("soak", &["--steps", "200"]);
     assert_eq!(s["steps"], 200);

@@ -378,7 +378,7 @@ pub struct ControllerSpec {
     /// max_margin, relax, brake or hold.
     #[serde(default = "max_margin")]
     pub fallback: String,
-    /// Promise each relative-degree-1 condition as realised over the step,
+    /// Promise each barrier condition as realised over the step,
     /// the model's observation noise included
     /// ([`bayes_cbf::control::SafetySettings::predictive`]).
     #[serde(default, skip_serializing_if = "std::ops::Not::not")]

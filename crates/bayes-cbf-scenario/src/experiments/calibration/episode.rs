@@ -21,8 +21,8 @@
 //! for the Gaussian factor (Cantelli's is a bound for any distribution).
 
 use bayes_cbf::barrier::{
-    cbc_moments, true_condition, CircleHeading, ConditionMoments, DynBarrier, MomentWorkspace,
-    PendulumSector,
+    cbc_moments, realised_condition, true_condition, CircleHeading, ConditionMoments, DynBarrier,
+    MomentWorkspace, PendulumSector,
 };
 use bayes_cbf::control::{Fallback, SafetyController, SafetySettings};
 use bayes_cbf::gp::{Feature, InputMap, Mvgp, MvgpHyper, PriorMean, Rbf};
@@ -31,7 +31,6 @@ use bayes_cbf::sim::{
 };
 use bayes_cbf::systems::{wrap_angle, Ackermann, DynSystem, GpSample, Pendulum};
 use nalgebra::DMatrix;
-use num_dual::Dual64;
 use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use std::f64::consts::PI;
@@ -451,8 +450,7 @@ pub(crate) struct EpisodeStats {
     /// negative.
     #[serde(default)]
     pub active_violations_late: usize,
-    /// Active steps of a relative-degree-1 barrier (vehicle) whose next
-    /// state was observed.
+    /// Active steps whose realised condition was evaluated.
     #[serde(default)]
     pub realised_active_steps: usize,
     /// Those whose condition as realised over the step, [`realised`], is
@@ -477,22 +475,18 @@ pub(crate) struct EpisodeStats {
     pub error: Option<String>,
 }
 
-/// The relative-degree-1 condition as realised over the step from `x` to
-/// `x_next`: `∇h(x)ᵀ (x_next − x)/τ + α h(x)` (angle differences wrapped),
-/// what the predictive condition promises
-/// ([`SafetySettings::predictive`]): the true dynamics and the process
-/// noise of the step both act on it.
+/// The condition as realised over the step from `x` to `x_next`
+/// ([`realised_condition`] at the rate `(x_next − x)/τ`, angle differences
+/// wrapped): what the predictive condition promises
+/// ([`SafetySettings::predictive`]).
 pub(crate) fn realised(
     truth: &dyn DynSystem,
     b: &dyn DynBarrier,
     x: &[f64],
     x_next: &[f64],
-) -> f64 {
-    let n = x.len();
-    let (mut grad, mut scratch) = (vec![0.0; n], vec![Dual64::from(0.0); 2 * n]);
-    let h = b.gradient(x, &mut grad, &mut scratch);
+) -> Result<f64> {
     let angles = truth.angle_indices();
-    let rate: f64 = (0..n)
+    let rate: Vec<f64> = (0..x.len())
         .map(|i| {
             let d = x_next[i] - x[i];
             let d = if angles.contains(&i) {
@@ -500,10 +494,10 @@ pub(crate) fn realised(
             } else {
                 d
             };
-            grad[i] * d / DT
+            d / DT
         })
-        .sum();
-    rate + b.gains()[0] * h
+        .collect();
+    Ok(realised_condition(truth, b, x, &rate)?)
 }
 
 /// The true barrier condition at `(x, u)`: [`true_condition`] by automatic
@@ -672,11 +666,10 @@ fn summarise(system: System, s: &Setup, r: &LoopResult, moments: &[(f64, f64)]) 
         st.cbc_violations += violated as usize;
         let active = rec.scbc.first().is_some_and(|&sl| sl <= ACTIVE_SLACK);
         if active {
-            if b.relative_degree() == 1 {
-                let next = r.records.get(k + 1).map_or(&r.final_state, |n| &n.x);
+            let next = r.records.get(k + 1).map_or(&r.final_state, |n| &n.x);
+            if let Ok(c) = realised(s.truth.as_ref(), b, &rec.x, next) {
                 st.realised_active_steps += 1;
-                st.realised_active_violations +=
-                    usize::from(realised(s.truth.as_ref(), b, &rec.x, next) < 0.0);
+                st.realised_active_violations += usize::from(c < 0.0);
             }
             st.active_steps += 1;
             st.active_violations += violated as usize;

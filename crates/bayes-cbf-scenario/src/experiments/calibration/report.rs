@@ -34,8 +34,7 @@ pub(super) struct Row {
     pub active: Vec<(usize, usize)>,
     /// Per episode: the same over active steps from step `BURN_IN` (100) on.
     pub active_late: Vec<(usize, usize)>,
-    /// Per episode: `(violated realised conditions, active steps)`
-    /// (relative degree 1).
+    /// Per episode: `(violated realised conditions, active steps)`.
     pub realised: Vec<(usize, usize)>,
     /// Per episode: `(infeasible steps, steps)`.
     pub infeasible: Vec<(usize, usize)>,
@@ -165,10 +164,10 @@ pub struct RowSummary {
     pub steps_violating_h: Pooled,
     /// Steps whose true condition was violated.
     pub true_condition_violated: ConditionViolations,
-    /// Active steps whose condition as realised over the step,
-    /// `∇h(x_k)ᵀ (x_{k+1} − x_k)/τ + α h(x_k)` (true dynamics and process
-    /// noise), was negative: what the predictive condition promises
-    /// (relative degree 1; none for the pendulum).
+    /// Active steps whose condition as realised over the step (the true
+    /// condition with `F(x_k)u̲_k` replaced by `(x_{k+1} − x_k)/τ`: true
+    /// dynamics and process noise) was negative: what the predictive
+    /// condition promises.
     pub realised_condition_violated: Option<Pooled>,
     /// Standardised true conditions `z = (C_true − E[C]) / √Var[C]`.
     pub standardised_condition: SolvedActive<Option<ZSummary>>,
