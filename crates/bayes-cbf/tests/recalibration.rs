@@ -82,3 +82,73 @@ fn a_miss_widens_the_conditions_variance_by_kappa_squared() {
     assert_eq!(r.counts(0), (1, 2));
     assert!((r.inflation(0) - kappa * (-0.3f64 * 0.01).exp()).abs() < 1e-12);
 }
+
+/// With the predictive condition the misses are still decided on the
+/// latent condition: the innovation of a model update is in the posterior
+/// of `F`, and at relative degree 2 the observation noise's share of the
+/// variance, `σ² E[aᵀAa]`, shrinks with an update too. Over a sweep of
+/// observations across the miss threshold, the controller's decisions equal
+/// the rule applied to the latent moments computed here.
+#[test]
+fn predictive_misses_are_decided_on_the_latent_condition() {
+    use bayes_cbf::barrier::{cbc_moments, quantile_factor, ConditionMoments, MomentWorkspace};
+    let sector: Arc<dyn DynBarrier> =
+        Arc::new(PendulumSector::new(0.785, 0.39, 2, vec![1.0, 3.0]).unwrap());
+    let mut s = SafetySettings::new(1);
+    s.probability = 0.9;
+    s.u_min = Some(vec![-20.0]);
+    s.u_max = Some(vec![20.0]);
+    s.predictive = true;
+    let mut m = model(1.0, 10.0);
+    let mut hyper = m.hyper().clone();
+    hyper.sigma = 10.0; // noise of the order of the posterior's spread
+    m.set_hyper(hyper).unwrap();
+    let x = [1.2, 0.4];
+    let c = quantile_factor(0.9, 2).unwrap();
+    let latent = |model: &Mvgp, u: &[f64]| {
+        let mut ws = MomentWorkspace::new(model);
+        ws.update(model, &x, 2).unwrap();
+        let mut mom = ConditionMoments::zeros(1);
+        cbc_moments(&mut ws, sector.as_ref(), &mut mom).unwrap();
+        (mom.mean(u), mom.variance(u))
+    };
+    let mut decisions = [0usize; 2];
+    let mut noise: f64 = 0.0;
+    for i in 0..81 {
+        let mut ctrl = SafetyController::new(2, 1, vec![sector.clone()], None, s.clone()).unwrap();
+        ctrl.set_recalibration(Some(RecalibrationSettings::default()))
+            .unwrap();
+        let mut out = ControlOutput::new(1, 1);
+        ctrl.step(&m, &x, &[0.0], None, &mut out).unwrap();
+        let u = out.u.clone();
+        let mut learned = m.clone();
+        // around the prior's prediction ω̇ = −(g/l) sin θ + u/(m l²)
+        let wdot = -10.0 * x[0].sin() + u[0] - 12.0 + 0.2 * i as f64;
+        learned.add_observation(&x, &u, &[0.4, wdot]).unwrap();
+        ctrl.recalibrate(&learned).unwrap();
+        let (e, v) = latent(&m, &u);
+        let (e1, v1) = latent(&learned, &u);
+        let (misses, updates) = ctrl.recalibrator().unwrap().counts(0);
+        noise = noise.max(ctrl.barrier_moments()[0].variance(&u) - v);
+        if v <= v1 {
+            // the update explained no variance of the condition (its mean
+            // moved, and the variance of a quadratic form with it): no
+            // decision
+            assert_eq!(updates, 0, "ω̇ = {wdot}");
+            continue;
+        }
+        let want = e1 - e < -c * (v - v1).sqrt();
+        assert_eq!(updates, 1, "ω̇ = {wdot}");
+        assert_eq!(
+            misses == 1,
+            want,
+            "ω̇ = {wdot}: innovation {} vs {}",
+            e1 - e,
+            c * (v - v1).sqrt()
+        );
+        decisions[usize::from(want)] += 1;
+    }
+    // the sweep crosses the threshold, and the noise is a large share
+    assert!(decisions[0] > 0 && decisions[1] > 0, "{decisions:?}");
+    assert!(noise > 0.2, "{noise}");
+}

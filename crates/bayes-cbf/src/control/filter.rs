@@ -677,6 +677,9 @@ pub struct SafetyController {
     filter: SafetyFilter,
     ws: Option<MomentWorkspace>,
     cbcs: Vec<ConditionMoments>,
+    /// The observation-noise variance each condition received this step
+    /// ([`SafetySettings::predictive`]; zeros otherwise).
+    noise: Vec<f64>,
     clc: ConditionMoments,
     max_degree: usize,
     mc: McSettings,
@@ -685,7 +688,9 @@ pub struct SafetyController {
 }
 
 /// The recalibration state: the inflations, and the last step's state,
-/// control and uninflated condition moments `(E, Var)` at that control.
+/// control and uninflated latent condition moments `(E, Var)` at that
+/// control (without the observation noise of
+/// [`SafetySettings::predictive`]).
 #[derive(Debug, Clone)]
 struct Recalibration {
     inflation: Recalibrator,
@@ -748,6 +753,7 @@ impl SafetyController {
             filter,
             ws: None,
             cbcs: vec![ConditionMoments::zeros(m); nb],
+            noise: vec![0.0; nb],
             clc: ConditionMoments::zeros(m),
             max_degree,
             mc: McSettings {
@@ -816,9 +822,6 @@ impl SafetyController {
                 continue;
             };
             cbc_moments(ws, b.as_ref(), &mut rc.post)?;
-            if self.filter.settings.predictive {
-                add_observation_noise(ws, &mut rc.post)?;
-            }
             let after = (rc.post.mean(&rc.u), rc.post.variance(&rc.u));
             let c = quantile_factor(p, b.relative_degree())?;
             rc.inflation.update(i, before, after, c, 1.0 - p);
@@ -869,11 +872,15 @@ impl SafetyController {
         }
         let ws = self.ws.get_or_insert_with(|| MomentWorkspace::new(model));
         ws.update(model, x, self.max_degree)?;
-        for (b, mom) in self.barriers.iter().zip(self.cbcs.iter_mut()) {
+        let cbcs = self.cbcs.iter_mut().zip(self.noise.iter_mut());
+        for (b, (mom, noise)) in self.barriers.iter().zip(cbcs) {
+            *noise = 0.0;
             if b.relative_degree() <= 2 {
                 cbc_moments(ws, b.as_ref(), mom)?;
                 if self.filter.settings.predictive {
+                    let latent = mom.cov[(0, 0)];
                     add_observation_noise(ws, mom)?;
+                    *noise = mom.cov[(0, 0)] - latent;
                 }
             } else {
                 // no closed form: Monte Carlo over joint posterior draws,
@@ -910,10 +917,14 @@ impl SafetyController {
             rc.x.extend_from_slice(x);
             rc.u.clear();
             rc.u.extend_from_slice(&out.u);
+            // the latent condition's moments: the innovation of a model
+            // update is in the posterior of F, not in the noise
             for (i, (b, mom)) in self.barriers.iter().zip(&self.cbcs).enumerate() {
                 let k = rc.inflation.inflation(i);
-                rc.predicted[i] = (b.relative_degree() <= 2)
-                    .then(|| (mom.mean(&out.u), mom.variance(&out.u) / (k * k)));
+                rc.predicted[i] = (b.relative_degree() <= 2).then(|| {
+                    let var = mom.variance(&out.u) / (k * k) - self.noise[i];
+                    (mom.mean(&out.u), var)
+                });
             }
         }
         Ok(())
