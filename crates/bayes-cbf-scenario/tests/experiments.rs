@@ -87,8 +87,8 @@ fn quick_calibration() {
     let rows = s["rows"].as_array().unwrap();
     assert_eq!(
         rows.len(),
-        2 * 2 * 7,
-        "2 systems × 2 truths × 7 controllers"
+        2 * 2 * 10,
+        "2 systems × 2 truths × 10 controllers"
     );
     for r in rows {
         assert_eq!(r["non_finite_records"], 0, "{r}");
@@ -216,6 +216,38 @@ fn quick_calibration() {
         let (lo, _) = wilson_999(k, n);
         assert!(lo <= 1.0 - p, "well specified {recal}: {k} of {n}");
     }
+    // the predictive condition promises the condition as realised over the
+    // step (true dynamics and process noise): on the vehicle's active steps
+    // it fails at most 1.5 (1 − p) (the 99.9 % interval's lower end), well
+    // specified or not, where the latent controllers' realised conditions
+    // fail on a quarter or more of theirs; and no more episodes end with
+    // h < 0 than under the recalibration alone
+    for (p, plain, pred) in [
+        (0.9, bayes[0], "bayes-cbf p=0.9 recalibrated predictive"),
+        (0.99, bayes[1], "bayes-cbf p=0.99 recalibrated predictive"),
+    ] {
+        for truth in ["well_specified", "mis_specified"] {
+            let row = |c: &str| calibration_row(&s, "ackermann", truth, c);
+            let realised = |c: &str| {
+                let v = &row(c)["realised_condition_violated"];
+                (v["count"].as_u64().unwrap(), v["of"].as_u64().unwrap())
+            };
+            let (k, n) = realised(pred);
+            assert!(n >= 300, "{truth} {pred}: only {n} active steps");
+            let (lo, _) = wilson_999(k, n);
+            assert!(lo <= 1.5 * (1.0 - p), "{truth} {pred}: {k} of {n}");
+            let (kp, np) = realised(plain);
+            assert!(kp as f64 > 0.2 * np as f64, "{truth} {plain}: {kp} of {np}");
+            let episodes = |c: &str| row(c)["episodes_violating_h"]["count"].as_u64().unwrap();
+            let recal = pred.trim_end_matches(" predictive");
+            assert!(
+                episodes(pred) <= episodes(recal),
+                "{truth}: {} against {}",
+                episodes(pred),
+                episodes(recal)
+            );
+        }
+    }
     // paired episodes: the mean CBF violates h where the Bayes CBF does not
     // at least as often as the other way round
     for p in s["paired_mean_vs_bayes"].as_array().unwrap() {
@@ -229,7 +261,7 @@ fn quick_calibration() {
     let csv = &one.tables()[0].csv;
     assert_eq!(
         csv.lines().count(),
-        1 + 2 * 2 * 7 * s["episodes"].as_u64().unwrap() as usize
+        1 + 2 * 2 * 10 * s["episodes"].as_u64().unwrap() as usize
     );
 }
 
