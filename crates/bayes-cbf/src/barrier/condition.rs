@@ -192,7 +192,8 @@ mod tests {
         let car = Ackermann { wheelbase: 2.0 };
         let sector = PendulumSector::new(0.8, 0.3, 2, vec![1.0, 3.0]).unwrap();
         let disc = CircleHeading::new([-1.0, 0.5], 0.6, 0.7, 0.3, 1, vec![5.0]).unwrap();
-        let cases: [(&dyn DynSystem, &dyn DynBarrier, Vec<f64>, Vec<f64>); 2] = [
+        type Case<'a> = (&'a dyn DynSystem, &'a dyn DynBarrier, Vec<f64>, Vec<f64>);
+        let cases: [Case; 2] = [
             (&pend, &sector, vec![1.2, -0.4], vec![0.7]),
             (&car, &disc, vec![0.3, -0.2, 0.4], vec![0.8, -0.3]),
         ];
