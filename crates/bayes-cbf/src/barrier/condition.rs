@@ -24,12 +24,7 @@ pub fn true_condition(
     u: &[f64],
 ) -> Result<f64, InputError> {
     let (n, m) = (system.state_dim(), system.control_dim());
-    if x.len() != n || barrier.state_dim() != n {
-        return Err(InputError::shape("x", n, x.len()));
-    }
-    if u.len() != m {
-        return Err(InputError::shape("u", m, u.len()));
-    }
+    check_point(barrier, n, x, ("u", u, m))?;
     let mut fbuf = vec![0.0; n * (1 + m)];
     let mut xdot = vec![0.0; n];
     system.xdot(x, u, &mut fbuf, &mut xdot);
@@ -55,18 +50,30 @@ pub fn realised_condition(
     xdot: &[f64],
 ) -> Result<f64, InputError> {
     let (n, m) = (system.state_dim(), system.control_dim());
-    if x.len() != n || barrier.state_dim() != n {
-        return Err(InputError::shape("x", n, x.len()));
-    }
-    if xdot.len() != n {
-        return Err(InputError::shape("xdot", n, xdot.len()));
-    }
+    check_point(barrier, n, x, ("xdot", xdot, n))?;
     check_finite("x", x)?;
     check_finite("xdot", xdot)?;
     let mut fbuf = vec![0.0; n * (1 + m)];
     let mut f = vec![0.0; n];
     system.xdot(x, &vec![0.0; m], &mut fbuf, &mut f);
     along(system, barrier, x, &f, xdot)
+}
+
+/// Checks that `x` and the barrier have the state dimension `n`, and that
+/// `v` (named `field`) has `len` entries.
+fn check_point(
+    barrier: &dyn DynBarrier,
+    n: usize,
+    x: &[f64],
+    (field, v, len): (&str, &[f64], usize),
+) -> Result<(), InputError> {
+    if x.len() != n || barrier.state_dim() != n {
+        return Err(InputError::shape("x", n, x.len()));
+    }
+    if v.len() != len {
+        return Err(InputError::shape(field, len, v.len()));
+    }
+    Ok(())
 }
 
 /// The condition along the rate `xdot`, with drift `f` (relative degree 2).
