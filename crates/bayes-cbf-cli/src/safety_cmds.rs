@@ -70,6 +70,10 @@ pub struct ControlArgs {
     /// Action when infeasible: max_margin, brake or hold.
     #[arg(long, default_value = "max_margin")]
     pub fallback: String,
+    /// Promise each barrier condition as realised over the step: the
+    /// model's observation noise σ²A enters its variance.
+    #[arg(long)]
+    pub predictive: bool,
     /// Write the JSON here instead of stdout.
     #[arg(long)]
     pub out: Option<PathBuf>,
@@ -137,6 +141,7 @@ pub fn run_control(a: &ControlArgs) -> Result<()> {
     let mut settings = SafetySettings::new(m);
     settings.probability = a.probability;
     settings.zeta = a.zeta;
+    settings.predictive = a.predictive;
     settings.u_min = a
         .u_min
         .as_deref()

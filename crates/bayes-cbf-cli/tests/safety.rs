@@ -103,6 +103,23 @@ fn control_returns_a_safe_optimal_input() {
 }
 
 #[test]
+fn predictive_control_widens_each_condition_by_the_observation_noise() {
+    let dir = setup("control-predictive", &[("b1.json", SECTOR_RD1)]);
+    let args = "control --model model.json --barrier b1.json --x 2.5,0.0 \
+                --probability 0.9 --u-ref=-3";
+    let latent = json_out(&dir, args);
+    let pred = json_out(&dir, &format!("{args} --predictive"));
+    let std = |v: &serde_json::Value| v["constraints"][0]["std"].as_f64().unwrap();
+    // more variance at least at its own control, and the control moved
+    // further from the unsafe reference
+    assert!(std(&pred) > std(&latent), "{pred} {latent}");
+    assert!(pred["u"][0].as_f64().unwrap() > latent["u"][0].as_f64().unwrap());
+    let c = &pred["constraints"][0];
+    let (mean, cc) = (c["mean"].as_f64().unwrap(), c["c"].as_f64().unwrap());
+    assert!(mean - cc * std(&pred) >= -1e-6, "{c}");
+}
+
+#[test]
 fn control_reports_infeasibility_and_fallback() {
     let dir = setup("control_infeasible", &[("b.json", SECTOR)]);
     // deep inside the unsafe sector with tight bounds: no input satisfies the condition
