@@ -105,83 +105,68 @@ fn violation_rate(
     (violations as f64 / DRAWS as f64, half)
 }
 
-/// Relative degree 1, half-space barrier: at the returned control the
-/// Gaussian condition fails with probability exactly `1 − p`. Checked at
-/// `p = 0.9` (`c = Φ⁻¹(0.9)`) and `p = 0.99`, at two states, against
-/// direct draws `F = M + L_A Ξ L_Bᵀ` of the posterior at `x`.
-#[test]
-fn relative_degree_one_violation_rate_is_one_minus_p() {
-    let gp = model(41);
+/// At the control that makes the half-space barrier's constraint active,
+/// the rate at which draws of the condition fail: `∇hᵀ(F u̲ + ε) + αh` with
+/// `F = M + L_A Ξ L_Bᵀ` drawn from the posterior at `x` and, when `noise`,
+/// `ε ~ N(0, σ² A)` (the model's observation noise) drawn beside it. The
+/// rate must be `1 − p` within the binomial interval, at `p = 0.9`
+/// (`c = Φ⁻¹(0.9)`) and `p = 0.99`, at two states; returns, per case, the
+/// rate of the latent condition (`F` alone) and the interval's half-width.
+fn half_space_rates(gp: &Mvgp, predictive: bool, seed: u64) -> Vec<(f64, f64, f64)> {
     let barrier = HalfSpace::new(vec![1.0, 0.6], -0.2, 1, vec![1.5]).unwrap();
     let la = gp.row_cov_factor().unwrap();
+    let sigma = if predictive { gp.hyper().sigma } else { 0.0 };
+    let mut latent_rates = Vec::new();
     for (p, c) in [(0.9, 1.2815515655446004), (0.99, 2.3263478740408408)] {
         for (t, x) in [[0.1, 0.3], [0.6, 0.5]].iter().enumerate() {
             let b: Arc<dyn DynBarrier> = Arc::new(barrier.clone());
-            let u = active_control(&gp, b, x, p, c, false);
+            let u = active_control(gp, b, x, p, c, predictive);
             let post = gp.posterior(x).unwrap();
             let lb = psd_sqrt(&post.B);
             let h = barrier.value(x);
             let grad = DVector::from_column_slice(&barrier.normal);
             let ubar = DVector::from_column_slice(&[1.0, u]);
-            let (rate, half) = violation_rate(100 + t as u64, p, |rng| {
+            let condition = |rng: &mut ChaCha8Rng, eps_scale: f64| {
                 let z = DMatrix::from_fn(2, 2, |_, _| StandardNormal.sample(rng));
+                let e = DVector::from_fn(2, |_, _| StandardNormal.sample(rng));
                 let f = &post.mean + &la * z * lb.transpose();
-                grad.dot(&(f * &ubar)) + DynBarrier::gains(&barrier)[0] * h
-            });
+                let eps = &la * e * eps_scale;
+                grad.dot(&(f * &ubar + eps)) + DynBarrier::gains(&barrier)[0] * h
+            };
+            let (rate, half) = violation_rate(seed + t as u64, p, |rng| condition(rng, sigma));
             eprintln!("p = {p}, x = {x:?}: u = {u:.4}, rate {rate:.4} (1 − p ± {half:.4})");
             assert!(
                 (rate - (1.0 - p)).abs() <= half,
-                "p = {p}, x = {x:?}: violation rate {rate} outside {} ± {half}",
+                "p = {p}, x = {x:?}, predictive {predictive}: violation rate {rate} outside {} ± {half}",
                 1.0 - p
             );
+            let (latent, half) = violation_rate(seed + 50 + t as u64, p, |rng| condition(rng, 0.0));
+            latent_rates.push((1.0 - p, latent, half));
         }
     }
+    latent_rates
+}
+
+/// Relative degree 1: at the returned control the Gaussian condition fails
+/// with probability exactly `1 − p`.
+#[test]
+fn relative_degree_one_violation_rate_is_one_minus_p() {
+    half_space_rates(&model(41), false, 100);
 }
 
 /// The predictive condition ([`SafetySettings::predictive`]): at the
 /// returned control the condition as realised over a step,
 /// `∇hᵀ(F u̲ + ε) + αh` with `ε ~ N(0, σ² A)` the model's observation noise,
-/// fails with probability exactly `1 − p`.
+/// fails with probability exactly `1 − p`; the latent condition (`F`
+/// alone) fails less often, the noise having widened the margin.
 #[test]
 fn predictive_relative_degree_one_realised_violation_rate_is_one_minus_p() {
     let mut gp = model(43);
     let mut hyper = gp.hyper().clone();
     hyper.sigma = 0.5; // noise comparable to the posterior spread
     gp.set_hyper(hyper).unwrap();
-    let barrier = HalfSpace::new(vec![1.0, 0.6], -0.2, 1, vec![1.5]).unwrap();
-    let la = gp.row_cov_factor().unwrap();
-    let sigma = gp.hyper().sigma;
-    for (p, c) in [(0.9, 1.2815515655446004), (0.99, 2.3263478740408408)] {
-        for (t, x) in [[0.1, 0.3], [0.6, 0.5]].iter().enumerate() {
-            let b: Arc<dyn DynBarrier> = Arc::new(barrier.clone());
-            let u = active_control(&gp, b, x, p, c, true);
-            let post = gp.posterior(x).unwrap();
-            let lb = psd_sqrt(&post.B);
-            let h = barrier.value(x);
-            let grad = DVector::from_column_slice(&barrier.normal);
-            let ubar = DVector::from_column_slice(&[1.0, u]);
-            let realised = |rng: &mut ChaCha8Rng| {
-                let z = DMatrix::from_fn(2, 2, |_, _| StandardNormal.sample(rng));
-                let e = DVector::from_fn(2, |_, _| StandardNormal.sample(rng));
-                let f = &post.mean + &la * z * lb.transpose();
-                let eps = &la * e * sigma;
-                grad.dot(&(f * &ubar + eps)) + DynBarrier::gains(&barrier)[0] * h
-            };
-            let (rate, half) = violation_rate(200 + t as u64, p, realised);
-            assert!(
-                (rate - (1.0 - p)).abs() <= half,
-                "p = {p}, x = {x:?}: realised violation rate {rate} outside {} ± {half}",
-                1.0 - p
-            );
-            // the latent condition (F alone) is met more often: the noise
-            // widened the margin
-            let (latent, half) = violation_rate(300 + t as u64, p, |rng| {
-                let z = DMatrix::from_fn(2, 2, |_, _| StandardNormal.sample(rng));
-                let f = &post.mean + &la * z * lb.transpose();
-                grad.dot(&(f * &ubar)) + DynBarrier::gains(&barrier)[0] * h
-            });
-            assert!(latent < (1.0 - p) - half, "{latent}");
-        }
+    for (promise, latent, half) in half_space_rates(&gp, true, 200) {
+        assert!(latent < promise - half, "{latent} against {promise}");
     }
 }
 
