@@ -80,6 +80,7 @@ pub struct SafetySettings {
     /// moves the state during the hold is covered too. `false` (the paper):
     /// the posterior of `F` alone. Barriers of relative degree > 2 (Monte
     /// Carlo moments) keep the posterior's.
+    #[cfg_attr(feature = "serde", serde(default))]
     pub predictive: bool,
 }
 
