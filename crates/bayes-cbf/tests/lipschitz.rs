@@ -642,6 +642,19 @@ fn periodic_factor_bounds_are_the_minimised_cauchy_estimates() {
     }
 }
 
+/// A coordinate the kernel does not see (no feature of the input map reads
+/// it) has a constant factor: every derivative bound is zero.
+#[test]
+fn a_coordinate_the_kernel_ignores_has_zero_factor_bounds() {
+    use bayes_cbf::gp::Feature;
+    let kern = Rbf::new(vec![0.8, 1.1], 1.0).unwrap();
+    let map = InputMap::Features(vec![Feature::Cos(0), Feature::Sin(0)]);
+    let b = factor_bounds(&kern, &map, 2);
+    assert_eq!(b.len(), 2);
+    assert!(b[0].m1 > 0.0);
+    assert_eq!(b[1], Default::default());
+}
+
 /// The settings' boundaries: `δ_L` in the open interval, at least two grid
 /// nodes, at most 10⁶ grid nodes in all.
 #[test]
