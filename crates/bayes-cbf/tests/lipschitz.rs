@@ -655,6 +655,133 @@ fn a_coordinate_the_kernel_ignores_has_zero_factor_bounds() {
     assert_eq!(b[1], Default::default());
 }
 
+/// The numerical estimate on a one-node cuboid (every side 0) is the
+/// largest `|J_ic|` over posterior draws `J = ∂μ + L_A Z L_Hᵀ` of the
+/// Jacobian, whose entry `(i, c)` has mean `∂μ_ic` and standard deviation
+/// `√(A_ii H_cc)` ([`Mvgp::jacobian_posterior`]). Over 20 000 draws the
+/// excess `(entry − |∂μ_ic|)/√(A_ii H_cc)` of each entry is the largest of
+/// 20 000 standard normals (folded when `∂μ_ic ≈ 0`): between 2.5 and 5.5
+/// (it is outside with probability below 10⁻³ per entry). A wrong square
+/// root of `H`, a draw combined wrongly or an entry written to another
+/// place moves it out.
+#[test]
+fn numerical_estimate_is_the_largest_posterior_draw_of_each_entry() {
+    let mut rng = ChaCha8Rng::seed_from_u64(31);
+    let (n, m, k) = (2, 1, 12);
+    let a = random_spd(n, &mut rng) * 0.3 + DMatrix::from_diagonal(&nalgebra::dvector![2.0, 0.05]);
+    let hyper = MvgpHyper {
+        kernel: Rbf::new(vec![0.7, 1.9], 1.3).unwrap(),
+        A: a,
+        B: random_spd(m + 1, &mut rng),
+        sigma: 0.2,
+    };
+    let prior = PriorMean::System(Arc::new(RandomSystem::new(n, m, 5)));
+    let mut gp = Mvgp::new(n, m, hyper, prior, InputMap::Identity).unwrap();
+    let xs: Vec<f64> = (0..k * n).map(|_| rng.random_range(-1.5..1.5)).collect();
+    let us: Vec<f64> = (0..k * m).map(|_| rng.random_range(-1.0..1.0)).collect();
+    let xd: Vec<f64> = (0..k * n).map(|_| rng.random_range(-1.0..1.0)).collect();
+    gp.set_data(&xs, &us, &xd).unwrap();
+    let (x, u) = ([0.3, -0.4], [0.6]);
+    let settings = LipschitzSettings {
+        delta_l: 1e-2,
+        sides: vec![0.0; n],
+        grid: 2,
+        samples: 20_000,
+    };
+    let est = gp.lipschitz(&x, &u, &settings, &mut rng).unwrap();
+    let (mean, h) = gp.jacobian_posterior(&x, &u).unwrap();
+    let a = gp.row_cov();
+    let mut stds = Vec::new();
+    for i in 0..n {
+        for c in 0..n {
+            let sd = (a[(i, i)] * h[(c, c)]).sqrt();
+            stds.push(sd);
+            let excess = (est.numerical_entries[i * n + c] - mean[(i, c)].abs()) / sd;
+            assert!(
+                (2.5..5.5).contains(&excess),
+                "entry ({i}, {c}): {} against |mean| {} and sd {sd}: excess {excess}",
+                est.numerical_entries[i * n + c],
+                mean[(i, c)].abs()
+            );
+        }
+    }
+    // the entries' spreads differ enough for a swap of entries to show
+    let (lo, hi) = stds
+        .iter()
+        .fold((f64::INFINITY, 0.0f64), |(l, h), s| (l.min(*s), h.max(*s)));
+    assert!(hi > 3.0 * lo, "{stds:?}");
+    let norm = est
+        .numerical_entries
+        .iter()
+        .map(|v| v * v)
+        .sum::<f64>()
+        .sqrt();
+    assert!((est.numerical.unwrap() - norm).abs() <= 1e-12 * norm);
+}
+
+/// In any dimension each analytic entry is Lemma 3's sum of its reported
+/// parts: `L_ij = M_ij + √(2 ln(2n²/δ_L)) σ_ij + 12 √(6n) max(σ_ij,
+/// √(r A_ii L_j))` with `r` the cuboid's diagonal (its extension) and `L_j`
+/// the kernel's Lipschitz constant (checked here at n = 1 and 3, where
+/// `n²`, `2n` and `n + n` differ).
+#[test]
+fn analytic_entries_are_the_sum_of_their_parts_in_any_dimension() {
+    for n in [1usize, 3] {
+        let mut rng = ChaCha8Rng::seed_from_u64(40 + n as u64);
+        let m = 1;
+        let hyper = MvgpHyper {
+            kernel: Rbf::new(vec![0.9; n], 1.1).unwrap(),
+            A: random_spd(n, &mut rng),
+            B: random_spd(m + 1, &mut rng),
+            sigma: 0.2,
+        };
+        let prior = PriorMean::System(Arc::new(RandomSystem::new(n, m, 9)));
+        let mut gp = Mvgp::new(n, m, hyper, prior, InputMap::Identity).unwrap();
+        let k = 8;
+        let xs: Vec<f64> = (0..k * n).map(|_| rng.random_range(-1.0..1.0)).collect();
+        let us: Vec<f64> = (0..k * m).map(|_| rng.random_range(-1.0..1.0)).collect();
+        let xd: Vec<f64> = (0..k * n).map(|_| rng.random_range(-1.0..1.0)).collect();
+        gp.set_data(&xs, &us, &xd).unwrap();
+        let delta_l = 0.01;
+        let settings = LipschitzSettings {
+            delta_l,
+            sides: vec![0.3; n],
+            grid: 3,
+            samples: 0,
+        };
+        let x = vec![0.1; n];
+        let est = gp.lipschitz(&x, &[0.4], &settings, &mut rng).unwrap();
+        let log_term = (2.0 * (2.0 * (n * n) as f64 / delta_l).ln()).sqrt();
+        let dudley = 12.0 * (6.0 * n as f64).sqrt();
+        let a = gp.row_cov();
+        for i in 0..n {
+            for j in 0..n {
+                let e = i * n + j;
+                let sig = est.sigma_entries[e];
+                let want = est.mean_entries[e]
+                    + log_term * sig
+                    + dudley
+                        * sig.max((est.extension * a[(i, i)] * est.kernel_lipschitz[j]).sqrt());
+                let got = est.analytic_entries[e];
+                assert!(
+                    (got - want).abs() <= 1e-12 * want,
+                    "n = {n} ({i}, {j}): {got} {want}"
+                );
+            }
+        }
+        let norm = est
+            .analytic_entries
+            .iter()
+            .map(|v| v * v)
+            .sum::<f64>()
+            .sqrt();
+        assert!((est.analytic - norm).abs() <= 1e-12 * norm);
+        // the extension is the diagonal of the cuboid
+        let r = (n as f64 * 0.09).sqrt();
+        assert!((est.extension - r).abs() < 1e-15);
+    }
+}
+
 /// The settings' boundaries: `δ_L` in the open interval, at least two grid
 /// nodes, at most 10⁶ grid nodes in all.
 #[test]
