@@ -296,3 +296,46 @@ fn active_bounds_cost_at_most_twice_the_evaluations() {
         );
     }
 }
+
+/// Each check of `FitSettings::validate` at its boundary: `warm_range ≥ 1`
+/// (1 itself allowed, NaN rejected), `σ_min ≥ 0`.
+#[test]
+fn fit_settings_boundaries() {
+    let ok = |warm_range: f64, sigma_min: f64| {
+        FitSettings {
+            warm_range,
+            sigma_min,
+            ..FitSettings::default()
+        }
+        .validate()
+        .is_ok()
+    };
+    assert!(ok(1.0, 0.0) && ok(f64::INFINITY, 0.5));
+    assert!(!ok(1.0 - 1e-12, 0.0) && !ok(f64::NAN, 0.0) && !ok(0.0, 0.0));
+    assert!(!ok(2.0, -1e-300) && !ok(2.0, f64::NAN));
+    let e = FitSettings {
+        warm_range: 0.5,
+        ..FitSettings::default()
+    }
+    .validate()
+    .unwrap_err();
+    assert!(e.to_string().contains("warm_range"), "{e}");
+}
+
+/// The benchmark floor of an evaluation needs an evaluation first, and
+/// leaves the next evaluation's value and gradient as they were.
+#[test]
+fn likelihood_floor_needs_an_evaluation_and_changes_nothing() {
+    use bayes_cbf::gp::MvgpLikelihood;
+    let model = pendulum_model(40, 3);
+    let mut lik = MvgpLikelihood::new(&model, &FitSettings::default()).unwrap();
+    assert!(lik.floor().is_err());
+    let theta = lik.start().to_vec();
+    let mut g1 = vec![0.0; lik.dim()];
+    let v1 = lik.evaluate(&theta, &mut g1).unwrap();
+    lik.floor().unwrap();
+    let mut g2 = vec![0.0; lik.dim()];
+    let v2 = lik.evaluate(&theta, &mut g2).unwrap();
+    assert_eq!(v1, v2);
+    assert_eq!(g1, g2);
+}
