@@ -339,3 +339,87 @@ fn likelihood_floor_needs_an_evaluation_and_changes_nothing() {
     assert_eq!(v1, v2);
     assert_eq!(g1, g2);
 }
+
+/// The noise floor `σ² = σ_f² + ε s̄` (`ε = 10⁻¹⁰`, `s̄` the mean of the
+/// Gram matrix's signal diagonal `u̲_jᵀ B u̲_j k(z_j, z_j)`): with `σ_f`
+/// driven to zero, the hyperparameters at `θ` have exactly
+/// `σ² = ε · mean_j u̲_jᵀ B u̲_j k₀(z_j, z_j)` (in the returned
+/// normalisation, where `B` and `σ²` scale together).
+#[test]
+fn the_noise_floor_is_a_fraction_of_the_mean_signal() {
+    use bayes_cbf::gp::MvgpLikelihood;
+    let model = pendulum_model(30, 4);
+    let lik = MvgpLikelihood::new(&model, &FitSettings::default()).unwrap();
+    let start = lik.start().to_vec();
+    let base = lik.hyper(&start).unwrap();
+    // the coordinate of log σ_f: the one that moves σ alone
+    let i = (0..lik.dim())
+        .find(|&i| {
+            let mut th = start.clone();
+            th[i] += 0.5;
+            let h = lik.hyper(&th).unwrap();
+            h.sigma != base.sigma && h.A == base.A && h.B == base.B && h.kernel == base.kernel
+        })
+        .expect("a coordinate for σ_f");
+    let mut th = start.clone();
+    th[i] = -300.0;
+    let h = lik.hyper(&th).unwrap();
+    let (us, m) = (model.controls(), model.control_dim());
+    let k = model.len();
+    let s0 = h.kernel.variance();
+    let mean_signal = (0..k)
+        .map(|j| {
+            let ub: Vec<f64> = std::iter::once(1.0)
+                .chain(us[j * m..(j + 1) * m].iter().copied())
+                .collect();
+            let bu = &h.B * DVector::from_column_slice(&ub);
+            DVector::from_column_slice(&ub).dot(&bu) * s0
+        })
+        .sum::<f64>()
+        / k as f64;
+    let want = (1e-10 * mean_signal).sqrt();
+    assert!(
+        (h.sigma - want).abs() <= 1e-9 * want,
+        "σ = {} against √(ε s̄) = {want}",
+        h.sigma
+    );
+}
+
+/// The evaluation applies the same floor: at `θ` with `σ_f` driven to
+/// zero, `−log p(θ)` equals the negative log marginal likelihood of the
+/// model with the hyperparameters `hyper(θ)` (whose `σ` is the floor). One
+/// observation is repeated, so that the Gram matrix without noise is
+/// singular and the floor decides its smallest eigenvalue.
+#[test]
+fn the_evaluation_and_the_hyperparameters_share_the_floor() {
+    use bayes_cbf::gp::MvgpLikelihood;
+    let mut model = pendulum_model(30, 4);
+    let (x0, u0, xd0) = (
+        model.xs()[..2].to_vec(),
+        model.controls()[..1].to_vec(),
+        model.xdot()[..2].to_vec(),
+    );
+    model.add_observation(&x0, &u0, &xd0).unwrap();
+    let mut lik = MvgpLikelihood::new(&model, &FitSettings::default()).unwrap();
+    let start = lik.start().to_vec();
+    let base = lik.hyper(&start).unwrap();
+    let i = (0..lik.dim())
+        .find(|&i| {
+            let mut th = start.clone();
+            th[i] += 0.5;
+            let h = lik.hyper(&th).unwrap();
+            h.sigma != base.sigma && h.A == base.A && h.B == base.B && h.kernel == base.kernel
+        })
+        .expect("a coordinate for σ_f");
+    let mut th = start.clone();
+    th[i] = -300.0;
+    let mut g = vec![0.0; lik.dim()];
+    let neg = lik.evaluate(&th, &mut g).unwrap();
+    let mut refit = model.clone();
+    refit.set_hyper(lik.hyper(&th).unwrap()).unwrap();
+    let want = -refit.log_marginal_likelihood();
+    assert!(
+        (neg - want).abs() <= 1e-6 * want.abs().max(1.0),
+        "{neg} against {want}"
+    );
+}
