@@ -340,6 +340,24 @@ fn likelihood_floor_needs_an_evaluation_and_changes_nothing() {
     assert_eq!(g1, g2);
 }
 
+/// The likelihood's start with `log σ_f` (the one coordinate that moves
+/// `σ` alone) at −300: `σ_f` is zero and the noise is the floor.
+fn without_free_noise(lik: &bayes_cbf::gp::MvgpLikelihood<'_, Rbf>) -> Vec<f64> {
+    let start = lik.start().to_vec();
+    let base = lik.hyper(&start).unwrap();
+    let i = (0..lik.dim())
+        .find(|&i| {
+            let mut th = start.clone();
+            th[i] += 0.5;
+            let h = lik.hyper(&th).unwrap();
+            h.sigma != base.sigma && h.A == base.A && h.B == base.B && h.kernel == base.kernel
+        })
+        .expect("a coordinate for σ_f");
+    let mut th = start;
+    th[i] = -300.0;
+    th
+}
+
 /// The noise floor `σ² = σ_f² + ε s̄` (`ε = 10⁻¹⁰`, `s̄` the mean of the
 /// Gram matrix's signal diagonal `u̲_jᵀ B u̲_j k(z_j, z_j)`): with `σ_f`
 /// driven to zero, the hyperparameters at `θ` have exactly
@@ -350,19 +368,7 @@ fn the_noise_floor_is_a_fraction_of_the_mean_signal() {
     use bayes_cbf::gp::MvgpLikelihood;
     let model = pendulum_model(30, 4);
     let lik = MvgpLikelihood::new(&model, &FitSettings::default()).unwrap();
-    let start = lik.start().to_vec();
-    let base = lik.hyper(&start).unwrap();
-    // the coordinate of log σ_f: the one that moves σ alone
-    let i = (0..lik.dim())
-        .find(|&i| {
-            let mut th = start.clone();
-            th[i] += 0.5;
-            let h = lik.hyper(&th).unwrap();
-            h.sigma != base.sigma && h.A == base.A && h.B == base.B && h.kernel == base.kernel
-        })
-        .expect("a coordinate for σ_f");
-    let mut th = start.clone();
-    th[i] = -300.0;
+    let th = without_free_noise(&lik);
     let h = lik.hyper(&th).unwrap();
     let (us, m) = (model.controls(), model.control_dim());
     let k = model.len();
@@ -401,18 +407,7 @@ fn the_evaluation_and_the_hyperparameters_share_the_floor() {
     );
     model.add_observation(&x0, &u0, &xd0).unwrap();
     let mut lik = MvgpLikelihood::new(&model, &FitSettings::default()).unwrap();
-    let start = lik.start().to_vec();
-    let base = lik.hyper(&start).unwrap();
-    let i = (0..lik.dim())
-        .find(|&i| {
-            let mut th = start.clone();
-            th[i] += 0.5;
-            let h = lik.hyper(&th).unwrap();
-            h.sigma != base.sigma && h.A == base.A && h.B == base.B && h.kernel == base.kernel
-        })
-        .expect("a coordinate for σ_f");
-    let mut th = start.clone();
-    th[i] = -300.0;
+    let th = without_free_noise(&lik);
     let mut g = vec![0.0; lik.dim()];
     let neg = lik.evaluate(&th, &mut g).unwrap();
     let mut refit = model.clone();
