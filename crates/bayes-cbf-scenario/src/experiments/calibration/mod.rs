@@ -5,10 +5,12 @@
 //!
 //! ## Episodes
 //! Each episode draws (from its own seed) a truth, an initial state and the
-//! noise; the four controllers run the *same* episode (paired comparison).
+//! noise; every controller runs the *same* episode (paired comparison): the
+//! Bayes CBF with the posterior as it is, recalibrated, and recalibrated
+//! with the predictive condition, each at three `p`, and the mean CBF.
 //! The model learns online at every step (O(k²) growth, no refits, no
-//! window). States are observed exactly and `ẋ` is measured by forward
-//! differences; the noise is process noise, so that the data follow the
+//! window). States are observed exactly and `ẋ` is measured by the
+//! difference quotient of each step; the noise is process noise, so that the data follow the
 //! MVGP's own observation model (see `PROCESS_NOISE_WELL` in `episode.rs`).
 //!
 //! - **Ackermann vehicle** (relative degree 1, Gaussian factor): obstacle
@@ -50,7 +52,9 @@
 //! `episode.rs`): violated steps among all solved steps and among steps
 //! whose chance constraint is active, with the number the model expected
 //! (`Σ Φ(−E/√Var)`) and the standardised values
-//! `z = (C_true − E[C])/√Var[C]`; infeasible steps (the max-margin
+//! `z = (C_true − E[C])/√Var[C]`; on active steps also the condition as
+//! realised over the step (`barrier::realised_condition` at the observed
+//! rate, what the predictive controllers promise); infeasible steps (the max-margin
 //! fallback was applied) and episodes using it, collisions and goal reached
 //! (vehicle). Rates come with 95 % Wilson score intervals; pooled step rates
 //! also with a cluster-robust interval, since steps of one episode are not
