@@ -655,6 +655,30 @@ fn a_coordinate_the_kernel_ignores_has_zero_factor_bounds() {
     assert_eq!(b[1], Default::default());
 }
 
+/// A model with `hyper`, the prior mean of a random system (`prior_seed`)
+/// and `k` observations: states uniform in `[−w, w]ⁿ`, controls and
+/// derivatives in `[−1, 1]`.
+fn random_model(
+    hyper: MvgpHyper,
+    (n, m, k): (usize, usize, usize),
+    w: f64,
+    prior_seed: u64,
+    rng: &mut ChaCha8Rng,
+) -> Mvgp {
+    let prior = PriorMean::System(Arc::new(RandomSystem::new(n, m, prior_seed)));
+    let mut gp = Mvgp::new(n, m, hyper, prior, InputMap::Identity).unwrap();
+    let xs: Vec<f64> = (0..k * n).map(|_| rng.random_range(-w..w)).collect();
+    let us: Vec<f64> = (0..k * m).map(|_| rng.random_range(-1.0..1.0)).collect();
+    let xd: Vec<f64> = (0..k * n).map(|_| rng.random_range(-1.0..1.0)).collect();
+    gp.set_data(&xs, &us, &xd).unwrap();
+    gp
+}
+
+/// The Euclidean norm.
+fn euclidean(v: &[f64]) -> f64 {
+    v.iter().map(|x| x * x).sum::<f64>().sqrt()
+}
+
 /// The numerical estimate on a one-node cuboid (every side 0) is the
 /// largest `|J_ic|` over posterior draws `J = ∂μ + L_A Z L_Hᵀ` of the
 /// Jacobian, whose entry `(i, c)` has mean `∂μ_ic` and standard deviation
@@ -675,12 +699,7 @@ fn numerical_estimate_is_the_largest_posterior_draw_of_each_entry() {
         B: random_spd(m + 1, &mut rng),
         sigma: 0.2,
     };
-    let prior = PriorMean::System(Arc::new(RandomSystem::new(n, m, 5)));
-    let mut gp = Mvgp::new(n, m, hyper, prior, InputMap::Identity).unwrap();
-    let xs: Vec<f64> = (0..k * n).map(|_| rng.random_range(-1.5..1.5)).collect();
-    let us: Vec<f64> = (0..k * m).map(|_| rng.random_range(-1.0..1.0)).collect();
-    let xd: Vec<f64> = (0..k * n).map(|_| rng.random_range(-1.0..1.0)).collect();
-    gp.set_data(&xs, &us, &xd).unwrap();
+    let gp = random_model(hyper, (n, m, k), 1.5, 5, &mut rng);
     let (x, u) = ([0.3, -0.4], [0.6]);
     let settings = LipschitzSettings {
         delta_l: 1e-2,
@@ -710,12 +729,7 @@ fn numerical_estimate_is_the_largest_posterior_draw_of_each_entry() {
         .iter()
         .fold((f64::INFINITY, 0.0f64), |(l, h), s| (l.min(*s), h.max(*s)));
     assert!(hi > 3.0 * lo, "{stds:?}");
-    let norm = est
-        .numerical_entries
-        .iter()
-        .map(|v| v * v)
-        .sum::<f64>()
-        .sqrt();
+    let norm = euclidean(&est.numerical_entries);
     assert!((est.numerical.unwrap() - norm).abs() <= 1e-12 * norm);
 }
 
@@ -735,13 +749,7 @@ fn analytic_entries_are_the_sum_of_their_parts_in_any_dimension() {
             B: random_spd(m + 1, &mut rng),
             sigma: 0.2,
         };
-        let prior = PriorMean::System(Arc::new(RandomSystem::new(n, m, 9)));
-        let mut gp = Mvgp::new(n, m, hyper, prior, InputMap::Identity).unwrap();
-        let k = 8;
-        let xs: Vec<f64> = (0..k * n).map(|_| rng.random_range(-1.0..1.0)).collect();
-        let us: Vec<f64> = (0..k * m).map(|_| rng.random_range(-1.0..1.0)).collect();
-        let xd: Vec<f64> = (0..k * n).map(|_| rng.random_range(-1.0..1.0)).collect();
-        gp.set_data(&xs, &us, &xd).unwrap();
+        let gp = random_model(hyper, (n, m, 8), 1.0, 9, &mut rng);
         let delta_l = 0.01;
         let settings = LipschitzSettings {
             delta_l,
@@ -769,12 +777,7 @@ fn analytic_entries_are_the_sum_of_their_parts_in_any_dimension() {
                 );
             }
         }
-        let norm = est
-            .analytic_entries
-            .iter()
-            .map(|v| v * v)
-            .sum::<f64>()
-            .sqrt();
+        let norm = euclidean(&est.analytic_entries);
         assert!((est.analytic - norm).abs() <= 1e-12 * norm);
         // the extension is the diagonal of the cuboid
         let r = (n as f64 * 0.09).sqrt();
