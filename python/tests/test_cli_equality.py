@@ -123,6 +123,32 @@ def test_online_updates_match_a_refactorisation(fitted):
         np.testing.assert_allclose(a, b, rtol=1e-6, atol=1e-7)
 
 
+def test_a_budget_keeps_the_most_informative_points(fitted):
+    """add_observation_within_budget drops the point with the largest
+    [G⁻¹]_jj among the stored ones and the new one."""
+    d, _ = fitted
+    model = bc.MVGP.load(d / "model.json")
+    k = len(model)
+    assert model.add_observation_within_budget([0.5, 0.5], [1.0], [0.5, -3.8], k + 1) is None
+    assert len(model) == k + 1
+    rng = np.random.default_rng(3)
+    outcomes = set()
+    for _ in range(40):
+        x, u = rng.uniform(-3, 3, 2), rng.uniform(-2, 2, 1)
+        before = model.X.copy()
+        j = model.add_observation_within_budget(x, u, [x[1], -10 * np.sin(x[0]) + u[0]], k + 1)
+        assert len(model) == k + 1
+        if j == k + 1:
+            np.testing.assert_array_equal(model.X, before)
+        else:
+            np.testing.assert_array_equal(model.X[:-1], np.delete(before, j, axis=0))
+            np.testing.assert_array_equal(model.X[-1], x)
+        outcomes.add(j == k + 1)
+    assert outcomes == {True, False}
+    with pytest.raises(bc.InputError, match="budget"):
+        model.add_observation_within_budget([0.5, 0.5], [1.0], [0.5, -3.8], 0)
+
+
 def test_known_rows_fit_equals_the_cli_and_round_trips(cli, fitted, tmp_path):
     d, (X, U, Xdot) = fitted
     prior = {"type": "pendulum", "mass": 1.0, "length": 1.0, "gravity": 10.0}

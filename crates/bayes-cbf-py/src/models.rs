@@ -354,6 +354,27 @@ impl PyMvgp {
         self.model.add_observation(&x, &u, &xd).map_err(core_err)
     }
 
+    /// Adds `(x, u, ẋ)` to a model kept at `budget` observations: the
+    /// least informative of the stored points and the new one (smallest
+    /// leave-one-out predictive variance) is dropped, O(k²). Returns the
+    /// index dropped among the `k + 1` (`k`: the new point was not
+    /// stored), `None` below the budget.
+    fn add_observation_within_budget(
+        &mut self,
+        x: &Bound<'_, PyAny>,
+        u: &Bound<'_, PyAny>,
+        xdot: &Bound<'_, PyAny>,
+        budget: usize,
+    ) -> PyResult<Option<usize>> {
+        let (n, m) = (self.model.state_dim(), self.model.control_dim());
+        let x = vector(x, "x", Some(n))?;
+        let u = vector(u, "u", Some(m))?;
+        let xd = vector(xdot, "xdot", Some(n))?;
+        self.model
+            .add_observation_within_budget(&x, &u, &xd, budget)
+            .map_err(core_err)
+    }
+
     /// Drops the oldest observation (sliding window), O(k²).
     fn remove_oldest(&mut self) -> PyResult<()> {
         if self.model.is_empty() {

@@ -530,19 +530,17 @@ enum Bound {
 impl Bound {
     /// Adds one observation and applies the bound.
     fn add(self, model: &mut Mvgp, x: &[f64], u: &[f64], xdot: &[f64]) -> Result<()> {
-        model.add_observation(x, u, xdot)?;
         match self {
             Bound::Window(w) => {
+                model.add_observation(x, u, xdot)?;
                 while model.len() > w {
                     model.remove_oldest();
                 }
             }
             Bound::Budget(b) => {
-                while model.len() > b {
-                    model.remove_least_informative();
-                }
+                model.add_observation_within_budget(x, u, xdot, b)?;
             }
-            Bound::Full => {}
+            Bound::Full => model.add_observation(x, u, xdot)?,
         }
         Ok(())
     }

@@ -23,18 +23,18 @@ fn budget_remembers_what_a_window_forgets() {
         )
         .unwrap();
         for j in size..steps {
-            m.add_observation(
+            let (x, u, xd) = (
                 &data.xs[3 * j..3 * j + 3],
                 &data.us[2 * j..2 * j + 2],
                 &data.xdot[3 * j..3 * j + 3],
-            )
-            .unwrap();
-            match mode {
-                "window" => m.remove_oldest(),
-                "budget" => {
-                    m.remove_least_informative();
-                }
-                _ => {}
+            );
+            if mode == "budget" {
+                m.add_observation_within_budget(x, u, xd, size).unwrap();
+                continue;
+            }
+            m.add_observation(x, u, xd).unwrap();
+            if mode == "window" {
+                m.remove_oldest();
             }
         }
         let e = held_out_errors(&m, &test.xs, &test.us, &Ackermann { wheelbase: 12.0 });

@@ -50,6 +50,15 @@ impl Default for CholFactor {
     }
 }
 
+/// The new diagonal entry of an append: `L_kk² = G_kk + jitter − ‖L⁻¹g‖²`.
+#[derive(Debug, Clone, Copy)]
+pub(crate) struct Pivot {
+    /// `L_kk²`.
+    pub(crate) square: f64,
+    /// The jitter added to `G_kk`.
+    pub(crate) jitter: f64,
+}
+
 impl CholFactor {
     /// Factorises `G` (only the lower triangle is read), escalating jitter
     /// through [`JITTER_LEVELS`] while the factorisation fails or leaves a
@@ -264,39 +273,60 @@ impl CholFactor {
     /// (e.g. a duplicate point with tiny noise), jitter escalates through
     /// [`JITTER_LEVELS`] relative to `diag` for this entry only.
     pub fn append(&mut self, g_new: &[f64], diag: f64, scratch: &mut [f64]) -> Result<(), GpError> {
+        let pivot = self.pivot(g_new, diag, scratch)?;
+        self.push_row(&scratch[..self.k], pivot);
+        Ok(())
+    }
+
+    /// The row an [`append`](Self::append) would add, without adding it:
+    /// `scratch[..k] = L⁻¹ g_new` and the new pivot `L_kk²` with the jitter
+    /// it needed (one triangular solve). [`push_row`](Self::push_row)
+    /// completes the append.
+    pub(crate) fn pivot(
+        &self,
+        g_new: &[f64],
+        diag: f64,
+        scratch: &mut [f64],
+    ) -> Result<Pivot, GpError> {
         let k = self.k;
         assert_eq!(g_new.len(), k, "g_new length");
-        self.ensure_capacity(k + 1);
         let row = &mut scratch[..k];
         row.copy_from_slice(g_new);
         self.solve_l(MatMut::from_column_major_slice_mut(row, k, 1));
         let sq: f64 = row.iter().map(|v| v * v).sum();
         for &level in JITTER_LEVELS.iter() {
-            let jit = level * diag.abs().max(f64::MIN_POSITIVE);
-            let d2 = diag + jit - sq;
-            if d2 > 0.0 && d2.is_finite() && d2 > MIN_PIVOT * (diag + jit).abs() {
+            let jitter = level * diag.abs().max(f64::MIN_POSITIVE);
+            let square = diag + jitter - sq;
+            if square > 0.0 && square.is_finite() && square > MIN_PIVOT * (diag + jitter).abs() {
                 if level > 0.0 {
                     log::warn!(
-                        "online update (k = {}) needed jitter {jit:.3e} on the new diagonal entry",
+                        "online update (k = {}) needed jitter {jitter:.3e} on the new diagonal entry",
                         k + 1
                     );
                 }
-                for (j, v) in row.iter().enumerate() {
-                    self.l[(k, j)] = *v;
-                }
-                self.l[(k, k)] = d2.sqrt();
-                for i in 0..k {
-                    self.l[(i, k)] = 0.0;
-                }
-                self.jitter.push(jit);
-                self.k += 1;
-                return Ok(());
+                return Ok(Pivot { square, jitter });
             }
         }
         Err(GpError::IllConditioned {
             size: k + 1,
             max_jitter: *JITTER_LEVELS.last().unwrap_or(&0.0),
         })
+    }
+
+    /// Appends the row `[row, √pivot.square]` found by
+    /// [`pivot`](Self::pivot).
+    pub(crate) fn push_row(&mut self, row: &[f64], pivot: Pivot) {
+        let k = self.k;
+        self.ensure_capacity(k + 1);
+        for (j, v) in row.iter().enumerate() {
+            self.l[(k, j)] = *v;
+        }
+        self.l[(k, k)] = pivot.square.sqrt();
+        for i in 0..k {
+            self.l[(i, k)] = 0.0;
+        }
+        self.jitter.push(pivot.jitter);
+        self.k += 1;
     }
 
     /// Removes the first row and column of `G` (sliding window); see

@@ -2,7 +2,7 @@
 //! (paper, Sec. IV, Prop. 1).
 
 use super::data::{check_batch, check_point, check_state, TrainingData};
-use super::factor::CholFactor;
+use super::factor::{CholFactor, Pivot};
 use super::input_map::InputMap;
 use super::kernel::{Kernel, Rbf};
 use super::prior::PriorMean;
@@ -409,6 +409,18 @@ impl<K: Kernel> Mvgp<K> {
     /// Adds one observation `(x, u, ẋ)`, growing the Cholesky factor by one
     /// row (one triangular solve, O(k²); no refactorisation).
     pub fn add_observation(&mut self, x: &[f64], u: &[f64], xdot: &[f64]) -> Result<(), Error> {
+        let pivot = self.stage_observation(x, u, xdot)?;
+        self.commit_observation(pivot);
+        Ok(())
+    }
+
+    /// Stores the point and finds its factor row: `scratch[..k] = L⁻¹ g`
+    /// with `g_i = G[k, i]`, and the pivot (one triangular solve). The
+    /// model is unchanged but for the stored point until
+    /// [`commit_observation`](Self::commit_observation), or
+    /// [`pop_last_point`](Self::pop_last_point) to drop it; on error the
+    /// point is dropped.
+    fn stage_observation(&mut self, x: &[f64], u: &[f64], xdot: &[f64]) -> Result<Pivot, Error> {
         let k = self.len();
         check_point(self.n, self.m, x, u, xdot, k)?;
         self.push_point(x, u, xdot);
@@ -416,20 +428,29 @@ impl<K: Kernel> Mvgp<K> {
             self.pop_last_point();
             return Err(e.into());
         }
-        let n = self.n;
         let mut gcol = std::mem::take(&mut self.scratch);
         gcol.resize((2 * (k + 1)).max(gcol.len()), 0.0);
-        let (g_new, rest) = gcol.split_at_mut(k + 1);
+        let (g_new, row) = gcol.split_at_mut(k + 1);
         for (i, gi) in g_new.iter_mut().enumerate().take(k) {
             *gi = self.gram_entry(k, i);
         }
         let diag = self.gram_entry(k, k);
-        let res = self.factor.append(&g_new[..k], diag, rest);
-        if let Err(e) = res {
-            self.scratch = gcol;
+        let res = self.factor.pivot(&g_new[..k], diag, row);
+        // the row moves to the front of the scratch
+        gcol.copy_within(k + 1..2 * k + 1, 0);
+        self.scratch = gcol;
+        res.map_err(|e| {
             self.pop_last_point();
-            return Err(e.into());
-        }
+            e.into()
+        })
+    }
+
+    /// Appends the staged row `scratch[..k]`: the factor, `β` and
+    /// `diag(G⁻¹)`.
+    fn commit_observation(&mut self, pivot: Pivot) {
+        let k = self.factor.len();
+        let n = self.n;
+        self.factor.push_row(&self.scratch[..k], pivot);
         // β grows by one row: β_k = (r_k − Σ_j L_kj β_j) / L_kk
         if self.beta.nrows() < k + 1 {
             let cap = (2 * self.beta.nrows()).max(k + 1).max(16);
@@ -450,9 +471,7 @@ impl<K: Kernel> Mvgp<K> {
             self.beta[(k, i)] = s / l[(k, k)];
         }
         self.alpha = OnceLock::new();
-        self.scratch = gcol;
         self.info_after_append();
-        Ok(())
     }
 
     fn pop_last_point(&mut self) {

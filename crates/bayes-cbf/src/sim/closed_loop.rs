@@ -625,32 +625,48 @@ impl<'a> ClosedLoop<'a> {
             return false;
         }
         for (xo, uo, xd) in self.buffer.drain(..) {
-            // an observation the factor cannot absorb even with bounded
-            // jitter duplicates information already in the model
-            if let Err(e) = self.model.add_observation(&xo, &uo, &xd) {
-                log::warn!("step {k}: observation skipped ({e})");
-                continue;
-            }
-            // a refit running in the background replays these changes
-            if let Some(bg) = self.background.as_mut() {
-                bg.record_add(xo, uo, xd);
-            }
-            match self.settings.data {
-                DataPolicy::All => {}
-                DataPolicy::Window(w) => {
-                    while self.model.len() > w {
-                        self.model.remove_oldest();
-                        if let Some(bg) = self.background.as_mut() {
-                            bg.record_remove(0);
-                        }
-                    }
-                }
+            let bg = &mut self.background;
+            let added = match self.settings.data {
                 DataPolicy::Budget(b) => {
                     while self.model.len() > b {
                         let j = self.model.remove_least_informative();
-                        if let (Some(j), Some(bg)) = (j, self.background.as_mut()) {
+                        if let (Some(j), Some(bg)) = (j, bg.as_mut()) {
                             bg.record_remove(j);
                         }
+                    }
+                    let len = self.model.len();
+                    // the new point, if it is the least informative, is
+                    // not stored at all
+                    self.model
+                        .add_observation_within_budget(&xo, &uo, &xd, b)
+                        .map(|removed| (removed != Some(len), removed))
+                }
+                _ => self
+                    .model
+                    .add_observation(&xo, &uo, &xd)
+                    .map(|()| (true, None)),
+            };
+            // an observation the factor cannot absorb even with bounded
+            // jitter duplicates information already in the model
+            let (stored, removed) = match added {
+                Ok(r) => r,
+                Err(e) => {
+                    log::warn!("step {k}: observation skipped ({e})");
+                    continue;
+                }
+            };
+            // a refit running in the background replays these changes
+            if let Some(bg) = bg.as_mut().filter(|_| stored) {
+                bg.record_add(xo, uo, xd);
+                if let Some(j) = removed {
+                    bg.record_remove(j);
+                }
+            }
+            if let DataPolicy::Window(w) = self.settings.data {
+                while self.model.len() > w {
+                    self.model.remove_oldest();
+                    if let Some(bg) = bg.as_mut() {
+                        bg.record_remove(0);
                     }
                 }
             }

@@ -18,9 +18,9 @@
 //! largest `[G⁻¹]_jj`, keeps the subset with the largest `log det G₋ⱼ`: the
 //! most information among all subsets that drop one point. For the newest
 //! observation `s_k = L_kk²` is its predictive variance at insertion, the
-//! pivot of the append. The budget policy appends the new observation and
-//! then removes the least informative of the `k + 1`, which may be the new
-//! one (discarded) or an older one (replaced).
+//! pivot of the append. The budget policy removes the least informative of
+//! the `k + 1`, which may be the new one (discarded) or an older one
+//! (replaced).
 //!
 //! The choice only ranks points: whatever is removed, the model stays the
 //! exact GP posterior given the points it keeps.
@@ -41,11 +41,18 @@
 //! hyperparameters) and every `64k` incremental updates (amortised
 //! `k²/384` flops). The incremental values drift slowly: measured relative
 //! error 6·10⁻¹⁴ after 4 000 updates at k = 40 without any recomputation.
-//! A budgeted step therefore costs one append, three triangular solves and
-//! one O(k²) removal: 2–3× an append alone, and about what a window step
+//! [`add_observation_within_budget`](Mvgp::add_observation_within_budget)
+//! makes the choice before the append, from the new point's factor row
+//! `l = L⁻¹g`, its pivot `δ` and `a = L⁻ᵀl`: if `1/δ²` exceeds every
+//! `d_i + a_i²/δ²`, the new point is the one to drop and the model is left
+//! exactly as it was, for two triangular solves. Otherwise (a point
+//! replaced) the step costs one append, three triangular solves and one
+//! O(k²) removal: 2–3× an append alone, and about what a window step
 //! costs, whose removal of the oldest point rewrites the whole factor
 //! (measured at k = 200: 20 µs against 25 µs; at k = 1000: 0.76 ms against
-//! 0.73 ms).
+//! 0.73 ms). On the budget stream of `bayes-cbf bench` (k = 200, 20 000
+//! uniform states) 935 steps replace a point and the rest discard the new
+//! one; deciding first took the update's median from 17.5 to 11.7 µs.
 //!
 //! ## Trade-off against a sliding window
 //!
@@ -60,6 +67,7 @@
 //! and 3× more than all 4 000 points (docs/performance.md).
 
 use super::Mvgp;
+use crate::error::{Error, InputError};
 use crate::gp::kernel::Kernel;
 use faer::MatMut;
 use std::sync::OnceLock;
@@ -216,16 +224,104 @@ impl<K: Kernel> Mvgp<K> {
         if self.is_empty() {
             return None;
         }
-        let mut best = 0;
         let diag = self.gram_inverse_diagonal();
-        for (j, v) in diag.iter().enumerate() {
-            if *v > diag[best] {
-                best = j;
-            }
-        }
+        let best = first_max(diag);
         self.remove_observation(best);
         Some(best)
     }
+
+    /// Adds `(x, u, ẋ)` to a model kept at `budget` observations: below the
+    /// budget a plain [`add_observation`](Self::add_observation) (`None`);
+    /// at it, the same choice as `add_observation` followed by
+    /// [`remove_least_informative`](Self::remove_least_informative), made
+    /// before the append: `Some(j)` is the index removed among the `k + 1`,
+    /// `Some(k)` when the new point is the least informative and is not
+    /// stored. A model above its budget first drops its least informative
+    /// observations down to it.
+    ///
+    /// The new point's entries of `diag(G'⁻¹)` come from its factor row
+    /// (`l = L⁻¹g`, `δ² = G_kk − ‖l‖²`, `a = L⁻ᵀl`): `[G'⁻¹]_kk = 1/δ²`
+    /// and `[G'⁻¹]_ii = d_i + a_i²/δ²` (module docs). When `1/δ²` is the
+    /// largest, the model is left exactly as it was, at the cost of the two
+    /// triangular solves; otherwise the append and the removal go ahead,
+    /// O(k²) as before.
+    pub fn add_observation_within_budget(
+        &mut self,
+        x: &[f64],
+        u: &[f64],
+        xdot: &[f64],
+        budget: usize,
+    ) -> Result<Option<usize>, Error> {
+        check_budget(budget)?;
+        if self.len() < budget {
+            self.add_observation(x, u, xdot)?;
+            return Ok(None);
+        }
+        while self.len() > budget {
+            self.remove_least_informative();
+        }
+        self.gram_inverse_diagonal();
+        // the factor keeps its k rows until the commit
+        let pivot = self.stage_observation(x, u, xdot)?;
+        let k = self.len();
+        let info = &mut self.info;
+        if info.work.len() < k {
+            info.work.resize(self.beta.nrows().max(k), 0.0);
+        }
+        // a = L⁻ᵀ l
+        info.work[..k].copy_from_slice(&self.scratch[..k]);
+        self.factor.solve_leading_lt(
+            k,
+            MatMut::from_column_major_slice_mut(&mut info.work[..k], k, 1),
+        );
+        let inv = 1.0 / pivot.square;
+        let after = info
+            .diag
+            .iter()
+            .zip(&info.work[..k])
+            .map(|(d, a)| d + a * a * inv);
+        let (best, largest) =
+            after.enumerate().fold(
+                (0, f64::NEG_INFINITY),
+                |(b, v), (j, w)| {
+                    if w > v {
+                        (j, w)
+                    } else {
+                        (b, v)
+                    }
+                },
+            );
+        if inv > largest {
+            self.pop_last_point();
+            return Ok(Some(k));
+        }
+        self.commit_observation(pivot);
+        self.remove_observation(best);
+        Ok(Some(best))
+    }
+}
+
+/// The index of the first largest entry.
+fn first_max(v: &[f64]) -> usize {
+    let mut best = 0;
+    for (j, x) in v.iter().enumerate() {
+        if *x > v[best] {
+            best = j;
+        }
+    }
+    best
+}
+
+/// A budget keeps at least one observation.
+fn check_budget(budget: usize) -> Result<(), InputError> {
+    if budget == 0 {
+        return Err(InputError::invalid(
+            "budget",
+            0.0,
+            "must keep at least one observation",
+        ));
+    }
+    Ok(())
 }
 
 #[cfg(test)]
@@ -311,5 +407,78 @@ mod tests {
         assert!(!m.info.tracked);
         assert_diag(&mut m);
         assert_eq!(m.info.updates, 0);
+    }
+
+    /// The point `j` of [`add`]'s sequence.
+    fn point(j: usize) -> ([f64; 1], [f64; 1], [f64; 1]) {
+        let x = 6.0 * (j as f64 * 0.618_033_988_749_895).fract() - 3.0;
+        ([x], [(0.7 * x).cos()], [x.sin()])
+    }
+
+    /// Deciding before the append removes the same observation as
+    /// appending and then removing the least informative, over a stream
+    /// that both replaces old points and discards new ones; a discarded
+    /// point leaves the factor and `β` as they were, to the bit.
+    #[test]
+    fn the_decision_before_the_append_matches_append_then_remove() {
+        let budget = 12;
+        let mut before = tracked(budget);
+        let mut after = before.clone();
+        let (mut replaced, mut discarded) = (0, 0);
+        for j in budget..300 {
+            let (x, u, xd) = point(j);
+            after.add_observation(&x, &u, &xd).unwrap();
+            let expected = after.remove_least_informative();
+            let l_old = before.factor().l();
+            let beta_old = before.beta.clone();
+            let got = before
+                .add_observation_within_budget(&x, &u, &xd, budget)
+                .unwrap();
+            assert_eq!(got, expected, "point {j}");
+            if got == Some(budget) {
+                discarded += 1;
+                assert_eq!(before.factor().l(), l_old);
+                assert_eq!(before.beta, beta_old);
+            } else {
+                replaced += 1;
+            }
+            assert_eq!(before.xs(), after.xs(), "point {j}");
+            assert_eq!(before.len(), budget);
+        }
+        assert!(
+            replaced >= 10 && discarded >= 10,
+            "{replaced} / {discarded}"
+        );
+        assert_diag(&mut before);
+        let (l, r) = (before.factor().l(), after.factor().l());
+        assert!((l - r).amax() < 1e-10);
+    }
+
+    /// Below the budget the observation is added; above it the model first
+    /// drops to the budget; a budget of zero is refused.
+    #[test]
+    fn budgets_below_above_and_zero() {
+        let mut m = tracked(5);
+        let (x, u, xd) = point(5);
+        assert_eq!(
+            m.add_observation_within_budget(&x, &u, &xd, 7).unwrap(),
+            None
+        );
+        assert_eq!(m.len(), 6);
+        let mut reference = m.clone();
+        let (x, u, xd) = point(6);
+        let got = m.add_observation_within_budget(&x, &u, &xd, 4).unwrap();
+        reference.remove_least_informative();
+        reference.remove_least_informative();
+        reference.add_observation(&x, &u, &xd).unwrap();
+        assert_eq!(got, reference.remove_least_informative());
+        assert_eq!(m.len(), 4);
+        assert_eq!(m.xs(), reference.xs());
+        let err = m
+            .add_observation_within_budget(&x, &u, &xd, 0)
+            .unwrap_err()
+            .to_string();
+        assert!(err.contains("budget"), "{err}");
+        assert_eq!(m.len(), 4);
     }
 }
