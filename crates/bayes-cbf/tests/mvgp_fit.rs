@@ -366,13 +366,23 @@ fn without_free_noise(lik: &bayes_cbf::gp::MvgpLikelihood<'_, Rbf>) -> Vec<f64> 
 #[test]
 fn the_noise_floor_is_a_fraction_of_the_mean_signal() {
     use bayes_cbf::gp::MvgpLikelihood;
-    let model = pendulum_model(30, 4);
-    let lik = MvgpLikelihood::new(&model, &FitSettings::default()).unwrap();
+    let mut model = pendulum_model(30, 4);
+    // a kernel variance other than 1, which a warm start keeps (a cold
+    // one starts from 1): s̄ scales with it
+    let mut h = model.hyper().clone();
+    h.kernel = Rbf::new(h.kernel.lengthscales().to_vec(), 2.5).unwrap();
+    model.set_hyper(h).unwrap();
+    let warm = FitSettings {
+        warm_start: true,
+        ..FitSettings::default()
+    };
+    let lik = MvgpLikelihood::new(&model, &warm).unwrap();
     let th = without_free_noise(&lik);
     let h = lik.hyper(&th).unwrap();
     let (us, m) = (model.controls(), model.control_dim());
     let k = model.len();
     let s0 = h.kernel.variance();
+    assert_eq!(s0, 2.5);
     let mean_signal = (0..k)
         .map(|j| {
             let ub: Vec<f64> = std::iter::once(1.0)
