@@ -70,10 +70,11 @@ pub struct ControlArgs {
     /// Action when infeasible: max_margin, brake or hold.
     #[arg(long, default_value = "max_margin")]
     pub fallback: String,
-    /// Promise each barrier condition as realised over the step: the
-    /// model's observation noise σ²A enters its variance.
+    /// Promise each barrier condition on the latent F alone (the paper's
+    /// condition), instead of as realised over the step with the model's
+    /// observation noise σ²A in its variance (the default).
     #[arg(long)]
-    pub predictive: bool,
+    pub latent: bool,
     /// Write the JSON here instead of stdout.
     #[arg(long)]
     pub out: Option<PathBuf>,
@@ -141,7 +142,7 @@ pub fn run_control(a: &ControlArgs) -> Result<()> {
     let mut settings = SafetySettings::new(m);
     settings.probability = a.probability;
     settings.zeta = a.zeta;
-    settings.predictive = a.predictive;
+    settings.predictive = !a.latent;
     settings.u_min = a
         .u_min
         .as_deref()

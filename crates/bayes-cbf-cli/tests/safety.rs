@@ -107,8 +107,9 @@ fn predictive_control_widens_each_condition_by_the_observation_noise() {
     let dir = setup("control-predictive", &[("b1.json", SECTOR_RD1)]);
     let args = "control --model model.json --barrier b1.json --x 2.5,0.0 \
                 --probability 0.9 --u-ref=-3";
-    let latent = json_out(&dir, args);
-    let pred = json_out(&dir, &format!("{args} --predictive"));
+    // predictive by default; --latent for the paper's condition
+    let pred = json_out(&dir, args);
+    let latent = json_out(&dir, &format!("{args} --latent"));
     let std = |v: &serde_json::Value| v["constraints"][0]["std"].as_f64().unwrap();
     // more variance at least at its own control, and the control moved
     // further from the unsafe reference

@@ -532,7 +532,7 @@ pub struct PySafetyFilter {
 #[pymethods]
 impl PySafetyFilter {
     #[new]
-    #[pyo3(signature = (model, barriers, clf=None, probability=0.99, zeta=0.0, u_min=None, u_max=None, R=None, fallback="max_margin", clf_weight=1.0, predictive=false))]
+    #[pyo3(signature = (model, barriers, clf=None, probability=0.99, zeta=0.0, u_min=None, u_max=None, R=None, fallback="max_margin", clf_weight=1.0, predictive=true))]
     #[allow(non_snake_case, clippy::too_many_arguments)]
     fn new(
         model: Bound<'_, PyMvgp>,

@@ -4,7 +4,7 @@
 use bayes_cbf::barrier::{
     cbc_moments, clc_moments, ConditionMoments, DynLyapunov, ExpressionClf, MomentWorkspace,
 };
-use bayes_cbf::control::ControlOutput;
+use bayes_cbf::control::{ControlOutput, SafetyController, SafetySettings};
 use bayes_cbf::gp::{FitSettings, InputMap, Mvgp, MvgpHyper, MvgpLikelihood, PriorMean, Rbf};
 use bayes_cbf_scenario::workloads::{
     ackermann_control, ackermann_control_written, pendulum_control_written, pendulum_data,
@@ -61,10 +61,25 @@ fn count_bytes<F: FnMut()>(mut f: F) -> (usize, usize) {
     (ALLOCS.with(Cell::get), BYTES.with(Cell::get))
 }
 
+/// The workload's controller with the conditions as realised
+/// (`predictive`) or on the latent `F`.
+fn with_predictive(w: &mut ControlWorkload, predictive: bool) {
+    let c = &w.controller;
+    let settings = SafetySettings {
+        predictive,
+        ..c.settings().clone()
+    };
+    let (n, m) = (w.model.state_dim(), w.model.control_dim());
+    w.controller =
+        SafetyController::new(n, m, c.barriers().to_vec(), c.clf().cloned(), settings).unwrap();
+}
+
 /// Allocations of 50 Ackermann control steps after warm-up (each followed
-/// by a recalibration against the same model when `recalibrate`).
-fn ackermann_step_allocations(k: usize, recalibrate: bool) -> usize {
+/// by a recalibration against the same model when `recalibrate`), the
+/// conditions predictive or latent.
+fn ackermann_step_allocations(k: usize, recalibrate: bool, predictive: bool) -> usize {
     let mut w = ackermann_control(k, 3).unwrap();
+    with_predictive(&mut w, predictive);
     if recalibrate {
         w.controller
             .set_recalibration(Some(Default::default()))
@@ -92,19 +107,42 @@ fn ackermann_step_allocations(k: usize, recalibrate: bool) -> usize {
 }
 
 /// The whole step allocates nothing: the posterior, the moments of every
-/// condition and the dense SOCP solver work in buffers sized at the first
-/// step. (A program that falls back to Clarabel would allocate inside its
-/// timers; none of these does.)
+/// condition (latent or predictive), the dense SOCP solver and the
+/// infeasible path work in buffers sized at the first step. (A program
+/// that falls back to Clarabel would allocate inside its timers; none of
+/// these does.)
 #[test]
 fn control_steps_do_not_allocate() {
     bayes_cbf::gp::set_linear_algebra_threads(1);
-    let small = ackermann_step_allocations(150, false);
-    let large = ackermann_step_allocations(600, false);
+    let small = ackermann_step_allocations(150, false, false);
+    let large = ackermann_step_allocations(600, false, false);
     assert_eq!(small, large, "allocations depend on k: {small} vs {large}");
     // the recalibration (moments once more after the update) adds none
-    let recalibrated = ackermann_step_allocations(600, true);
+    let recalibrated = ackermann_step_allocations(600, true, false);
     assert_eq!(recalibrated, large, "recalibration allocates");
     assert_eq!(small, 0, "{small} allocations in 50 steps");
+    // nor does the predictive condition (the default), at relative degree
+    // 1 here and 2 on the pendulum
+    assert_eq!(ackermann_step_allocations(300, true, true), 0);
+    // the pendulum at its start, infeasible there: the infeasible path
+    // (max-margin program, p*, the list of violated barriers) too
+    let mut w = pendulum_control_written(300, 3, Written::BuiltIn).unwrap();
+    let mut out = ControlOutput::new(1, 1);
+    for predictive in [false, true] {
+        with_predictive(&mut w, predictive);
+        let mut x = w.x.clone();
+        let mut steps = |w: &mut ControlWorkload, count: usize| {
+            for i in 0..count {
+                x[1] = -0.5 + 0.02 * i as f64;
+                w.controller
+                    .step(&w.model, &x, &w.u_ref, None, &mut out)
+                    .unwrap();
+            }
+        };
+        steps(&mut w, 5);
+        assert_eq!(count(|| steps(&mut w, 50)), 0, "predictive {predictive}");
+        assert!(out.is_infeasible(), "{:?}", out.status);
+    }
 }
 
 /// Allocations of the posterior and the moments of every condition of a

@@ -183,4 +183,11 @@ fn core_settings_round_trip_through_serde() {
     let back: SafetySettings =
         serde_json::from_str(&serde_json::to_string(&safety).unwrap()).unwrap();
     assert_eq!(back, safety);
+    // conditions as realised unless said otherwise; the paper's on request
+    assert!(safety.predictive);
+    assert!(!SafetySettings::paper(2).predictive);
+    let mut value = serde_json::to_value(SafetySettings::paper(2)).unwrap();
+    value.as_object_mut().unwrap().remove("predictive");
+    let unsaid: SafetySettings = serde_json::from_value(value).unwrap();
+    assert_eq!(unsaid, SafetySettings::new(2));
 }

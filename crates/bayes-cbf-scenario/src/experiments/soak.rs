@@ -234,7 +234,8 @@ pub fn run(
     let model = Mvgp::new(2, 1, hyper, prior, InputMap::periodic(2, &[0]))?;
     let barrier: Arc<dyn DynBarrier> =
         Arc::new(PendulumSector::new(PI / 4.0, PI / 8.0, 2, vec![4.0, 4.0])?);
-    let mut settings = SafetySettings::new(1);
+    // the paper's controller (conditions on the latent F)
+    let mut settings = SafetySettings::paper(1);
     settings.probability = 0.99;
     settings.u_min = Some(vec![-20.0]);
     settings.u_max = Some(vec![20.0]);

@@ -380,13 +380,18 @@ pub struct ControllerSpec {
     pub fallback: String,
     /// Promise each barrier condition as realised over the step,
     /// the model's observation noise included
-    /// ([`bayes_cbf::control::SafetySettings::predictive`]).
-    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    /// ([`bayes_cbf::control::SafetySettings::predictive`]); on by default,
+    /// `false` for the paper's condition on the latent `F`.
+    #[serde(default = "yes", skip_serializing_if = "is_true")]
     pub predictive: bool,
 }
 
 fn max_margin() -> String {
     "max_margin".into()
+}
+
+fn is_true(b: &bool) -> bool {
+    *b
 }
 
 /// The reference.
@@ -619,6 +624,30 @@ mod tests {
             assert_eq!(&s.name, name);
             let again: Scenario = toml::from_str(&toml::to_string(&s).unwrap()).unwrap();
             assert_eq!(again, s);
+        }
+    }
+
+    /// A scenario that does not say promises the conditions as realised
+    /// (predictive); the built-ins keep the paper's latent condition, and
+    /// the setting survives a round trip and reaches the controller.
+    #[test]
+    fn conditions_are_predictive_unless_a_scenario_says_otherwise() {
+        for (name, _) in BUILTIN {
+            let (s, _) = load(name, &[]).unwrap();
+            assert!(!s.controller.predictive, "{name}");
+        }
+        let text = scenario_text("pendulum-safe").unwrap().1;
+        let unsaid = text.replace("predictive = false\n", "");
+        assert_ne!(unsaid, text);
+        let s: Scenario = toml::from_str(&unsaid).unwrap();
+        assert!(s.controller.predictive);
+        let shown = toml::to_string(&s).unwrap();
+        assert!(!shown.contains("predictive"), "the default is not written");
+        assert_eq!(toml::from_str::<Scenario>(&shown).unwrap(), s);
+        let (latent, _) = load("pendulum-safe", &[]).unwrap();
+        for (sc, want) in [(&s, true), (&latent, false)] {
+            let built = build::build(sc).unwrap();
+            assert_eq!(built.controller.settings().predictive, want);
         }
     }
 

@@ -53,6 +53,11 @@ impl Fallback {
     }
 }
 
+/// [`SafetySettings::predictive`] unless set: on.
+fn predictive_default() -> bool {
+    true
+}
+
 /// Settings of the safety SOCP, validated by [`SafetySettings::validate`].
 #[derive(Debug, Clone, PartialEq)]
 #[cfg_attr(feature = "serde", derive(serde::Serialize, serde::Deserialize))]
@@ -77,16 +82,19 @@ pub struct SafetySettings {
     /// over the step, observation noise included ([`add_observation_noise`]):
     /// the model's noise `σ² A` widens the condition's variance
     /// (`σ² ∇hᵀA∇h` at relative degree 1), so that process noise that
-    /// moves the state during the hold is covered too. `false` (the paper):
-    /// the posterior of `F` alone. Barriers of relative degree > 2 (Monte
-    /// Carlo moments) keep the posterior's.
-    #[cfg_attr(feature = "serde", serde(default))]
+    /// moves the state during the hold is covered too. On by default: under
+    /// process noise a condition promised on `F` alone holds at the sample
+    /// and fails over the step about half the time at an active constraint
+    /// (docs/calibration.md). `false` is the paper's condition (Props. 2
+    /// and 4): the posterior of `F` alone. Barriers of relative degree > 2
+    /// (Monte Carlo moments) keep the posterior's.
+    #[cfg_attr(feature = "serde", serde(default = "predictive_default"))]
     pub predictive: bool,
 }
 
 impl SafetySettings {
     /// Defaults for control dimension `m`: `p = 0.99`, `ζ = 0`, `λ = 1`,
-    /// `R = I`, no bounds, max-margin fallback.
+    /// `R = I`, no bounds, max-margin fallback, predictive conditions.
     pub fn new(m: usize) -> Self {
         Self {
             probability: 0.99,
@@ -97,7 +105,16 @@ impl SafetySettings {
             u_max: None,
             fallback: Fallback::MaxMargin,
             p_star_tol: 1e-5,
+            predictive: predictive_default(),
+        }
+    }
+
+    /// The paper's settings: [`new`](Self::new) with the conditions on the
+    /// latent `F` alone (`predictive = false`).
+    pub fn paper(m: usize) -> Self {
+        Self {
             predictive: false,
+            ..Self::new(m)
         }
     }
 
@@ -268,6 +285,11 @@ pub struct SafetyFilter {
     program: ConeProgram,
     margin: Option<ConeProgram>,
     last_u: Vec<f64>,
+    /// Buffers of the infeasible path (the max-margin control, the `p*`
+    /// iterate, the violated barriers), so that it allocates nothing.
+    u_mm: Vec<f64>,
+    u_p: Vec<f64>,
+    violated: Vec<usize>,
 }
 
 impl std::fmt::Debug for SafetyFilter {
@@ -307,6 +329,9 @@ impl SafetyFilter {
             program,
             margin: None,
             last_u: vec![0.0; m],
+            u_mm: vec![0.0; m],
+            u_p: vec![0.0; m],
+            violated: Vec::with_capacity(barriers),
         })
     }
 
@@ -389,11 +414,15 @@ impl SafetyFilter {
             let x = self.program.x();
             out.u.copy_from_slice(&x[..m]);
             out.delta = if self.shape.clf { x[m] } else { 0.0 };
-            out.status = if status == SolveStatus::Optimal {
+            let solved = if status == SolveStatus::Optimal {
                 ControlStatus::Optimal
             } else {
                 ControlStatus::AlmostOptimal
             };
+            // an earlier infeasible step's list is kept for the next one
+            if let ControlStatus::Infeasible(info) = std::mem::replace(&mut out.status, solved) {
+                self.violated = info.violated;
+            }
         } else {
             out.delta = 0.0;
             let info = self.infeasible(cbcs, clc, status, out)?;
@@ -516,31 +545,48 @@ impl SafetyFilter {
                 return Ok(None);
             }
         }
-        let mut u = vec![0.0; self.shape.m];
+        let mut u = std::mem::take(&mut self.u_p);
+        u.resize(self.shape.m, 0.0);
+        let q = self.p_star_from(cbcs, p, lo, tol, u_p, &mut u);
+        self.u_p = u;
+        q
+    }
+
+    /// [`p_star`](Self::p_star)'s iteration from `u_p` (or the max-margin
+    /// control at `lo`), with `u` as its iterate.
+    fn p_star_from(
+        &mut self,
+        cbcs: &[ConditionMoments],
+        p: f64,
+        lo: f64,
+        tol: f64,
+        u_p: Option<&[f64]>,
+        u: &mut [f64],
+    ) -> Result<Option<f64>, Error> {
         let mut q = match u_p {
             Some(up) => {
                 u.copy_from_slice(up);
-                self.afforded_probability(cbcs, &u).min(p)
+                self.afforded_probability(cbcs, u).min(p)
             }
             None => f64::NEG_INFINITY,
         };
         if q < lo {
             // no start, or u_p affords too little: start from the lowest
             // admissible p
-            match self.max_margin(cbcs, lo, &mut u)? {
+            match self.max_margin(cbcs, lo, u)? {
                 Some(t) if t < -1e-9 => return Ok(None),
                 // an unbounded margin: feasible, with no maximiser to go on from
                 None => return Ok(Some(lo)),
                 Some(_) => {}
             }
-            q = self.afforded_probability(cbcs, &u).clamp(lo, p);
+            q = self.afforded_probability(cbcs, u).clamp(lo, p);
         }
         for _ in 0..50 {
-            match self.max_margin(cbcs, q, &mut u)? {
+            match self.max_margin(cbcs, q, u)? {
                 Some(t) if t > 1e-12 => {}
                 _ => break,
             }
-            let next = self.afforded_probability(cbcs, &u).min(p);
+            let next = self.afforded_probability(cbcs, u).min(p);
             if next <= q + tol {
                 q = q.max(next);
                 break;
@@ -557,14 +603,30 @@ impl SafetyFilter {
         status: SolveStatus,
         out: &mut ControlOutput,
     ) -> Result<InfeasibleInfo, Error> {
+        // the max-margin control at p: the MaxMargin fallback, and Relax's
+        // when p* or the relaxed program fails (not needed otherwise)
+        let mut u_mm = std::mem::take(&mut self.u_mm);
+        u_mm.resize(self.shape.m, 0.0);
+        let info = self.fall_back(cbcs, clc, status, out, &mut u_mm);
+        self.u_mm = u_mm;
+        info
+    }
+
+    /// [`infeasible`](Self::infeasible) with `u_mm` for the max-margin
+    /// control.
+    fn fall_back(
+        &mut self,
+        cbcs: &[ConditionMoments],
+        clc: Option<&ConditionMoments>,
+        status: SolveStatus,
+        out: &mut ControlOutput,
+        u_mm: &mut [f64],
+    ) -> Result<InfeasibleInfo, Error> {
         let m = self.shape.m;
         let p = self.settings.probability;
         let fallback = self.settings.fallback;
-        // the max-margin control at p: the MaxMargin fallback, and Relax's
-        // when p* or the relaxed program fails (not needed otherwise)
-        let mut u_mm = vec![0.0; m];
         let margin = match fallback {
-            Fallback::MaxMargin | Fallback::Relax => self.max_margin(cbcs, p, &mut u_mm)?,
+            Fallback::MaxMargin | Fallback::Relax => self.max_margin(cbcs, p, u_mm)?,
             Fallback::Brake | Fallback::Hold => None,
         };
         // p*: the largest p with a non-negative worst margin
@@ -593,7 +655,7 @@ impl SafetyFilter {
         match fallback {
             _ if relaxed => {}
             Fallback::MaxMargin | Fallback::Relax if margin.is_some() => {
-                out.u.copy_from_slice(&u_mm)
+                out.u.copy_from_slice(u_mm)
             }
             Fallback::MaxMargin | Fallback::Relax | Fallback::Brake => {
                 for j in 0..m {
@@ -606,15 +668,21 @@ impl SafetyFilter {
             }
             Fallback::Hold => out.u.copy_from_slice(&self.last_u),
         }
-        let violated = cbcs
-            .iter()
-            .enumerate()
-            .filter(|(_, mom)| {
-                let c = quantile_factor(p, mom.relative_degree).unwrap_or(0.0);
-                mom.mean(&out.u) - self.settings.zeta - c * mom.variance(&out.u).sqrt() < 0.0
-            })
-            .map(|(i, _)| i)
-            .collect();
+        // the list of the last infeasible step, refilled
+        let mut violated = match &mut out.status {
+            ControlStatus::Infeasible(info) => std::mem::take(&mut info.violated),
+            _ => std::mem::take(&mut self.violated),
+        };
+        violated.clear();
+        violated.extend(
+            cbcs.iter()
+                .enumerate()
+                .filter(|(_, mom)| {
+                    let c = quantile_factor(p, mom.relative_degree).unwrap_or(0.0);
+                    mom.mean(&out.u) - self.settings.zeta - c * mom.variance(&out.u).sqrt() < 0.0
+                })
+                .map(|(i, _)| i),
+        );
         Ok(InfeasibleInfo {
             violated,
             p_star,
@@ -774,6 +842,11 @@ impl SafetyController {
     /// The control Lyapunov function, if any.
     pub fn clf(&self) -> Option<&Arc<dyn DynLyapunov>> {
         self.clf.as_ref()
+    }
+
+    /// The settings of its SOCP.
+    pub fn settings(&self) -> &SafetySettings {
+        self.filter.settings()
     }
 
     /// Turns the online recalibration of the barrier conditions' variances
