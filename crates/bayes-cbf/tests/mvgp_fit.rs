@@ -358,6 +358,19 @@ fn without_free_noise(lik: &bayes_cbf::gp::MvgpLikelihood<'_, Rbf>) -> Vec<f64> 
     th
 }
 
+/// Sets the model's kernel variance to `s` and returns fit settings that
+/// keep it: a warm start (a cold one starts the kernel from variance 1,
+/// where `s̄`'s factor `k(z, z)` could be dropped or inverted unseen).
+fn kernel_variance(model: &mut Mvgp, s: f64) -> FitSettings {
+    let mut h = model.hyper().clone();
+    h.kernel = Rbf::new(h.kernel.lengthscales().to_vec(), s).unwrap();
+    model.set_hyper(h).unwrap();
+    FitSettings {
+        warm_start: true,
+        ..FitSettings::default()
+    }
+}
+
 /// The noise floor `σ² = σ_f² + ε s̄` (`ε = 10⁻¹⁰`, `s̄` the mean of the
 /// Gram matrix's signal diagonal `u̲_jᵀ B u̲_j k(z_j, z_j)`): with `σ_f`
 /// driven to zero, the hyperparameters at `θ` have exactly
@@ -367,15 +380,7 @@ fn without_free_noise(lik: &bayes_cbf::gp::MvgpLikelihood<'_, Rbf>) -> Vec<f64> 
 fn the_noise_floor_is_a_fraction_of_the_mean_signal() {
     use bayes_cbf::gp::MvgpLikelihood;
     let mut model = pendulum_model(30, 4);
-    // a kernel variance other than 1, which a warm start keeps (a cold
-    // one starts from 1): s̄ scales with it
-    let mut h = model.hyper().clone();
-    h.kernel = Rbf::new(h.kernel.lengthscales().to_vec(), 2.5).unwrap();
-    model.set_hyper(h).unwrap();
-    let warm = FitSettings {
-        warm_start: true,
-        ..FitSettings::default()
-    };
+    let warm = kernel_variance(&mut model, 2.5);
     let lik = MvgpLikelihood::new(&model, &warm).unwrap();
     let th = without_free_noise(&lik);
     let h = lik.hyper(&th).unwrap();
@@ -416,7 +421,8 @@ fn the_evaluation_and_the_hyperparameters_share_the_floor() {
         model.xdot()[..2].to_vec(),
     );
     model.add_observation(&x0, &u0, &xd0).unwrap();
-    let mut lik = MvgpLikelihood::new(&model, &FitSettings::default()).unwrap();
+    let warm = kernel_variance(&mut model, 2.5);
+    let mut lik = MvgpLikelihood::new(&model, &warm).unwrap();
     let th = without_free_noise(&lik);
     let mut g = vec![0.0; lik.dim()];
     let neg = lik.evaluate(&th, &mut g).unwrap();
