@@ -406,6 +406,50 @@ fn the_noise_floor_is_a_fraction_of_the_mean_signal() {
     );
 }
 
+/// The gradient through the floor: with `σ_f` driven to zero and one
+/// observation repeated, the floor `ε s̄` is the Gram matrix's smallest
+/// eigenvalue and `∂s̄/∂θ` (through `B` and the kernel) carries an O(1)
+/// share of `−∇ log p`, which central differences check.
+#[test]
+fn the_gradient_follows_the_floor() {
+    use bayes_cbf::gp::MvgpLikelihood;
+    let mut model = pendulum_model(30, 4);
+    let (x0, u0, xd0) = (
+        model.xs()[..2].to_vec(),
+        model.controls()[..1].to_vec(),
+        model.xdot()[..2].to_vec(),
+    );
+    model.add_observation(&x0, &u0, &xd0).unwrap();
+    let warm = kernel_variance(&mut model, 2.5);
+    let mut lik = MvgpLikelihood::new(&model, &warm).unwrap();
+    let th = without_free_noise(&lik);
+    let mut g = vec![0.0; lik.dim()];
+    lik.evaluate(&th, &mut g).unwrap();
+    let mut scratch = g.clone();
+    // the near-singular Gram matrix puts rounding noise of ~10⁻⁶ on −log p:
+    // a wide step, whose O(h²) error is ~10⁻⁵ relative here
+    let h = 1e-3;
+    let mut checked = 0;
+    for i in 0..th.len() {
+        if th[i] == -300.0 {
+            continue;
+        }
+        let (mut tp, mut tm) = (th.clone(), th.clone());
+        tp[i] += h;
+        tm[i] -= h;
+        let fd = (lik.evaluate(&tp, &mut scratch).unwrap()
+            - lik.evaluate(&tm, &mut scratch).unwrap())
+            / (2.0 * h);
+        assert!(
+            (fd - g[i]).abs() <= 1e-4 * (1.0 + fd.abs()),
+            "parameter {i}: finite differences {fd}, analytic {}",
+            g[i]
+        );
+        checked += 1;
+    }
+    assert_eq!(checked, th.len() - 1);
+}
+
 /// The evaluation applies the same floor: at `θ` with `σ_f` driven to
 /// zero, `−log p(θ)` equals the negative log marginal likelihood of the
 /// model with the hyperparameters `hyper(θ)` (whose `σ` is the floor). One
