@@ -478,3 +478,126 @@ fn the_evaluation_and_the_hyperparameters_share_the_floor() {
         "{neg} against {want}"
     );
 }
+
+/// The fit descends from the likelihood's documented start: one iteration
+/// ends at or below `−log p` there (a start moved elsewhere, to the noise's
+/// upper bound or by a perturbation, ends above it), and a fit with
+/// restarts keeps the best of its starts, so it ends no higher either.
+#[test]
+fn the_fit_descends_from_the_documented_start() {
+    use bayes_cbf::gp::MvgpLikelihood;
+    for restarts in [0, 2] {
+        let mut model = pendulum_model(40, 6);
+        let settings = FitSettings {
+            max_iters: 1,
+            restarts,
+            ..FitSettings::default()
+        };
+        let mut lik = MvgpLikelihood::new(&model, &settings).unwrap();
+        let start = lik.start().to_vec();
+        let mut g = vec![0.0; start.len()];
+        let at_start = lik.evaluate(&start, &mut g).unwrap();
+        drop(lik);
+        fit(&mut model, &settings).unwrap();
+        let end = -model.log_marginal_likelihood();
+        assert!(
+            end <= at_start + 1e-9 * at_start.abs(),
+            "restarts {restarts}: −log p {end} after one iteration, {at_start} at the start"
+        );
+    }
+}
+
+/// A model whose Gram matrix does not factorise at its own noise: every
+/// observation twice and `σ = 10⁻⁹`.
+fn repeated_with_tiny_noise() -> Mvgp {
+    let mut model = pendulum_model(20, 7);
+    let mut h = model.hyper().clone();
+    h.sigma = 1e-9;
+    model.set_hyper(h).unwrap();
+    repeat_every_observation(&mut model);
+    model
+}
+
+/// Adds every observation of the model once more.
+fn repeat_every_observation(model: &mut Mvgp) {
+    let (xs, us, xd) = (
+        model.xs().to_vec(),
+        model.controls().to_vec(),
+        model.xdot().to_vec(),
+    );
+    for j in 0..model.len() {
+        model
+            .add_observation(&xs[2 * j..2 * j + 2], &us[j..j + 1], &xd[2 * j..2 * j + 2])
+            .unwrap();
+    }
+}
+
+/// A warm start whose Gram matrix does not factorise starts again with ten
+/// times the noise until it does, within the noise's bounds: with a warm
+/// range of six decades the fit goes on from a start that factorises;
+/// with one decade no noise level factorises and the fit says so (an
+/// error, not a loop without end).
+#[test]
+fn a_start_that_does_not_factorise_gets_more_noise_within_its_bounds() {
+    for (range, ok) in [(1e6, true), (10.0, false)] {
+        let mut model = repeated_with_tiny_noise();
+        let settings = FitSettings {
+            max_iters: 1,
+            warm_start: true,
+            warm_range: range,
+            learn_a: false,
+            ..FitSettings::default()
+        };
+        let before = model.hyper().sigma;
+        let r = fit(&mut model, &settings);
+        assert_eq!(r.is_ok(), ok, "warm range {range}: {r:?}");
+        if ok {
+            assert!(model.hyper().sigma > 1e3 * before);
+            // and the result factorises with its margin: no jitter
+            assert_eq!(model.factor().max_jitter(), 0.0);
+        } else {
+            let e = r.unwrap_err().to_string();
+            assert!(e.contains("finite likelihood"), "{e}");
+        }
+    }
+}
+
+/// The seed drives only the perturbed restarts: without restarts two seeds
+/// give the same fit, bit for bit; with restarts (one iteration each, so
+/// that where each start lies shows) they differ.
+#[test]
+fn the_seed_moves_the_restarts_only() {
+    let run = |restarts: usize, seed: u64| {
+        let mut model = pendulum_model(40, 6);
+        let settings = FitSettings {
+            max_iters: 1,
+            restarts,
+            seed,
+            ..FitSettings::default()
+        };
+        fit(&mut model, &settings).unwrap();
+        model.hyper().clone()
+    };
+    assert_eq!(run(0, 1), run(0, 2));
+    assert_ne!(run(3, 1), run(3, 2));
+}
+
+/// The fit's result factorises with a margin: on exact repeats, where the
+/// likelihood drives the noise to its floor, every pivot of the refitted
+/// model keeps `L_jj² ≥ 4·10⁻¹⁰ G_jj` (four times the floor of an exact
+/// factorisation), so the model's own roundoff needs no jitter.
+#[test]
+fn the_fitted_noise_leaves_the_pivots_a_margin() {
+    let mut model = pendulum_model(20, 7);
+    repeat_every_observation(&mut model);
+    fit(&mut model, &FitSettings::default()).unwrap();
+    let l = model.factor().l();
+    let worst = (0..l.nrows())
+        .map(|j| {
+            let g: f64 = (0..=j).map(|i| l[(j, i)].powi(2)).sum();
+            l[(j, j)].powi(2) / g
+        })
+        .fold(f64::INFINITY, f64::min);
+    assert!(worst >= 3.9e-10, "smallest relative pivot {worst:e}");
+    assert_eq!(model.factor().max_jitter(), 0.0);
+}
