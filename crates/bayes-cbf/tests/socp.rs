@@ -617,3 +617,79 @@ fn solution_does_not_depend_on_earlier_steps() {
         }
     }
 }
+
+/// The fallbacks' names, as files and reports write them, parse back to
+/// the same fallback; any other name is an error naming the field.
+#[test]
+fn fallback_names_round_trip() {
+    use bayes_cbf::control::Fallback;
+    for (f, name) in [
+        (Fallback::MaxMargin, "max_margin"),
+        (Fallback::Brake, "brake"),
+        (Fallback::Hold, "hold"),
+        (Fallback::Relax, "relax"),
+    ] {
+        assert_eq!(f.name(), name);
+        assert_eq!(Fallback::parse(name).unwrap(), f);
+    }
+    let e = Fallback::parse("pray").unwrap_err().to_string();
+    assert!(e.contains("fallback") && e.contains("pray"), "{e}");
+}
+
+/// The defaults promise the conditions as realised (predictive), the
+/// paper's settings the latent ones and nothing else differs; each check
+/// of `validate` holds at its boundary and fails just past it.
+#[test]
+fn safety_settings_defaults_and_boundaries() {
+    let m = 2;
+    let new = SafetySettings::new(m);
+    assert!(new.predictive);
+    let paper = SafetySettings::paper(m);
+    assert!(!paper.predictive);
+    assert_eq!(
+        SafetySettings {
+            predictive: true,
+            ..paper
+        },
+        new
+    );
+    let ok = |s: &SafetySettings| s.validate(m).is_ok();
+    let with = |f: &dyn Fn(&mut SafetySettings)| {
+        let mut s = SafetySettings::new(m);
+        f(&mut s);
+        s
+    };
+    // R: RᵀR must be positive definite, R itself need not be
+    assert!(ok(&with(&|s| s.r = -DMatrix::identity(m, m))));
+    assert!(ok(&with(
+        &|s| s.r = DMatrix::from_row_slice(2, 2, &[0.0, 1.0, 1.0, 0.0])
+    )));
+    // a singular R, whose RᵀR a plain Cholesky accepts on a rounding error
+    assert!(!ok(&with(
+        &|s| s.r = DMatrix::from_row_slice(2, 2, &[1.0, 1.0, 1.0, 1.0])
+    )));
+    assert!(!ok(&with(&|s| s.r = DMatrix::zeros(m, m))));
+    assert!(ok(&with(
+        &|s| s.r = DMatrix::from_diagonal_element(m, m, 1e-3)
+    )));
+    // equal bounds pin the control; crossed ones are an error
+    let bounds = |lo: f64, hi: f64| {
+        with(&move |s: &mut SafetySettings| {
+            s.u_min = Some(vec![lo; 2]);
+            s.u_max = Some(vec![hi; 2]);
+        })
+    };
+    assert!(ok(&bounds(1.0, 1.0)));
+    assert!(!ok(&bounds(1.0, 1.0 - 1e-12)));
+    // p*'s tolerance in (0, 0.1)
+    for (tol, good) in [
+        (0.0, false),
+        (1e-12, true),
+        (0.0999, true),
+        (0.1, false),
+        (-1.0, false),
+        (1.0, false),
+    ] {
+        assert_eq!(ok(&with(&|s| s.p_star_tol = tol)), good, "p_star_tol {tol}");
+    }
+}

@@ -131,9 +131,15 @@ impl SafetySettings {
             ));
         }
         check_finite("R", self.r.as_slice())?;
-        if self.r.clone().cholesky().is_none()
-            && (self.r.transpose() * &self.r).cholesky().is_none()
-        {
+        // RᵀR positive definite with every pivot above roundoff: a
+        // singular R passes a plain Cholesky on a rounding error
+        let rtr = self.r.transpose() * &self.r;
+        let floor = 1e-12 * rtr.diagonal().max();
+        let definite = floor > 0.0
+            && rtr
+                .cholesky()
+                .is_some_and(|c| c.l().diagonal().iter().all(|d| d * d > floor));
+        if !definite {
             return Err(InputError::NotPositiveDefinite {
                 field: "R".into(),
                 reason: "RᵀR must be positive definite".into(),
