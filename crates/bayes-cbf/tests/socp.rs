@@ -206,7 +206,13 @@ fn solution_satisfies_constraints_and_kkt() {
                 CANTELLI_C_0_9
             };
             assert!((rep.c - want).abs() < 1e-12, "c = {} vs {want}", rep.c);
+            // the report at the applied control, ζ = 0.05
+            let (mean, std) = (cbcs[k].mean(&out.u), cbcs[k].variance(&out.u).sqrt());
+            assert_eq!((rep.mean, rep.std), (mean, std));
+            let slack = mean - 0.05 - want * std;
+            assert!((rep.slack - slack).abs() <= 1e-12 * (1.0 + slack.abs()));
         }
+        assert!(!out.is_infeasible());
         assert!(out.clf.unwrap().slack >= -1e-6);
         assert!(out.u.iter().all(|u| (-3.0 - 1e-7..=3.0 + 1e-7).contains(u)));
     });
@@ -484,6 +490,7 @@ fn infeasible_step_reports_fallback_and_p_star() {
             filter
                 .solve(std::slice::from_ref(&mom), None, &[0.5], &mut out)
                 .unwrap();
+            assert!(out.is_infeasible());
             match &out.status {
                 ControlStatus::Infeasible(info) => {
                     assert_eq!(info.fallback, fallback);
