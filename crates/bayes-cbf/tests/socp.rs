@@ -700,3 +700,53 @@ fn safety_settings_defaults_and_boundaries() {
         assert_eq!(ok(&with(&|s| s.p_star_tol = tol)), good, "p_star_tol {tol}");
     }
 }
+
+/// The filter's own checks: `p < 0.5` only without relative-degree-1
+/// conditions (a barrier of degree 1 or a CLF makes `c(p) < 0`
+/// non-convex), `set_probability` validates and takes effect, moments of
+/// the wrong length name the expected one, and the filter prints its
+/// shape and settings.
+#[test]
+fn filter_checks_probability_shapes_and_prints_itself() {
+    let mut rng = ChaCha8Rng::seed_from_u64(12);
+    let m = 2;
+    let low = SafetySettings {
+        probability: 0.3,
+        ..SafetySettings::new(m)
+    };
+    let rd2 = random_moments(m, &mut rng, 2, 0.3);
+    let rd1 = random_moments(m, &mut rng, 1, 0.3);
+    let mut out = ControlOutput::new(m, 1);
+    let solve = |clf: bool, mom: &ConditionMoments, out: &mut ControlOutput| {
+        let mut f = SafetyFilter::new(m, 1, clf, low.clone()).unwrap();
+        let clc = clf.then(|| rd1.clone());
+        f.solve(std::slice::from_ref(mom), clc.as_ref(), &[0.0; 2], out)
+    };
+    assert!(solve(false, &rd2, &mut out).is_ok());
+    for (clf, mom) in [(false, &rd1), (true, &rd2)] {
+        let e = solve(clf, mom, &mut out).unwrap_err().to_string();
+        assert!(e.contains("probability"), "{e}");
+    }
+    let mut f = SafetyFilter::new(m, 1, false, SafetySettings::new(m)).unwrap();
+    assert!(f.set_probability(1.0).is_err());
+    assert_eq!(f.settings().probability, 0.99);
+    f.set_probability(0.9).unwrap();
+    assert_eq!(f.settings().probability, 0.9);
+    f.solve(std::slice::from_ref(&rd1), None, &[0.0; 2], &mut out)
+        .unwrap();
+    assert!((out.constraints[0].c - GAUSS_C_0_9).abs() < 1e-12);
+    let short = ConditionMoments::from_parts(vec![0.0; 2], DMatrix::identity(2, 2), 1).unwrap();
+    let e = f
+        .solve(std::slice::from_ref(&short), None, &[0.0; 2], &mut out)
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.contains("moments[0].e") && e.contains('3') && e.contains('2'),
+        "{e}"
+    );
+    let shown = format!("{f:?}");
+    assert!(
+        shown.starts_with("SafetyFilter") && shown.contains("probability: 0.9"),
+        "{shown}"
+    );
+}
