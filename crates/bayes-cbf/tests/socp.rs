@@ -744,6 +744,14 @@ fn filter_checks_probability_shapes_and_prints_itself() {
         e.contains("moments[0].e") && e.contains('3') && e.contains('2'),
         "{e}"
     );
+    // an output of another shape is resized
+    for (mu, nb) in [(1, 1), (2, 3)] {
+        let mut other = ControlOutput::new(mu, nb);
+        f.solve(std::slice::from_ref(&rd1), None, &[0.0; 2], &mut other)
+            .unwrap();
+        assert_eq!((other.u.len(), other.constraints.len()), (2, 1));
+        assert_eq!(other, out);
+    }
     let shown = format!("{f:?}");
     assert!(
         shown.starts_with("SafetyFilter") && shown.contains("probability: 0.9"),
