@@ -342,7 +342,9 @@ fn likelihood_floor_needs_an_evaluation_and_changes_nothing() {
 
 /// The likelihood's start with `log σ_f` (the one coordinate that moves
 /// `σ` alone) at −300: `σ_f` is zero and the noise is the floor.
-fn without_free_noise(lik: &bayes_cbf::gp::MvgpLikelihood<'_, Rbf>) -> Vec<f64> {
+fn without_free_noise<K: Kernel + PartialEq>(
+    lik: &bayes_cbf::gp::MvgpLikelihood<'_, K>,
+) -> Vec<f64> {
     let start = lik.start().to_vec();
     let base = lik.hyper(&start).unwrap();
     let i = (0..lik.dim())
@@ -378,26 +380,49 @@ fn kernel_variance(model: &mut Mvgp, s: f64) -> FitSettings {
 /// normalisation, where `B` and `σ²` scale together).
 #[test]
 fn the_noise_floor_is_a_fraction_of_the_mean_signal() {
-    use bayes_cbf::gp::MvgpLikelihood;
     let mut model = pendulum_model(30, 4);
     let warm = kernel_variance(&mut model, 2.5);
-    let lik = MvgpLikelihood::new(&model, &warm).unwrap();
+    check_noise_floor(&model, &warm);
+    // a kernel that is not stationary: k(z_j, z_j) = (1 + |z_j|²)² differs
+    // from point to point
+    let h = model.hyper();
+    let mut quad = Mvgp::new(
+        2,
+        1,
+        MvgpHyper {
+            kernel: common::Quadratic2(2),
+            A: h.A.clone(),
+            B: h.B.clone(),
+            sigma: h.sigma,
+        },
+        PriorMean::Zero,
+        InputMap::Identity,
+    )
+    .unwrap();
+    quad.set_data(model.xs(), &model.controls(), model.xdot())
+        .unwrap();
+    check_noise_floor(&quad, &FitSettings::default());
+}
+
+/// `σ` of the hyperparameters at `σ_f → 0` against `√(ε s̄)` recomputed
+/// from the returned `B`, the kernel and the data.
+fn check_noise_floor<K: Kernel + PartialEq>(model: &Mvgp<K>, settings: &FitSettings) {
+    use bayes_cbf::gp::MvgpLikelihood;
+    let lik = MvgpLikelihood::new(model, settings).unwrap();
     let th = without_free_noise(&lik);
     let h = lik.hyper(&th).unwrap();
-    let (us, m) = (model.controls(), model.control_dim());
-    let k = model.len();
-    let s0 = h.kernel.variance();
-    assert_eq!(s0, 2.5);
-    let mean_signal = (0..k)
+    let (xs, us, m) = (model.xs(), &model.controls(), model.control_dim());
+    let mean_signal = (0..model.len())
         .map(|j| {
             let ub: Vec<f64> = std::iter::once(1.0)
                 .chain(us[j * m..(j + 1) * m].iter().copied())
                 .collect();
+            let x = &xs[j * 2..j * 2 + 2];
             let bu = &h.B * DVector::from_column_slice(&ub);
-            DVector::from_column_slice(&ub).dot(&bu) * s0
+            DVector::from_column_slice(&ub).dot(&bu) * h.kernel.value(x, x)
         })
         .sum::<f64>()
-        / k as f64;
+        / model.len() as f64;
     let want = (1e-10 * mean_signal).sqrt();
     assert!(
         (h.sigma - want).abs() <= 1e-9 * want,

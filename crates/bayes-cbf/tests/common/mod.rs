@@ -178,3 +178,57 @@ pub fn bisect_p_star(best_margin: impl Fn(f64) -> f64, lo: f64, hi: f64) -> f64 
     }
     a
 }
+
+/// `k(z, z') = (1 + z·z')²`, a kernel that is not stationary: its gradient
+/// at `z' = z` is not zero, so the prior covariance of `F` and `∂F/∂x` is
+/// not either (for the RBF it is).
+#[derive(Debug, Clone, PartialEq)]
+pub struct Quadratic2(pub usize);
+
+impl bayes_cbf::gp::Kernel for Quadratic2 {
+    fn input_dim(&self) -> usize {
+        self.0
+    }
+    fn value(&self, x: &[f64], y: &[f64]) -> f64 {
+        let s = 1.0 + x.iter().zip(y).map(|(a, b)| a * b).sum::<f64>();
+        s * s
+    }
+    fn grad_x(&self, x: &[f64], y: &[f64], out: &mut [f64]) -> f64 {
+        let s = 1.0 + x.iter().zip(y).map(|(a, b)| a * b).sum::<f64>();
+        for (o, b) in out.iter_mut().zip(y) {
+            *o = 2.0 * s * b;
+        }
+        s * s
+    }
+    fn hess_xy(&self, x: &[f64], y: &[f64], out: &mut [f64]) -> f64 {
+        let d = self.0;
+        let s = 1.0 + x.iter().zip(y).map(|(a, b)| a * b).sum::<f64>();
+        for i in 0..d {
+            for j in 0..d {
+                out[i * d + j] = 2.0 * (x[j] * y[i] + if i == j { s } else { 0.0 });
+            }
+        }
+        s * s
+    }
+    fn hess_xx(&self, x: &[f64], y: &[f64], out: &mut [f64]) -> f64 {
+        let d = self.0;
+        for i in 0..d {
+            for j in 0..d {
+                out[i * d + j] = 2.0 * y[i] * y[j];
+            }
+        }
+        self.value(x, y)
+    }
+    fn n_hyper(&self) -> usize {
+        0
+    }
+    fn log_hyper(&self) -> Vec<f64> {
+        Vec::new()
+    }
+    fn set_log_hyper(&mut self, _theta: &[f64]) -> Result<(), bayes_cbf::error::InputError> {
+        Ok(())
+    }
+    fn grad_log_hyper(&self, x: &[f64], y: &[f64], _out: &mut [f64]) -> f64 {
+        self.value(x, y)
+    }
+}
