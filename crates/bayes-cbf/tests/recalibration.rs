@@ -74,6 +74,10 @@ fn a_miss_widens_the_conditions_variance_by_kappa_squared() {
             "{a} {b}"
         );
     }
+    // and so does the cone the SOCP is built from: vᵀv = Cov
+    let v = &ctrl.barrier_moments()[0].v;
+    let gap = (v.transpose() * v - inflated).amax();
+    assert!(gap <= 1e-10 * inflated.amax(), "vᵀv − Cov: {gap}");
     // and a hit lowers κ by e^{−η(1−p)}
     let mut learned = m.clone();
     learned.add_observation(&x, &out.u, &[30.0, 0.0]).unwrap();
@@ -88,7 +92,9 @@ fn a_miss_widens_the_conditions_variance_by_kappa_squared() {
 /// of `F`, and at relative degree 2 the observation noise's share of the
 /// variance, `σ² E[aᵀAa]`, shrinks with an update too. Over a sweep of
 /// observations across the miss threshold, the controller's decisions equal
-/// the rule applied to the latent moments computed here.
+/// the rule applied to the latent moments computed here, both at `κ = 1`
+/// and at `κ > 1` (after one miss), where the step's inflated variance must
+/// be divided by `κ²` and the bound widened by `κ`.
 #[test]
 fn predictive_misses_are_decided_on_the_latent_condition() {
     use bayes_cbf::barrier::{cbc_moments, quantile_factor, ConditionMoments, MomentWorkspace};
@@ -112,24 +118,49 @@ fn predictive_misses_are_decided_on_the_latent_condition() {
         cbc_moments(&mut ws, sector.as_ref(), &mut mom).unwrap();
         (mom.mean(u), mom.variance(u))
     };
-    let mut decisions = [0usize; 2];
+    let mut decisions = [[0usize; 2]; 2];
     let mut noise: f64 = 0.0;
-    for i in 0..81 {
+    // from κ = 1, and from κ > 1 after one large miss: the decision divides
+    // the inflation out of the variance
+    for (i, inflated) in (0..81).flat_map(|i| [(i, false), (i, true)]) {
         let mut ctrl = SafetyController::new(2, 1, vec![sector.clone()], None, s.clone()).unwrap();
         ctrl.set_recalibration(Some(RecalibrationSettings::default()))
             .unwrap();
         let mut out = ControlOutput::new(1, 1);
+        if inflated {
+            ctrl.step(&m, &x, &[0.0], None, &mut out).unwrap();
+            // the low end of the sweep below: a miss
+            let mut far = m.clone();
+            let wdot = -10.0 * x[0].sin() + out.u[0] - 12.0;
+            far.add_observation(&x, &out.u, &[0.4, wdot]).unwrap();
+            ctrl.recalibrate(&far).unwrap();
+            let kappa = ctrl.recalibrator().unwrap().inflation(0);
+            assert!(kappa > 1.2, "{kappa}");
+        }
         ctrl.step(&m, &x, &[0.0], None, &mut out).unwrap();
         let u = out.u.clone();
         let mut learned = m.clone();
         // around the prior's prediction ω̇ = −(g/l) sin θ + u/(m l²)
-        let wdot = -10.0 * x[0].sin() + u[0] - 12.0 + 0.2 * i as f64;
+        // (further down from κ > 1, whose bound is wider)
+        let offset = if inflated {
+            -20.0 + 0.3 * i as f64
+        } else {
+            -12.0 + 0.2 * i as f64
+        };
+        let wdot = -10.0 * x[0].sin() + u[0] + offset;
         learned.add_observation(&x, &u, &[0.4, wdot]).unwrap();
+        let kappa = ctrl.recalibrator().unwrap().inflation(0);
         ctrl.recalibrate(&learned).unwrap();
         let (e, v) = latent(&m, &u);
         let (e1, v1) = latent(&learned, &u);
         let (misses, updates) = ctrl.recalibrator().unwrap().counts(0);
-        noise = noise.max(ctrl.barrier_moments()[0].variance(&u) - v);
+        let (misses, updates) = (
+            misses - usize::from(inflated),
+            updates - usize::from(inflated),
+        );
+        if !inflated {
+            noise = noise.max(ctrl.barrier_moments()[0].variance(&u) - v);
+        }
         if v <= v1 {
             // the update explained no variance of the condition (its mean
             // moved, and the variance of a quadratic form with it): no
@@ -137,18 +168,19 @@ fn predictive_misses_are_decided_on_the_latent_condition() {
             assert_eq!(updates, 0, "ω̇ = {wdot}");
             continue;
         }
-        let want = e1 - e < -c * (v - v1).sqrt();
+        // a miss falls below the bound widened by the current κ
+        let want = e1 - e < -c * kappa * (v - v1).sqrt();
         assert_eq!(updates, 1, "ω̇ = {wdot}");
         assert_eq!(
             misses == 1,
             want,
-            "ω̇ = {wdot}: innovation {} vs {}",
+            "ω̇ = {wdot}, κ = {kappa}: innovation {} vs {}",
             e1 - e,
-            c * (v - v1).sqrt()
+            c * kappa * (v - v1).sqrt()
         );
-        decisions[usize::from(want)] += 1;
+        decisions[usize::from(inflated)][usize::from(want)] += 1;
     }
     // the sweep crosses the threshold, and the noise is a large share
-    assert!(decisions[0] > 0 && decisions[1] > 0, "{decisions:?}");
+    assert!(decisions.iter().flatten().all(|&d| d > 0), "{decisions:?}");
     assert!(noise > 0.2, "{noise}");
 }
