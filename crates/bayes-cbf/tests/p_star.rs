@@ -126,3 +126,34 @@ fn p_star_matches_a_grid_reference() {
         "infeasible instances: {checked:?}, {hopeless} with no p*"
     );
 }
+
+/// A condition without variance that the box can meet affords every
+/// probability: beside a random infeasible one, `p*` is that one's alone.
+#[test]
+fn a_condition_without_variance_does_not_limit_p_star() {
+    let mut rng = ChaCha8Rng::seed_from_u64(5);
+    let exact = ConditionMoments::from_parts(vec![0.5, 0.1], DMatrix::zeros(2, 2), 1).unwrap();
+    let mut compared = 0;
+    for _ in 0..40 {
+        let mom = random_moments(&mut rng, 1);
+        let p_star = |moms: &[ConditionMoments]| {
+            let mut settings = SafetySettings::new(1);
+            settings.probability = 0.999;
+            settings.u_min = Some(vec![-1.0]);
+            settings.u_max = Some(vec![1.0]);
+            let mut filter = SafetyFilter::new(1, moms.len(), false, settings).unwrap();
+            let mut out = ControlOutput::new(1, moms.len());
+            filter.solve(moms, None, &[0.0], &mut out).unwrap();
+            match out.status {
+                ControlStatus::Infeasible(info) => info.p_star,
+                _ => None,
+            }
+        };
+        if let Some(alone) = p_star(std::slice::from_ref(&mom)) {
+            let both = p_star(&[exact.clone(), mom]).expect("a p* with the exact condition");
+            assert!((both - alone).abs() < 1e-4, "{both} vs {alone}");
+            compared += 1;
+        }
+    }
+    assert!(compared >= 5, "{compared}");
+}
