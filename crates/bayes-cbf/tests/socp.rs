@@ -758,3 +758,50 @@ fn filter_checks_probability_shapes_and_prints_itself() {
         "{shown}"
     );
 }
+
+/// An infeasible step's report: the barriers whose condition the fallback
+/// control breaks, at `ζ = 0.2` and `c(0.99)`, and the brake's control, the
+/// point of the box nearest zero.
+#[test]
+fn the_fallback_reports_exactly_the_violated_barriers() {
+    let exact = |e: [f64; 2], std: f64| {
+        let mut cov = DMatrix::zeros(2, 2);
+        cov[(0, 0)] = std * std;
+        ConditionMoments::from_parts(e.to_vec(), cov, 1).unwrap()
+    };
+    let moms = [
+        // met without ζ, broken with it: 0.1 − 0.2 − 2.33·0.01 < 0
+        exact([0.1, 0.0], 0.01),
+        // met: 0.5 − 0.2 − 2.33·0.1 = 0.067
+        exact([0.5, 0.0], 0.1),
+        // no control in the box meets it
+        exact([-5.0, 0.1], 0.0),
+    ];
+    for (lo, hi, brake) in [(-1.0, 1.0, 0.0), (0.5, 1.0, 0.5), (-1.0, -0.25, -0.25)] {
+        let mut settings = SafetySettings::new(1);
+        settings.zeta = 0.2;
+        settings.u_min = Some(vec![lo]);
+        settings.u_max = Some(vec![hi]);
+        settings.fallback = Fallback::Brake;
+        let mut filter = SafetyFilter::new(1, 3, false, settings).unwrap();
+        let mut out = ControlOutput::new(1, 3);
+        filter.solve(&moms, None, &[0.3], &mut out).unwrap();
+        assert_eq!(out.u, vec![brake]);
+        match &out.status {
+            ControlStatus::Infeasible(info) => {
+                let want: Vec<usize> = (0..3)
+                    .filter(|&k| {
+                        let m = &moms[k];
+                        let std = m.variance(&out.u).sqrt();
+                        m.mean(&out.u) - 0.2 - GAUSS_C_0_99 * std < 0.0
+                    })
+                    .collect();
+                assert_eq!(info.violated, want);
+                if brake == 0.0 {
+                    assert_eq!(info.violated, vec![0, 2]);
+                }
+            }
+            s => panic!("expected infeasible, got {s:?}"),
+        }
+    }
+}
