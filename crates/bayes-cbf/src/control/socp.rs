@@ -554,6 +554,47 @@ mod tests {
         v
     }
 
+    /// Every Clarabel status has its meaning here: solved, almost solved,
+    /// infeasible (also almost), unbounded (also almost), else failed.
+    #[test]
+    fn clarabel_statuses_map_to_ours() {
+        use SolverStatus as C;
+        for (c, ours) in [
+            (C::Solved, SolveStatus::Optimal),
+            (C::AlmostSolved, SolveStatus::AlmostOptimal),
+            (C::PrimalInfeasible, SolveStatus::Infeasible),
+            (C::AlmostPrimalInfeasible, SolveStatus::Infeasible),
+            (C::DualInfeasible, SolveStatus::Unbounded),
+            (C::AlmostDualInfeasible, SolveStatus::Unbounded),
+            (C::MaxIterations, SolveStatus::Failed),
+            (C::NumericalError, SolveStatus::Failed),
+            (C::InsufficientProgress, SolveStatus::Failed),
+        ] {
+            assert_eq!(SolveStatus::from_clarabel(c), ours, "{c:?}");
+        }
+    }
+
+    /// The box rows `u_j ≤ hi_j`, `−u_j ≤ −lo_j` of each control follow the
+    /// cone blocks, two per control, and nothing else is written.
+    #[test]
+    fn bounds_fill_their_own_rows() {
+        for (clf, max_margin) in [(true, false), (false, false), (true, true)] {
+            let shape = SocpShape {
+                m: 3,
+                barriers: 2,
+                clf,
+                bounds: true,
+            };
+            let mut p = ConeProgram::new(shape, max_margin);
+            p.b.fill(f64::NAN);
+            p.set_bounds(&[-1.0, -2.0, -3.0], &[4.0, 5.0, 6.0]);
+            let blocks = 2 + usize::from(clf && !max_margin);
+            let base = blocks * (1 + 3 + 1);
+            assert!(p.b[..base].iter().all(|v| v.is_nan()));
+            assert_eq!(&p.b[base..base + 6], &[4.0, 1.0, 5.0, 2.0, 6.0, 3.0]);
+        }
+    }
+
     #[test]
     fn dense_solver_and_clarabel_fallback_agree_along_a_sequence() {
         let mut rng = ChaCha8Rng::seed_from_u64(7);
