@@ -40,6 +40,32 @@ fn controller() -> (SafetyController, Arc<dyn DynBarrier>) {
     )
 }
 
+/// The controller keeps what it was built from, and says so.
+#[test]
+fn the_controller_reports_its_parts() {
+    let (ctrl, sector) = controller();
+    assert_eq!(ctrl.barriers().len(), 1);
+    assert!(std::ptr::addr_eq(
+        Arc::as_ptr(&ctrl.barriers()[0]),
+        Arc::as_ptr(&sector)
+    ));
+    assert!(ctrl.clf().is_none());
+    assert_eq!(ctrl.settings().probability, 0.99);
+    let shown = format!("{ctrl:?}");
+    assert!(
+        shown.starts_with("SafetyController") && shown.contains("barriers: 1"),
+        "{shown}"
+    );
+    let clf: Arc<dyn bayes_cbf::barrier::DynLyapunov> =
+        Arc::new(bayes_cbf::barrier::AckermannClf::new(1.0, 1.0, 1.0).unwrap());
+    let with_clf =
+        SafetyController::new(3, 2, vec![], Some(clf.clone()), SafetySettings::new(2)).unwrap();
+    assert!(std::ptr::addr_eq(
+        Arc::as_ptr(with_clf.clf().unwrap()),
+        Arc::as_ptr(&clf)
+    ));
+}
+
 #[test]
 fn a_miss_widens_the_conditions_variance_by_kappa_squared() {
     let (mut ctrl, _) = controller();

@@ -131,6 +131,8 @@ fn check_kkt(filter: &SafetyFilter, tol: f64) {
             _ => unreachable!(),
         }
     }
+    // the cones cover every row
+    assert_eq!(row, sv.len(), "cones of {row} rows for {} rows", sv.len());
 }
 
 /// Program `trial` of the random strictly feasible family: `m = 1 + trial % 3`
