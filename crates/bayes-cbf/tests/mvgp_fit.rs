@@ -431,13 +431,10 @@ fn check_noise_floor<K: Kernel + PartialEq>(model: &Mvgp<K>, settings: &FitSetti
     );
 }
 
-/// The gradient through the floor: with `σ_f` driven to zero and one
-/// observation repeated, the floor `ε s̄` is the Gram matrix's smallest
-/// eigenvalue and `∂s̄/∂θ` (through `B` and the kernel) carries an O(1)
-/// share of `−∇ log p`, which central differences check.
-#[test]
-fn the_gradient_follows_the_floor() {
-    use bayes_cbf::gp::MvgpLikelihood;
+/// 30 pendulum observations with the first one repeated (without noise the
+/// Gram matrix is singular, so the floor decides its smallest eigenvalue)
+/// and a kernel variance of 2.5, with the warm fit settings that keep it.
+fn floor_model() -> (Mvgp, FitSettings) {
     let mut model = pendulum_model(30, 4);
     let (x0, u0, xd0) = (
         model.xs()[..2].to_vec(),
@@ -446,6 +443,17 @@ fn the_gradient_follows_the_floor() {
     );
     model.add_observation(&x0, &u0, &xd0).unwrap();
     let warm = kernel_variance(&mut model, 2.5);
+    (model, warm)
+}
+
+/// The gradient through the floor: with `σ_f` driven to zero and one
+/// observation repeated, the floor `ε s̄` is the Gram matrix's smallest
+/// eigenvalue and `∂s̄/∂θ` (through `B` and the kernel) carries an O(1)
+/// share of `−∇ log p`, which central differences check.
+#[test]
+fn the_gradient_follows_the_floor() {
+    use bayes_cbf::gp::MvgpLikelihood;
+    let (model, warm) = floor_model();
     let mut lik = MvgpLikelihood::new(&model, &warm).unwrap();
     let th = without_free_noise(&lik);
     let mut g = vec![0.0; lik.dim()];
@@ -483,14 +491,7 @@ fn the_gradient_follows_the_floor() {
 #[test]
 fn the_evaluation_and_the_hyperparameters_share_the_floor() {
     use bayes_cbf::gp::MvgpLikelihood;
-    let mut model = pendulum_model(30, 4);
-    let (x0, u0, xd0) = (
-        model.xs()[..2].to_vec(),
-        model.controls()[..1].to_vec(),
-        model.xdot()[..2].to_vec(),
-    );
-    model.add_observation(&x0, &u0, &xd0).unwrap();
-    let warm = kernel_variance(&mut model, 2.5);
+    let (model, warm) = floor_model();
     let mut lik = MvgpLikelihood::new(&model, &warm).unwrap();
     let th = without_free_noise(&lik);
     let mut g = vec![0.0; lik.dim()];
