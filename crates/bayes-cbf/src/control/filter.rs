@@ -142,7 +142,7 @@ impl SafetySettings {
         if !definite {
             return Err(InputError::NotPositiveDefinite {
                 field: "R".into(),
-                reason: "RᵀR must be positive definite".into(),
+                reason: "RᵀR must be positive definite, every Cholesky pivot above 1e-12 of its largest diagonal entry".into(),
             });
         }
         if self.u_min.is_some() != self.u_max.is_some() {
