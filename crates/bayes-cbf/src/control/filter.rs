@@ -1010,3 +1010,37 @@ impl SafetyController {
         Ok(())
     }
 }
+
+#[cfg(test)]
+mod tests {
+    //! The fallback's private path where the max-margin program has no
+    //! maximiser (no public program reaches it: an unbounded margin makes
+    //! the control program feasible).
+    use super::*;
+
+    /// With no maximiser (here an unbounded margin: no bounds and a
+    /// condition `E[C](u) = 1 + u₀` without variance) the max-margin and
+    /// relax fallbacks brake, whatever the max-margin buffer held.
+    #[test]
+    fn max_margin_fallback_without_a_maximiser_brakes() {
+        let mut filter = SafetyFilter::new(2, 1, false, SafetySettings::new(2)).unwrap();
+        let mut mom = ConditionMoments::zeros(2);
+        mom.e = vec![1.0, 1.0, 0.0];
+        let cbcs = [mom];
+        let mut out = ControlOutput::new(2, 1);
+        for fallback in [Fallback::MaxMargin, Fallback::Relax] {
+            filter.settings.fallback = fallback;
+            let mut u_mm = [7.0, -7.0];
+            out.u.copy_from_slice(&[3.0, 3.0]);
+            assert_eq!(filter.max_margin(&cbcs, 0.9, &mut u_mm).unwrap(), None);
+            assert_eq!(u_mm, [7.0, -7.0], "no maximiser is written");
+            let info = filter
+                .fall_back(&cbcs, None, SolveStatus::Failed, &mut out, &mut u_mm)
+                .unwrap();
+            assert_eq!(out.u, [0.0, 0.0], "{fallback:?}");
+            assert_eq!(info.fallback, fallback);
+            assert_eq!(info.p_star, None);
+            assert_eq!(info.violated, Vec::<usize>::new());
+        }
+    }
+}

@@ -595,6 +595,44 @@ mod tests {
         }
     }
 
+    /// When Clarabel's fast solver stops short (here capped at one
+    /// iteration), the refined one answers: with the solution of a feasible
+    /// program and with the certificate of an infeasible one.
+    #[test]
+    fn refined_solver_answers_when_the_fast_one_stops_short() {
+        let mut rng = ChaCha8Rng::seed_from_u64(11);
+        let shape = SocpShape {
+            m: 2,
+            barriers: 2,
+            clf: true,
+            bounds: true,
+        };
+        let mut p = ConeProgram::new(shape, false);
+        randomise(&mut p, &mut rng);
+        assert_eq!(p.solve_clarabel(), SolveStatus::Optimal);
+        assert_eq!(p.last, Answer::Clarabel(0));
+        let reference = p.x().to_vec();
+        let capped = DefaultSettings {
+            max_iter: 1,
+            ..ConeProgram::settings(false)
+        };
+        p.solvers[0]
+            .as_mut()
+            .expect("built by the first solve")
+            .update_settings(capped)
+            .expect("max_iter can be updated");
+        assert_eq!(p.solve_clarabel(), SolveStatus::Optimal);
+        assert_eq!(p.last, Answer::Clarabel(1));
+        for (a, b) in p.x().iter().zip(&reference) {
+            assert!((a - b).abs() < 1e-6, "{a} against {b}");
+        }
+        // u ≥ 1 and u ≤ −1: the capped fast solver fails, the refined one
+        // certifies infeasibility, and that is the answer
+        p.set_bounds(&[1.0, 1.0], &[-1.0, -1.0]);
+        assert_eq!(p.solve_clarabel(), SolveStatus::Infeasible);
+        assert_eq!(p.last, Answer::Clarabel(1));
+    }
+
     #[test]
     fn dense_solver_and_clarabel_fallback_agree_along_a_sequence() {
         let mut rng = ChaCha8Rng::seed_from_u64(7);

@@ -448,6 +448,13 @@ impl<K: Kernel> Mvgp<K> {
     /// Appends the staged row `scratch[..k]`: the factor, `β` and
     /// `diag(G⁻¹)`.
     fn commit_observation(&mut self, pivot: Pivot) {
+        self.commit_row(pivot);
+        self.info_after_append();
+    }
+
+    /// [`commit_observation`](Self::commit_observation) without the update
+    /// of `diag(G⁻¹)`: the factor and `β`.
+    fn commit_row(&mut self, pivot: Pivot) {
         let k = self.factor.len();
         let n = self.n;
         self.factor.push_row(&self.scratch[..k], pivot);
@@ -471,7 +478,6 @@ impl<K: Kernel> Mvgp<K> {
             self.beta[(k, i)] = s / l[(k, k)];
         }
         self.alpha = OnceLock::new();
-        self.info_after_append();
     }
 
     fn pop_last_point(&mut self) {

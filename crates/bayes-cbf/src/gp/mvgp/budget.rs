@@ -120,6 +120,15 @@ impl<K: Kernel> Mvgp<K> {
             k,
             MatMut::from_column_major_slice_mut(&mut info.work[..k], k, 1),
         );
+        self.info_append_solved(delta);
+    }
+
+    /// The update of [`info_after_append`](Self::info_after_append) from
+    /// `a = L⁻ᵀl` already in `info.work[..k]` and the new pivot `δ`:
+    /// `d_i += a_i²/δ²`, and `1/δ²` for the new point.
+    fn info_append_solved(&mut self, delta: f64) {
+        let k = self.len() - 1;
+        let info = &mut self.info;
         let inv = 1.0 / (delta * delta);
         for (d, a) in info.diag.iter_mut().zip(&info.work[..k]) {
             *d += a * a * inv;
@@ -295,7 +304,10 @@ impl<K: Kernel> Mvgp<K> {
             self.pop_last_point();
             return Ok(Some(k));
         }
-        self.commit_observation(pivot);
+        // the append, with `a` (still in the tracker's scratch) reused
+        self.commit_row(pivot);
+        let delta = self.factor.l_ref()[(k, k)];
+        self.info_append_solved(delta);
         self.remove_observation(best);
         Ok(Some(best))
     }
