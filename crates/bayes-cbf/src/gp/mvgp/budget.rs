@@ -466,6 +466,67 @@ mod tests {
         assert!((l - r).amax() < 1e-10);
     }
 
+    /// The same equivalence on random streams of a 2-state, 2-control
+    /// model (eight seeds, budgets 5 to 40, random states, controls and
+    /// rates): the same decision at every point, the same data, and
+    /// `diag(G⁻¹)` within rounding of the append-then-remove model's.
+    #[test]
+    fn the_decision_before_the_append_matches_on_random_streams() {
+        use rand::{RngExt, SeedableRng};
+        use rand_chacha::ChaCha8Rng;
+        let hyper = MvgpHyper {
+            kernel: Rbf::new(vec![0.8, 1.7], 1.3).unwrap(),
+            A: DMatrix::from_row_slice(2, 2, &[1.0, 0.3, 0.3, 0.5]),
+            B: DMatrix::from_row_slice(3, 3, &[1.0, 0.2, 0.0, 0.2, 0.8, 0.1, 0.0, 0.1, 0.6]),
+            sigma: 0.05,
+        };
+        let (mut replaced, mut discarded) = (0, 0);
+        for seed in 0..8u64 {
+            let mut rng = ChaCha8Rng::seed_from_u64(1000 + seed);
+            let budget = rng.random_range(5..40);
+            let mut before =
+                Mvgp::new(2, 2, hyper.clone(), PriorMean::Zero, InputMap::Identity).unwrap();
+            let mut after = before.clone();
+            after.gram_inverse_diagonal();
+            let mut draw =
+                |k: usize| -> Vec<f64> { (0..k).map(|_| rng.random_range(-2.0..2.0)).collect() };
+            for j in 0..150 {
+                let (x, u, xd) = (draw(2), draw(2), draw(2));
+                after.add_observation(&x, &u, &xd).unwrap();
+                let expected = if after.len() > budget {
+                    after.remove_least_informative()
+                } else {
+                    None
+                };
+                let got = before
+                    .add_observation_within_budget(&x, &u, &xd, budget)
+                    .unwrap();
+                assert_eq!(got, expected, "seed {seed} point {j}");
+                match got {
+                    Some(k) if k == budget => discarded += 1,
+                    Some(_) => replaced += 1,
+                    None => {}
+                }
+                assert_eq!(before.xs(), after.xs(), "seed {seed} point {j}");
+            }
+            let (d0, d1) = (
+                before.gram_inverse_diagonal().to_vec(),
+                after.gram_inverse_diagonal().to_vec(),
+            );
+            for (a, b) in d0.iter().zip(&d1) {
+                assert!(
+                    (a - b).abs() <= 1e-9 * b.abs(),
+                    "seed {seed}: {a} against {b}"
+                );
+            }
+            assert_diag(&mut before);
+        }
+        assert!(
+            replaced >= 50 && discarded >= 50,
+            "{replaced} / {discarded}"
+        );
+    }
+
     /// Below the budget the observation is added; above it the model first
     /// drops to the budget; a budget of zero is refused.
     #[test]
