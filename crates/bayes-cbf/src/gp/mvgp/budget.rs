@@ -124,13 +124,13 @@ impl<K: Kernel> Mvgp<K> {
     }
 
     /// The update of [`info_after_append`](Self::info_after_append) from
-    /// `a = L⁻ᵀl` already in `info.work[..k]` and the new pivot `δ`:
-    /// `d_i += a_i²/δ²`, and `1/δ²` for the new point.
+    /// `a = L⁻ᵀl` already in `info.work[..k]` (`k` = the tracked entries)
+    /// and the new pivot `δ`: `d_i += a_i²/δ²`, and `1/δ²` for the new
+    /// point.
     fn info_append_solved(&mut self, delta: f64) {
-        let k = self.len() - 1;
         let info = &mut self.info;
         let inv = 1.0 / (delta * delta);
-        for (d, a) in info.diag.iter_mut().zip(&info.work[..k]) {
+        for (d, a) in info.diag.iter_mut().zip(&info.work) {
             *d += a * a * inv;
         }
         info.diag.push(inv);
