@@ -15,7 +15,11 @@ use std::sync::Arc;
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
 #[cfg_attr(feature = "serde", derive(serde::Serialize, serde::Deserialize))]
 pub enum Fallback {
-    /// Maximise the worst stochastic CBC within the bounds (itself an SOCP).
+    /// Maximise the worst stochastic CBC `E[C] − ζ − c(p)·std[C]` at the
+    /// requested `p` within the bounds (itself an SOCP). With a large
+    /// `c(p)` it favours controls of small variance, which keeps inputs the
+    /// conditions do not constrain small, but may brake too little where
+    /// the input gain is uncertain (docs/calibration.md, "Which fallback").
     #[default]
     MaxMargin,
     /// Apply `u = 0` (clamped into the bounds).
@@ -24,6 +28,8 @@ pub enum Fallback {
     Hold,
     /// Solve the same SOCP at the largest feasible probability `p*`
     /// (graceful degradation; the maximal-margin control if no `p*` exists).
+    /// It maximises the conditions' probability, and may take inputs they
+    /// do not constrain to their bounds.
     Relax,
 }
 
