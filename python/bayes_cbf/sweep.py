@@ -69,8 +69,10 @@ def _sweep_task(meta: str) -> str:
     return _core.sweep_shard(meta)
 
 
-def _calibration_task(seed: int, quick: bool, episodes: Optional[int], i: int, n: int) -> str:
-    return _core.calibration_shard(seed, quick, episodes, i, n)
+def _calibration_task(
+    seed: int, quick: bool, episodes: Optional[int], i: int, n: int, fallback: Optional[str]
+) -> str:
+    return _core.calibration_shard(seed, quick, episodes, i, n, fallback)
 
 
 def _sets(overrides: Optional[dict]) -> list[str]:
@@ -140,20 +142,22 @@ def calibration(
     shards: Optional[int] = None,
     address: Optional[str] = None,
     num_cpus: Optional[int] = None,
+    fallback: Optional[str] = None,
 ) -> dict:
     """Runs ``bayes-cbf run calibration`` as Ray tasks and returns its
     ``summary.json`` (as a dict; ``"episodes_csv"`` holds ``episodes.csv``).
 
     ``episodes`` per (system, truth) (default 200, or 12 with ``quick``),
-    ``seed`` as ``--seed``; ``shards``, ``address`` and ``num_cpus`` as in
-    :func:`seeds`.
+    ``seed`` as ``--seed``, ``fallback`` as ``--fallback`` (``"max_margin"``,
+    the default, ``"relax"``, ``"brake"`` or ``"hold"``); ``shards``,
+    ``address`` and ``num_cpus`` as in :func:`seeds`.
     """
     if episodes is not None and (not isinstance(episodes, int) or episodes < 1):
         raise InputError(f"episodes: {episodes!r}, must be an integer >= 1")
     ray = _init(address, num_cpus)
     n = _shard_count(ray, shards, 10**9)
     task = ray.remote(num_cpus=1)(_calibration_task).options(runtime_env=_ENV)
-    parts = ray.get([task.remote(seed, quick, episodes, i, n) for i in range(n)])
+    parts = ray.get([task.remote(seed, quick, episodes, i, n, fallback) for i in range(n)])
     summary_json, csv = _core.calibration_merge(parts)
     summary = json.loads(summary_json)
     summary["episodes_csv"] = csv

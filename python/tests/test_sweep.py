@@ -38,9 +38,10 @@ def test_seed_sweep_on_ray_equals_the_cli(cli, tmp_path):
 
 def test_calibration_on_ray_equals_the_cli(cli, tmp_path):
     run_cli(cli, "run", "calibration", "--quick", "--episodes", "1", "--seed", "3",
-            "--out", str(tmp_path))
+            "--fallback", "relax", "--out", str(tmp_path))
     theirs = json.loads((tmp_path / "summary.json").read_text())
-    ours = sweep.calibration(episodes=1, seed=3, quick=True, shards=2)
+    ours = sweep.calibration(episodes=1, seed=3, quick=True, shards=2, fallback="relax")
+    assert ours["fallback"] == "relax"
     assert drop(ours, "wall_seconds", "threads", "episodes_csv") == drop(
         theirs, "wall_seconds", "threads")
     assert ours["episodes_csv"] == (tmp_path / "episodes.csv").read_text()
@@ -57,3 +58,5 @@ def test_bad_sweeps_are_input_errors():
         sweep.seeds("pendulum-safe", range(0, 3), overrides={"nosuchkey": 1})
     with pytest.raises(bc.InputError, match="episodes"):
         sweep.calibration(episodes=0)
+    with pytest.raises(bc.InputError, match="max_margin, brake, hold or relax"):
+        bc._core.calibration_shard(0, True, 1, 0, 1, "slow")

@@ -2,8 +2,9 @@
 
 use crate::logger::hold_warnings;
 use anyhow::Result;
+use bayes_cbf::control::Fallback;
 use bayes_cbf_plot::{comparison_figure, experiment_figures, write_figures};
-use bayes_cbf_scenario::experiments::{self, ExperimentArgs, ExperimentResult, Sizes};
+use bayes_cbf_scenario::experiments::{self, calibration, ExperimentArgs, ExperimentResult, Sizes};
 use bayes_cbf_scenario::io::{write_atomic, write_json};
 use bayes_cbf_scenario::scenario::{self, trajectory_csv, RunOutput, BUILTIN};
 use clap::Args;
@@ -34,6 +35,11 @@ pub struct RunArgs {
     /// Episodes per system and truth of `calibration` (default 200).
     #[arg(long, allow_hyphen_values = true)]
     pub episodes: Option<usize>,
+    /// The controllers' fallback on an infeasible step in `calibration`:
+    /// max_margin (default), relax, brake or hold. (Scenarios set theirs
+    /// with `--set controller.fallback=NAME`.)
+    #[arg(long, value_name = "NAME", value_parser = parse_fallback)]
+    pub fallback: Option<Fallback>,
     /// Control steps of `soak` (default 100000).
     #[arg(long, allow_hyphen_values = true)]
     pub steps: Option<usize>,
@@ -49,6 +55,11 @@ pub struct RunArgs {
     /// combine the shards' directories with `bayes-cbf merge`.
     #[arg(long, value_name = "I/N")]
     pub shard: Option<String>,
+}
+
+/// `--fallback NAME`.
+fn parse_fallback(s: &str) -> Result<Fallback, String> {
+    Fallback::parse(s).map_err(|e| e.to_string())
 }
 
 /// A progress bar on stderr when it is a terminal outside CI, else hidden.
@@ -92,7 +103,11 @@ pub fn run(a: &RunArgs) -> Result<()> {
                     "--shard applies to calibration and to seed sweeps (--seeds), not to '{name}'"
                 );
             }
-            return crate::sweep_cmd::run_calibration_shard(&args, a.episodes, shard, &out);
+            let options = calibration::Options {
+                episodes: a.episodes,
+                fallback: a.fallback,
+            };
+            return crate::sweep_cmd::run_calibration_shard(&args, &options, shard, &out);
         }
         return run_experiment(
             name,
@@ -103,14 +118,15 @@ pub fn run(a: &RunArgs) -> Result<()> {
             },
             &Sizes {
                 episodes: a.episodes,
+                fallback: a.fallback,
                 steps: a.steps,
                 window: a.window,
             },
         );
     }
-    if a.episodes.is_some() || a.steps.is_some() || a.window.is_some() {
+    if a.episodes.is_some() || a.fallback.is_some() || a.steps.is_some() || a.window.is_some() {
         anyhow::bail!(
-            "--episodes, --steps and --window apply to the experiments calibration and soak, not to the scenario '{}'",
+            "--episodes, --fallback, --steps and --window apply to the experiments calibration and soak, not to the scenario '{}' (its fallback: --set controller.fallback=NAME)",
             a.scenario
         );
     }

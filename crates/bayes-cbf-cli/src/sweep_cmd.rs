@@ -80,13 +80,13 @@ pub fn run_sweep(
 /// Runs shard `shard` of `calibration` into `out` (`part.json`).
 pub fn run_calibration_shard(
     args: &ExperimentArgs,
-    episodes: Option<usize>,
+    options: &calibration::Options,
     shard: &str,
     out: &Path,
 ) -> Result<()> {
     let shard: Shard = shard.parse()?;
     let bar = progress_bar("calibration shard", "episodes");
-    let part = calibration::run_shard(args, episodes, shard, &|done: usize, total: usize| {
+    let part = calibration::run_shard(args, options, shard, &|done: usize, total: usize| {
         bar.set_length(total as u64);
         bar.set_position(done as u64);
     })?;

@@ -29,11 +29,18 @@ fn experiments_write_their_files() {
     assert_eq!(s["models"].as_array().unwrap().len(), 2);
     assert!(is_png(&out.join("covariance-shapes.png")));
 
-    let (_dir, out, _) = run_into("calibration", &["--quick", "--episodes", "1"]);
+    let (_dir, out, s) = run_into("calibration", &["--quick", "--episodes", "1"]);
+    assert_eq!(s["fallback"], "max_margin");
     assert!(is_png(&out.join("calibration.png")));
     let csv = std::fs::read_to_string(out.join("episodes.csv")).unwrap();
     // one line per (system, truth, episode, controller): 10 controllers
     assert_eq!(csv.lines().count(), 1 + 2 * 2 * 10);
+
+    let (_dir, _, s) = run_into(
+        "calibration",
+        &["--quick", "--episodes", "1", "--fallback", "relax"],
+    );
+    assert_eq!(s["fallback"], "relax");
 
     let (_dir, _, s) = run_into("soak", &["--steps", "200"]);
     assert_eq!(s["steps"], 200);
@@ -49,6 +56,12 @@ fn experiment_sizes_are_checked() {
         ("run calibration --window 30", "--window"),
         ("run pendulum-safe --steps 30", "--steps"),
         ("run calibration --episodes -2", "--episodes"),
+        (
+            "run calibration --fallback slow",
+            "max_margin, brake, hold or relax",
+        ),
+        ("run soak --fallback relax", "--fallback"),
+        ("run pendulum-safe --fallback relax", "controller.fallback"),
         ("run no-such-experiment", "no-such-experiment"),
     ] {
         assert_fails(&run(&words(args)), &[want], args);

@@ -2,7 +2,8 @@
 //! scenario crate's functions, for `bayes_cbf.sweep` to run as Ray tasks.
 //! Shards travel as text (JSON and CSV) so that any executor can move them.
 
-use crate::convert::{input_err, scenario_err};
+use crate::convert::{core_err, input_err, scenario_err};
+use bayes_cbf::control::Fallback;
 use bayes_cbf_scenario::experiments::calibration::{self, CalibrationPart};
 use bayes_cbf_scenario::experiments::ExperimentArgs;
 use bayes_cbf_scenario::sweep::{
@@ -77,9 +78,10 @@ pub fn sweep_merge(parts: Vec<(String, String)>) -> PyResult<(String, String)> {
     Ok((json, rows_csv(&rows)))
 }
 
-/// Runs shard `index/count` of `calibration` and returns it (`part.json`).
+/// Runs shard `index/count` of `calibration` and returns it (`part.json`);
+/// `fallback` names every controller's fallback (default `max_margin`).
 #[pyfunction]
-#[pyo3(signature = (seed=0, quick=false, episodes=None, index=0, count=1))]
+#[pyo3(signature = (seed=0, quick=false, episodes=None, index=0, count=1, fallback=None))]
 pub fn calibration_shard(
     py: Python<'_>,
     seed: u64,
@@ -87,11 +89,17 @@ pub fn calibration_shard(
     episodes: Option<usize>,
     index: usize,
     count: usize,
+    fallback: Option<&str>,
 ) -> PyResult<String> {
     let s = shard(index, count)?;
     let args = ExperimentArgs { seed, quick };
+    let fallback = fallback
+        .map(Fallback::parse)
+        .transpose()
+        .map_err(core_err)?;
+    let options = calibration::Options { episodes, fallback };
     let part = py
-        .detach(|| calibration::run_shard(&args, episodes, s, &|_: usize, _: usize| {}))
+        .detach(|| calibration::run_shard(&args, &options, s, &|_: usize, _: usize| {}))
         .map_err(scenario_err)?;
     serde_json::to_string(&part).map_err(|e| input_err(e.to_string()))
 }

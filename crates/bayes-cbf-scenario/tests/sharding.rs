@@ -2,7 +2,8 @@
 //! sweeps, through their text forms (part.json, sweep.csv), and bad shard
 //! sets are errors.
 
-use bayes_cbf_scenario::experiments::calibration::{self, CalibrationPart};
+use bayes_cbf::control::Fallback;
+use bayes_cbf_scenario::experiments::calibration::{self, CalibrationPart, Options};
 use bayes_cbf_scenario::experiments::ExperimentArgs;
 use bayes_cbf_scenario::sweep::{
     merge_sweeps, parse_rows_csv, rows_csv, run_seeds, summarise, Shard, SweepMeta, SweepRow,
@@ -22,13 +23,17 @@ fn calibration_shards_merge_into_the_unsharded_run() {
         seed: 11,
         quick: true,
     };
-    let whole = calibration::run(&args, Some(1), &|_: usize, _: usize| {}).unwrap();
+    let one = Options {
+        episodes: Some(1),
+        fallback: None,
+    };
+    let whole = calibration::run(&args, &one, &|_: usize, _: usize| {}).unwrap();
     let parts: Vec<CalibrationPart> = [2, 0, 1]
         .iter()
         .map(|&i| {
             let p = calibration::run_shard(
                 &args,
-                Some(1),
+                &one,
                 Shard { index: i, count: 3 },
                 &|_: usize, _: usize| {},
             )
@@ -60,7 +65,7 @@ fn calibration_shards_merge_into_the_unsharded_run() {
             seed: 12,
             quick: true,
         },
-        Some(1),
+        &one,
         Shard { index: 1, count: 3 },
         &|_: usize, _: usize| {},
     )
@@ -69,6 +74,31 @@ fn calibration_shards_merge_into_the_unsharded_run() {
         .unwrap_err()
         .to_string();
     assert!(e.contains("another run"), "{e}");
+    // a shard of the same run with another fallback
+    let relax = Options {
+        fallback: Some(Fallback::Relax),
+        ..one
+    };
+    let other = calibration::run_shard(
+        &args,
+        &relax,
+        Shard { index: 1, count: 3 },
+        &|_: usize, _: usize| {},
+    )
+    .unwrap();
+    assert_eq!(other.fallback, Fallback::Relax);
+    let e = calibration::merge(vec![parts[0].clone(), other, parts[2].clone()])
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.contains("fallback relax") && e.contains("fallback max_margin"),
+        "{e}"
+    );
+    // a shard file from before the option: max-margin
+    let mut v = serde_json::to_value(&parts[0]).unwrap();
+    v.as_object_mut().unwrap().remove("fallback");
+    let old: CalibrationPart = serde_json::from_value(v).unwrap();
+    assert_eq!(old.fallback, Fallback::MaxMargin);
     assert!(calibration::merge(vec![]).is_err());
 }
 

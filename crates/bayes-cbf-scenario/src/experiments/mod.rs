@@ -105,12 +105,14 @@ pub const EXPERIMENTS: &[(&str, &str)] = &[
     ),
 ];
 
-/// Sizes of the Monte Carlo experiments; `None` takes the experiment's
-/// default.
+/// Sizes and options of the Monte Carlo experiments; `None` takes the
+/// experiment's default.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
 pub struct Sizes {
     /// Episodes per cell of `calibration`.
     pub episodes: Option<usize>,
+    /// The controllers' fallback in `calibration`.
+    pub fallback: Option<bayes_cbf::control::Fallback>,
     /// Control steps of `soak`.
     pub steps: Option<usize>,
     /// Sliding window of `soak`.
@@ -189,6 +191,7 @@ pub fn run_sized(
         Ok(())
     };
     takes("--episodes", sizes.episodes.is_some(), &["calibration"])?;
+    takes("--fallback", sizes.fallback.is_some(), &["calibration"])?;
     takes("--steps", sizes.steps.is_some(), &["soak"])?;
     takes("--window", sizes.window.is_some(), &["soak"])?;
     Ok(match name {
@@ -198,9 +201,14 @@ pub fn run_sized(
             ExperimentResult::AckermannTriggering(Box::new(ackermann_triggering::run(args)?))
         }
         "covariance-shapes" => ExperimentResult::CovarianceShapes(covariance_shapes::run(args)?),
-        "calibration" => {
-            ExperimentResult::Calibration(calibration::run(args, sizes.episodes, progress)?)
-        }
+        "calibration" => ExperimentResult::Calibration(calibration::run(
+            args,
+            &calibration::Options {
+                episodes: sizes.episodes,
+                fallback: sizes.fallback,
+            },
+            progress,
+        )?),
         "soak" => ExperimentResult::Soak(soak::run(args, sizes.steps, sizes.window, progress)?),
         _ => {
             let names: Vec<&str> = EXPERIMENTS.iter().map(|(n, _)| *n).collect();

@@ -400,10 +400,12 @@ pub(crate) fn setup(system: System, truth: TruthKind, seed: u64, steps: usize) -
     })
 }
 
-/// The safety controller `kind` for `system` (max-margin fallback, bounds).
+/// The safety controller `kind` for `system`, with the input bounds and
+/// `fallback`.
 pub(crate) fn controller(
     system: System,
     kind: ControllerKind,
+    fallback: Fallback,
     barrier: &Arc<dyn DynBarrier>,
 ) -> Result<SafetyController> {
     let (n, m, lo, hi) = match system {
@@ -420,7 +422,7 @@ pub(crate) fn controller(
     s.zeta = 0.0;
     s.u_min = Some(lo);
     s.u_max = Some(hi);
-    s.fallback = Fallback::MaxMargin;
+    s.fallback = fallback;
     s.predictive = kind.predictive;
     Ok(SafetyController::new(n, m, vec![barrier.clone()], None, s)?)
 }
@@ -516,10 +518,11 @@ pub(crate) fn run_episode(
     system: System,
     truth: TruthKind,
     kind: ControllerKind,
+    fallback: Fallback,
     seed: u64,
     steps: usize,
 ) -> EpisodeStats {
-    match run_inner(system, truth, kind, seed, steps) {
+    match run_inner(system, truth, kind, fallback, seed, steps) {
         Ok(s) => s,
         Err(e) => EpisodeStats {
             error: Some(format!("{e:#}")),
@@ -533,6 +536,7 @@ fn run_inner(
     system: System,
     truth: TruthKind,
     kind: ControllerKind,
+    fallback: Fallback,
     seed: u64,
     steps: usize,
 ) -> Result<EpisodeStats> {
@@ -540,7 +544,7 @@ fn run_inner(
     s.loop_settings.recalibration = kind
         .recalibrate
         .then(bayes_cbf::control::RecalibrationSettings::default);
-    let mut ctrl = controller(system, kind, &s.barrier)?;
+    let mut ctrl = controller(system, kind, fallback, &s.barrier)?;
     let mut reference: Box<dyn Reference> = match system {
         System::Vehicle => Box::new(Pursuit {
             side: if s.x0[1] >= 0.0 { 1.0 } else { -1.0 },

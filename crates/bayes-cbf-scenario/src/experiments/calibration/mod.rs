@@ -73,6 +73,7 @@ use super::{ExperimentArgs, Progress, Table};
 use crate::bail;
 use crate::error::Result;
 use crate::sweep::{check_shard_set, Shard};
+use bayes_cbf::control::Fallback;
 use episode::{run_episode, ControllerKind, EpisodeStats, System, TruthKind, CONTROLLERS};
 use rayon::prelude::*;
 use std::sync::atomic::{AtomicUsize, Ordering};
@@ -98,6 +99,16 @@ pub struct Calibration {
     pub tables: Vec<Table>,
 }
 
+/// What `--episodes` and `--fallback` choose; `None` takes the default.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub struct Options {
+    /// Episodes per (system, truth) (default 200; 12 with `--quick`).
+    pub episodes: Option<usize>,
+    /// Every controller's fallback on an infeasible step (default
+    /// max-margin).
+    pub fallback: Option<Fallback>,
+}
+
 /// Default number of episodes per (system, truth).
 pub(crate) const DEFAULT_EPISODES: usize = 200;
 /// Episodes of `--quick`.
@@ -109,12 +120,15 @@ pub(crate) struct Plan {
     pub episodes: usize,
     /// `(system, control steps per episode)`.
     pub systems: Vec<(System, usize)>,
+    /// Every controller's fallback on an infeasible step.
+    pub fallback: Fallback,
 }
 
 impl Plan {
-    /// The plan for `episodes` (default [`DEFAULT_EPISODES`]); `--quick`
-    /// runs fewer and shorter episodes.
-    pub fn new(quick: bool, episodes: Option<usize>) -> Result<Self> {
+    /// The plan for `episodes` (default [`DEFAULT_EPISODES`]) and
+    /// `fallback` (default max-margin); `--quick` runs fewer and shorter
+    /// episodes.
+    pub fn new(quick: bool, episodes: Option<usize>, fallback: Option<Fallback>) -> Result<Self> {
         if episodes == Some(0) {
             bail!("--episodes = 0: must be ≥ 1");
         }
@@ -132,6 +146,7 @@ impl Plan {
         Ok(Plan {
             episodes: episodes.unwrap_or(default),
             systems: steps.to_vec(),
+            fallback: fallback.unwrap_or(Fallback::MaxMargin),
         })
     }
 }
@@ -208,7 +223,14 @@ fn run_shard_tasks(
     all.par_iter()
         .map(|t| {
             let kind: ControllerKind = CONTROLLERS[t.controller];
-            let s = run_episode(t.system, t.truth, kind, episode_seed(seed, t), t.steps);
+            let s = run_episode(
+                t.system,
+                t.truth,
+                kind,
+                plan.fallback,
+                episode_seed(seed, t),
+                t.steps,
+            );
             progress.update(done.fetch_add(1, Ordering::Relaxed) + 1, all.len());
             (*t, s)
         })
@@ -226,6 +248,9 @@ pub struct CalibrationPart {
     pub quick: bool,
     /// Episodes per (system, truth).
     pub episodes: usize,
+    /// `--fallback` (shards written before it existed: max-margin).
+    #[serde(default)]
+    pub fallback: Fallback,
     /// This shard.
     pub shard: Shard,
     /// Wall time of this shard (s).
@@ -237,12 +262,12 @@ pub struct CalibrationPart {
 /// task order belongs to it).
 pub fn run_shard(
     args: &ExperimentArgs,
-    episodes: Option<usize>,
+    options: &Options,
     shard: Shard,
     progress: &dyn Progress,
 ) -> Result<CalibrationPart> {
     shard.validate()?;
-    let plan = Plan::new(args.quick, episodes)?;
+    let plan = Plan::new(args.quick, options.episodes, options.fallback)?;
     bayes_cbf::gp::set_linear_algebra_threads(1);
     let start = Instant::now();
     let results = run_shard_tasks(&plan, args.seed, shard, progress);
@@ -250,6 +275,7 @@ pub fn run_shard(
         seed: args.seed,
         quick: args.quick,
         episodes: plan.episodes,
+        fallback: plan.fallback,
         shard,
         wall_time_s: start.elapsed().as_secs_f64(),
         results,
@@ -264,17 +290,18 @@ pub fn merge(parts: Vec<CalibrationPart>) -> Result<Calibration> {
     let Some(first) = parts.first() else {
         bail!("merge: no shards given");
     };
-    let (seed, quick, episodes) = (first.seed, first.quick, first.episodes);
+    let (seed, quick, episodes, fallback) =
+        (first.seed, first.quick, first.episodes, first.fallback);
     for p in &parts {
-        if (p.seed, p.quick, p.episodes) != (seed, quick, episodes) {
+        if (p.seed, p.quick, p.episodes, p.fallback) != (seed, quick, episodes, fallback) {
             bail!(
-                "merge: shard {}/{} is of another run (seed {}, quick {}, episodes {}) than shard {}/{} (seed {seed}, quick {quick}, episodes {episodes})",
-                p.shard.index, p.shard.count, p.seed, p.quick, p.episodes, first.shard.index, first.shard.count
+                "merge: shard {}/{} is of another run (seed {}, quick {}, episodes {}, fallback {}) than shard {}/{} (seed {seed}, quick {quick}, episodes {episodes}, fallback {})",
+                p.shard.index, p.shard.count, p.seed, p.quick, p.episodes, p.fallback.name(), first.shard.index, first.shard.count, fallback.name()
             );
         }
     }
     let count = check_shard_set(parts.iter().map(|p| p.shard))?;
-    let plan = Plan::new(quick, Some(episodes))?;
+    let plan = Plan::new(quick, Some(episodes), Some(fallback))?;
     let order = tasks(&plan);
     let mut slots: Vec<Option<EpisodeStats>> = vec![None; order.len()];
     let mut wall = 0.0;
@@ -314,21 +341,41 @@ pub fn merge(parts: Vec<CalibrationPart>) -> Result<Calibration> {
 /// docs), reporting each finished episode: the one-shard run, merged.
 pub fn run(
     args: &ExperimentArgs,
-    episodes: Option<usize>,
+    options: &Options,
     progress: &dyn Progress,
 ) -> Result<Calibration> {
-    merge(vec![run_shard(args, episodes, Shard::WHOLE, progress)?])
+    merge(vec![run_shard(args, options, Shard::WHOLE, progress)?])
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
 
+    /// `--fallback` reaches every controller of both systems, and the
+    /// default is max-margin.
+    #[test]
+    fn the_fallback_reaches_every_controller() {
+        assert_eq!(
+            Plan::new(false, None, None).unwrap().fallback,
+            Fallback::MaxMargin
+        );
+        for system in [System::Vehicle, System::Pendulum] {
+            let s = episode::setup(system, TruthKind::MisSpecified, 3, 10).unwrap();
+            for kind in CONTROLLERS {
+                for fallback in [Fallback::Relax, Fallback::Brake, Fallback::MaxMargin] {
+                    let c = episode::controller(system, kind, fallback, &s.barrier).unwrap();
+                    assert_eq!(c.settings().fallback, fallback, "{}", kind.name);
+                }
+            }
+        }
+    }
+
     #[test]
     fn results_do_not_depend_on_the_thread_count() {
         let plan = Plan {
             episodes: 2,
             systems: vec![(System::Vehicle, 60), (System::Pendulum, 40)],
+            fallback: Fallback::MaxMargin,
         };
         let one = rayon::ThreadPoolBuilder::new()
             .num_threads(1)
@@ -357,9 +404,9 @@ mod tests {
 
     #[test]
     fn zero_episodes_is_an_error_naming_the_option() {
-        let e = Plan::new(false, Some(0)).unwrap_err().to_string();
+        let e = Plan::new(false, Some(0), None).unwrap_err().to_string();
         assert!(e.contains("--episodes"), "{e}");
-        assert_eq!(Plan::new(true, None).unwrap().episodes, QUICK_EPISODES);
-        assert_eq!(Plan::new(false, Some(7)).unwrap().episodes, 7);
+        assert_eq!(Plan::new(true, None, None).unwrap().episodes, QUICK_EPISODES);
+        assert_eq!(Plan::new(false, Some(7), None).unwrap().episodes, 7);
     }
 }

@@ -370,6 +370,8 @@ pub struct CalibrationSummary {
     pub quick: bool,
     /// Episodes per (system, truth).
     pub episodes: usize,
+    /// Every controller's fallback on an infeasible step (`--fallback`).
+    pub fallback: String,
     /// Control steps per episode, by system.
     pub steps_per_episode: BTreeMap<String, usize>,
     /// Control period (s).
@@ -477,6 +479,7 @@ pub(super) fn summary(
         seed: args.seed,
         quick: args.quick,
         episodes: plan.episodes,
+        fallback: plan.fallback.name().into(),
         steps_per_episode: plan
             .systems
             .iter()
