@@ -20,6 +20,7 @@
 //! and equal to it on the steps where the constraint is *active* (slack 0)
 //! for the Gaussian factor (Cantelli's is a bound for any distribution).
 
+use super::Task;
 use bayes_cbf::barrier::{
     cbc_moments, realised_condition, true_condition, CircleHeading, ConditionMoments, DynBarrier,
     MomentWorkspace, PendulumSector,
@@ -513,16 +514,10 @@ pub(crate) fn condition(
     Ok(true_condition(truth, b, x, u)?)
 }
 
-/// Runs one episode with controller `kind` and summarises it.
-pub(crate) fn run_episode(
-    system: System,
-    truth: TruthKind,
-    kind: ControllerKind,
-    fallback: Fallback,
-    seed: u64,
-    steps: usize,
-) -> EpisodeStats {
-    match run_inner(system, truth, kind, fallback, seed, steps) {
+/// Runs the episode of `task` (its system, truth, controller and length)
+/// from `seed`, with `fallback`, and summarises it.
+pub(crate) fn run_episode(task: &Task, fallback: Fallback, seed: u64) -> EpisodeStats {
+    match run_inner(task, fallback, seed) {
         Ok(s) => s,
         Err(e) => EpisodeStats {
             error: Some(format!("{e:#}")),
@@ -532,15 +527,10 @@ pub(crate) fn run_episode(
     }
 }
 
-fn run_inner(
-    system: System,
-    truth: TruthKind,
-    kind: ControllerKind,
-    fallback: Fallback,
-    seed: u64,
-    steps: usize,
-) -> Result<EpisodeStats> {
-    let mut s = setup(system, truth, seed, steps)?;
+fn run_inner(task: &Task, fallback: Fallback, seed: u64) -> Result<EpisodeStats> {
+    let (system, steps) = (task.system, task.steps);
+    let kind = CONTROLLERS[task.controller];
+    let mut s = setup(system, task.truth, seed, steps)?;
     s.loop_settings.recalibration = kind
         .recalibrate
         .then(bayes_cbf::control::RecalibrationSettings::default);

@@ -74,7 +74,7 @@ use crate::bail;
 use crate::error::Result;
 use crate::sweep::{check_shard_set, Shard};
 use bayes_cbf::control::Fallback;
-use episode::{run_episode, ControllerKind, EpisodeStats, System, TruthKind, CONTROLLERS};
+use episode::{run_episode, EpisodeStats, System, TruthKind, CONTROLLERS};
 use rayon::prelude::*;
 use std::sync::atomic::{AtomicUsize, Ordering};
 use std::time::Instant;
@@ -222,15 +222,7 @@ fn run_shard_tasks(
     let done = AtomicUsize::new(0);
     all.par_iter()
         .map(|t| {
-            let kind: ControllerKind = CONTROLLERS[t.controller];
-            let s = run_episode(
-                t.system,
-                t.truth,
-                kind,
-                plan.fallback,
-                episode_seed(seed, t),
-                t.steps,
-            );
+            let s = run_episode(t, plan.fallback, episode_seed(seed, t));
             progress.update(done.fetch_add(1, Ordering::Relaxed) + 1, all.len());
             (*t, s)
         })
@@ -406,7 +398,10 @@ mod tests {
     fn zero_episodes_is_an_error_naming_the_option() {
         let e = Plan::new(false, Some(0), None).unwrap_err().to_string();
         assert!(e.contains("--episodes"), "{e}");
-        assert_eq!(Plan::new(true, None, None).unwrap().episodes, QUICK_EPISODES);
+        assert_eq!(
+            Plan::new(true, None, None).unwrap().episodes,
+            QUICK_EPISODES
+        );
         assert_eq!(Plan::new(false, Some(7), None).unwrap().episodes, 7);
     }
 }
