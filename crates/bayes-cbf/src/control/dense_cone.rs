@@ -1264,6 +1264,83 @@ mod tests {
         );
     }
 
+    /// A vector of `len` normal entries times `scale`.
+    fn scaled(rng: &mut ChaCha8Rng, len: usize, scale: f64) -> Vec<f64> {
+        (0..len).map(|_| scale * normal(rng)).collect()
+    }
+
+    /// The measures of convergence are Clarabel's (`DefaultInfo::update`
+    /// without equilibration, written out here from its definitions) at
+    /// random iterates with `τ` from 0.1 to 10 and norms on both sides of
+    /// the `max(1, ·)` guards: every norm, `τ` scaling and guard.
+    #[test]
+    fn measures_follow_clarabels_definitions() {
+        let mut rng = ChaCha8Rng::seed_from_u64(21);
+        let cones = [Cone::NonNegative(2), Cone::SecondOrder(3)];
+        let (n, m) = (3, 5);
+        let mut d = DenseConeSolver::new(n, &cones);
+        for trial in 0..300 {
+            let scale = 10f64.powf(rng.random_range(-2.0..2.0));
+            d.v.x = scaled(&mut rng, n, scale);
+            d.v.s = scaled(&mut rng, m, scale);
+            d.v.z = scaled(&mut rng, m, scale);
+            d.v.tau = 10f64.powf(rng.random_range(-1.0..1.0));
+            d.v.kappa = rng.random_range(0.0..3.0);
+            d.rx = scaled(&mut rng, n, scale);
+            d.rz = scaled(&mut rng, m, scale);
+            d.px = scaled(&mut rng, n, scale);
+            d.rx_inf = scaled(&mut rng, n, scale);
+            d.rz_inf = scaled(&mut rng, m, scale);
+            d.b = scaled(&mut rng, m, scale);
+            d.q = scaled(&mut rng, n, scale);
+            d.meas.dot_qx = scale * normal(&mut rng);
+            d.meas.dot_bz = scale * normal(&mut rng);
+            d.meas.dot_xpx = scale * normal(&mut rng).abs();
+            d.update_measures();
+
+            let t = 1.0 / d.v.tau;
+            let half = d.meas.dot_xpx * t * t / 2.0;
+            let primal = d.meas.dot_qx * t + half;
+            let dual = -d.meas.dot_bz * t - half;
+            let (nx, nz, ns) = (norm(&d.v.x), norm(&d.v.z), norm(&d.v.s));
+            let gap = (primal - dual).abs();
+            let want = [
+                ("res_primal_inf", norm(&d.rx_inf) / nz.max(1.0)),
+                (
+                    "res_dual_inf",
+                    (norm(&d.px) / nx.max(1.0)).max(norm(&d.rz_inf) / (nx + ns).max(1.0)),
+                ),
+                (
+                    "res_primal",
+                    norm(&d.rz) * t / (norm(&d.b) + (nx + ns) * t).max(1.0),
+                ),
+                (
+                    "res_dual",
+                    norm(&d.rx) * t / (norm(&d.q) + (nx + nz) * t).max(1.0),
+                ),
+                ("gap_abs", gap),
+                ("gap_rel", gap / primal.abs().min(dual.abs()).max(1.0)),
+                ("ktratio", d.v.kappa * t),
+            ];
+            let mm = &d.meas;
+            let got = [
+                mm.res_primal_inf,
+                mm.res_dual_inf,
+                mm.res_primal,
+                mm.res_dual,
+                mm.gap_abs,
+                mm.gap_rel,
+                mm.ktratio,
+            ];
+            for ((name, w), g) in want.iter().zip(got) {
+                assert!(
+                    (w - g).abs() <= 1e-12 * w.abs().max(1e-300),
+                    "trial {trial}: {name} {g} against {w}"
+                );
+            }
+        }
+    }
+
     #[test]
     fn strictly_feasible_programs_match_clarabel_and_meet_kkt() {
         let mut rng = ChaCha8Rng::seed_from_u64(1);
