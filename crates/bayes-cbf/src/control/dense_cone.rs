@@ -1264,6 +1264,235 @@ mod tests {
         );
     }
 
+    /// Clarabel's termination rules, case by case on both sides of each
+    /// threshold: solved (`κ/τ ≤ 1`, either gap, both residuals), the
+    /// infeasibility certificates (`κ/τ > 10⁹`, the sign and size of
+    /// `bᵀz` or `qᵀx`), a stalled or diverging iteration (after the first,
+    /// a residual worse than the last), non-finite measures and the
+    /// iteration cap.
+    #[test]
+    fn termination_follows_clarabels_rules() {
+        let mut d = DenseConeSolver::new(2, &[Cone::NonNegative(2)]);
+        let converged = Measures {
+            ktratio: 0.5,
+            gap_abs: 1e-9,
+            gap_rel: 1e-9,
+            res_primal: 1e-9,
+            res_dual: 1e-9,
+            ..Measures::default()
+        };
+        type Edit = fn(&mut Measures, &mut Measures);
+        let cases: [(&str, usize, Edit, Option<DenseStatus>); 33] = [
+            (
+                "qᵀx at its tolerance",
+                3,
+                |m, _| (m.ktratio, m.dot_qx, m.res_dual_inf) = (2e9, -TOL_INFEAS_ABS, 0.0),
+                None,
+            ),
+            (
+                "small κ/τ, residuals unchanged",
+                3,
+                |m, p| {
+                    (m.ktratio, m.res_primal, p.res_primal) = (1e-15, 1e-7, 1e-7);
+                    p.gap_abs = 1e-9;
+                },
+                None,
+            ),
+            // Clarabel's strict inequalities, at equality
+            (
+                "gaps at their tolerance",
+                1,
+                |m, _| (m.gap_abs, m.gap_rel) = (TOL_GAP_ABS, TOL_GAP_REL),
+                None,
+            ),
+            (
+                "primal residual at its tolerance",
+                1,
+                |m, _| m.res_primal = TOL_FEAS,
+                None,
+            ),
+            (
+                "dual residual at its tolerance",
+                1,
+                |m, _| m.res_dual = TOL_FEAS,
+                None,
+            ),
+            (
+                "κ/τ at the certificate threshold",
+                3,
+                |m, _| (m.ktratio, m.dot_bz, m.res_primal_inf) = (1000.0 / TOL_KTRATIO, -1.0, 1e-9),
+                None,
+            ),
+            (
+                "bᵀz at its tolerance",
+                3,
+                |m, _| (m.ktratio, m.dot_bz, m.res_primal_inf) = (2e9, -TOL_INFEAS_ABS, 0.0),
+                None,
+            ),
+            (
+                "primal certificate residual at its tolerance",
+                3,
+                |m, _| (m.ktratio, m.dot_bz, m.res_primal_inf) = (2e9, -1.0, TOL_INFEAS_REL),
+                None,
+            ),
+            (
+                "dual certificate residual at its tolerance",
+                3,
+                |m, _| (m.ktratio, m.dot_qx, m.res_dual_inf) = (2e9, -1.0, TOL_INFEAS_REL),
+                None,
+            ),
+            ("converged", 3, |_, _| {}, Some(DenseStatus::Solved)),
+            (
+                "κ/τ = 1",
+                3,
+                |m, _| m.ktratio = 1.0,
+                Some(DenseStatus::Solved),
+            ),
+            ("κ/τ > 1", 3, |m, _| m.ktratio = 1.5, None),
+            (
+                "absolute gap only",
+                3,
+                |m, _| m.gap_rel = 1e-7,
+                Some(DenseStatus::Solved),
+            ),
+            (
+                "relative gap only",
+                3,
+                |m, _| m.gap_abs = 1e-7,
+                Some(DenseStatus::Solved),
+            ),
+            (
+                "neither gap",
+                3,
+                |m, _| (m.gap_abs, m.gap_rel) = (1e-7, 1e-7),
+                None,
+            ),
+            ("primal residual", 1, |m, _| m.res_primal = 1e-7, None),
+            ("dual residual", 1, |m, _| m.res_dual = 1e-7, None),
+            (
+                "non-finite",
+                1,
+                |m, _| m.res_dual = f64::NAN,
+                Some(DenseStatus::Failed),
+            ),
+            (
+                "primal certificate",
+                3,
+                |m, _| (m.ktratio, m.dot_bz, m.res_primal_inf) = (2e9, -1.0, 1e-9),
+                Some(DenseStatus::PrimalInfeasible),
+            ),
+            (
+                "primal certificate, κ/τ too small",
+                3,
+                |m, _| (m.ktratio, m.dot_bz, m.res_primal_inf) = (5e8, -1.0, 1e-9),
+                None,
+            ),
+            (
+                "primal certificate, bᵀz too small",
+                3,
+                |m, _| (m.ktratio, m.dot_bz, m.res_primal_inf) = (2e9, -5e-9, 1e-20),
+                None,
+            ),
+            (
+                "primal certificate, residual too large",
+                3,
+                |m, _| (m.ktratio, m.dot_bz, m.res_primal_inf) = (2e9, -2.0, 3e-8),
+                None,
+            ),
+            (
+                "dual certificate",
+                3,
+                |m, _| (m.ktratio, m.dot_qx, m.res_dual_inf) = (2e9, -1.0, 1e-9),
+                Some(DenseStatus::DualInfeasible),
+            ),
+            (
+                "dual certificate, qᵀx too small",
+                3,
+                |m, _| (m.ktratio, m.dot_qx, m.res_dual_inf) = (2e9, -5e-9, 1e-20),
+                None,
+            ),
+            (
+                "dual certificate, residual too large",
+                3,
+                |m, _| (m.ktratio, m.dot_qx, m.res_dual_inf) = (2e9, -2.0, 3e-8),
+                None,
+            ),
+            (
+                "stalled",
+                3,
+                |m, p| {
+                    (m.ktratio, m.res_primal, p.res_primal) = (1e-15, 1e-7, 1e-8);
+                    p.gap_abs = 1e-9;
+                },
+                Some(DenseStatus::Failed),
+            ),
+            (
+                "stalled at the first iteration",
+                1,
+                |m, p| {
+                    (m.ktratio, m.res_primal, p.res_primal) = (1e-15, 1e-7, 1e-8);
+                    p.gap_abs = 1e-9;
+                },
+                None,
+            ),
+            (
+                "stalled, residuals improving",
+                3,
+                |m, p| {
+                    (m.ktratio, m.res_primal, p.res_primal) = (1e-15, 1e-7, 1e-6);
+                    (p.gap_abs, p.res_dual) = (1e-9, 1e-9);
+                },
+                None,
+            ),
+            (
+                "small κ/τ, last gap open",
+                3,
+                |m, p| {
+                    (m.ktratio, m.res_primal, p.res_primal) = (1e-15, 1e-7, 1e-8);
+                    (p.gap_abs, p.gap_rel) = (1e-7, 1e-7);
+                },
+                None,
+            ),
+            (
+                "dual residual diverging",
+                3,
+                |m, p| (m.res_dual, p.res_dual) = (1e-3, 1e-6),
+                Some(DenseStatus::Failed),
+            ),
+            (
+                "dual residual growing less than 100×",
+                3,
+                |m, p| (m.res_dual, p.res_dual) = (1e-3, 1e-4),
+                None,
+            ),
+            (
+                "primal residual diverging",
+                3,
+                |m, p| (m.res_primal, p.res_primal) = (1e-3, 1e-6),
+                Some(DenseStatus::Failed),
+            ),
+            (
+                "the iteration cap",
+                MAX_ITER,
+                |m, _| m.res_primal = 1e-7,
+                Some(DenseStatus::Failed),
+            ),
+        ];
+        for (name, iter, edit, want) in cases {
+            let (mut m, mut p) = (converged.clone(), converged.clone());
+            edit(&mut m, &mut p);
+            (d.meas, d.prev_meas) = (m, p);
+            assert_eq!(d.check_termination(iter), want, "{name}");
+        }
+        // below the cap, with nothing decided
+        d.meas = Measures {
+            res_primal: 1e-7,
+            ..converged.clone()
+        };
+        d.prev_meas = converged;
+        assert_eq!(d.check_termination(MAX_ITER - 1), None);
+    }
+
     /// A vector of `len` normal entries times `scale`.
     fn scaled(rng: &mut ChaCha8Rng, len: usize, scale: f64) -> Vec<f64> {
         (0..len).map(|_| scale * normal(rng)).collect()
