@@ -1282,7 +1282,70 @@ mod tests {
             ..Measures::default()
         };
         type Edit = fn(&mut Measures, &mut Measures);
-        let cases: [(&str, usize, Edit, Option<DenseStatus>); 33] = [
+        let cases: [(&str, usize, Edit, Option<DenseStatus>); 41] = [
+            (
+                "stalled, last relative gap closed",
+                3,
+                |m, p| {
+                    (m.ktratio, m.res_primal, p.res_primal) = (1e-15, 1e-7, 1e-8);
+                    (p.gap_abs, p.gap_rel) = (1e-7, 1e-9);
+                },
+                Some(DenseStatus::Failed),
+            ),
+            (
+                "stalled, last absolute gap closed",
+                3,
+                |m, p| {
+                    (m.ktratio, m.res_primal, p.res_primal) = (1e-15, 1e-7, 1e-8);
+                    (p.gap_abs, p.gap_rel) = (1e-9, 1e-7);
+                },
+                Some(DenseStatus::Failed),
+            ),
+            (
+                "κ/τ at the stall threshold",
+                3,
+                |m, p| {
+                    (m.ktratio, m.res_primal, p.res_primal) = (100.0 * f64::EPSILON, 1e-7, 1e-8);
+                    p.gap_abs = 1e-9;
+                },
+                None,
+            ),
+            (
+                "last absolute gap at its tolerance",
+                3,
+                |m, p| {
+                    (m.ktratio, m.res_primal, p.res_primal) = (1e-15, 1e-7, 1e-8);
+                    (p.gap_abs, p.gap_rel) = (TOL_GAP_ABS, 1e-7);
+                },
+                None,
+            ),
+            (
+                "last relative gap at its tolerance",
+                3,
+                |m, p| {
+                    (m.ktratio, m.res_primal, p.res_primal) = (1e-15, 1e-7, 1e-8);
+                    (p.gap_abs, p.gap_rel) = (1e-7, TOL_GAP_REL);
+                },
+                None,
+            ),
+            (
+                "diverging at κ/τ = 1",
+                3,
+                |m, p| (m.ktratio, m.res_dual, p.res_dual) = (1.0, 1e-3, 1e-6),
+                None,
+            ),
+            (
+                "dual residual at the divergence floor",
+                3,
+                |m, p| (m.res_dual, p.res_dual) = (100.0 * TOL_FEAS, 1e-9),
+                None,
+            ),
+            (
+                "dual residual grown exactly 100×",
+                3,
+                |m, p| (m.res_dual, p.res_dual) = (100.0 * 1e-5, 1e-5),
+                None,
+            ),
             (
                 "qᵀx at its tolerance",
                 3,
