@@ -1282,7 +1282,19 @@ mod tests {
             ..Measures::default()
         };
         type Edit = fn(&mut Measures, &mut Measures);
-        let cases: [(&str, usize, Edit, Option<DenseStatus>); 41] = [
+        let cases: [(&str, usize, Edit, Option<DenseStatus>); 43] = [
+            (
+                "primal residual at the divergence floor",
+                3,
+                |m, p| (m.res_primal, p.res_primal) = (100.0 * TOL_FEAS, 1e-9),
+                None,
+            ),
+            (
+                "primal residual grown exactly 100×",
+                3,
+                |m, p| (m.res_primal, p.res_primal) = (100.0 * 1e-5, 1e-5),
+                None,
+            ),
             (
                 "stalled, last relative gap closed",
                 3,
@@ -1554,6 +1566,44 @@ mod tests {
         };
         d.prev_meas = converged;
         assert_eq!(d.check_termination(MAX_ITER - 1), None);
+    }
+
+    /// The scaling is computed only at interior points: every entry of a
+    /// nonnegative cone and the head and `J`-norm of a second-order cone
+    /// strictly positive in both `s` and `z`; on the boundary or outside
+    /// it refuses, for either vector.
+    #[test]
+    fn scaling_refuses_points_not_interior() {
+        let mut d = DenseConeSolver::new(1, &[Cone::NonNegative(2), Cone::SecondOrder(3)]);
+        let inside = [1.0, 2.0, 10.0, 3.0, 4.0];
+        let outside: [(usize, f64); 7] = [
+            (0, 0.0),   // a nonnegative entry on the boundary
+            (1, -1.0),  // and outside
+            (2, 0.0),   // the SOC head at zero
+            (2, -10.0), // a negative head, positive J-norm
+            (2, 5.0),   // ‖tail‖ = head: J-norm zero
+            (3, 11.0),  // the tail out of the cone
+            (4, -10.0), // and on its other side
+        ];
+        d.v.s = inside.to_vec();
+        d.v.z = inside.to_vec();
+        assert!(d.update_scaling());
+        for (i, v) in outside {
+            for in_z in [false, true] {
+                d.v.s = inside.to_vec();
+                d.v.z = inside.to_vec();
+                if in_z {
+                    d.v.z[i] = v;
+                } else {
+                    d.v.s[i] = v;
+                }
+                assert!(
+                    !d.update_scaling(),
+                    "entry {i} = {v} in {}",
+                    if in_z { "z" } else { "s" }
+                );
+            }
+        }
     }
 
     /// A vector of `len` normal entries times `scale`.
