@@ -87,6 +87,17 @@ fn calibration_shards_merge_into_the_unsharded_run() {
     )
     .unwrap();
     assert_eq!(other.fallback, Fallback::Relax);
+    // part.json names it as the command line does
+    let text = serde_json::to_value(&other).unwrap();
+    assert_eq!(text["fallback"], "relax");
+    for f in [
+        Fallback::MaxMargin,
+        Fallback::Brake,
+        Fallback::Hold,
+        Fallback::Relax,
+    ] {
+        assert_eq!(serde_json::to_value(f).unwrap(), f.name());
+    }
     let e = calibration::merge(vec![parts[0].clone(), other, parts[2].clone()])
         .unwrap_err()
         .to_string();

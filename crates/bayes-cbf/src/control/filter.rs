@@ -11,9 +11,11 @@ use crate::gp::{Kernel, Mvgp};
 use nalgebra::DMatrix;
 use std::sync::Arc;
 
-/// What to apply when the SOCP is infeasible (paper, Remark 2).
+/// What to apply when the SOCP is infeasible (paper, Remark 2). Its
+/// serialised form is its [`name`](Fallback::name).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
 #[cfg_attr(feature = "serde", derive(serde::Serialize, serde::Deserialize))]
+#[cfg_attr(feature = "serde", serde(rename_all = "snake_case"))]
 pub enum Fallback {
     /// Maximise the worst stochastic CBC `E[C] − ζ − c(p)·std[C]` at the
     /// requested `p` within the bounds (itself an SOCP). With a large
