@@ -97,28 +97,24 @@ pub fn run(a: &RunArgs) -> Result<()> {
             seed: a.seed.unwrap_or(0),
             quick: a.quick,
         };
+        let options = calibration::Options {
+            episodes: a.episodes,
+            fallback: a.fallback,
+        };
         if let Some(shard) = &a.shard {
             if *name != "calibration" {
                 anyhow::bail!(
                     "--shard applies to calibration and to seed sweeps (--seeds), not to '{name}'"
                 );
             }
-            let options = calibration::Options {
-                episodes: a.episodes,
-                fallback: a.fallback,
-            };
             return crate::sweep_cmd::run_calibration_shard(&args, &options, shard, &out);
         }
         return run_experiment(
             name,
             &out,
-            &ExperimentArgs {
-                seed: a.seed.unwrap_or(0),
-                quick: a.quick,
-            },
+            &args,
             &Sizes {
-                episodes: a.episodes,
-                fallback: a.fallback,
+                calibration: options,
                 steps: a.steps,
                 window: a.window,
             },

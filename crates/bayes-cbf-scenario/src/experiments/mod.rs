@@ -109,10 +109,8 @@ pub const EXPERIMENTS: &[(&str, &str)] = &[
 /// experiment's default.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
 pub struct Sizes {
-    /// Episodes per cell of `calibration`.
-    pub episodes: Option<usize>,
-    /// The controllers' fallback in `calibration`.
-    pub fallback: Option<bayes_cbf::control::Fallback>,
+    /// Episodes and fallback of `calibration`.
+    pub calibration: calibration::Options,
     /// Control steps of `soak`.
     pub steps: Option<usize>,
     /// Sliding window of `soak`.
@@ -190,8 +188,16 @@ pub fn run_sized(
         }
         Ok(())
     };
-    takes("--episodes", sizes.episodes.is_some(), &["calibration"])?;
-    takes("--fallback", sizes.fallback.is_some(), &["calibration"])?;
+    takes(
+        "--episodes",
+        sizes.calibration.episodes.is_some(),
+        &["calibration"],
+    )?;
+    takes(
+        "--fallback",
+        sizes.calibration.fallback.is_some(),
+        &["calibration"],
+    )?;
     takes("--steps", sizes.steps.is_some(), &["soak"])?;
     takes("--window", sizes.window.is_some(), &["soak"])?;
     Ok(match name {
@@ -201,14 +207,9 @@ pub fn run_sized(
             ExperimentResult::AckermannTriggering(Box::new(ackermann_triggering::run(args)?))
         }
         "covariance-shapes" => ExperimentResult::CovarianceShapes(covariance_shapes::run(args)?),
-        "calibration" => ExperimentResult::Calibration(calibration::run(
-            args,
-            &calibration::Options {
-                episodes: sizes.episodes,
-                fallback: sizes.fallback,
-            },
-            progress,
-        )?),
+        "calibration" => {
+            ExperimentResult::Calibration(calibration::run(args, &sizes.calibration, progress)?)
+        }
         "soak" => ExperimentResult::Soak(soak::run(args, sizes.steps, sizes.window, progress)?),
         _ => {
             let names: Vec<&str> = EXPERIMENTS.iter().map(|(n, _)| *n).collect();
