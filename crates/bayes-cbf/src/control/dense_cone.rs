@@ -1282,140 +1282,13 @@ mod tests {
             ..Measures::default()
         };
         type Edit = fn(&mut Measures, &mut Measures);
+        /// A residual worse than the last at `κ/τ` near zero, the last
+        /// gaps closed (`converged`'s): a stall, unless a case changes it.
+        fn stalling(m: &mut Measures, p: &mut Measures) {
+            (m.ktratio, m.res_primal, p.res_primal) = (1e-15, 1e-7, 1e-8);
+        }
         let cases: [(&str, usize, Edit, Option<DenseStatus>); 43] = [
-            (
-                "primal residual at the divergence floor",
-                3,
-                |m, p| (m.res_primal, p.res_primal) = (100.0 * TOL_FEAS, 1e-9),
-                None,
-            ),
-            (
-                "primal residual grown exactly 100×",
-                3,
-                |m, p| (m.res_primal, p.res_primal) = (100.0 * 1e-5, 1e-5),
-                None,
-            ),
-            (
-                "stalled, last relative gap closed",
-                3,
-                |m, p| {
-                    (m.ktratio, m.res_primal, p.res_primal) = (1e-15, 1e-7, 1e-8);
-                    (p.gap_abs, p.gap_rel) = (1e-7, 1e-9);
-                },
-                Some(DenseStatus::Failed),
-            ),
-            (
-                "stalled, last absolute gap closed",
-                3,
-                |m, p| {
-                    (m.ktratio, m.res_primal, p.res_primal) = (1e-15, 1e-7, 1e-8);
-                    (p.gap_abs, p.gap_rel) = (1e-9, 1e-7);
-                },
-                Some(DenseStatus::Failed),
-            ),
-            (
-                "κ/τ at the stall threshold",
-                3,
-                |m, p| {
-                    (m.ktratio, m.res_primal, p.res_primal) = (100.0 * f64::EPSILON, 1e-7, 1e-8);
-                    p.gap_abs = 1e-9;
-                },
-                None,
-            ),
-            (
-                "last absolute gap at its tolerance",
-                3,
-                |m, p| {
-                    (m.ktratio, m.res_primal, p.res_primal) = (1e-15, 1e-7, 1e-8);
-                    (p.gap_abs, p.gap_rel) = (TOL_GAP_ABS, 1e-7);
-                },
-                None,
-            ),
-            (
-                "last relative gap at its tolerance",
-                3,
-                |m, p| {
-                    (m.ktratio, m.res_primal, p.res_primal) = (1e-15, 1e-7, 1e-8);
-                    (p.gap_abs, p.gap_rel) = (1e-7, TOL_GAP_REL);
-                },
-                None,
-            ),
-            (
-                "diverging at κ/τ = 1",
-                3,
-                |m, p| (m.ktratio, m.res_dual, p.res_dual) = (1.0, 1e-3, 1e-6),
-                None,
-            ),
-            (
-                "dual residual at the divergence floor",
-                3,
-                |m, p| (m.res_dual, p.res_dual) = (100.0 * TOL_FEAS, 1e-9),
-                None,
-            ),
-            (
-                "dual residual grown exactly 100×",
-                3,
-                |m, p| (m.res_dual, p.res_dual) = (100.0 * 1e-5, 1e-5),
-                None,
-            ),
-            (
-                "qᵀx at its tolerance",
-                3,
-                |m, _| (m.ktratio, m.dot_qx, m.res_dual_inf) = (2e9, -TOL_INFEAS_ABS, 0.0),
-                None,
-            ),
-            (
-                "small κ/τ, residuals unchanged",
-                3,
-                |m, p| {
-                    (m.ktratio, m.res_primal, p.res_primal) = (1e-15, 1e-7, 1e-7);
-                    p.gap_abs = 1e-9;
-                },
-                None,
-            ),
-            // Clarabel's strict inequalities, at equality
-            (
-                "gaps at their tolerance",
-                1,
-                |m, _| (m.gap_abs, m.gap_rel) = (TOL_GAP_ABS, TOL_GAP_REL),
-                None,
-            ),
-            (
-                "primal residual at its tolerance",
-                1,
-                |m, _| m.res_primal = TOL_FEAS,
-                None,
-            ),
-            (
-                "dual residual at its tolerance",
-                1,
-                |m, _| m.res_dual = TOL_FEAS,
-                None,
-            ),
-            (
-                "κ/τ at the certificate threshold",
-                3,
-                |m, _| (m.ktratio, m.dot_bz, m.res_primal_inf) = (1000.0 / TOL_KTRATIO, -1.0, 1e-9),
-                None,
-            ),
-            (
-                "bᵀz at its tolerance",
-                3,
-                |m, _| (m.ktratio, m.dot_bz, m.res_primal_inf) = (2e9, -TOL_INFEAS_ABS, 0.0),
-                None,
-            ),
-            (
-                "primal certificate residual at its tolerance",
-                3,
-                |m, _| (m.ktratio, m.dot_bz, m.res_primal_inf) = (2e9, -1.0, TOL_INFEAS_REL),
-                None,
-            ),
-            (
-                "dual certificate residual at its tolerance",
-                3,
-                |m, _| (m.ktratio, m.dot_qx, m.res_dual_inf) = (2e9, -1.0, TOL_INFEAS_REL),
-                None,
-            ),
+            // solved, and Clarabel's strict inequalities at equality
             ("converged", 3, |_, _| {}, Some(DenseStatus::Solved)),
             (
                 "κ/τ = 1",
@@ -1442,14 +1315,33 @@ mod tests {
                 |m, _| (m.gap_abs, m.gap_rel) = (1e-7, 1e-7),
                 None,
             ),
+            (
+                "gaps at their tolerance",
+                1,
+                |m, _| (m.gap_abs, m.gap_rel) = (TOL_GAP_ABS, TOL_GAP_REL),
+                None,
+            ),
             ("primal residual", 1, |m, _| m.res_primal = 1e-7, None),
+            (
+                "primal residual at its tolerance",
+                1,
+                |m, _| m.res_primal = TOL_FEAS,
+                None,
+            ),
             ("dual residual", 1, |m, _| m.res_dual = 1e-7, None),
+            (
+                "dual residual at its tolerance",
+                1,
+                |m, _| m.res_dual = TOL_FEAS,
+                None,
+            ),
             (
                 "non-finite",
                 1,
                 |m, _| m.res_dual = f64::NAN,
                 Some(DenseStatus::Failed),
             ),
+            // infeasibility certificates
             (
                 "primal certificate",
                 3,
@@ -1463,15 +1355,33 @@ mod tests {
                 None,
             ),
             (
+                "κ/τ at the certificate threshold",
+                3,
+                |m, _| (m.ktratio, m.dot_bz, m.res_primal_inf) = (1000.0 / TOL_KTRATIO, -1.0, 1e-9),
+                None,
+            ),
+            (
                 "primal certificate, bᵀz too small",
                 3,
                 |m, _| (m.ktratio, m.dot_bz, m.res_primal_inf) = (2e9, -5e-9, 1e-20),
                 None,
             ),
             (
+                "bᵀz at its tolerance",
+                3,
+                |m, _| (m.ktratio, m.dot_bz, m.res_primal_inf) = (2e9, -TOL_INFEAS_ABS, 0.0),
+                None,
+            ),
+            (
                 "primal certificate, residual too large",
                 3,
                 |m, _| (m.ktratio, m.dot_bz, m.res_primal_inf) = (2e9, -2.0, 3e-8),
+                None,
+            ),
+            (
+                "primal certificate residual at its tolerance",
+                3,
+                |m, _| (m.ktratio, m.dot_bz, m.res_primal_inf) = (2e9, -1.0, TOL_INFEAS_REL),
                 None,
             ),
             (
@@ -1487,35 +1397,51 @@ mod tests {
                 None,
             ),
             (
+                "qᵀx at its tolerance",
+                3,
+                |m, _| (m.ktratio, m.dot_qx, m.res_dual_inf) = (2e9, -TOL_INFEAS_ABS, 0.0),
+                None,
+            ),
+            (
                 "dual certificate, residual too large",
                 3,
                 |m, _| (m.ktratio, m.dot_qx, m.res_dual_inf) = (2e9, -2.0, 3e-8),
                 None,
             ),
             (
+                "dual certificate residual at its tolerance",
+                3,
+                |m, _| (m.ktratio, m.dot_qx, m.res_dual_inf) = (2e9, -1.0, TOL_INFEAS_REL),
+                None,
+            ),
+            // a stalled iteration (from `stalling`)
+            (
                 "stalled",
                 3,
-                |m, p| {
-                    (m.ktratio, m.res_primal, p.res_primal) = (1e-15, 1e-7, 1e-8);
-                    p.gap_abs = 1e-9;
-                },
+                |m, p| stalling(m, p),
                 Some(DenseStatus::Failed),
             ),
             (
                 "stalled at the first iteration",
                 1,
-                |m, p| {
-                    (m.ktratio, m.res_primal, p.res_primal) = (1e-15, 1e-7, 1e-8);
-                    p.gap_abs = 1e-9;
-                },
+                |m, p| stalling(m, p),
                 None,
             ),
             (
                 "stalled, residuals improving",
                 3,
                 |m, p| {
-                    (m.ktratio, m.res_primal, p.res_primal) = (1e-15, 1e-7, 1e-6);
-                    (p.gap_abs, p.res_dual) = (1e-9, 1e-9);
+                    stalling(m, p);
+                    p.res_primal = 1e-6;
+                },
+                None,
+            ),
+            (
+                "small κ/τ, residuals unchanged",
+                3,
+                |m, p| {
+                    stalling(m, p);
+                    p.res_primal = 1e-7;
                 },
                 None,
             ),
@@ -1523,11 +1449,57 @@ mod tests {
                 "small κ/τ, last gap open",
                 3,
                 |m, p| {
-                    (m.ktratio, m.res_primal, p.res_primal) = (1e-15, 1e-7, 1e-8);
+                    stalling(m, p);
                     (p.gap_abs, p.gap_rel) = (1e-7, 1e-7);
                 },
                 None,
             ),
+            (
+                "stalled, last relative gap closed",
+                3,
+                |m, p| {
+                    stalling(m, p);
+                    p.gap_abs = 1e-7;
+                },
+                Some(DenseStatus::Failed),
+            ),
+            (
+                "stalled, last absolute gap closed",
+                3,
+                |m, p| {
+                    stalling(m, p);
+                    p.gap_rel = 1e-7;
+                },
+                Some(DenseStatus::Failed),
+            ),
+            (
+                "κ/τ at the stall threshold",
+                3,
+                |m, p| {
+                    stalling(m, p);
+                    m.ktratio = 100.0 * f64::EPSILON;
+                },
+                None,
+            ),
+            (
+                "last absolute gap at its tolerance",
+                3,
+                |m, p| {
+                    stalling(m, p);
+                    (p.gap_abs, p.gap_rel) = (TOL_GAP_ABS, 1e-7);
+                },
+                None,
+            ),
+            (
+                "last relative gap at its tolerance",
+                3,
+                |m, p| {
+                    stalling(m, p);
+                    (p.gap_abs, p.gap_rel) = (1e-7, TOL_GAP_REL);
+                },
+                None,
+            ),
+            // a diverging iteration
             (
                 "dual residual diverging",
                 3,
@@ -1541,11 +1513,42 @@ mod tests {
                 None,
             ),
             (
+                "dual residual grown exactly 100×",
+                3,
+                |m, p| (m.res_dual, p.res_dual) = (100.0 * 1e-5, 1e-5),
+                None,
+            ),
+            (
+                "dual residual at the divergence floor",
+                3,
+                |m, p| (m.res_dual, p.res_dual) = (100.0 * TOL_FEAS, 1e-9),
+                None,
+            ),
+            (
+                "diverging at κ/τ = 1",
+                3,
+                |m, p| (m.ktratio, m.res_dual, p.res_dual) = (1.0, 1e-3, 1e-6),
+                None,
+            ),
+            (
                 "primal residual diverging",
                 3,
                 |m, p| (m.res_primal, p.res_primal) = (1e-3, 1e-6),
                 Some(DenseStatus::Failed),
             ),
+            (
+                "primal residual grown exactly 100×",
+                3,
+                |m, p| (m.res_primal, p.res_primal) = (100.0 * 1e-5, 1e-5),
+                None,
+            ),
+            (
+                "primal residual at the divergence floor",
+                3,
+                |m, p| (m.res_primal, p.res_primal) = (100.0 * TOL_FEAS, 1e-9),
+                None,
+            ),
+            // the iteration cap
             (
                 "the iteration cap",
                 MAX_ITER,
