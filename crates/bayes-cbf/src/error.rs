@@ -84,6 +84,20 @@ pub fn check_finite(field: &str, v: &[f64]) -> Result<(), InputError> {
     }
 }
 
+/// Checks that the state index `i` is below the state dimension `n`,
+/// naming `field`.
+pub fn check_index(field: &str, i: usize, n: usize) -> Result<(), InputError> {
+    if i < n {
+        Ok(())
+    } else {
+        Err(InputError::invalid(
+            field,
+            i as f64,
+            &format!("index must be < state dimension {n}"),
+        ))
+    }
+}
+
 /// Checks that `v` is finite and `> 0`, naming `field`.
 pub fn check_positive(field: &str, v: f64) -> Result<(), InputError> {
     if v.is_finite() && v > 0.0 {

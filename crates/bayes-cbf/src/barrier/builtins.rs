@@ -1,7 +1,7 @@
 //! Built-in barrier functions.
 
 use super::{validate_gains, Barrier};
-use crate::error::{check_finite, check_positive, InputError};
+use crate::error::{check_finite, check_index, check_positive, InputError};
 use num_dual::DualNum;
 
 /// Checks an obstacle radius: finite and positive.
@@ -226,13 +226,7 @@ impl Disc {
         gains: Vec<f64>,
     ) -> Result<Self, InputError> {
         for (j, &i) in indices.iter().enumerate() {
-            if i >= n {
-                return Err(InputError::invalid(
-                    &format!("indices[{j}]"),
-                    i as f64,
-                    &format!("must be < state dimension {n}"),
-                ));
-            }
+            check_index(&format!("indices[{j}]"), i, n)?;
         }
         check_finite("center", &center)?;
         check_radius(radius)?;
@@ -323,6 +317,18 @@ mod tests {
     use super::*;
     use num_dual::HyperDual64;
     use std::f64::consts::{PI, TAU};
+
+    #[test]
+    fn disc_names_an_index_beyond_the_state() {
+        let e = Disc::new(3, [0, 3], [0.0, 0.0], 1.0, 1, vec![1.0])
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("indices[1]") && e.contains("state dimension 3"),
+            "{e}"
+        );
+        assert!(Disc::new(3, [0, 2], [0.0, 0.0], 1.0, 1, vec![1.0]).is_ok());
+    }
 
     #[test]
     fn sector_edges_are_linear_in_the_angle_from_the_centre_on_the_free_arc() {

@@ -1,6 +1,35 @@
 //! Input maps: the kernel sees `z = φ(x)` rather than `x`.
 
-use crate::error::InputError;
+use crate::error::{check_index, InputError};
+
+/// Checks that `entries` (of a map's `kind`: index or feature) are
+/// distinct, at least one, and read coordinates below `n`.
+fn check_entries<T: PartialEq>(
+    entries: &[T],
+    index: impl Fn(&T) -> usize,
+    n: usize,
+    kind: &str,
+) -> Result<(), InputError> {
+    if entries.is_empty() {
+        return Err(InputError::shape(
+            "input_map",
+            format!("at least one {kind}"),
+            0,
+        ));
+    }
+    for (j, e) in entries.iter().enumerate() {
+        let field = format!("input_map[{j}]");
+        check_index(&field, index(e), n)?;
+        if entries[..j].contains(e) {
+            return Err(InputError::invalid(
+                &field,
+                index(e) as f64,
+                &format!("duplicate {kind}"),
+            ));
+        }
+    }
+    Ok(())
+}
 
 /// One kernel input computed from one state coordinate.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -59,49 +88,11 @@ impl InputMap {
 
     /// Checks the map against the state dimension `n`.
     pub fn validate(&self, n: usize) -> Result<(), InputError> {
-        if let InputMap::Features(f) = self {
-            if f.is_empty() {
-                return Err(InputError::shape("input_map", "at least one feature", 0));
-            }
-            for (j, feat) in f.iter().enumerate() {
-                if feat.index() >= n {
-                    return Err(InputError::invalid(
-                        &format!("input_map[{j}]"),
-                        feat.index() as f64,
-                        &format!("index must be < state dimension {n}"),
-                    ));
-                }
-                if f[..j].contains(feat) {
-                    return Err(InputError::invalid(
-                        &format!("input_map[{j}]"),
-                        feat.index() as f64,
-                        "duplicate feature",
-                    ));
-                }
-            }
+        match self {
+            InputMap::Identity => Ok(()),
+            InputMap::Select(idx) => check_entries(idx, |&i| i, n, "index"),
+            InputMap::Features(f) => check_entries(f, |f| f.index(), n, "feature"),
         }
-        if let InputMap::Select(idx) = self {
-            if idx.is_empty() {
-                return Err(InputError::shape("input_map", "at least one index", 0));
-            }
-            for (j, &i) in idx.iter().enumerate() {
-                if i >= n {
-                    return Err(InputError::invalid(
-                        &format!("input_map[{j}]"),
-                        i as f64,
-                        &format!("index must be < state dimension {n}"),
-                    ));
-                }
-                if idx[..j].contains(&i) {
-                    return Err(InputError::invalid(
-                        &format!("input_map[{j}]"),
-                        i as f64,
-                        "duplicate index",
-                    ));
-                }
-            }
-        }
-        Ok(())
     }
 
     /// Kernel input dimension `d` for state dimension `n`.
@@ -157,5 +148,64 @@ impl InputMap {
                 Feature::Sin(i) => x[i].cos(),
             },
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The error of `map.validate(n)`, as its field and message.
+    fn refusal(map: InputMap, n: usize) -> (String, String) {
+        let e = map.validate(n).unwrap_err();
+        let field = match &e {
+            InputError::Invalid { field, .. } | InputError::Shape { field, .. } => field.clone(),
+            other => panic!("unexpected error {other:?}"),
+        };
+        (field, e.to_string())
+    }
+
+    #[test]
+    fn validation_names_the_entry_at_fault() {
+        assert!(InputMap::Identity.validate(3).is_ok());
+        assert!(InputMap::Select(vec![2, 0]).validate(3).is_ok());
+        assert!(InputMap::periodic(3, &[1]).validate(3).is_ok());
+        let cases = [
+            (InputMap::Select(vec![]), "input_map", "at least one index"),
+            (
+                InputMap::Features(vec![]),
+                "input_map",
+                "at least one feature",
+            ),
+            (
+                InputMap::Select(vec![0, 3]),
+                "input_map[1]",
+                "index must be < state dimension 3",
+            ),
+            (
+                InputMap::Features(vec![Feature::Coord(0), Feature::Sin(5)]),
+                "input_map[1]",
+                "index must be < state dimension 3",
+            ),
+            (
+                InputMap::Select(vec![1, 2, 1]),
+                "input_map[2]",
+                "duplicate index",
+            ),
+            (
+                InputMap::Features(vec![Feature::Cos(1), Feature::Sin(1), Feature::Cos(1)]),
+                "input_map[2]",
+                "duplicate feature",
+            ),
+        ];
+        for (map, field, message) in cases {
+            let (f, text) = refusal(map.clone(), 3);
+            assert_eq!(f, field, "{map:?}");
+            assert!(text.contains(message), "{map:?}: {text}");
+        }
+        // the same coordinate under two features is no duplicate
+        assert!(InputMap::Features(vec![Feature::Cos(1), Feature::Sin(1)])
+            .validate(3)
+            .is_ok());
     }
 }

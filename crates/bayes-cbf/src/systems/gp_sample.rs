@@ -3,7 +3,7 @@
 //! calibration, for which the model is exactly right.
 
 use super::ControlAffine;
-use crate::error::InputError;
+use crate::error::{check_index, InputError};
 use crate::gp::{Feature, InputMap, MvgpHyper, Rbf};
 use nalgebra::DMatrix;
 use num_dual::DualNum;
@@ -180,12 +180,8 @@ impl<P: ControlAffine> GpSample<P> {
     /// Sets the angle components (wrapped by the simulator), e.g. for a
     /// zero prior mean.
     pub fn with_angles(mut self, angles: Vec<usize>) -> Result<Self, InputError> {
-        if let Some(&i) = angles.iter().find(|&&i| i >= self.n) {
-            return Err(InputError::invalid(
-                "angles",
-                i as f64,
-                &format!("index must be < state dimension {}", self.n),
-            ));
+        for (j, &i) in angles.iter().enumerate() {
+            check_index(&format!("angles[{j}]"), i, self.n)?;
         }
         self.angles = angles;
         Ok(self)
@@ -353,7 +349,8 @@ mod tests {
         .unwrap_err();
         assert!(e.to_string().contains("lengthscales"), "{e}");
         let s = GpSample::draw(2, 1, None::<Pendulum>, &h, &map, 8, 0).unwrap();
-        assert!(s.clone().with_angles(vec![2]).is_err());
+        let e = s.clone().with_angles(vec![0, 2]).unwrap_err().to_string();
+        assert!(e.contains("angles[1]") && e.contains("state dimension 2"), "{e}");
         assert_eq!(
             ControlAffine::angle_indices(&s.with_angles(vec![0]).unwrap()),
             &[0]
