@@ -148,8 +148,8 @@ def calibration(
     ``summary.json`` (as a dict; ``"episodes_csv"`` holds ``episodes.csv``).
 
     ``episodes`` per (system, truth) (default 200, or 12 with ``quick``),
-    ``seed`` as ``--seed``, ``fallback`` as ``--fallback`` (``"max_margin"``,
-    the default, ``"relax"``, ``"brake"`` or ``"hold"``); ``shards``,
+    ``seed`` as ``--seed``, ``fallback`` as ``--fallback`` (``"relax"``,
+    the default, ``"max_margin"``, ``"brake"`` or ``"hold"``); ``shards``,
     ``address`` and ``num_cpus`` as in :func:`seeds`.
     """
     if episodes is not None and (not isinstance(episodes, int) or episodes < 1):

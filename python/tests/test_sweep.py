@@ -38,10 +38,10 @@ def test_seed_sweep_on_ray_equals_the_cli(cli, tmp_path):
 
 def test_calibration_on_ray_equals_the_cli(cli, tmp_path):
     run_cli(cli, "run", "calibration", "--quick", "--episodes", "1", "--seed", "3",
-            "--fallback", "relax", "--out", str(tmp_path))
+            "--fallback", "max_margin", "--out", str(tmp_path))
     theirs = json.loads((tmp_path / "summary.json").read_text())
-    ours = sweep.calibration(episodes=1, seed=3, quick=True, shards=2, fallback="relax")
-    assert ours["fallback"] == "relax"
+    ours = sweep.calibration(episodes=1, seed=3, quick=True, shards=2, fallback="max_margin")
+    assert ours["fallback"] == "max_margin"
     assert drop(ours, "wall_seconds", "threads", "episodes_csv") == drop(
         theirs, "wall_seconds", "threads")
     assert ours["episodes_csv"] == (tmp_path / "episodes.csv").read_text()

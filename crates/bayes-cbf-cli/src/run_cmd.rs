@@ -36,8 +36,8 @@ pub struct RunArgs {
     #[arg(long, allow_hyphen_values = true)]
     pub episodes: Option<usize>,
     /// The controllers' fallback on an infeasible step in `calibration`:
-    /// max_margin (default), relax, brake or hold. (Scenarios set theirs
-    /// with `--set controller.fallback=NAME`.)
+    /// relax (default), max_margin (the library's default), brake or hold.
+    /// (Scenarios set theirs with `--set controller.fallback=NAME`.)
     #[arg(long, value_name = "NAME", value_parser = parse_fallback)]
     pub fallback: Option<Fallback>,
     /// Control steps of `soak` (default 100000).

@@ -30,7 +30,7 @@ fn experiments_write_their_files() {
     assert!(is_png(&out.join("covariance-shapes.png")));
 
     let (_dir, out, s) = run_into("calibration", &["--quick", "--episodes", "1"]);
-    assert_eq!(s["fallback"], "max_margin");
+    assert_eq!(s["fallback"], "relax");
     assert!(is_png(&out.join("calibration.png")));
     let csv = std::fs::read_to_string(out.join("episodes.csv")).unwrap();
     // one line per (system, truth, episode, controller): 10 controllers

@@ -74,22 +74,23 @@ fn calibration_shards_merge_into_the_unsharded_run() {
         .unwrap_err()
         .to_string();
     assert!(e.contains("another run"), "{e}");
-    // a shard of the same run with another fallback
-    let relax = Options {
-        fallback: Some(Fallback::Relax),
+    // a shard of the same run with another fallback than the default
+    let max_margin = Options {
+        fallback: Some(Fallback::MaxMargin),
         ..one
     };
     let other = calibration::run_shard(
         &args,
-        &relax,
+        &max_margin,
         Shard { index: 1, count: 3 },
         &|_: usize, _: usize| {},
     )
     .unwrap();
-    assert_eq!(other.fallback, Fallback::Relax);
+    assert_eq!(parts[0].fallback, Fallback::Relax);
+    assert_eq!(other.fallback, Fallback::MaxMargin);
     // part.json names it as the command line does
     let text = serde_json::to_value(&other).unwrap();
-    assert_eq!(text["fallback"], "relax");
+    assert_eq!(text["fallback"], "max_margin");
     for f in [
         Fallback::MaxMargin,
         Fallback::Brake,
