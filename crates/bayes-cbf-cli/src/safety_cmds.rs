@@ -67,7 +67,8 @@ pub struct ControlArgs {
     /// Upper control bounds.
     #[arg(long = "u-max", allow_hyphen_values = true)]
     pub u_max: Option<String>,
-    /// Action when infeasible: max_margin, brake or hold.
+    /// Action when infeasible: max_margin, relax (the SOCP at the largest
+    /// feasible probability p*), brake or hold.
     #[arg(long, default_value = "max_margin")]
     pub fallback: String,
     /// Promise each barrier condition on the latent F alone (the paper's
