@@ -350,7 +350,10 @@ mod tests {
         assert!(e.to_string().contains("lengthscales"), "{e}");
         let s = GpSample::draw(2, 1, None::<Pendulum>, &h, &map, 8, 0).unwrap();
         let e = s.clone().with_angles(vec![0, 2]).unwrap_err().to_string();
-        assert!(e.contains("angles[1]") && e.contains("state dimension 2"), "{e}");
+        assert!(
+            e.contains("angles[1]") && e.contains("state dimension 2"),
+            "{e}"
+        );
         assert_eq!(
             ControlAffine::angle_indices(&s.with_angles(vec![0]).unwrap()),
             &[0]
