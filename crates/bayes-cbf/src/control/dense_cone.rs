@@ -1054,8 +1054,14 @@ fn cone_step(c: Cone, x: &[f64], d: &[f64], alpha: f64) -> f64 {
             let a = soc_residual(d);
             let b = 2.0 * (x[0] * d[0] - dot(&x[1..], &d[1..]));
             let c = soc_residual(x).max(0.0);
+            if a == 0.0 {
+                // d on the boundary of ±K: the residual c + bα is linear
+                // and reaches 0 at −c/b if it falls (Clarabel's rule
+                // returns the cap here, and so leaves the cone)
+                return if b < 0.0 { alpha.min(-c / b) } else { alpha };
+            }
             let disc = b * b - 4.0 * a * c;
-            if (a > 0.0 && b > 0.0) || disc < 0.0 || a == 0.0 {
+            if (a > 0.0 && b > 0.0) || disc < 0.0 {
                 return alpha;
             }
             if c == 0.0 {
@@ -1931,5 +1937,423 @@ mod tests {
                 assert!(close(&u, &r[o..o + d]));
             }
         }
+    }
+
+    /// The largest `t ∈ [0, cap]` with `x + t d` in the cone `c`, by
+    /// bisection on membership (the `t` with `x + t d ∈ K` form an interval
+    /// from 0: `K` is convex and `x ∈ K`).
+    fn max_step(c: Cone, x: &[f64], d: &[f64], cap: f64) -> f64 {
+        let inside = |t: f64| {
+            let y: Vec<f64> = x.iter().zip(d).map(|(a, b)| a + t * b).collect();
+            match c {
+                Cone::NonNegative(_) => y.iter().all(|&v| v >= 0.0),
+                Cone::SecondOrder(_) => y[0] >= norm(&y[1..]),
+            }
+        };
+        if inside(cap) {
+            return cap;
+        }
+        let (mut lo, mut hi) = (0.0, cap);
+        for _ in 0..200 {
+            let mid = 0.5 * (lo + hi);
+            if inside(mid) {
+                lo = mid;
+            } else {
+                hi = mid;
+            }
+        }
+        lo
+    }
+
+    /// The step to one cone's boundary (`cone_step`) is the largest
+    /// `t ≤ cap` with `x + t d` in the cone: against bisection on membership
+    /// at random interior points and directions (some with a zero entry),
+    /// and at the cases Clarabel's `_step_length_soc_component` treats
+    /// apart where its rule gives that step: the head reaching zero first,
+    /// a zero head of `d`, a point on the boundary, a direction along it,
+    /// and a tiny `x₀² − ‖x₁‖²`, whose root the cancellation-free formula
+    /// keeps accurate; and a direction on the boundary of `±K` (`a = 0`),
+    /// where the residual is linear and the exit is `−c/b` if `b < 0`
+    /// (Clarabel's rule returns the cap there).
+    #[test]
+    fn cone_step_reaches_the_boundary() {
+        let close = |got: f64, want: f64| (got - want).abs() <= 1e-9 * want.max(1e-6);
+        let mut rng = ChaCha8Rng::seed_from_u64(22);
+        for trial in 0..3000 {
+            let c = if trial % 2 == 0 {
+                Cone::NonNegative(rng.random_range(1..5))
+            } else {
+                Cone::SecondOrder(rng.random_range(2..5))
+            };
+            let x = interior(&mut rng, &[c]);
+            let scale = 10f64.powf(rng.random_range(-2.0..2.0));
+            let mut d = scaled(&mut rng, c.dim(), scale);
+            if trial % 5 == 1 {
+                let i = rng.random_range(0..c.dim());
+                d[i] = 0.0;
+            }
+            let cap = if rng.random_bool(0.5) {
+                1.0
+            } else {
+                rng.random_range(0.1..5.0)
+            };
+            let (got, want) = (cone_step(c, &x, &d, cap), max_step(c, &x, &d, cap));
+            assert!(
+                close(got, want),
+                "trial {trial}: {c:?} x {x:?} d {d:?} cap {cap}: {got} against {want}"
+            );
+        }
+        let soc = Cone::SecondOrder(3);
+        // name, x, d, cap and the step
+        type Case = (&'static str, [f64; 3], [f64; 3], f64, f64);
+        let cases: [Case; 11] = [
+            // x + t d = (1 − t) x: the head and the J-norm reach 0 at t = 1
+            (
+                "along −x, x on the boundary",
+                [1.0, 1.0, 0.0],
+                [-1.0, -1.0, 0.0],
+                2.0,
+                1.0,
+            ),
+            (
+                "along −x, x interior",
+                [2.0, 1.0, 0.0],
+                [-2.0, -1.0, 0.0],
+                3.0,
+                1.0,
+            ),
+            // (2, t, 0) leaves at t = 2
+            ("d₀ = 0", [2.0, 0.0, 0.0], [0.0, 1.0, 0.0], 5.0, 2.0),
+            // (1, 1 + t, 0) leaves at once
+            (
+                "x on the boundary, leaving",
+                [1.0, 1.0, 0.0],
+                [0.0, 1.0, 0.0],
+                1.0,
+                0.0,
+            ),
+            // (1, 1, t) leaves at once (x₀² − ‖x₁‖² = 0 and a zero
+            // discriminant)
+            (
+                "x on the boundary, across it",
+                [1.0, 1.0, 0.0],
+                [0.0, 0.0, 1.0],
+                1.0,
+                0.0,
+            ),
+            // (2 + t, t, 0) never leaves
+            (
+                "d on the boundary",
+                [2.0, 0.0, 0.0],
+                [1.0, 1.0, 0.0],
+                3.0,
+                3.0,
+            ),
+            // (1 − t, t, 0): d on the boundary of −K, leaving at t = 1/2
+            // (x₀² − ‖x₁‖² = 1 − 2t)
+            (
+                "d on the boundary of −K, leaving",
+                [1.0, 0.0, 0.0],
+                [-1.0, 1.0, 0.0],
+                1.0,
+                0.5,
+            ),
+            // (2 + t, 1 − t, 0): d on the boundary of K, x₀² − ‖x₁‖² = 3 + 6t
+            // grows
+            (
+                "d on the boundary of K, entering",
+                [2.0, 1.0, 0.0],
+                [1.0, -1.0, 0.0],
+                4.0,
+                4.0,
+            ),
+            // no direction: a = b = 0, x stays
+            ("d = 0", [2.0, 1.0, 0.0], [0.0, 0.0, 0.0], 3.0, 3.0),
+            // (x₀ + t, 1 − 1.5t, 0) leaves at t = 2(x₀ + 1)
+            (
+                "x₀² − ‖x₁‖² ≈ 2·10⁻¹³",
+                [1.0 + 1e-13, 1.0, 0.0],
+                [1.0, -1.5, 0.0],
+                10.0,
+                2.0 * (2.0 + 1e-13),
+            ),
+            // (1 − t, 0.99 + (1 + 10⁻⁸)t, 0) leaves at t = 0.01/(2 + 10⁻⁸), the
+            // small root of a quadratic with |4ac| ≪ b²
+            (
+                "|4ac| ≪ b², b < 0",
+                [1.0, 0.99, 0.0],
+                [-1.0, 1.0 + 1e-8, 0.0],
+                1.0,
+                (1.0 - 0.99) / (2.0 + 1e-8),
+            ),
+        ];
+        for (name, x, d, cap, want) in cases {
+            let got = cone_step(soc, &x, &d, cap);
+            assert!(close(got, want), "{name}: {got} against {want}");
+            // bisection resolves the tangential exit only to √ε
+            let reference = max_step(soc, &x, &d, cap);
+            assert!(
+                (reference - want).abs() < 1e-7,
+                "{name}: reference {reference}"
+            );
+        }
+    }
+
+    /// The step length (`step_length`) is the largest `α ≤ 1` that keeps
+    /// `τ, κ ≥ 0` and each cone's `s` and `z` in the cone, times 0.99 for
+    /// the corrector: against bisection on membership at random iterates
+    /// and steps of three cones, with `Δτ` or `Δκ` zero (no limit) in some.
+    #[test]
+    fn step_length_keeps_the_iterate_in_the_cones() {
+        let mut rng = ChaCha8Rng::seed_from_u64(23);
+        let cones = [
+            Cone::SecondOrder(3),
+            Cone::NonNegative(2),
+            Cone::SecondOrder(2),
+        ];
+        let mut d = DenseConeSolver::new(1, &cones);
+        for trial in 0..500 {
+            let scale = 10f64.powf(rng.random_range(-1.0..1.5));
+            d.v.s = interior(&mut rng, &cones);
+            d.v.z = interior(&mut rng, &cones);
+            d.v.tau = 10f64.powf(rng.random_range(-1.0..1.0));
+            d.v.kappa = 10f64.powf(rng.random_range(-3.0..1.0));
+            d.step.s = scaled(&mut rng, d.m, scale);
+            d.step.z = scaled(&mut rng, d.m, scale);
+            d.step.tau = if trial % 4 == 1 {
+                0.0
+            } else {
+                scale * normal(&mut rng)
+            };
+            d.step.kappa = if trial % 4 == 2 {
+                0.0
+            } else {
+                scale * normal(&mut rng)
+            };
+            let mut want = 1.0f64;
+            for (v, dv) in [(d.v.tau, d.step.tau), (d.v.kappa, d.step.kappa)] {
+                want = want.min(max_step(Cone::NonNegative(1), &[v], &[dv], 1.0));
+            }
+            for &(c, o) in &d.sc.cones {
+                let r = o..o + c.dim();
+                want = want.min(max_step(c, &d.v.s[r.clone()], &d.step.s[r.clone()], 1.0));
+                want = want.min(max_step(c, &d.v.z[r.clone()], &d.step.z[r], 1.0));
+            }
+            for (combined, f) in [(false, 1.0), (true, 0.99)] {
+                let got = d.step_length(combined);
+                assert!(
+                    (got - f * want).abs() <= 1e-9 * want.max(1e-6),
+                    "trial {trial}, combined {combined}: {got} against {}",
+                    f * want
+                );
+            }
+        }
+    }
+
+    /// `K = [P Aᵀ; A −H]` written out, with `H = WᵀW` from its definition
+    /// for each cone: `η²(2w̄w̄ᵀ − J)` for a SOC, `diag(w²)` for the orthant.
+    fn kkt_matrix(s: &DenseConeSolver) -> Vec<Vec<f64>> {
+        let (n, m) = (s.n, s.m);
+        let mut k = vec![vec![0.0; n + m]; n + m];
+        for i in 0..n {
+            for j in 0..n {
+                k[i][j] = s.p[i * n + j];
+            }
+            for r in 0..m {
+                k[i][n + r] = s.a[r * n + i];
+                k[n + r][i] = s.a[r * n + i];
+            }
+        }
+        for (idx, &(c, o)) in s.sc.cones.iter().enumerate() {
+            let (w, eta) = (&s.sc.wbar[o..o + c.dim()], s.sc.eta[idx]);
+            for i in 0..c.dim() {
+                for j in 0..c.dim() {
+                    let h = match c {
+                        Cone::NonNegative(_) => {
+                            if i == j {
+                                w[i] * w[i]
+                            } else {
+                                0.0
+                            }
+                        }
+                        Cone::SecondOrder(_) => {
+                            let jij = match (i, j) {
+                                (0, 0) => 1.0,
+                                _ if i == j => -1.0,
+                                _ => 0.0,
+                            };
+                            eta * eta * (2.0 * w[i] * w[j] - jij)
+                        }
+                    };
+                    k[n + o + i][n + o + j] = -h;
+                }
+            }
+        }
+        k
+    }
+
+    /// The largest entry of `r − K x`, relative to `‖K‖∞‖x‖∞ + ‖r‖∞`.
+    fn kkt_backward_error(k: &[Vec<f64>], x: &[f64], r: &[f64]) -> f64 {
+        let inf = |v: &[f64]| v.iter().fold(0.0f64, |a, &b| a.max(b.abs()));
+        let knorm = k
+            .iter()
+            .map(|row| row.iter().map(|v| v.abs()).sum::<f64>())
+            .fold(0.0, f64::max);
+        let res = k
+            .iter()
+            .zip(r)
+            .map(|(row, ri)| (ri - dot(row, x)).abs())
+            .fold(0.0, f64::max);
+        res / (knorm * inf(x) + inf(r))
+    }
+
+    /// A KKT solve with iterative refinement (`solve_kkt` with `refine`
+    /// steps) solves `K [x; z] = r` to its tolerance: a backward error
+    /// `‖r − K[x; z]‖∞ / (‖K‖∞‖[x; z]‖∞ + ‖r‖∞)` of at most 10⁻¹³, with `K`
+    /// written out from its definition, at the scaling where 200 random
+    /// programs stopped (there `H` is ill-conditioned and the elimination
+    /// of `z` alone loses digits), for right-hand sides of norm 1 and 10³.
+    /// A right-hand side of norm 10⁻¹³, below the absolute tolerance
+    /// 10⁻¹², stops the refinement at once: only the elimination's accuracy
+    /// (10⁻⁶) is asked of it.
+    #[test]
+    fn refined_kkt_solves_are_backward_stable() {
+        let mut rng = ChaCha8Rng::seed_from_u64(24);
+        let (mut worst_unrefined, mut solved) = (0.0f64, 0);
+        for trial in 0..200 {
+            let (n, cones, mut s) = random_case(&mut rng, 5);
+            let x0: Vec<f64> = (0..n).map(|_| normal(&mut rng)).collect();
+            let s0 = interior(&mut rng, &cones);
+            for r in 0..s.m {
+                s.b[r] = dot(&s.a[r * n..(r + 1) * n], &x0) + s0[r];
+            }
+            if s.solve() != DenseStatus::Solved {
+                continue;
+            }
+            solved += 1;
+            assert!(s.factor_kkt(), "trial {trial}");
+            let k = kkt_matrix(&s);
+            for scale in [1e-13, 1.0, 1e3] {
+                let r = scaled(&mut rng, s.n + s.m, scale);
+                for refine in [0, REFINE_STEPS] {
+                    s.refine = refine;
+                    s.rhs_full.copy_from_slice(&r);
+                    assert!(s.solve_kkt(), "trial {trial}");
+                    let e = kkt_backward_error(&k, &s.sol_full, &r);
+                    if refine == 0 {
+                        worst_unrefined = worst_unrefined.max(e);
+                    } else {
+                        let bound = if scale < 1e-12 { 1e-6 } else { 1e-13 };
+                        assert!(e <= bound, "trial {trial}, scale {scale}: {e}");
+                    }
+                }
+            }
+        }
+        assert!(solved >= 150, "{solved}");
+        // the programs include systems that need the refinement
+        assert!(worst_unrefined > 1e-12, "{worst_unrefined}");
+    }
+
+    /// `W⁻¹` of the current scaling as an `m × m` matrix, block by block
+    /// from its definition: `(1/η)[w̄₀, −w̄₁ᵀ; −w̄₁, I + w̄₁w̄₁ᵀ/(1 + w̄₀)]` for
+    /// a SOC, `diag(1/w)` for the orthant.
+    fn scaling_inverse(s: &DenseConeSolver) -> Vec<Vec<f64>> {
+        let m = s.m;
+        let mut winv = vec![vec![0.0; m]; m];
+        for (k, &(c, o)) in s.sc.cones.iter().enumerate() {
+            let (wb, eta) = (&s.sc.wbar[o..o + c.dim()], s.sc.eta[k]);
+            for i in 0..c.dim() {
+                for j in 0..c.dim() {
+                    winv[o + i][o + j] = match c {
+                        Cone::NonNegative(_) if i == j => 1.0 / wb[i],
+                        Cone::NonNegative(_) => 0.0,
+                        Cone::SecondOrder(_) => match (i, j) {
+                            (0, 0) => wb[0] / eta,
+                            (0, _) => -wb[j] / eta,
+                            (_, 0) => -wb[i] / eta,
+                            _ => {
+                                let id = if i == j { 1.0 } else { 0.0 };
+                                (id + wb[i] * wb[j] / (1.0 + wb[0])) / eta
+                            }
+                        },
+                    };
+                }
+            }
+        }
+        winv
+    }
+
+    /// The factor of the KKT system (`factor_kkt`) is the Cholesky factor
+    /// of `M + εI`, `M = P + AᵀH⁻¹A` with `H⁻¹ = W⁻¹W⁻¹` written out from
+    /// its definition and `ε = ϵ·max|M_ii|` (the static regularisation):
+    /// `LLᵀ` against `M` at random interior points of random programs, and
+    /// `L` itself where `M` is exactly singular (a variable in no
+    /// constraint and without cost), where only `ε` makes the pivot
+    /// positive.
+    #[test]
+    fn kkt_factor_is_the_cholesky_factor_of_the_reduced_matrix() {
+        let mut rng = ChaCha8Rng::seed_from_u64(26);
+        for trial in 0..200 {
+            let (n, cones, mut d) = random_case(&mut rng, 5);
+            let m = d.m;
+            for r in 0..m {
+                for j in 0..n {
+                    d.at[j * m + r] = d.a[r * n + j];
+                }
+            }
+            d.v.s = interior(&mut rng, &cones);
+            d.v.z = interior(&mut rng, &cones);
+            assert!(d.update_scaling() && d.factor_kkt(), "trial {trial}");
+            let winv = scaling_inverse(&d);
+            // W⁻¹A, column by column
+            let wa: Vec<Vec<f64>> = (0..n)
+                .map(|j| {
+                    let col: Vec<f64> = (0..m).map(|r| d.a[r * n + j]).collect();
+                    winv.iter().map(|row| dot(row, &col)).collect::<Vec<f64>>()
+                })
+                .collect();
+            let l = &d.chol;
+            let eps = f64::EPSILON
+                * (0..n)
+                    .map(|i| (d.p[i * n + i] + dot(&wa[i], &wa[i])).abs())
+                    .fold(0.0, f64::max);
+            for i in 0..n {
+                for j in 0..=i {
+                    let shift = if i == j { eps } else { 0.0 };
+                    let want = d.p[i * n + j] + dot(&wa[i], &wa[j]) + shift;
+                    let got: f64 = (0..=j).map(|t| l[i * n + t] * l[j * n + t]).sum();
+                    let size = d.p[i * n + j].abs() + norm(&wa[i]) * norm(&wa[j]);
+                    assert!(
+                        (got - want).abs() <= 1e-12 * size,
+                        "trial {trial}: (LLᵀ)_{i}{j} = {got} against {want}"
+                    );
+                }
+            }
+        }
+        // P = 0, A = [0 1; 0 2], s = z = 1 (H = I): M = diag(0, 5)
+        let mut d = DenseConeSolver::new(2, &[Cone::NonNegative(2)]);
+        d.a = vec![0.0, 1.0, 0.0, 2.0];
+        d.at = vec![0.0, 0.0, 1.0, 2.0];
+        d.v.s = vec![1.0; 2];
+        d.v.z = vec![1.0; 2];
+        assert!(d.update_scaling() && d.factor_kkt());
+        let eps = f64::EPSILON * 5.0;
+        for (got, want) in [
+            (d.chol[0], eps.sqrt()),
+            (d.chol[2], 0.0),
+            (d.chol[3], (5.0 + eps).sqrt()),
+        ] {
+            assert!((got - want).abs() <= 1e-14 * want, "{got} against {want}");
+        }
+        // not positive definite: a pivot that overflows (P₀₀ = f64::MAX,
+        // P₁₁ = 1), and M = 0 of one variable (a zero pivot even with ε)
+        d.a.fill(0.0);
+        d.at.fill(0.0);
+        d.p = vec![f64::MAX, 0.0, 0.0, 1.0];
+        assert!(!d.factor_kkt());
+        let mut d = DenseConeSolver::new(1, &[Cone::NonNegative(1)]);
+        d.v.s = vec![1.0];
+        d.v.z = vec![1.0];
+        assert!(d.update_scaling() && !d.factor_kkt());
     }
 }
