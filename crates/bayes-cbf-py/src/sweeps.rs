@@ -79,7 +79,8 @@ pub fn sweep_merge(parts: Vec<(String, String)>) -> PyResult<(String, String)> {
 }
 
 /// Runs shard `index/count` of `calibration` and returns it (`part.json`);
-/// `fallback` names every controller's fallback (default `max_margin`).
+/// `fallback` names every controller's fallback (default `relax`, the
+/// experiment's).
 #[pyfunction]
 #[pyo3(signature = (seed=0, quick=false, episodes=None, index=0, count=1, fallback=None))]
 pub fn calibration_shard(
