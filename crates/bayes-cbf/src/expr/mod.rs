@@ -8,11 +8,14 @@
 //! constant `pi`. Parameters are folded into constants when parsed, so
 //! `1/(m*l^2)` costs nothing at evaluation.
 //!
-//! An [`Expr`] is a flat list of nodes (operands before the node that uses
-//! them) walked recursively by [`Expr::eval`], generic over
+//! An [`Expr`] is a flat postfix program (operands before the node that
+//! uses them) run on a value stack by [`Expr::eval`], generic over
 //! `D: DualNum<Primitive = f64>`: one parse serves `f64`, [`num_dual::Dual64`]
-//! (gradients, Jacobians) and [`num_dual::HyperDual64`] (Hessians), and
-//! evaluation never allocates. A general expression crate (exmex) parses
+//! (gradients, Jacobians) and [`num_dual::HyperDual64`] (Hessians). The
+//! evaluation does not recurse, so an expression of any length evaluates in
+//! bounded call-stack space (long sums included, on worker threads too), and
+//! it does not allocate unless the expression holds more than 16 pending
+//! operands at once (nesting that deep). A general expression crate (exmex) parses
 //! into one numeric type fixed at parse time and cannot evaluate one parsed
 //! expression over a generic dual number; its symbolic partial derivatives
 //! would need a parse per derivative order.
@@ -141,76 +144,121 @@ impl Node {
     }
 }
 
-/// Evaluates node `i` of `nodes`, variable `v` having the value `var(v)`.
-fn eval_node<D, V>(nodes: &[Node], i: u32, var: &V) -> D
+/// Evaluates the postfix program `nodes` (operands before the node that
+/// uses them, so each node's operands are the top of the value stack),
+/// variable `v` having the value `var(v)`. `stack` holds at least
+/// [`stack_need`]`(nodes)` values. No recursion: an expression of any length
+/// evaluates in bounded call-stack space.
+fn eval_postfix<D, V>(nodes: &[Node], var: &V, stack: &mut [D]) -> D
 where
     D: DualNum<Primitive = f64> + Copy,
     V: Fn(usize) -> D,
 {
-    let ev = |j: u32| eval_node(nodes, j, var);
-    match nodes[i as usize] {
-        Node::Const(c) => D::from(c),
-        Node::Var(v) => var(v as usize),
-        Node::Neg(a) => -ev(a),
-        Node::Add(a, b) => ev(a) + ev(b),
-        Node::Sub(a, b) => ev(a) - ev(b),
-        Node::Mul(a, b) => ev(a) * ev(b),
-        Node::Div(a, b) => ev(a) / ev(b),
-        Node::PowI(a, n) => ev(a).powi(n),
-        Node::PowF(a, e) => ev(a).powf(e),
-        Node::Pow(a, b) => (ev(b) * ev(a).ln()).exp(),
-        Node::Call1(f, a) => {
-            let v = ev(a);
-            match f {
-                Func::Sin => v.sin(),
-                Func::Cos => v.cos(),
-                Func::Tan => v.tan(),
-                Func::Asin => v.asin(),
-                Func::Acos => v.acos(),
-                Func::Atan => v.atan(),
-                Func::Sinh => v.sinh(),
-                Func::Cosh => v.cosh(),
-                Func::Tanh => v.tanh(),
-                Func::Exp => v.exp(),
-                Func::Log => v.ln(),
-                Func::Sqrt => v.sqrt(),
-                Func::Abs => {
-                    if v.re() < 0.0 {
-                        -v
-                    } else {
-                        v
-                    }
-                }
-                Func::Atan2 | Func::Min | Func::Max => unreachable!("binary function"),
+    let mut sp = 0;
+    for node in nodes {
+        let v = match *node {
+            Node::Const(c) => D::from(c),
+            Node::Var(v) => var(v as usize),
+            Node::Neg(_) | Node::PowI(..) | Node::PowF(..) | Node::Call1(..) => {
+                sp -= 1;
+                unary(*node, stack[sp])
             }
-        }
-        Node::Call2(f, a, b) => {
-            let (u, v) = (ev(a), ev(b));
-            match f {
-                // at the origin, where the angle is undefined: atan2(±0, ±0)
-                // with zero derivatives, so that a bearing term (a CLF
-                // at its reference point) stays finite
-                Func::Atan2 if u.re() == 0.0 && v.re() == 0.0 => D::from(u.re().atan2(v.re())),
-                Func::Atan2 => crate::barrier::atan2(u, v),
-                Func::Min => {
-                    if v.re() < u.re() {
-                        v
-                    } else {
-                        u
-                    }
-                }
-                Func::Max => {
-                    if v.re() > u.re() {
-                        v
-                    } else {
-                        u
-                    }
-                }
-                _ => unreachable!("unary function"),
+            Node::Add(..)
+            | Node::Sub(..)
+            | Node::Mul(..)
+            | Node::Div(..)
+            | Node::Pow(..)
+            | Node::Call2(..) => {
+                sp -= 2;
+                binary(*node, stack[sp], stack[sp + 1])
             }
-        }
+        };
+        stack[sp] = v;
+        sp += 1;
+    }
+    stack[0]
+}
+
+/// The most values the evaluation of `nodes` holds at once.
+fn stack_need(nodes: &[Node]) -> usize {
+    let (mut sp, mut most) = (0usize, 0usize);
+    for node in nodes {
+        let pops = node.children().iter().flatten().count();
+        sp = sp + 1 - pops;
+        most = most.max(sp);
+    }
+    most
+}
+
+/// A node of one operand applied to its value `v`.
+fn unary<D: DualNum<Primitive = f64> + Copy>(node: Node, v: D) -> D {
+    match node {
+        Node::Neg(_) => -v,
+        Node::PowI(_, n) => v.powi(n),
+        Node::PowF(_, e) => v.powf(e),
+        Node::Call1(f, _) => match f {
+            Func::Sin => v.sin(),
+            Func::Cos => v.cos(),
+            Func::Tan => v.tan(),
+            Func::Asin => v.asin(),
+            Func::Acos => v.acos(),
+            Func::Atan => v.atan(),
+            Func::Sinh => v.sinh(),
+            Func::Cosh => v.cosh(),
+            Func::Tanh => v.tanh(),
+            Func::Exp => v.exp(),
+            Func::Log => v.ln(),
+            Func::Sqrt => v.sqrt(),
+            Func::Abs => {
+                if v.re() < 0.0 {
+                    -v
+                } else {
+                    v
+                }
+            }
+            Func::Atan2 | Func::Min | Func::Max => unreachable!("binary function"),
+        },
+        _ => unreachable!("node of two operands or none"),
     }
 }
+
+/// A node of two operands applied to their values `u`, `v`.
+fn binary<D: DualNum<Primitive = f64> + Copy>(node: Node, u: D, v: D) -> D {
+    match node {
+        Node::Add(..) => u + v,
+        Node::Sub(..) => u - v,
+        Node::Mul(..) => u * v,
+        Node::Div(..) => u / v,
+        Node::Pow(..) => (v * u.ln()).exp(),
+        Node::Call2(f, ..) => match f {
+            // at the origin, where the angle is undefined: atan2(±0, ±0)
+            // with zero derivatives, so that a bearing term (a CLF
+            // at its reference point) stays finite
+            Func::Atan2 if u.re() == 0.0 && v.re() == 0.0 => D::from(u.re().atan2(v.re())),
+            Func::Atan2 => crate::barrier::atan2(u, v),
+            Func::Min => {
+                if v.re() < u.re() {
+                    v
+                } else {
+                    u
+                }
+            }
+            Func::Max => {
+                if v.re() > u.re() {
+                    v
+                } else {
+                    u
+                }
+            }
+            _ => unreachable!("unary function"),
+        },
+        _ => unreachable!("node of one operand or none"),
+    }
+}
+
+/// Values an evaluation keeps on the caller's stack; an expression that
+/// needs more (only one nested deeper than this) uses the heap.
+const INLINE_STACK: usize = 16;
 
 /// A parsed expression.
 ///
@@ -226,6 +274,8 @@ where
 #[derive(Debug, Clone, PartialEq)]
 pub struct Expr {
     nodes: Vec<Node>,
+    /// [`stack_need`] of `nodes`.
+    stack: usize,
     text: String,
 }
 
@@ -237,16 +287,32 @@ impl Expr {
         let mut p = parse::Parser::new(field, text, names)?;
         p.parse()?;
         Ok(Self {
+            stack: stack_need(&p.nodes),
             nodes: p.nodes,
             text: text.to_string(),
         })
+    }
+
+    /// The value with variable `v` equal to `var(v)`.
+    fn run<D, V>(&self, var: &V) -> D
+    where
+        D: DualNum<Primitive = f64> + Copy,
+        V: Fn(usize) -> D,
+    {
+        if self.stack <= INLINE_STACK {
+            let mut stack = [D::from(0.0); INLINE_STACK];
+            eval_postfix(&self.nodes, var, &mut stack)
+        } else {
+            let mut stack = vec![D::from(0.0); self.stack];
+            eval_postfix(&self.nodes, var, &mut stack)
+        }
     }
 
     /// The value at the variables `x` (in the order of [`Names::vars`]).
     ///
     /// `x` must hold at least [`Names::len`] values.
     pub fn eval<D: DualNum<Primitive = f64> + Copy>(&self, x: &[D]) -> D {
-        eval_node(&self.nodes, (self.nodes.len() - 1) as u32, &|v| x[v])
+        self.run(&|v| x[v])
     }
 
     /// The value when the variables are `x` followed by `y` (a Lyapunov
@@ -254,7 +320,7 @@ impl Expr {
     pub fn eval2<D: DualNum<Primitive = f64> + Copy>(&self, x: &[D], y: &[D]) -> D {
         let n = x.len();
         let var = |v: usize| if v < n { x[v] } else { y[v - n] };
-        eval_node(&self.nodes, (self.nodes.len() - 1) as u32, &var)
+        self.run(&var)
     }
 
     /// The constant value, if the expression does not depend on any

@@ -14,7 +14,8 @@
 use super::{Func, Names, Node};
 use crate::error::InputError;
 
-/// Deepest nesting accepted: bounds the recursion of parsing and evaluation.
+/// Deepest nesting accepted: bounds the recursion of parsing (evaluation
+/// does not recurse).
 const MAX_DEPTH: usize = 64;
 
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -338,8 +339,10 @@ impl<'a> Parser<'a> {
         self.nodes.push(node);
         if has_kids && constant {
             let root = (self.nodes.len() - 1) as u32;
-            let v = super::eval_node::<f64, _>(&self.nodes, root, &|_| f64::NAN);
             let first = kids.iter().flatten().min().copied().unwrap_or(root);
+            // the operands and the node: a postfix program of its own
+            let mut stack = [0.0; 2];
+            let v = super::eval_postfix(&self.nodes[first as usize..], &|_| f64::NAN, &mut stack);
             self.nodes.truncate(first as usize);
             self.nodes.push(Node::Const(v));
         }

@@ -199,3 +199,105 @@ fn random_text_never_panics() {
     }
     assert!(parsed > 100, "{parsed}");
 }
+
+/// The node's value by a recursive walk of its operand indices: the
+/// reference for the postfix stack machine of [`Expr::eval`].
+fn walk<D: DualNum<Primitive = f64> + Copy>(nodes: &[Node], i: u32, x: &[D]) -> D {
+    let node = nodes[i as usize];
+    match (node, node.children()) {
+        (Node::Const(c), _) => D::from(c),
+        (Node::Var(v), _) => x[v as usize],
+        (_, [Some(a), None]) => unary(node, walk(nodes, a, x)),
+        (_, [Some(a), Some(b)]) => binary(node, walk(nodes, a, x), walk(nodes, b, x)),
+        _ => unreachable!("operands fill from the first"),
+    }
+}
+
+/// A random well-formed expression over `x`, `y`, `a`, `b` of nesting at
+/// most `depth`.
+fn random_expression(next: &mut impl FnMut() -> u64, depth: usize) -> String {
+    let leaf = ["x", "y", "a", "b", "0.5", "2", "pi"];
+    if depth == 0 || next() % 4 == 0 {
+        return leaf[(next() % leaf.len() as u64) as usize].to_string();
+    }
+    let mut sub = || random_expression(next, depth - 1);
+    let (p, q) = (sub(), sub());
+    match next() % 9 {
+        0 => format!("{p} + {q}"),
+        1 => format!("{p} - ({q})"),
+        2 => format!("({p}) * ({q})"),
+        3 => format!("({p}) / (2 + ({q})^2)"),
+        4 => format!("-({p})"),
+        5 => format!("sin({p}) + cos({q})"),
+        6 => format!("atan2({p}, {q})"),
+        7 => format!("max({p}, {q}) - min({q}, {p})"),
+        _ => format!("({p})^2 + exp(-({q})^2)"),
+    }
+}
+
+#[test]
+fn the_stack_machine_matches_a_recursive_walk() {
+    let n = names();
+    let mut seed = 0xD1B5_4A32_D192_ED03u64;
+    let mut next = || {
+        seed ^= seed << 13;
+        seed ^= seed >> 7;
+        seed ^= seed << 17;
+        seed
+    };
+    let mut deep = 0;
+    for case in 0..400 {
+        let text = random_expression(&mut next, 2 + case % 7);
+        let e = Expr::parse("h", &text, &n).unwrap();
+        let root = (e.nodes.len() - 1) as u32;
+        for (x, y) in POINTS {
+            let got: f64 = e.eval(&[x, y]);
+            let want = walk(&e.nodes, root, &[x, y]);
+            assert!(got.to_bits() == want.to_bits(), "{text}: {got} vs {want}");
+            let hd = [
+                HyperDual64::new(x, 1.0, 0.0, 0.0),
+                HyperDual64::new(y, 0.0, 1.0, 0.0),
+            ];
+            let (got, want) = (e.eval(&hd), walk(&e.nodes, root, &hd));
+            assert!(got.eps1eps2.to_bits() == want.eps1eps2.to_bits(), "{text}");
+        }
+        deep += usize::from(e.stack > INLINE_STACK);
+    }
+    // the same for expressions that hold more operands than the inline stack
+    for levels in [7, 8, 9, 20, 31] {
+        let text = "x + (y * (".repeat(levels) + "a" + &"))".repeat(levels);
+        let e = Expr::parse("h", &text, &n).unwrap();
+        deep += usize::from(e.stack > INLINE_STACK);
+        let root = (e.nodes.len() - 1) as u32;
+        let (got, want): (f64, f64) = (e.eval(&[0.3, 0.9]), walk(&e.nodes, root, &[0.3, 0.9]));
+        assert_eq!(got.to_bits(), want.to_bits(), "{levels} levels");
+    }
+    assert!(deep >= 3, "{deep} expressions on the heap stack");
+}
+
+/// A sum of 200 000 terms (a chain, not a nesting: the parser accepts it)
+/// evaluates with its derivatives on a thread of 128 KiB of stack, where a
+/// recursive evaluation would need one frame per term.
+#[test]
+fn long_sums_evaluate_in_bounded_stack() {
+    let terms = 200_000;
+    let text = "x*x + ".repeat(terms) + "y";
+    let e = Expr::parse("h", &text, &names()).unwrap();
+    let (x, y) = (0.7, -0.4);
+    let (v, d) = std::thread::Builder::new()
+        .stack_size(128 << 10)
+        .spawn(move || {
+            let v: f64 = e.eval(&[x, y]);
+            let d = e.eval(&[HyperDual64::new(x, 1.0, 1.0, 0.0), HyperDual64::from(y)]);
+            (v, d)
+        })
+        .unwrap()
+        .join()
+        .unwrap();
+    // h = t x² + y, ∂h/∂x = 2 t x, ∂²h/∂x² = 2 t
+    let t = terms as f64;
+    let close = |got: f64, want: f64| (got - want).abs() <= 1e-9 * want.abs();
+    assert!(close(v, t * x * x + y), "{v}");
+    assert!(close(d.eps1, 2.0 * t * x), "{}", d.eps1);
+    assert!(close(d.eps1eps2, 2.0 * t), "{}", d.eps1eps2);
+}
