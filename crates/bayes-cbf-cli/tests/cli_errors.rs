@@ -4,7 +4,7 @@
 
 mod common;
 
-use common::{assert_fails, run, scratch_dir, words};
+use common::{assert_fails, read_json, run, scratch_dir, words};
 use std::path::Path;
 
 /// The model file of `interfaces.md`, valid; bad cases edit one thing.
@@ -378,4 +378,164 @@ fn bad_fit_options_are_rejected() {
     }
     check(&["frobnicate"], &["frobnicate"], "unknown subcommand");
     check(&["demo", "--grid", "1"], &["--grid"], "demo grid");
+}
+
+fn owned(args: Vec<&str>) -> Vec<String> {
+    args.into_iter().map(String::from).collect()
+}
+
+/// Inputs that once panicked, aborted on an allocation, hung or wrote
+/// non-finite numbers: each is now one error naming the field.
+#[test]
+fn extreme_values_are_errors_not_crashes() {
+    let dir = scratch_dir("extremes");
+    let model = path_str(&dir, "model.json");
+    std::fs::write(&model, GOOD_MODEL).unwrap();
+    let sector = path_str(&dir, "sector.json");
+    std::fs::write(
+        &sector,
+        r#"{"type": "pendulum_sector", "theta_c": 0.7854, "delta": 0.3927,
+            "relative_degree": 2, "k_alpha": [1.0, 3.0]}"#,
+    )
+    .unwrap();
+    // θ' = ω known: the sector's L_g h is 0, and the run says nothing else
+    let known = path_str(&dir, "known.json");
+    std::fs::write(
+        &known,
+        GOOD_MODEL.replace(PRIOR, "\"prior_mean\": {\"type\": \"pendulum\", \"mass\": 1.0, \"length\": 1.0, \"gravity\": 10.0}, \"known_rows\": [0]"),
+    )
+    .unwrap();
+    let steep = path_str(&dir, "steep.json");
+    std::fs::write(
+        &steep,
+        r#"{"type": "expression", "state": ["x", "y"], "h": "1e200*x + 1",
+            "relative_degree": 1, "alpha": 1}"#,
+    )
+    .unwrap();
+    let deep = path_str(&dir, "deep.json");
+    std::fs::write(
+        &deep,
+        r#"{"type": "pendulum_sector", "theta_c": 0.7854, "delta": 0.3927,
+            "relative_degree": 3, "k_alpha": [1.0, 3.0, 3.0]}"#,
+    )
+    .unwrap();
+    let out = path_str(&dir, "out");
+    let run_di = |sets: &[&str]| -> Vec<String> {
+        let mut a = vec!["run", "double-integrator", "--out", out.as_str()];
+        for s in sets {
+            a.push("--set");
+            a.push(s);
+        }
+        a.iter().map(|s| s.to_string()).collect()
+    };
+    let moments = |model: &str, barrier: &str, x: &str, u: &str| -> Vec<String> {
+        [
+            "moments",
+            "--model",
+            model,
+            "--barrier",
+            barrier,
+            "--x",
+            x,
+            "--u",
+            u,
+        ]
+        .iter()
+        .map(|s| s.to_string())
+        .collect()
+    };
+    let cases: Vec<(Vec<String>, &[&str])> = vec![
+        (
+            run_di(&["start_spread=[1e308,0]"]),
+            &["start_spread[0]", "too large"],
+        ),
+        (run_di(&["dt=1e10", "steps=3"]), &["dt", "sub-steps"]),
+        (run_di(&["steps=1000000000000"]), &["steps", "too large"]),
+        (
+            owned(words(
+                "run double-integrator --set steps=10 --seeds 0..1000000000000000",
+            )),
+            &["seeds", "too large"],
+        ),
+        (
+            owned(words("run soak --steps 1000000000000000000")),
+            &["--steps", "too large"],
+        ),
+        (
+            owned(words("run double-integrator --seed 9223372036854775808")),
+            &["seed", "outside the range"],
+        ),
+        (
+            moments(&known, &sector, "1e308,0.1", "0.7"),
+            &["not finite at x = [1e308, 0.1]"],
+        ),
+        (
+            moments(&known, &sector, "0.1,0.1", "1e200"),
+            &["u = [1e200]", "overflows"],
+        ),
+        (
+            moments(&model, &steep, "0,0.5", "0.7"),
+            &["cov[0][0] = inf"],
+        ),
+        (
+            {
+                let mut a = moments(&known, &deep, "0,0.5", "0.7");
+                a.extend(["--samples".to_string(), "99999999999999".to_string()]);
+                a
+            },
+            &["samples", "too large"],
+        ),
+    ];
+    for (args, expect) in cases {
+        let args: Vec<&str> = args.iter().map(String::as_str).collect();
+        check(&args, expect, &args.join(" "));
+        assert!(!Path::new(&out).join("summary.json").exists(), "{args:?}");
+    }
+    // an observation beyond the magnitude the regression squares
+    let big = GOOD_MODEL.replace("\"xdot\": [[0.2, -0.4]]", "\"xdot\": [[1e200, -0.4]]");
+    std::fs::write(&model, big).unwrap();
+    check(
+        &["predict", "--model", &model, "--x", "0.1,0.2"],
+        &["xdot[0][0]", "1e200", "too large"],
+        "observation 1e200",
+    );
+}
+
+/// An override may set a field the file leaves out (the seed, the goal);
+/// an unknown one is refused with the list of the known ones.
+#[test]
+fn overrides_reach_fields_the_file_leaves_out() {
+    let dir = scratch_dir("overrides");
+    let printed = run(&["run", "double-integrator", "--print-config"]);
+    assert!(printed.status.success(), "{}", printed.stderr);
+    let text: String = printed
+        .stdout
+        .lines()
+        .filter(|l| !l.starts_with("seed ="))
+        .map(|l| format!("{l}\n"))
+        .collect();
+    let file = path_str(&dir, "noseed.toml");
+    std::fs::write(&file, text).unwrap();
+    let out = path_str(&dir, "out");
+    let ok = run(&[
+        "run",
+        &file,
+        "--seed",
+        "5",
+        "--set",
+        "steps=20",
+        "--set",
+        "goal=[1,0]",
+        "--out",
+        &out,
+    ]);
+    assert!(ok.status.success(), "{}", ok.stderr);
+    let summary = read_json(&Path::new(&out).join("summary.json"));
+    assert_eq!(summary["seed"], 5);
+    assert!(summary["final_goal_distance"].is_number(), "{summary}");
+    check(
+        &["run", &file, "--set", "bogus=1", "--out", &out],
+        &["unknown field `bogus`", "expected one of"],
+        "unknown top-level key",
+    );
 }

@@ -100,13 +100,20 @@ pub fn condition_moments(
             Some(se_v),
         )
     };
+    mom.check_finite(label, x)?;
+    let (mean, variance) = (mom.mean(u), mom.variance(u));
+    if !(mean.is_finite() && variance.is_finite()) {
+        bail!(
+            "{label}: the condition at u = {u:?} overflows (mean {mean:e}, variance {variance:e})"
+        );
+    }
     let cov = (0..m + 1)
         .map(|i| mom.cov.row(i).iter().copied().collect())
         .collect();
     Ok(MomentsReport {
         relative_degree: mom.relative_degree,
-        mean: mom.mean(u),
-        variance: mom.variance(u),
+        mean,
+        variance,
         h: mom.value,
         e: mom.e.clone(),
         cov,

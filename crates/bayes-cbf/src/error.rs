@@ -57,7 +57,7 @@ impl InputError {
     pub fn invalid(field: &str, value: f64, reason: &str) -> Self {
         Self::Invalid {
             field: field.to_string(),
-            value: format!("{value}"),
+            value: number(value),
             reason: reason.to_string(),
         }
     }
@@ -70,6 +70,32 @@ impl InputError {
             got: got.to_string(),
         }
     }
+}
+
+/// `value` as a message shows it: plain decimals for everyday magnitudes,
+/// scientific notation for the others (`1e-300`, not 300 digits).
+pub fn number(value: f64) -> String {
+    let a = value.abs();
+    if a == 0.0 || !a.is_finite() || (1e-4..1e16).contains(&a) {
+        format!("{value}")
+    } else {
+        format!("{value:e}")
+    }
+}
+
+/// An empty vector with room for `n` entries, or an error naming `field`
+/// when that memory cannot be had: a count too large to run (`steps`,
+/// `samples`, `seeds`) is refused instead of aborting the process.
+pub fn reserve<T>(field: &str, n: usize) -> Result<Vec<T>, InputError> {
+    let mut v = Vec::new();
+    v.try_reserve_exact(n).map_err(|_| {
+        InputError::invalid(
+            field,
+            n as f64,
+            "too large: the memory for one entry each cannot be reserved",
+        )
+    })?;
+    Ok(v)
 }
 
 /// Checks that every entry of `v` is finite, naming the first bad entry.

@@ -202,6 +202,9 @@ fn sizes(quick: bool, steps: Option<usize>, window: Option<usize>) -> Result<(us
     if steps < 10 {
         bail!("--steps = {steps}: must be ≥ 10 (the report is per tenth of the run)");
     }
+    if steps.checked_mul(10).is_none() {
+        bail!("--steps = {steps}: too large");
+    }
     let window = window.unwrap_or(DEFAULT_WINDOW);
     if window < 2 {
         bail!("--window = {window}: must be ≥ 2 observations");
@@ -274,7 +277,12 @@ pub fn run(
     let (hwm_start, rss_start) = memory_kb();
     let started = Instant::now();
     let mut tenths = Vec::new();
-    let mut times = Vec::with_capacity(steps / 10 + 1);
+    let mut times = bayes_cbf::error::reserve::<f64>("--steps", steps / 10 + 1).map_err(|_| {
+        crate::err!(
+            "--steps = {steps}: too large (the memory for a tenth of the run's \
+             control-step times cannot be reserved)"
+        )
+    })?;
     let mut done = 0usize;
     let (mut non_finite, mut h_violations, mut infeasible, mut refits) = (0usize, 0, 0, 0);
     let mut min_h = f64::INFINITY;

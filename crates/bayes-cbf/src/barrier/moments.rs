@@ -102,6 +102,30 @@ impl ConditionMoments {
         })
     }
 
+    /// Checks that `h(x)`, `e` and `Cov(z)` are finite. The error names the
+    /// condition (`label`), the state `x` and the first non-finite entry;
+    /// nothing is allocated when all is finite.
+    pub fn check_finite(&self, label: &str, x: &[f64]) -> Result<(), InputError> {
+        let p = self.e.len();
+        let bad = if !self.value.is_finite() {
+            Some(format!("h(x) = {}", self.value))
+        } else if let Some(i) = self.e.iter().position(|v| !v.is_finite()) {
+            Some(format!("e[{i}] = {}", self.e[i]))
+        } else {
+            self.cov
+                .iter()
+                .position(|v| !v.is_finite())
+                .map(|i| format!("cov[{}][{}] = {}", i % p, i / p, self.cov.as_slice()[i]))
+        };
+        match bad {
+            None => Ok(()),
+            Some(entry) => Err(InputError::Evaluation(format!(
+                "{label}: the condition's moments are not finite at x = {x:?} ({entry}): \
+                 the model, the function or their derivatives overflow at this state"
+            ))),
+        }
+    }
+
     /// `E[C]` at control `u` (without the leading 1).
     pub fn mean(&self, u: &[f64]) -> f64 {
         self.e[0] + u.iter().zip(&self.e[1..]).map(|(a, b)| a * b).sum::<f64>()

@@ -80,6 +80,10 @@ impl McMoments {
     }
 }
 
+/// Largest joint posterior (lattice points × `(1 + m)`) the estimate
+/// draws from: a 5000 × 5000 covariance (200 MB) and its eigendecomposition.
+const MAX_JOINT: usize = 5000;
+
 /// Offsets of the cube lattice `{−R, …, R}ⁿ`, row-major `P × n`.
 fn lattice(n: usize, radius: usize) -> Vec<Vec<i64>> {
     let side = 2 * radius + 1;
@@ -122,6 +126,24 @@ pub fn mc_cbc_moments<K: Kernel>(
     check_positive("step", settings.step)?;
     let s = settings.step;
     let rf = r - 1; // radius of the lattice where F is drawn
+                    // the joint posterior of F on the lattice is a dense (P·(m+1))² matrix
+                    // with an eigendecomposition: bound its size
+    let joint = (2 * rf + 1)
+        .checked_pow(n as u32)
+        .and_then(|np| np.checked_mul(p))
+        .filter(|&d| d <= MAX_JOINT);
+    if joint.is_none() {
+        return Err(InputError::invalid(
+            "relative_degree",
+            r as f64,
+            &format!(
+                "too high for Monte Carlo moments on {n} states: the lattice of \
+                 {}^{n} points times {p} columns exceeds {MAX_JOINT} jointly Gaussian entries",
+                2 * rf + 1
+            ),
+        )
+        .into());
+    }
     let rh = r; // radius where h is evaluated
     let pts_h = lattice(n, rh);
     let side_h = 2 * rh + 1;
@@ -172,7 +194,9 @@ pub fn mc_cbc_moments<K: Kernel>(
         Some(idx)
     };
     let mut rng = ChaCha8Rng::seed_from_u64(settings.seed);
-    let mut zs = vec![0.0; settings.samples * p];
+    let mut zs = crate::error::reserve("samples", settings.samples.saturating_mul(p))
+        .map_err(|_| InputError::invalid("samples", settings.samples as f64, "too large"))?;
+    zs.resize(settings.samples * p, 0.0);
     let mut phi = h_vals.clone();
     let mut next = vec![0.0; h_vals.len()];
     let mut xi = DMatrix::<f64>::zeros(n, np * p);

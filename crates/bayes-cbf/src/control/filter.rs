@@ -995,10 +995,16 @@ impl SafetyController {
                 let zeros = self.zero_reference.as_slice();
                 let (xd, xdd) = reference.unwrap_or((zeros, zeros));
                 clc_moments(ws, c.as_ref(), xd, xdd, &mut self.clc)?;
+                self.clc.check_finite("clf", x)?;
                 Some(&self.clc)
             }
             None => None,
         };
+        for (i, mom) in self.cbcs.iter().enumerate() {
+            if mom.check_finite("", x).is_err() {
+                mom.check_finite(&format!("barriers[{i}]"), x)?;
+            }
+        }
         self.filter.solve(&self.cbcs, clc, u_ref, out)?;
         if let Some(rc) = self.recal.as_mut() {
             rc.x.clear();

@@ -72,10 +72,33 @@ pub(crate) fn check_point(
     if xdot.len() != n {
         return Err(InputError::shape(&format!("xdot[{j}]"), n, xdot.len()));
     }
-    check_finite(&format!("x[{j}]"), x)?;
-    check_finite(&format!("u[{j}]"), u)?;
-    check_finite(&format!("xdot[{j}]"), xdot)?;
-    Ok(())
+    check_values("x", j, x)?;
+    check_values("u", j, u)?;
+    check_values("xdot", j, xdot)
+}
+
+/// Largest magnitude of an observed value: squares of the values (kernel
+/// distances, the Gram matrix's `u̲ᵀ B u̲`, the likelihood's residuals)
+/// appear throughout the regression and must stay finite.
+pub const MAX_DATA_MAGNITUDE: f64 = 1e150;
+
+/// Checks that every entry of `v` is finite and at most
+/// [`MAX_DATA_MAGNITUDE`] in magnitude, naming `name[j][i]`; nothing is
+/// allocated unless an entry is bad.
+fn check_values(name: &str, j: usize, v: &[f64]) -> Result<(), InputError> {
+    match v.iter().position(|a| !(a.abs() <= MAX_DATA_MAGNITUDE)) {
+        None => Ok(()),
+        Some(i) => Err(InputError::invalid(
+            &format!("{name}[{j}][{i}]"),
+            v[i],
+            if v[i].is_finite() {
+                "too large: observed values must be at most 1e150 in magnitude, \
+                 whose squares are finite (rescale the data)"
+            } else {
+                "must be finite"
+            },
+        )),
+    }
 }
 
 /// Checks a query state `x` of dimension `n`, named `field` in the errors.

@@ -44,6 +44,7 @@ macro_rules! shared_model_accessors {
 mod cogp;
 mod cogp_training;
 mod data;
+pub use data::MAX_DATA_MAGNITUDE;
 mod factor;
 mod input_map;
 mod joint;

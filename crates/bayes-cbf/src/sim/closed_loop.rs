@@ -157,6 +157,24 @@ impl LoopSettings {
             ));
         }
         SimSettings::new(self.sim.internal_step, self.sim.process_noise)?;
+        let longest = match &self.trigger {
+            Some(t) if t.hold => ("trigger.tau_max", t.tau_max),
+            _ => ("dt", self.dt),
+        };
+        let substeps = longest.1 / self.sim.internal_step;
+        if substeps > super::MAX_SUBSTEPS as f64 {
+            return Err(InputError::invalid(
+                longest.0,
+                longest.1,
+                &format!(
+                    "{} / sim.internal_step = {} RK4 sub-steps per hold, more than {} \
+                     (raise sim.internal_step or shorten the hold)",
+                    longest.0,
+                    crate::error::number(substeps),
+                    super::MAX_SUBSTEPS
+                ),
+            ));
+        }
         if let Some(r) = &self.recalibration {
             r.validate()?;
         }
@@ -461,7 +479,7 @@ impl<'a> ClosedLoop<'a> {
     /// Steps to the horizon, calling `observer` after each step, and
     /// returns every step's record with the final state and model.
     pub fn run(mut self, observer: &mut dyn Observer) -> Result<LoopResult, Error> {
-        let mut records = Vec::with_capacity(self.settings.steps);
+        let mut records = crate::error::reserve("steps", self.settings.steps)?;
         while !self.is_finished() {
             let rec = self.advance()?;
             observer.observe(self.k - 1, &rec);

@@ -21,6 +21,10 @@ use crate::systems::{wrap_angle, DynSystem};
 use rand::Rng;
 use rand_distr::{Distribution, StandardNormal};
 
+/// Most RK4 sub-steps one control hold may take ([`LoopSettings::validate`]
+/// refuses a `dt`, or a longest self-triggered hold, that needs more).
+pub const MAX_SUBSTEPS: usize = 1_000_000;
+
 /// Settings of the zero-order-hold integrator.
 #[derive(Debug, Clone, Copy, PartialEq)]
 #[cfg_attr(feature = "serde", derive(serde::Serialize, serde::Deserialize))]
