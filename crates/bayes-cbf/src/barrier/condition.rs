@@ -76,6 +76,43 @@ fn check_point(
     Ok(())
 }
 
+/// `ψ₁(x) = L_f h(x) + λ h(x)` of a relative-degree-2 barrier at a start
+/// `x` of `system`, `λ` the larger root of `s² + k₁ s + k₀` (gains
+/// `[k₀, k₁]`); `None` for another relative degree or complex roots.
+///
+/// For real roots `−λ₁`, `−λ₂` the condition `ḧ + k₁ ḣ + k₀ h ≥ 0` is
+/// `ψ̇₁ + λ₂ ψ₁ ≥ 0` with `ψ₁ = ḣ + λ₁ h`, so `ψ₁(t) ≥ ψ₁(0) e^{−λ₂ t}`, and
+/// `ψ₁ ≥ 0` gives `h(t) ≥ h(0) e^{−λ₁ t}`: a start with `h ≥ 0` and
+/// `ψ₁ ≥ 0` (for either root; the larger one asks less) stays safe while
+/// the condition holds. A start with `ψ₁ < 0` lies outside the set the
+/// gains keep invariant: `h` can cross zero although every step meets its
+/// condition (a fast approach with small gains). `ḣ = L_f h` because
+/// `L_g h = 0` at relative degree 2.
+pub fn start_margin(
+    system: &dyn DynSystem,
+    barrier: &dyn DynBarrier,
+    x: &[f64],
+) -> Result<Option<f64>, InputError> {
+    let (n, m) = (system.state_dim(), system.control_dim());
+    check_point(barrier, n, x, ("x", x, n))?;
+    check_finite("x", x)?;
+    let k = barrier.gains();
+    if barrier.relative_degree() != 2 || k.len() != 2 {
+        return Ok(None);
+    }
+    let disc = k[1] * k[1] - 4.0 * k[0];
+    if disc < 0.0 {
+        return Ok(None);
+    }
+    let lambda = 0.5 * (k[1] + disc.sqrt());
+    let mut fbuf = vec![0.0; n * (1 + m)];
+    let mut f = vec![0.0; n];
+    system.xdot(x, &vec![0.0; m], &mut fbuf, &mut f);
+    let mut grad = vec![0.0; n];
+    let h = barrier.gradient(x, &mut grad, &mut vec![Dual64::from(0.0); n]);
+    Ok(Some(dot(&grad, &f) + lambda * h))
+}
+
 /// The condition along the rate `xdot`, with drift `f` (relative degree 2).
 fn along(
     system: &dyn DynSystem,
@@ -134,8 +171,8 @@ fn dot(a: &[f64], b: &[f64]) -> f64 {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::barrier::{CircleHeading, PendulumSector};
-    use crate::systems::{Ackermann, Pendulum};
+    use crate::barrier::{CircleHeading, HalfSpace, PendulumSector};
+    use crate::systems::{Ackermann, ExpressionSystem, Pendulum};
 
     /// The derivative along the true flow, by central differences of `h`
     /// along a short exact trajectory: `d/dt h` (relative degree 1) and
@@ -231,5 +268,69 @@ mod tests {
             let e = realised_condition(sys, b, &x, &bad).unwrap_err();
             assert!(e.to_string().contains("xdot[0]"), "{e}");
         }
+    }
+
+    /// A cart with friction, `ṗ = v`, `v̇ = −c v + u`, and the wall
+    /// `h = 1 − p`: under the least the condition allows,
+    /// `ḧ + k₁ḣ + k₀h = 0`, the barrier crosses zero exactly from the
+    /// starts with `ψ₁ < 0` (integrated by RK4 from `h₀ = 1 − p`,
+    /// `ḣ₀ = −v`).
+    #[test]
+    fn start_margin_decides_whether_the_least_allowed_motion_crosses() {
+        let c = 0.4;
+        let cart = ExpressionSystem::new(
+            &["p", "v"],
+            &["u"],
+            &[("c", c)],
+            &["v", "-c*v"],
+            &[vec!["0"], vec!["1"]],
+            &[],
+        )
+        .unwrap();
+        for gains in [[2.0, 3.0], [4.0, 4.0], [0.5, 5.0]] {
+            let wall = HalfSpace::new(vec![-1.0, 0.0], -1.0, 2, gains.to_vec()).unwrap();
+            let (mut crossed, mut kept) = (0, 0);
+            for p in [-1.0, 0.0, 0.5, 0.9] {
+                for v in [-1.0, 0.0, 0.5, 1.0, 2.0, 4.0, 8.0] {
+                    let psi = start_margin(&cart, &wall, &[p, v]).unwrap().unwrap();
+                    // the least-allowed motion of h, by RK4
+                    let rate = |s: [f64; 2]| [s[1], -gains[1] * s[1] - gains[0] * s[0]];
+                    let (mut s, dt) = ([1.0 - p, -v], 1e-3);
+                    let mut lowest = s[0];
+                    for _ in 0..60_000 {
+                        let k1 = rate(s);
+                        let k2 = rate([s[0] + 0.5 * dt * k1[0], s[1] + 0.5 * dt * k1[1]]);
+                        let k3 = rate([s[0] + 0.5 * dt * k2[0], s[1] + 0.5 * dt * k2[1]]);
+                        let k4 = rate([s[0] + dt * k3[0], s[1] + dt * k3[1]]);
+                        for i in 0..2 {
+                            s[i] += dt / 6.0 * (k1[i] + 2.0 * k2[i] + 2.0 * k3[i] + k4[i]);
+                        }
+                        lowest = lowest.min(s[0]);
+                    }
+                    if psi.abs() < 1e-6 {
+                        continue;
+                    }
+                    assert_eq!(
+                        lowest < 0.0,
+                        psi < 0.0,
+                        "gains {gains:?}, start ({p}, {v}): ψ₁ {psi}, lowest h {lowest}"
+                    );
+                    if psi < 0.0 {
+                        crossed += 1
+                    } else {
+                        kept += 1
+                    }
+                }
+            }
+            assert!(
+                crossed >= 3 && kept >= 3,
+                "{gains:?}: {crossed} crossed, {kept} kept"
+            );
+        }
+        // complex roots and relative degree 1 have no such margin
+        let complex = HalfSpace::new(vec![-1.0, 0.0], -1.0, 2, vec![4.0, 1.0]).unwrap();
+        assert_eq!(start_margin(&cart, &complex, &[0.0, 1.0]).unwrap(), None);
+        let rd1 = HalfSpace::new(vec![-1.0, 0.0], -1.0, 1, vec![1.0]).unwrap();
+        assert_eq!(start_margin(&cart, &rd1, &[0.0, 1.0]).unwrap(), None);
     }
 }
