@@ -205,8 +205,8 @@ fn pendulum(out: &RunOutput, dir: &Path) -> Result<PathBuf> {
     timeseries(out, dir, (1100, 900), vec![theta, omega, u])
 }
 
-/// Heat map of [`scbc_grid`] on `cells × cells` points of the vehicle
-/// arena `[−4, 1] × [−3, 2]` with its zero contour; the colour range is
+/// Heat map of [`scbc_grid`] on `cells × cells` points of the region the
+/// run covers ([`arena`]) with its zero contour; the colour range is
 /// `range`, or symmetric about zero and at most ±10 when `None`.
 fn scbc_heatmap(
     out: &RunOutput,
@@ -215,12 +215,13 @@ fn scbc_heatmap(
     cells: usize,
     range: Option<(f64, f64)>,
 ) -> Layer {
-    let axis = |lo: f64| -> Vec<f64> {
+    let axis = |(lo, hi): (f64, f64)| -> Vec<f64> {
         (0..cells)
-            .map(|i| lo + 5.0 * i as f64 / (cells - 1) as f64)
+            .map(|i| lo + (hi - lo) * i as f64 / (cells - 1) as f64)
             .collect()
     };
-    let (xs, ys) = (axis(-4.0), axis(-3.0));
+    let (x_range, y_range) = arena(out);
+    let (xs, ys) = (axis(x_range), axis(y_range));
     let values = scbc_grid(out, theta, u, &xs, &ys);
     let range = range.unwrap_or_else(|| {
         let lim = values
@@ -239,6 +240,32 @@ fn scbc_heatmap(
         diverging: true,
         range: Some(range),
     }
+}
+
+/// The square region of the plane of states 0 and 1 around the start, the
+/// goal, the obstacles and the trajectory, with a margin of 0.5 m.
+fn arena(out: &RunOutput) -> ((f64, f64), (f64, f64)) {
+    let mut lo = [out.built.start[0], out.built.start[1]];
+    let mut hi = lo;
+    let mut cover = |x: f64, y: f64, r: f64| {
+        if x.is_finite() && y.is_finite() {
+            lo = [lo[0].min(x - r), lo[1].min(y - r)];
+            hi = [hi[0].max(x + r), hi[1].max(y + r)];
+        }
+    };
+    for r in &out.result.records {
+        cover(r.x[0], r.x[1], 0.0);
+    }
+    if let Some(g) = &out.scenario.goal {
+        cover(g[0], g[1], 0.0);
+    }
+    for (c, r) in &out.built.obstacles {
+        cover(c[0], c[1], *r);
+    }
+    let side = (hi[0] - lo[0]).max(hi[1] - lo[1]) + 1.0;
+    let centre = [0.5 * (lo[0] + hi[0]), 0.5 * (lo[1] + hi[1])];
+    let span = |c: f64| (c - 0.5 * side, c + 0.5 * side);
+    (span(centre[0]), span(centre[1]))
 }
 
 /// Minimum over barriers of the stochastic CBC `E − ζ − c·std` on an

@@ -140,7 +140,8 @@ pub struct SweepRow {
     pub min_barrier: f64,
     /// Steps whose SOCP was infeasible.
     pub infeasible_steps: usize,
-    /// Distance to the goal at the end (NaN without a goal).
+    /// Distance to the goal at the end (NaN without a goal; an empty cell
+    /// in `sweep.csv`).
     pub goal_distance: f64,
     /// Median control step (µs).
     pub control_step_us: f64,
@@ -151,11 +152,17 @@ pub struct SweepRow {
 const HEADER: &str =
     "seed,safe,collided,min_barrier,infeasible_steps,goal_distance,control_step_us,wall_time_s";
 
-/// `sweep.csv`: a header and one line per row.
+/// `sweep.csv`: a header and one line per row; a scenario without a goal
+/// leaves `goal_distance` empty, as `trajectory.csv` leaves a missing value.
 pub fn rows_csv(rows: &[SweepRow]) -> String {
     let mut s = String::from(HEADER);
     s.push('\n');
     for r in rows {
+        let goal = if r.goal_distance.is_nan() {
+            String::new()
+        } else {
+            r.goal_distance.to_string()
+        };
         s += &format!(
             "{},{},{},{},{},{},{},{}\n",
             r.seed,
@@ -163,7 +170,7 @@ pub fn rows_csv(rows: &[SweepRow]) -> String {
             u8::from(r.collided),
             r.min_barrier,
             r.infeasible_steps,
-            r.goal_distance,
+            goal,
             r.control_step_us,
             r.wall_time_s
         );
@@ -198,7 +205,7 @@ pub fn parse_rows_csv(text: &str, name: &str) -> Result<Vec<SweepRow>> {
             collided: int(2)? == 1,
             min_barrier: num(3)?,
             infeasible_steps: int(4)? as usize,
-            goal_distance: num(5)?,
+            goal_distance: if f[5].is_empty() { f64::NAN } else { num(5)? },
             control_step_us: num(6)?,
             wall_time_s: num(7)?,
         });
@@ -237,14 +244,14 @@ pub fn run_seeds(
             meta.seeds.end
         );
     }
-    let seeds: Vec<u64> = meta
-        .seeds
-        .seeds()
-        .into_iter()
-        .enumerate()
-        .filter(|(i, _)| meta.shard.owns(*i))
-        .map(|(_, s)| s)
-        .collect();
+    let owned = meta.seeds.len().div_ceil(meta.shard.count.max(1));
+    let mut seeds = bayes_cbf::error::reserve::<u64>("seeds", owned)?;
+    seeds.extend(
+        (meta.seeds.start..meta.seeds.end)
+            .enumerate()
+            .filter(|(i, _)| meta.shard.owns(*i))
+            .map(|(_, s)| s),
+    );
     // check the scenario once before fanning out
     scenario::load(&meta.scenario, &meta.sets)?;
     let done = AtomicUsize::new(0);
@@ -437,7 +444,7 @@ pub fn merge_sweeps(parts: Vec<(SweepMeta, Vec<SweepRow>)>) -> Result<(SweepMeta
             whole.seeds.end
         );
     }
-    let mut rows: Vec<SweepRow> = Vec::with_capacity(whole.seeds.len());
+    let mut rows: Vec<SweepRow> = bayes_cbf::error::reserve("seeds", whole.seeds.len())?;
     for (m, r) in parts {
         for row in &r {
             let pos = row.seed.checked_sub(m.seeds.start).map(|p| p as usize);
@@ -527,7 +534,11 @@ mod tests {
                 wall_time_s: 0.0,
             },
         ];
-        let back = parse_rows_csv(&rows_csv(&rows), "x").unwrap();
+        let text = rows_csv(&rows);
+        // no literal NaN: a missing goal distance is an empty cell
+        assert!(!text.contains("NaN"), "{text}");
+        assert_eq!(text.lines().nth(1).unwrap().split(',').nth(5), Some(""));
+        let back = parse_rows_csv(&text, "x").unwrap();
         for (a, b) in rows.iter().zip(&back) {
             assert_eq!(a.min_barrier.to_bits(), b.min_barrier.to_bits());
             assert_eq!(a.goal_distance.is_nan(), b.goal_distance.is_nan());

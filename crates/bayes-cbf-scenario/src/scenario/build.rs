@@ -8,7 +8,7 @@ use crate::error::{Context, Result};
 use crate::input_map_spec::to_input_map;
 use crate::parse::parse_rank;
 use crate::prior_spec::{PriorSpec, SystemNames};
-use bayes_cbf::barrier::DynBarrier;
+use bayes_cbf::barrier::{start_margin, DynBarrier};
 use bayes_cbf::control::{
     Fallback, RecalibrationSettings, SafetyController, SafetySettings, SelfTriggered, TauSource,
     TriggerSettings,
@@ -113,6 +113,14 @@ pub fn build(s: &Scenario) -> Result<Built> {
         if let Some(i) = spread.iter().position(|v| *v < 0.0) {
             bail!("start_spread[{i}] = {}: must be ≥ 0", spread[i]);
         }
+        // the interval [−w, w] must have a finite width, and the start
+        // must stay finite wherever in it the draw lands
+        if let Some(i) = (0..n).find(|&i| !(2.0 * spread[i] + s.start[i].abs()).is_finite()) {
+            bail!(
+                "start_spread[{i}] = {}: too large (start[{i}] ± start_spread[{i}] overflows)",
+                bayes_cbf::error::number(spread[i])
+            );
+        }
         let mut rng = ChaCha8Rng::seed_from_u64(s.seed ^ 0x57A7_5EED);
         for (x, w) in start.iter_mut().zip(spread) {
             if *w > 0.0 {
@@ -124,7 +132,10 @@ pub fn build(s: &Scenario) -> Result<Built> {
         vector("goal", g, n, "the state dimension")?;
     }
     if !(s.dt.is_finite() && s.dt > 0.0) {
-        bail!("dt = {}: must be finite and > 0", s.dt);
+        bail!(
+            "dt = {}: must be finite and > 0",
+            bayes_cbf::error::number(s.dt)
+        );
     }
     if s.steps == 0 {
         bail!("steps = 0: must be ≥ 1");
@@ -182,6 +193,24 @@ pub fn build(s: &Scenario) -> Result<Built> {
             _ => {}
         }
         barriers.push(b);
+    }
+    if !s.obstacles.is_empty() && n < 2 {
+        bail!("obstacles: discs in the plane of states 0 and 1 need at least two states");
+    }
+    for (i, o) in s.obstacles.iter().enumerate() {
+        vector(
+            &format!("obstacles[{i}].center"),
+            &o.center,
+            2,
+            "a point in the plane",
+        )?;
+        if !(o.radius.is_finite() && o.radius > 0.0) {
+            bail!(
+                "obstacles[{i}].radius = {}: must be finite and > 0",
+                bayes_cbf::error::number(o.radius)
+            );
+        }
+        obstacles.push((o.center, o.radius));
     }
     let clf = s.clf.as_ref().map(|c| c.build(&names.0)).transpose()?;
     // self-triggering
@@ -314,7 +343,8 @@ pub fn build(s: &Scenario) -> Result<Built> {
     };
     loop_settings
         .validate()
-        .map_err(|e| crate::err!("learning: {e}"))?;
+        .map_err(|e| crate::err!("run settings: {e}"))?;
+    warn_start_margin(&barriers, truth.as_ref(), &start, s.seed);
     Ok(Built {
         start,
         truth,
@@ -325,4 +355,28 @@ pub fn build(s: &Scenario) -> Result<Built> {
         reference,
         loop_settings,
     })
+}
+
+/// Warns, once per process, when the start lies outside the set that a
+/// relative-degree-2 barrier's gains keep safe ([`start_margin`]).
+fn warn_start_margin(
+    barriers: &[Arc<dyn DynBarrier>],
+    truth: &dyn DynSystem,
+    x: &[f64],
+    seed: u64,
+) {
+    use std::sync::atomic::{AtomicBool, Ordering};
+    static WARNED: AtomicBool = AtomicBool::new(false);
+    for (i, b) in barriers.iter().enumerate() {
+        if let Ok(Some(psi)) = start_margin(truth, b.as_ref(), x) {
+            if psi < 0.0 && !WARNED.swap(true, Ordering::Relaxed) {
+                log::warn!(
+                    "barriers[{i}]: the start {x:?} (seed {seed}) is outside the set its gains \
+                     keep safe: ψ₁ = ḣ + λh = {psi:.3} < 0 (λ the larger root of s² + k₁s + k₀); \
+                     h can cross zero although every step meets its condition: raise k_alpha \
+                     or start slower (docs/robots.md, \"Noise and starts\")"
+                );
+            }
+        }
+    }
 }

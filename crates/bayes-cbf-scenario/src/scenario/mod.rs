@@ -105,6 +105,13 @@ pub struct Scenario {
     /// Barriers (same fields as barrier files).
     #[serde(default)]
     pub barriers: Vec<BarrierSpec>,
+    /// Discs in the plane of the first two states that the barriers keep
+    /// the robot out of, for the report (`min_obstacle_distance`,
+    /// `collided`) and the figures. `disc` barriers on states 0 and 1 and
+    /// `circle_heading` barriers add theirs; list here the obstacles of
+    /// barriers written as expressions.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub obstacles: Vec<ObstacleSpec>,
     /// Optional control Lyapunov function.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub clf: Option<ClfSpec>,
@@ -121,6 +128,16 @@ pub struct Scenario {
     /// Self-triggered control (paper, Sec. V-B, VI-C).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub trigger: Option<TriggerSpec>,
+}
+
+/// A disc in the plane of the first two states.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ObstacleSpec {
+    /// Centre.
+    pub center: [f64; 2],
+    /// Radius (> 0).
+    pub radius: f64,
 }
 
 /// Self-triggering: Lipschitz bound of the learned dynamics on a cuboid
@@ -260,7 +277,8 @@ pub struct LearningSpec {
     /// Budget of the most informative observations (0: unbounded); exclusive
     /// with `window`.
     pub budget: usize,
-    /// Noise floor of the refits.
+    /// Noise floor of the refits: `σ·√A₀₀ ≥ sigma_min`
+    /// ([`bayes_cbf::gp::FitSettings::sigma_min`]).
     pub sigma_min: f64,
     /// L-BFGS iterations per refit.
     pub max_iters: u64,
@@ -506,31 +524,34 @@ pub fn validate(s: &Scenario) -> Result<()> {
 
 /// Applies `key=value` to a TOML table; `key` is a dotted path whose numeric
 /// segments index arrays; `value` is a TOML literal (strings may be bare).
+/// A key the file leaves out (a field with a default, an optional section)
+/// is added, and the typed parse judges it: an unknown one is refused there,
+/// with the list of the known ones.
 pub fn apply_set(table: &mut toml::Table, assignment: &str) -> Result<()> {
     let (key, value) = assignment
         .split_once('=')
-        .ok_or_else(|| err!("--set '{assignment}': expected key=value"))?;
+        .ok_or_else(|| err!("override '{assignment}': expected key=value"))?;
     let key = key.trim();
     if key.is_empty() {
-        bail!("--set '{assignment}': empty key");
+        bail!("override '{assignment}': empty key");
     }
-    let value: toml::Value = match format!("v = {}", value.trim()).parse::<toml::Table>() {
-        Ok(mut t) => t
-            .remove("v")
-            .unwrap_or(toml::Value::String(value.trim().into())),
-        Err(_) => toml::Value::String(value.trim().to_string()),
+    let text = value.trim();
+    let value: toml::Value = match format!("v = {text}").parse::<toml::Table>() {
+        Ok(mut t) => t.remove("v").unwrap_or(toml::Value::String(text.into())),
+        Err(_) if is_integer(text) => bail!(
+            "override '{key}': {text} is outside the range of integers \
+             (-9223372036854775808 to 9223372036854775807)"
+        ),
+        Err(_) => toml::Value::String(text.to_string()),
     };
     let parts: Vec<&str> = key.split('.').collect();
-    // sections with defaults may be absent from the file
-    if parts.len() > 1
-        && ["learning", "sim", "outputs", "trigger"].contains(&parts[0])
-        && !table.contains_key(parts[0])
-    {
-        table.insert(parts[0].to_string(), toml::Value::Table(toml::Table::new()));
+    let mut cur = table
+        .entry(parts[0])
+        .or_insert_with(|| toml::Value::Table(toml::Table::new()));
+    if parts.len() == 1 {
+        *cur = value;
+        return Ok(());
     }
-    let mut cur: &mut toml::Value = table
-        .get_mut(parts[0])
-        .ok_or_else(|| err!("--set {key}: unknown key '{}'", parts[0]))?;
     for (i, part) in parts.iter().enumerate().skip(1) {
         let path = parts[..i].join(".");
         cur = match cur {
@@ -541,22 +562,28 @@ pub fn apply_set(table: &mut toml::Table, assignment: &str) -> Result<()> {
                     return Ok(());
                 }
                 t.get_mut(*part)
-                    .ok_or_else(|| err!("--set {key}: '{path}' has no key '{part}'"))?
+                    .ok_or_else(|| err!("override '{key}': '{path}' has no key '{part}'"))?
             }
             toml::Value::Array(a) => {
                 let idx: usize = part.parse().map_err(|_| {
-                    err!("--set {key}: '{path}' is an array; '{part}' is not an index")
+                    err!("override '{key}': '{path}' is an array; '{part}' is not an index")
                 })?;
                 let len = a.len();
                 a.get_mut(idx).ok_or_else(|| {
-                    err!("--set {key}: index {idx} out of range ('{path}' has {len} entries)")
+                    err!("override '{key}': index {idx} out of range ('{path}' has {len} entries)")
                 })?
             }
-            _ => bail!("--set {key}: '{path}' is a value, not a table"),
+            _ => bail!("override '{key}': '{path}' is a value, not a table"),
         };
     }
     *cur = value;
     Ok(())
+}
+
+/// An optional sign and decimal digits only.
+fn is_integer(text: &str) -> bool {
+    let digits = text.strip_prefix(['-', '+']).unwrap_or(text);
+    !digits.is_empty() && digits.bytes().all(|b| b.is_ascii_digit())
 }
 
 /// The TOML text of a built-in scenario, or of the file at `name`.
