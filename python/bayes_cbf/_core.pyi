@@ -50,7 +50,9 @@ class MVGP(_GaussianProcess):
         self, X: ArrayLike, U: ArrayLike, Xdot: ArrayLike,
         rank_a: Rank = "full", rank_b: Rank = "full",
         max_iters: int = 100, seed: int = 0, restarts: int = 0, sigma_min: float = 0.0,
-    ) -> Self: ...
+    ) -> Self:
+        """Learns the hyperparameters on (X, U, Xdot), which replace the data;
+        sigma_min floors noise_sigma * sqrt(A[0, 0])."""
     def predict(self, Xq: ArrayLike) -> tuple[F64, F64]:
         """Means (q, n, 1+m) and B_k(x, x) (q, 1+m, 1+m); Cov(vec F(x)) = B_k ⊗ A."""
     def rust_predict_time_s(self, Xq: ArrayLike, repeats: int = 5) -> float: ...

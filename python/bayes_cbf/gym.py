@@ -31,7 +31,17 @@ except ImportError as e:  # pragma: no cover - exercised only without gymnasium
 from ._core import InputError, SafetyFilter
 
 
-class SafetyFilterWrapper(gym.Wrapper):
+def _count(field: str, value: Any, least: int) -> int:
+    """``value`` as a whole number ``>= least``, or an :class:`InputError`
+    naming ``field``."""
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)):
+        raise InputError(f"{field}: {value!r} is not a whole number")
+    if value < least:
+        raise InputError(f"{field}: {value} must be >= {least}")
+    return int(value)
+
+
+class SafetyFilterWrapper(gym.Wrapper, gym.utils.RecordConstructorArgs):
     """Filters every action of ``env`` through ``filter``.
 
     Parameters
@@ -68,6 +78,12 @@ class SafetyFilterWrapper(gym.Wrapper):
     ``u_applied`` and, with ``barriers_for_log``, ``barrier_values`` (at the
     new state) and ``violation``. :attr:`episode_stats` sums them over the
     episode.
+
+    With ``learn=True`` the model keeps what it learned across ``reset``:
+    that is the point of learning online, and it makes the wrapped
+    environment non-stationary, so the same seed and actions give slightly
+    different filtered actions in a later episode (gymnasium's ``check_env``
+    reports this). With ``learn=False`` the wrapper passes ``check_env``.
     """
 
     def __init__(
@@ -83,6 +99,21 @@ class SafetyFilterWrapper(gym.Wrapper):
         label_at: str = "midpoint",
         barriers_for_log: Sequence[Any] = (),
     ):
+        # recorded for env.spec; not copied: a wrapper made again from the
+        # spec shares this filter and its model
+        gym.utils.RecordConstructorArgs.__init__(
+            self,
+            _disable_deepcopy=True,
+            filter=filter,
+            state_from_obs=state_from_obs,
+            learn=learn,
+            dt=dt,
+            angle_indices=angle_indices,
+            max_data=max_data,
+            refit_every=refit_every,
+            label_at=label_at,
+            barriers_for_log=barriers_for_log,
+        )
         super().__init__(env)
         if not isinstance(env.action_space, gym.spaces.Box):
             raise InputError("env: the action space must be a gymnasium.spaces.Box")
@@ -104,10 +135,8 @@ class SafetyFilterWrapper(gym.Wrapper):
             if not 0 <= i < n:
                 raise InputError(f"angle_indices: {i} is not a state index (state_dim = {n})")
         self.angle_indices = list(angle_indices)
-        if max_data < 1:
-            raise InputError("max_data: must be >= 1")
-        self.max_data = int(max_data)
-        self.refit_every = int(refit_every)
+        self.max_data = _count("max_data", max_data, 1)
+        self.refit_every = _count("refit_every", refit_every, 0)
         if label_at not in ("midpoint", "start"):
             raise InputError(f"label_at: {label_at!r}, expected 'midpoint' or 'start'")
         self.label_at = label_at

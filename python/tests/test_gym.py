@@ -61,7 +61,20 @@ def test_without_learning_the_model_is_untouched():
     assert len(model) == 0
 
 
+def test_without_learning_the_wrapper_passes_check_env():
+    from gymnasium.utils.env_checker import check_env
+
+    w, _ = make(learn=False)
+    check_env(w, skip_render_check=True)
+
+
 def test_wrapper_rejects_bad_setups():
+    for field, value in [("max_data", 0), ("max_data", 2.5), ("refit_every", -1),
+                         ("refit_every", "3"), ("max_data", True)]:
+        model = bc.MVGP(2, 1, [1.0, 1.0], np.eye(2), np.eye(2), 0.1)
+        filt = bc.SafetyFilter(model, [bc.Barrier.half_space([1.0, 0.0], 0.0, alpha=1.0)])
+        with pytest.raises(bc.InputError, match=field):
+            SafetyFilterWrapper(gym.make("Pendulum-v1"), filt, lambda o: o[:2], **{field: value})
     w, _ = make()
     with pytest.raises(bc.InputError, match="reset"):
         w.step(np.zeros(1))

@@ -59,8 +59,8 @@ pub struct FitArgs {
     /// L-BFGS iterations per start.
     #[arg(long, default_value_t = 100)]
     pub max_iters: u64,
-    /// Floor of the noise scale σ (keeps the Gram matrix well conditioned on
-    /// nearly noise-free data).
+    /// Floor of the noise standard deviation of state component 0, σ·√A₀₀
+    /// (keeps the Gram matrix well conditioned on nearly noise-free data).
     #[arg(long, default_value_t = 0.0, allow_hyphen_values = true)]
     pub sigma_min: f64,
     /// What the kernel sees, comma-separated: state indices i, or cos:i and

@@ -42,7 +42,7 @@ pub struct DemoArgs {
     /// Random restarts of the hyperparameter optimiser.
     #[arg(long, default_value_t = Settings::default().restarts)]
     pub restarts: usize,
-    /// Floor of the learned noise scale σ.
+    /// Floor of the learned noise standard deviation of state component 0, σ·√A₀₀.
     #[arg(long, default_value_t = Settings::default().sigma_min)]
     pub sigma_min: f64,
     /// Kernel sees θ through (cos θ, sin θ), continuous across ±π.

@@ -24,6 +24,18 @@ pyo3::create_exception!(
     "A numerical failure: a Gram matrix that cannot be factorised, an optimiser that fails."
 );
 
+/// Borrows `obj`, or raises `RuntimeError` when another thread holds it
+/// mutably (a `fit` in progress releases the GIL); pyo3 raises the same
+/// for a method called meanwhile.
+pub fn borrow<'py, T: pyo3::PyClass>(obj: &Bound<'py, T>, what: &str) -> PyResult<PyRef<'py, T>> {
+    obj.try_borrow().map_err(|_| {
+        pyo3::exceptions::PyRuntimeError::new_err(format!(
+            "{what} is in use by another thread (a fit in progress): \
+             call this after that call returns"
+        ))
+    })
+}
+
 /// An [`InputError`] with `msg`.
 pub fn input_err(msg: impl Into<String>) -> PyErr {
     InputError::new_err(msg.into())

@@ -3,7 +3,7 @@
 
 use crate::convert::{
     core_err, extend_rows, input_err, json_of, matrix, matrix_to_numpy, rows, scenario_err, square,
-    to_numpy, vector, with_matrix, NdArray,
+    to_numpy, vector, with_matrix, NdArray, NumericalError,
 };
 use bayes_cbf::gp::{
     fit, fit_cogp, Cogp, CogpFitSettings, CogpHyper, FitReport, FitSettings, Mvgp, Posterior,
@@ -191,8 +191,15 @@ macro_rules! gp_methods {
             }
 
             /// `log p(Ẋ | X, U)` under the current hyperparameters.
-            fn log_marginal_likelihood(&self) -> f64 {
-                self.model.log_marginal_likelihood()
+            fn log_marginal_likelihood(&self) -> PyResult<f64> {
+                let v = self.model.log_marginal_likelihood();
+                if v.is_nan() {
+                    return Err(NumericalError::new_err(
+                        "the log marginal likelihood is not a number: the data or the \
+                         hyperparameters overflow the model's arithmetic",
+                    ));
+                }
+                Ok(v)
             }
 
             /// State dimension `n`.
@@ -249,7 +256,8 @@ impl PyMvgp {
 gp_methods! {
     /// Learns the hyperparameters by maximising the log marginal likelihood
     /// (L-BFGS) on the data `X (k, n)`, `U (k, m)`, `Xdot (k, n)`, which
-    /// replace the model's data. Returns `self`.
+    /// replace the model's data. Returns `self`. `sigma_min` floors the noise
+    /// standard deviation of state component 0, `noise_sigma·√A[0, 0]`.
     PyMvgp: fit = fit(FitSettings { rank_a, rank_b, sigma_min: f64 = 0.0 })
 }
 

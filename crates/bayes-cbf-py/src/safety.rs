@@ -3,7 +3,7 @@
 //! library's [`SafetyController`].
 
 use crate::convert::{
-    copy_into, core_err, input_err, scenario_err, square, to_numpy, vector, NdArray,
+    borrow, copy_into, core_err, input_err, scenario_err, square, to_numpy, vector, NdArray,
 };
 use crate::models::PyMvgp;
 use bayes_cbf::barrier::{ArrayFn, CallbackBarrier, DynBarrier, DynLyapunov, McSettings, ValueFn};
@@ -412,7 +412,7 @@ pub fn moments(
     step: f64,
     seed: u64,
 ) -> PyResult<(f64, f64)> {
-    let model = model.borrow();
+    let model = borrow(model, "the model")?;
     let b = barrier.get();
     let x = vector(x, "x", Some(model.model.state_dim()))?;
     let u = vector(u, "u", Some(model.model.control_dim()))?;
@@ -548,13 +548,13 @@ impl PySafetyFilter {
         predictive: bool,
     ) -> PyResult<Self> {
         let (n, m) = {
-            let mm = model.borrow();
+            let mm = borrow(&model, "the model")?;
             (mm.model.state_dim(), mm.model.control_dim())
         };
         let mut bs: Vec<Arc<dyn DynBarrier>> = Vec::new();
         let mut labels = Vec::new();
         {
-            let mm = model.borrow();
+            let mm = borrow(&model, "the model")?;
             for (i, b) in barriers.iter().enumerate() {
                 let b = b.get();
                 check_barrier(
@@ -712,7 +712,7 @@ impl PySafetyFilter {
         if let Some(v) = xdot_d {
             copy_into(v, "xdot_d", &mut self.xd_dot)?;
         }
-        let model = self.model.bind(py).borrow();
+        let model = borrow(self.model.bind(py), "the filter's model")?;
         let m = &model.model;
         let Self {
             ctrl,

@@ -60,7 +60,8 @@ pub struct Settings {
     pub grid: usize,
     /// Random restarts of the hyperparameter optimiser.
     pub restarts: usize,
-    /// Floor of the learned noise scale `σ`.
+    /// Floor of the learned noise standard deviation of state component 0,
+    /// `σ·√A₀₀` ([`bayes_cbf::gp::FitSettings::sigma_min`]).
     pub sigma_min: f64,
     /// Kernel on `(cos θ, sin θ, ω)`, continuous across `±π`.
     pub periodic: bool,

@@ -106,9 +106,12 @@ pub struct FitSettings {
     /// otherwise stop wherever the wide bounds of a cold start are.
     /// `f64::INFINITY` keeps the cold-start bounds.
     pub warm_range: f64,
-    /// Floor of the noise scale: `σ ≥ σ_min` (a bound of the optimiser,
-    /// besides the floor `10⁻⁶ ×` the residuals' root mean square that
-    /// every fit has; module docs). A floor keeps the Gram matrix well
+    /// Floor of the noise: the noise standard deviation of state component
+    /// 0, `σ √A₀₀ ≥ σ_min`. The fit's parameterisation fixes `A₀₀ = 1`,
+    /// where this is a bound of the optimiser (besides the floor `10⁻⁶ ×`
+    /// the residuals' root mean square that every fit has; module docs).
+    /// The fitted model scales `A` to trace `n`, so its `σ` itself is below
+    /// `σ_min` when `A₀₀ > 1`. A floor keeps the Gram matrix well
     /// conditioned on near-duplicate, nearly noise-free data.
     pub sigma_min: f64,
 }
