@@ -62,6 +62,15 @@ impl InputError {
         }
     }
 
+    /// `Invalid` with a value shown as `value` (a list, a pair of settings).
+    pub fn invalid_shown(field: &str, value: impl std::fmt::Display, reason: &str) -> Self {
+        Self::Invalid {
+            field: field.to_string(),
+            value: value.to_string(),
+            reason: reason.to_string(),
+        }
+    }
+
     /// `Shape` error.
     pub fn shape(field: &str, expected: impl ToString, got: impl ToString) -> Self {
         Self::Shape {

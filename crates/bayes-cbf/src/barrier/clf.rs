@@ -85,7 +85,7 @@ pub struct AckermannClf {
 impl AckermannClf {
     /// Validated constructor.
     pub fn new(w1: f64, w2: f64, gamma: f64) -> Result<Self, InputError> {
-        for (name, v) in [("w1", w1), ("w2", w2), ("gamma_v", gamma)] {
+        for (name, v) in [("w1", w1), ("w2", w2), ("gamma", gamma)] {
             if !(v.is_finite() && v >= 0.0) {
                 return Err(InputError::invalid(name, v, "must be finite and ≥ 0"));
             }

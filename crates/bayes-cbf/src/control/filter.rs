@@ -154,9 +154,14 @@ impl SafetySettings {
             });
         }
         if self.u_min.is_some() != self.u_max.is_some() {
-            return Err(InputError::invalid(
+            let given = if self.u_min.is_some() {
+                "u_min"
+            } else {
+                "u_max"
+            };
+            return Err(InputError::invalid_shown(
                 "u_min/u_max",
-                f64::NAN,
+                format!("only {given}"),
                 "give both bounds or neither",
             ));
         }
@@ -379,9 +384,10 @@ impl SafetyFilter {
             );
         }
         if clc.is_some() != self.shape.clf {
-            return Err(InputError::invalid(
+            let given = if clc.is_some() { "given" } else { "missing" };
+            return Err(InputError::invalid_shown(
                 "clf",
-                f64::NAN,
+                format!("moments {given}"),
                 "CLF moments must be given iff the filter has a CLF",
             )
             .into());

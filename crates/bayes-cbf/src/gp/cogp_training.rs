@@ -22,7 +22,7 @@ use super::optimise::{
 use super::psd::{PsdParam, SCALE_RANGE};
 use super::theta::{input_spreads, kernel_bounds, kernel_from_free, pack_free, start_from_inputs};
 use super::training::{FitReport, Rank};
-use crate::error::{Error, GpError, InputError};
+use crate::error::{Error, InputError};
 use nalgebra::DMatrix;
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
@@ -280,7 +280,7 @@ pub fn fit_cogp<K: Kernel>(
     settings.validate()?;
     let k = model.len();
     if k == 0 {
-        return Err(GpError::NoData.into());
+        return Err(InputError::shape("data", "at least one observation to fit", 0).into());
     }
     let (n, p) = (model.state_dim(), model.control_dim() + 1);
     let np = n * p;
@@ -300,6 +300,10 @@ pub fn fit_cogp<K: Kernel>(
         us: model.augmented_controls(),
         resid: model.residuals(),
     };
+    settings
+        .rank_sigma
+        .check("rank_sigma", np, "n (1 + control_dim)")?;
+    settings.rank_s.check("rank_s", n, "state_dim")?;
     let layout = Layout::new(&kernel0, np, n, settings.rank_sigma, settings.rank_s);
     let full_rank = settings.rank_sigma != Rank::Diagonal || settings.rank_s != Rank::Diagonal;
     let use_prefit = settings.prefit_diagonal && !settings.warm_start && full_rank;

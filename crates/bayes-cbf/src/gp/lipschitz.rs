@@ -441,10 +441,10 @@ impl Mvgp<Rbf> {
             proj.push(gi);
         }
         if jmu.iter().flatten().any(|v| !v.is_finite()) {
-            return Err(InputError::invalid(
+            return Err(InputError::invalid_shown(
                 "posterior mean Jacobian",
-                f64::NAN,
-                "not finite on the cuboid",
+                "non-finite entries",
+                "must be finite on the cuboid",
             )
             .into());
         }

@@ -208,9 +208,12 @@ impl<K: Kernel> Mvgp<K> {
         known.sort_unstable();
         known.dedup();
         if known.len() != rows.len() {
-            return Err(
-                InputError::invalid("known_rows", f64::NAN, "rows must be distinct").into(),
-            );
+            return Err(InputError::invalid_shown(
+                "known_rows",
+                format!("{rows:?}"),
+                "rows must be distinct",
+            )
+            .into());
         }
         if let Some(&r) = known.iter().find(|&&r| r >= self.n) {
             return Err(InputError::invalid(

@@ -76,6 +76,21 @@ pub enum Rank {
     Low(usize),
 }
 
+impl Rank {
+    /// Checks that a low rank is at most `dim`, the size of the matrix it
+    /// parameterises (named `field`, of dimension `what`).
+    pub fn check(self, field: &str, dim: usize, what: &str) -> Result<(), InputError> {
+        match self {
+            Rank::Low(r) if r == 0 || r > dim => Err(InputError::invalid(
+                field,
+                r as f64,
+                &format!("a low rank must be between 1 and {what} = {dim}"),
+            )),
+            _ => Ok(()),
+        }
+    }
+}
+
 /// Settings of [`fit`], validated by [`FitSettings::validate`].
 #[derive(Debug, Clone, PartialEq)]
 #[cfg_attr(feature = "serde", derive(serde::Serialize, serde::Deserialize))]
@@ -320,13 +335,17 @@ impl<'a, K: Kernel> MvgpLikelihood<'a, K> {
         settings.validate()?;
         let k = model.len();
         if k == 0 {
-            return Err(GpError::NoData.into());
+            return Err(InputError::shape("data", "at least one observation to fit", 0).into());
         }
         let n_state = model.state_dim();
         let p = model.control_dim() + 1;
         let d = model.input_map().output_dim(n_state);
         let rows = model.learned_rows();
         let n = rows.len();
+        settings.rank_b.check("rank_b", p, "1 + control_dim")?;
+        settings
+            .rank_a
+            .check("rank_a", n, "the number of learned rows")?;
         let a_learned = DMatrix::from_fn(n, n, |i, j| model.hyper().A[(rows[i], rows[j])]);
         let kernel = model.hyper().kernel.clone();
         let scale_idx = kernel.scale_index();

@@ -22,10 +22,10 @@ pub fn finite_difference_xdot(
         });
     }
     if k < 2 {
-        return Err(InputError::invalid(
+        return Err(InputError::invalid_shown(
             "t",
-            k as f64,
-            "time series needs at least 2 samples",
+            format!("{k} sample(s)"),
+            "a time series needs at least 2 samples",
         ));
     }
     for i in 1..k {
