@@ -172,13 +172,14 @@ pub fn run(a: &RunArgs) -> Result<()> {
     Ok(())
 }
 
-/// Writes a run's `summary.json` and `trajectory.csv` into `dir`.
+/// Writes a run's `trajectory.csv` and `summary.json` into `dir`, the
+/// summary last.
 fn write_run(output: &RunOutput, dir: &Path) -> Result<()> {
-    write_json(&dir.join("summary.json"), &output.summary)?;
     write_atomic(
         &dir.join("trajectory.csv"),
         trajectory_csv(output).as_bytes(),
     )?;
+    write_json(&dir.join("summary.json"), &output.summary)?;
     Ok(())
 }
 
@@ -199,8 +200,13 @@ fn run_and_plot(
             }
         }
     })?;
-    write_run(&output, out)?;
+    // the summary last: a directory with a summary.json holds a complete run
+    write_atomic(
+        &out.join("trajectory.csv"),
+        trajectory_csv(&output).as_bytes(),
+    )?;
     let figures = write_figures(&output, out)?;
+    write_json(&out.join("summary.json"), &output.summary)?;
     Ok((output, figures))
 }
 
@@ -224,10 +230,10 @@ fn run_experiment(name: &str, out: &Path, args: &ExperimentArgs, sizes: &Sizes) 
     write_experiment(name, &result, out)
 }
 
-/// Writes an experiment's summary, tables and figures into `out`.
+/// Writes an experiment's tables, figures and summary into `out`, the
+/// summary last.
 pub fn write_experiment(name: &str, result: &ExperimentResult, out: &Path) -> Result<()> {
     std::fs::create_dir_all(out)?;
-    write_json(&out.join("summary.json"), &result.summary())?;
     for t in result.tables() {
         write_atomic(&out.join(&t.file), t.csv.as_bytes())?;
     }
@@ -237,6 +243,7 @@ pub fn write_experiment(name: &str, result: &ExperimentResult, out: &Path) -> Re
         }
     }
     let figures = experiment_figures(result, out)?;
+    write_json(&out.join("summary.json"), &result.summary())?;
     match result {
         ExperimentResult::Calibration(r) => eprint!("{}", r.console_table),
         ExperimentResult::Soak(r) if r.non_finite > 0 => anyhow::bail!(

@@ -169,6 +169,10 @@ fn fix_field(e: anyhow::Error, prefix: &str) -> anyhow::Error {
             "invalid probability",
             &format!("invalid {prefix}probability"),
         )
+        .replace(
+            "invalid controller.probability",
+            &format!("invalid {prefix}probability"),
+        )
         .replace("invalid zeta", &format!("invalid {prefix}zeta"))
         .replace("u_min[", &format!("{prefix}u-min["))
         .replace("invalid fallback", &format!("invalid {prefix}fallback"));

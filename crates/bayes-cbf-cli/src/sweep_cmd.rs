@@ -112,6 +112,9 @@ pub fn run_merge(a: &MergeArgs) -> Result<()> {
         .out
         .clone()
         .unwrap_or_else(|| a.dirs[0].parent().unwrap_or(Path::new(".")).join("merged"));
+    if let Some(d) = a.dirs.iter().find(|d| !d.is_dir()) {
+        bail!("merge: '{}' is not a directory", d.display());
+    }
     let calib = a
         .dirs
         .iter()
@@ -158,8 +161,14 @@ pub fn run_merge(a: &MergeArgs) -> Result<()> {
         Ok(())
     } else {
         bail!(
-            "merge: every directory must hold a calibration shard (part.json) or every one a sweep shard (shard.json and sweep.csv); got {calib} and {sweeps} of {}",
-            a.dirs.len()
+            "merge: every directory must hold a calibration shard (part.json) or every one a sweep shard (shard.json and sweep.csv); got {calib} and {sweeps} of {} (neither: {})",
+            a.dirs.len(),
+            a.dirs
+                .iter()
+                .filter(|d| !d.join("part.json").is_file() && !d.join("shard.json").is_file())
+                .map(|d| format!("'{}'", d.display()))
+                .collect::<Vec<_>>()
+                .join(", ")
         )
     }
 }

@@ -139,7 +139,7 @@ impl ModelFile {
         if text.trim().is_empty() {
             bail!("model file '{name}' is empty");
         }
-        let value: Value = serde_json::from_str(text).map_err(|e| {
+        let value: Value = crate::parse::json_value(text).map_err(|e| {
             if e.is_eof() {
                 err!("model file '{name}' is truncated or incomplete JSON: {e}")
             } else {

@@ -37,14 +37,33 @@ impl<'de> Deserialize<'de> for Params {
             }
             fn visit_map<A: MapAccess<'de>>(self, mut map: A) -> Result<Params, A::Error> {
                 let mut out = BTreeMap::new();
+                /// A number (infinite and NaN ones too: the expression's
+                /// names refuse them, naming the entry), or anything else.
+                #[derive(Deserialize)]
+                #[serde(untagged)]
+                enum Entry {
+                    Number(f64),
+                    Other(serde_json::Value),
+                }
                 while let Some(key) = map.next_key::<String>()? {
-                    let value: serde_json::Value = map.next_value()?;
-                    let v = value.as_f64().ok_or_else(|| {
-                        serde::de::Error::custom(format!(
-                            "params.{key} = {value}: expected a number"
-                        ))
-                    })?;
-                    out.insert(key, v);
+                    match map.next_value::<Entry>()? {
+                        Entry::Number(v) => {
+                            out.insert(key, v);
+                        }
+                        // a TOML inf or nan reaches here as null when the
+                        // table went through JSON (prior means)
+                        Entry::Other(serde_json::Value::Null) => {
+                            return Err(serde::de::Error::custom(format!(
+                                "params.{key}: expected a finite number (got null, \
+                                 an infinite or a NaN value)"
+                            )))
+                        }
+                        Entry::Other(value) => {
+                            return Err(serde::de::Error::custom(format!(
+                                "params.{key} = {value}: expected a number"
+                            )))
+                        }
+                    }
                 }
                 Ok(Params(out))
             }

@@ -102,3 +102,82 @@ mod tests {
         assert_eq!(rank_name(Rank::Low(3)), "3");
     }
 }
+
+/// JSON text as a value, refusing an object that gives a key twice
+/// (`serde_json` would keep the last one silently).
+pub fn json_value(text: &str) -> serde_json::Result<serde_json::Value> {
+    use serde::de::{Deserialize, Deserializer, Error, MapAccess, SeqAccess, Visitor};
+    use serde_json::{Map, Value};
+
+    struct Strict(Value);
+    struct V;
+    impl<'de> Visitor<'de> for V {
+        type Value = Strict;
+        fn expecting(&self, f: &mut std::fmt::Formatter) -> std::fmt::Result {
+            f.write_str("a JSON value")
+        }
+        fn visit_bool<E: Error>(self, v: bool) -> Result<Strict, E> {
+            Ok(Strict(Value::Bool(v)))
+        }
+        fn visit_i64<E: Error>(self, v: i64) -> Result<Strict, E> {
+            Ok(Strict(Value::from(v)))
+        }
+        fn visit_u64<E: Error>(self, v: u64) -> Result<Strict, E> {
+            Ok(Strict(Value::from(v)))
+        }
+        fn visit_f64<E: Error>(self, v: f64) -> Result<Strict, E> {
+            Ok(Strict(Value::from(v)))
+        }
+        fn visit_str<E: Error>(self, v: &str) -> Result<Strict, E> {
+            Ok(Strict(Value::String(v.to_string())))
+        }
+        fn visit_unit<E: Error>(self) -> Result<Strict, E> {
+            Ok(Strict(Value::Null))
+        }
+        fn visit_seq<A: SeqAccess<'de>>(self, mut seq: A) -> Result<Strict, A::Error> {
+            let mut out = Vec::new();
+            while let Some(Strict(v)) = seq.next_element()? {
+                out.push(v);
+            }
+            Ok(Strict(Value::Array(out)))
+        }
+        fn visit_map<A: MapAccess<'de>>(self, mut map: A) -> Result<Strict, A::Error> {
+            let mut out = Map::new();
+            while let Some(key) = map.next_key::<String>()? {
+                if out.contains_key(&key) {
+                    return Err(A::Error::custom(format!("key \"{key}\" is given twice")));
+                }
+                let Strict(v) = map.next_value()?;
+                out.insert(key, v);
+            }
+            Ok(Strict(Value::Object(out)))
+        }
+    }
+    impl<'de> Deserialize<'de> for Strict {
+        fn deserialize<D: Deserializer<'de>>(d: D) -> Result<Self, D::Error> {
+            d.deserialize_any(V)
+        }
+    }
+    serde_json::from_str::<Strict>(text).map(|s| s.0)
+}
+
+#[cfg(test)]
+mod json_tests {
+    use super::json_value;
+
+    #[test]
+    fn json_values_refuse_a_key_given_twice_at_any_depth() {
+        let same = r#"{"a": [1, 2.5, {"b": null, "c": "x"}], "d": true}"#;
+        assert_eq!(
+            json_value(same).unwrap(),
+            serde_json::from_str::<serde_json::Value>(same).unwrap()
+        );
+        for text in [
+            r#"{"noise_sigma": 0.1, "noise_sigma": 0.2}"#,
+            r#"{"a": [{"b": 1, "b": 1}]}"#,
+        ] {
+            let e = json_value(text).unwrap_err().to_string();
+            assert!(e.contains("given twice"), "{text}: {e}");
+        }
+    }
+}

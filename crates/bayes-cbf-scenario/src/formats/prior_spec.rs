@@ -377,7 +377,7 @@ impl PriorSpec {
 
     fn from_json_text(text: &str) -> Result<Self> {
         let v: Value =
-            serde_json::from_str(text).map_err(|e| crate::err!("not valid JSON: {e}"))?;
+            crate::parse::json_value(text).map_err(|e| crate::err!("not valid JSON: {e}"))?;
         Self::try_from(v).map_err(crate::error::Error::Input)
     }
 }

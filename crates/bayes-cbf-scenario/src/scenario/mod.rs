@@ -611,7 +611,13 @@ fn toml_error(source: &str, text: &str, e: &toml::de::Error) -> crate::error::Er
         Some(span) => {
             let line_no = text[..span.start.min(text.len())].matches('\n').count() + 1;
             let line = text.lines().nth(line_no - 1).unwrap_or("").trim();
-            err!("scenario '{source}' line {line_no} (`{line}`): {msg}")
+            // a long line (a generated expression) is quoted by its start
+            let quoted: String = if line.chars().count() > 120 {
+                line.chars().take(117).chain("...".chars()).collect()
+            } else {
+                line.to_string()
+            };
+            err!("scenario '{source}' line {line_no} (`{quoted}`): {msg}")
         }
         None => err!("scenario '{source}': {msg}"),
     }
