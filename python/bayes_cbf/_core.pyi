@@ -1,7 +1,7 @@
 """Type stubs of the compiled module bayes_cbf._core."""
 
 from os import PathLike
-from typing import Any, Callable, Final, Literal, Mapping, Optional, Protocol, Sequence, Union
+from typing import Any, Callable, Final, Literal, Mapping, Optional, Sequence, Union
 
 import numpy as np
 import numpy.typing as npt
@@ -21,24 +21,19 @@ class InputError(ValueError):
 class NumericalError(RuntimeError):
     """A numerical failure (factorisation, optimiser)."""
 
-class _GaussianProcess(Protocol):
-    """What MVGP and CoGP share: a GP model of F(x) = [f(x) g(x)] with its data."""
+class MVGP:
+    """Matrix-variate GP of F(x) = [f(x) g(x)]: vec F ~ GP(vec M0, B k0 ⊗ A), noise σ² A."""
 
-    def fit(self, X: ArrayLike, U: ArrayLike, Xdot: ArrayLike) -> Self:
-        """Learns the hyperparameters on (X, U, Xdot), which replace the data; returns self."""
     @property
-    def fit_report(self) -> Optional[dict[str, float]]: ...
-    def predict(self, Xq: ArrayLike) -> tuple[F64, F64]:
-        """Posterior means (q, n, 1+m) and covariances at the rows of Xq."""
+    def fit_report(self) -> Optional[dict[str, float]]:
+        """Report of the last fit (initial_log_likelihood, log_likelihood,
+        evaluations, starts), or None."""
     def log_marginal_likelihood(self) -> float: ...
     @property
     def state_dim(self) -> int: ...
     @property
     def control_dim(self) -> int: ...
     def __len__(self) -> int: ...
-
-class MVGP(_GaussianProcess):
-    """Matrix-variate GP of F(x) = [f(x) g(x)]: vec F ~ GP(vec M0, B k0 ⊗ A), noise σ² A."""
 
     def __init__(
         self, state_dim: int, control_dim: int, lengthscales: ArrayLike,
@@ -91,8 +86,19 @@ class MVGP(_GaussianProcess):
     Xdot: Final[F64]
     """The training derivatives (k, n)."""
 
-class CoGP(_GaussianProcess):
+class CoGP:
     """Coregionalisation GP baseline: vec F ~ GP(vec M0, k0 Σ), noise S."""
+
+    @property
+    def fit_report(self) -> Optional[dict[str, float]]:
+        """Report of the last fit (initial_log_likelihood, log_likelihood,
+        evaluations, starts), or None."""
+    def log_marginal_likelihood(self) -> float: ...
+    @property
+    def state_dim(self) -> int: ...
+    @property
+    def control_dim(self) -> int: ...
+    def __len__(self) -> int: ...
 
     def __init__(
         self, state_dim: int, control_dim: int, lengthscales: ArrayLike,
@@ -243,3 +249,17 @@ def run_scenario(
     name: str, seed: Optional[int] = None, overrides: Optional[dict[str, Any]] = None
 ) -> dict[str, Any]: ...
 def list_scenarios() -> list[str]: ...
+
+# Private: the engine of bayes_cbf.sweep (JSON and CSV text in and out).
+def sweep_meta(
+    scenario: str, start: int, end: int, sets: list[str],
+    index: int = 0, count: int = 1, goal_tolerance: float = 1.0,
+) -> str: ...
+def check_scenario(name: str, sets: list[str]) -> None: ...
+def sweep_shard(meta: str) -> str: ...
+def sweep_merge(parts: list[tuple[str, str]]) -> tuple[str, str]: ...
+def calibration_shard(
+    seed: int = 0, quick: bool = False, episodes: Optional[int] = None,
+    index: int = 0, count: int = 1, fallback: Optional[str] = None,
+) -> str: ...
+def calibration_merge(parts: list[str]) -> tuple[str, str]: ...

@@ -68,6 +68,13 @@ CONSTRUCTOR_CASES = [
     ("callback rd2 without hess", lambda: bc.Barrier.callback(
         lambda x: 1.0, lambda x: x, state_dim=2, relative_degree=2, k_alpha=[1.0, 1.0]), "hess"),
     ("clf unknown type", lambda: bc.CLF.from_json('{"type": "quadratic"}'), "clf"),
+    ("clf ackermann NaN", lambda: bc.CLF.ackermann(float("nan"), 1.0, 1.0), "w1"),
+    ("clf ackermann gamma", lambda: bc.CLF.ackermann(1.0, 1.0, -1.0), "gamma"),
+    ("disc centre length", lambda: bc.Barrier.disc(3, [0, 1], [0.0], 1.0), "center"),
+    ("disc indices length", lambda: bc.Barrier.disc(3, [0], [0.0, 0.0], 1.0), "indices"),
+    ("known rows repeated", lambda: mvgp(known_rows=[0, 0]), "[0, 0]"),
+    ("model json key twice", lambda: bc.MVGP.from_json(
+        '{"state_dim": 1, "state_dim": 1}'), "given twice"),
 ]
 
 
@@ -78,6 +85,9 @@ def model_cases(model, barrier):
         ("fit Xdot NaN", lambda: mvgp().fit(X, U, np.where(XD > 0, np.nan, XD)), "Xdot"),
         ("fit rank", lambda: mvgp().fit(X, U, XD, rank_a="half"), "rank_a"),
         ("fit rank negative", lambda: mvgp().fit(X, U, XD, rank_b=-1), "rank_b"),
+        ("fit rank above n", lambda: mvgp().fit(X, U, XD, rank_a=5), "rank_a"),
+        ("fit no data", lambda: mvgp().fit(np.zeros((0, 2)), np.zeros((0, 1)), np.zeros((0, 2))), "data"),
+        ("observation overflows", lambda: mvgp().add_observation([0.1, 0.2], [0.5], [1e300, 0.0]), "xdot"),
         ("fit X object dtype", lambda: mvgp().fit(np.array([[object()] * 2] * 10), U, XD), "X"),
         ("predict wrong width", lambda: model.predict(np.zeros((3, 3))), "Xq"),
         ("predict 1-D", lambda: model.predict(np.zeros(2)), "Xq"),
@@ -235,3 +245,20 @@ def test_long_expressions_evaluate():
     the evaluation does not recurse (it used to overflow the stack)."""
     b = bc.Barrier.expression("+".join(["x"] * 200_000), ["x"], alpha=1.0)
     assert b.value([1.5]) == pytest.approx(300_000.0)
+
+
+def test_results_read_as_python():
+    """Reprs and values are Python's: no Rust `Some(...)` or struct dumps;
+    a relative-degree-1 built-in barrier given no gain has alpha = 1, as an
+    expression barrier; a scenario's status column is a numpy array."""
+    X, U, Xdot = pendulum_data(30, seed=3)
+    m = mvgp().fit(X, U, Xdot, max_iters=5)
+    b = bc.Barrier.half_space([0.0, 1.0], -2.0)
+    assert b.gains == [1.0] == bc.Barrier.expression("y + 2", ["x", "y"]).gains
+    r = bc.SafetyFilter(m, [b], u_min=[-0.1], u_max=[0.1]).filter([0.0, -2.5], [0.0])
+    assert "Some(" not in repr(r) and "p_star=" in repr(r), repr(r)
+    clf = bc.CLF.ackermann(0.9, 1.5, 10.0)
+    assert repr(clf).startswith('CLF({"type":"ackermann"'), repr(clf)
+    out = bc.run_scenario("double-integrator", overrides={"steps": 5})
+    status = out["trajectory"]["status"]
+    assert isinstance(status, np.ndarray) and status.shape == (5,), status

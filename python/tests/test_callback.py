@@ -81,3 +81,35 @@ def test_sector_edges_are_linear_in_the_angle_from_the_centre():
             assert abs(lo.value(x) - (2 * np.pi - d - s)) < 1e-12
             np.testing.assert_array_equal(up.gradient(x), [1.0, 0.0])
             np.testing.assert_array_equal(lo.gradient(x), [-1.0, 0.0])
+
+
+def test_callback_exceptions_are_the_cause_and_interrupts_pass_through():
+    """A callback's own exception is the `__cause__` of the InputError; a
+    KeyboardInterrupt or SystemExit raised in a callback reaches the caller
+    as itself (Ctrl-C stops a filter step)."""
+
+    class Mine(RuntimeError):
+        pass
+
+    def failing(exc):
+        def h(x):
+            raise exc
+
+        return bc.Barrier.callback(h, lambda x: np.zeros(2))
+
+    with pytest.raises(bc.InputError) as e:
+        failing(Mine("broken")).value([0.0, 0.0])
+    assert isinstance(e.value.__cause__, Mine), repr(e.value.__cause__)
+    assert "broken" in str(e.value)
+    for exc in (KeyboardInterrupt, SystemExit):
+        with pytest.raises(exc):
+            failing(exc()).value([0.0, 0.0])
+    # through a filter step too
+    model = bc.MVGP(2, 1, [1.0, 1.0], np.eye(2), np.eye(2), 0.1)
+    f = bc.SafetyFilter(model, [failing(KeyboardInterrupt())])
+    with pytest.raises(KeyboardInterrupt):
+        f.filter([0.1, 0.2], [0.0])
+    f = bc.SafetyFilter(model, [failing(Mine("in the loop"))])
+    with pytest.raises(bc.InputError) as e:
+        f.filter([0.1, 0.2], [0.0])
+    assert isinstance(e.value.__cause__, Mine)

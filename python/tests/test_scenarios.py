@@ -38,7 +38,7 @@ def test_run_scenario_equals_the_cli(cli, tmp_path):
         if name == "control_us":
             continue
         if name == "status":
-            assert col == [r[name] for r in rows]
+            assert col.tolist() == [r[name] for r in rows]
             continue
         want = np.array([float(r[name]) if r[name] else np.nan for r in rows])
         np.testing.assert_array_equal(col, want, err_msg=name)

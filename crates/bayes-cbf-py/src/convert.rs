@@ -36,9 +36,43 @@ pub fn borrow<'py, T: pyo3::PyClass>(obj: &Bound<'py, T>, what: &str) -> PyResul
     })
 }
 
-/// An [`InputError`] with `msg`.
+/// An [`InputError`] with `msg` (caused by the callback exception it
+/// quotes, if any).
 pub fn input_err(msg: impl Into<String>) -> PyErr {
-    InputError::new_err(msg.into())
+    let msg = msg.into();
+    with_callback_cause(InputError::new_err(msg.clone()), &msg)
+}
+
+thread_local! {
+    /// The last exception a Python callback raised on this thread, with
+    /// the text the library's error quotes.
+    static CALLBACK_ERROR: std::cell::RefCell<Option<(String, PyErr)>> =
+        const { std::cell::RefCell::new(None) };
+}
+
+/// Keeps the exception `err` (quoted as `text`) that a callback raised.
+pub fn keep_callback_error(text: String, err: PyErr) {
+    CALLBACK_ERROR.with(|slot| *slot.borrow_mut() = Some((text, err)));
+}
+
+/// `new`, the exception of a library error with message `msg`, linked to
+/// the callback exception that `msg` quotes: that exception itself when it
+/// is not an `Exception` (`KeyboardInterrupt`, `SystemExit` pass through),
+/// else `new` with it as `__cause__`.
+fn with_callback_cause(new: PyErr, msg: &str) -> PyErr {
+    let Some((text, orig)) = CALLBACK_ERROR.with(|slot| slot.borrow_mut().take()) else {
+        return new;
+    };
+    if !msg.contains(&text) {
+        return new;
+    }
+    Python::attach(|py| {
+        if !orig.is_instance_of::<pyo3::exceptions::PyException>(py) {
+            return orig;
+        }
+        new.set_cause(py, Some(orig));
+        new
+    })
 }
 
 /// The Python exception of a scenario-layer error: bad input of any kind is
@@ -46,20 +80,23 @@ pub fn input_err(msg: impl Into<String>) -> PyErr {
 pub fn scenario_err(e: bayes_cbf_scenario::Error) -> PyErr {
     use bayes_cbf_scenario::Error as E;
     let msg = e.to_string();
-    match e.root() {
-        E::Io(_) => PyOSError::new_err(msg),
-        E::Core(bayes_cbf::Error::Gp(_)) => NumericalError::new_err(msg),
-        _ => InputError::new_err(msg),
-    }
+    let new = match e.root() {
+        E::Io(_) => PyOSError::new_err(msg.clone()),
+        E::Core(bayes_cbf::Error::Gp(_)) => NumericalError::new_err(msg.clone()),
+        _ => InputError::new_err(msg.clone()),
+    };
+    with_callback_cause(new, &msg)
 }
 
 /// The Python exception of a core-library error.
 pub fn core_err(e: impl Into<bayes_cbf::Error>) -> PyErr {
     let e: bayes_cbf::Error = e.into();
-    match e {
-        bayes_cbf::Error::Input(i) => InputError::new_err(i.to_string()),
-        other => NumericalError::new_err(other.to_string()),
-    }
+    let msg = e.to_string();
+    let new = match e {
+        bayes_cbf::Error::Input(_) => InputError::new_err(msg.clone()),
+        _ => NumericalError::new_err(msg.clone()),
+    };
+    with_callback_cause(new, &msg)
 }
 
 /// A float64 array of `obj` (numpy arrays of float64 as they are; lists and

@@ -137,11 +137,12 @@ macro_rules! gp_methods {
         $(#[doc = $doc:tt])*
         $class:ident: fit = $fit:ident($settings:ident {
             $rank_1:ident, $rank_2:ident $(, $extra:ident: $ty:ty = $default:tt)*
-        })
+        }), text_signature = $text:literal
     ) => {
         #[pymethods]
         impl $class {
             $(#[doc = $doc])*
+            #[pyo3(text_signature = $text)]
             #[pyo3(signature = (
                 X, U, Xdot, $rank_1=RankArg::full(), $rank_2=RankArg::full(), max_iters=100,
                 seed=0, restarts=0 $(, $extra=$default)*
@@ -258,7 +259,8 @@ gp_methods! {
     /// (L-BFGS) on the data `X (k, n)`, `U (k, m)`, `Xdot (k, n)`, which
     /// replace the model's data. Returns `self`. `sigma_min` floors the noise
     /// standard deviation of state component 0, `noise_sigma·√A[0, 0]`.
-    PyMvgp: fit = fit(FitSettings { rank_a, rank_b, sigma_min: f64 = 0.0 })
+    PyMvgp: fit = fit(FitSettings { rank_a, rank_b, sigma_min: f64 = 0.0 }),
+    text_signature = "($self, X, U, Xdot, rank_a='full', rank_b='full', max_iters=100, seed=0, restarts=0, sigma_min=0.0)"
 }
 
 #[pymethods]
@@ -502,7 +504,8 @@ pub struct PyCogp {
 gp_methods! {
     /// Learns `Σ`, `S` and the kernel on `X (k, n)`, `U (k, m)`,
     /// `Xdot (k, n)`, which replace the model's data. Returns `self`.
-    PyCogp: fit = fit_cogp(CogpFitSettings { rank_sigma, rank_s })
+    PyCogp: fit = fit_cogp(CogpFitSettings { rank_sigma, rank_s }),
+    text_signature = "($self, X, U, Xdot, rank_sigma='full', rank_s='full', max_iters=100, seed=0, restarts=0)"
 }
 
 #[pymethods]

@@ -41,11 +41,18 @@ pub struct PyBarrier {
     gains: Vec<f64>,
 }
 
-/// Calls `f(x)` in Python with `x` as a numpy array.
+/// Calls `f(x)` in Python with `x` as a numpy array. A raised exception
+/// becomes the message the library carries, and is kept
+/// ([`crate::convert::keep_callback_error`]) to be raised again, as the
+/// cause of the library's error or as itself, when the error reaches Python.
 fn call_py<'py>(py: Python<'py>, f: &Py<PyAny>, x: &[f64]) -> Result<Bound<'py, PyAny>, String> {
     f.bind(py)
         .call1((PyArray1::from_slice(py, x),))
-        .map_err(|e| e.to_string())
+        .map_err(|e| {
+            let text = e.to_string();
+            crate::convert::keep_callback_error(text.clone(), e);
+            text
+        })
 }
 
 #[pymethods]
@@ -212,6 +219,7 @@ impl PyBarrier {
 /// `Barrier`: `name(fields..., relative_degree=r, alpha=None,
 /// k_alpha=None)` describes the barrier-file variant `Variant` with those
 /// fields, and the library builds and validates it ([`BarrierSpec::build`]).
+/// A relative-degree-1 barrier given neither gain has `alpha = 1`.
 macro_rules! builtin_barriers {
     ($(
         $(#[doc = $doc:tt])*
@@ -231,6 +239,12 @@ macro_rules! builtin_barriers {
                 alpha: Option<f64>,
                 k_alpha: Option<Vec<f64>>,
             ) -> PyResult<Self> {
+                // as for expression and callback barriers: α = 1 when a
+                // relative-degree-1 barrier is given no gain
+                let alpha = match (relative_degree, alpha, &k_alpha) {
+                    (1, None, None) => Some(1.0),
+                    _ => alpha,
+                };
                 Self::of_spec(BarrierSpec::$variant {
                     $($field,)*
                     relative_degree,
@@ -258,15 +272,43 @@ builtin_barriers! {
     ) = PendulumSectorEdge, relative_degree = 2;
 
     /// The Ackermann obstacle barrier with heading term (paper, Sec. VII-B).
-    circle_heading(center: [f64; 2], radius: f64, q1: f64, q2: f64) = CircleHeading,
+    circle_heading(
+        #[pyo3(from_py_with = center_of)] center: [f64; 2],
+        radius: f64,
+        q1: f64,
+        q2: f64
+    ) = CircleHeading,
         relative_degree = 1;
 
     /// `h = ‖x[indices] − center‖² − radius²`: stay out of a disc.
-    disc(state_dim: usize, indices: [usize; 2], center: [f64; 2], radius: f64) = Disc,
+    disc(
+        state_dim: usize,
+        #[pyo3(from_py_with = indices_of)] indices: [usize; 2],
+        #[pyo3(from_py_with = center_of)] center: [f64; 2],
+        radius: f64
+    ) = Disc,
         relative_degree = 1;
 
     /// `h = normalᵀx − offset`: stay in a half-space.
     half_space(normal: Vec<f64>, offset: f64) = HalfSpace, relative_degree = 1;
+}
+
+/// The two values of `v` extracted for `field`, or an
+/// [`InputError`](crate::convert::InputError) naming it.
+fn pair<T>(v: PyResult<Vec<T>>, field: &str) -> PyResult<[T; 2]> {
+    let v = v.map_err(|e| input_err(format!("{field}: expected two numbers ({e})")))?;
+    let n = v.len();
+    <[T; 2]>::try_from(v).map_err(|_| input_err(format!("{field}: expected two values, got {n}")))
+}
+
+/// The `center` of a disc, two numbers.
+fn center_of(obj: &Bound<'_, PyAny>) -> PyResult<[f64; 2]> {
+    pair(obj.extract(), "center")
+}
+
+/// The `indices` of a disc, two state indices.
+fn indices_of(obj: &Bound<'_, PyAny>) -> PyResult<[usize; 2]> {
+    pair(obj.extract(), "indices")
 }
 
 /// The `edge` of a sector edge, `"upper"` or `"lower"` (as in barrier files).
@@ -385,14 +427,19 @@ impl PyClf {
     /// `V = w1/2 ρ² + w2 (1 − cos α)` for the Ackermann vehicle (paper,
     /// Sec. VII-B), decay rate `gamma`.
     #[staticmethod]
-    fn ackermann(w1: f64, w2: f64, gamma: f64) -> Self {
-        Self {
+    fn ackermann(w1: f64, w2: f64, gamma: f64) -> PyResult<Self> {
+        // checked now, not when a filter is built
+        bayes_cbf::barrier::AckermannClf::new(w1, w2, gamma).map_err(core_err)?;
+        Ok(Self {
             spec: ClfSpec::Ackermann { w1, w2, gamma },
             state: None,
-        }
+        })
     }
     fn __repr__(&self) -> String {
-        format!("CLF({:?})", self.spec)
+        format!(
+            "CLF({})",
+            serde_json::to_string(&self.spec).unwrap_or_else(|_| "?".into())
+        )
     }
 }
 
@@ -502,10 +549,10 @@ impl PyFilterResult {
     }
     fn __repr__(&self, py: Python<'_>) -> String {
         format!(
-            "FilterResult(status='{}', u={}, p_star={:?})",
+            "FilterResult(status='{}', u={}, p_star={})",
             self.status,
             self.u.bind(py),
-            self.p_star
+            self.p_star.map_or("None".to_string(), |p| p.to_string())
         )
     }
 }

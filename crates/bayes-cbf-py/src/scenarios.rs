@@ -9,7 +9,7 @@ use pyo3::types::{PyDict, PyList};
 /// Runs a scenario (a built-in name or a TOML file) and returns its
 /// summary as a dict (the keys of `summary.json`) plus `"trajectory"`: a
 /// dict of the columns of `trajectory.csv` (numpy arrays; NaN where the CSV
-/// is empty; `status` a list of strings). `overrides` maps dotted keys to
+/// is empty; `status` an array of strings). `overrides` maps dotted keys to
 /// values, as `--set key=value`.
 #[pyfunction]
 #[pyo3(signature = (name, seed=None, overrides=None))]
@@ -54,13 +54,17 @@ pub fn run_scenario<'py>(
         .call_method1("loads", (summary_json,))?
         .cast_into::<PyDict>()?;
     let traj = PyDict::new(py);
+    let numpy = py.import("numpy")?;
     for (name, col) in output.columns {
         match col {
             Column::Numbers(v) => {
                 let len = v.len();
                 traj.set_item(name, to_numpy(py, v, &[len])?)?
             }
-            Column::Words(v) => traj.set_item(name, PyList::new(py, v)?)?,
+            Column::Words(v) => {
+                let words = numpy.call_method1("array", (PyList::new(py, v)?,))?;
+                traj.set_item(name, words)?
+            }
         }
     }
     summary.set_item("trajectory", traj)?;
