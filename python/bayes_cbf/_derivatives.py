@@ -26,20 +26,39 @@ def check_derivatives(
     ``atol + rtol * |finite difference|``.
 
     Returns a dict with ``ok`` (bool), ``grad_error`` and ``hess_error`` (the
-    largest absolute error, ``None`` without ``hess``) and ``worst_point``.
+    largest absolute error, ``inf`` where a function returned a non-finite
+    value, ``None`` without ``hess``) and ``worst_point``.
     Use it before :meth:`Barrier.callback`: wrong derivatives give wrong
     moments and an unsafe filter.
     """
+    if not (np.isfinite(step) and step > 0):
+        raise InputError(f"step: {step!r} must be finite and > 0")
+    for name, tol in (("rtol", rtol), ("atol", atol)):
+        if not (np.isfinite(tol) and tol >= 0):
+            raise InputError(f"{name}: {tol!r} must be finite and >= 0")
     if points is None:
         if state_dim is None:
             raise InputError("check_derivatives: give points or state_dim")
-        points = np.random.default_rng(seed).standard_normal((10, state_dim))
+        if int(state_dim) < 1:
+            raise InputError(f"state_dim: {state_dim} must be >= 1")
+        points = np.random.default_rng(seed).standard_normal((10, int(state_dim)))
     points = np.atleast_2d(np.asarray(points, dtype=np.float64))
+    if points.ndim != 2 or points.shape[0] == 0 or points.shape[1] == 0:
+        raise InputError(f"points: expected a non-empty (q, n) array, got shape {points.shape}")
+    if state_dim is not None and points.shape[1] != int(state_dim):
+        raise InputError(
+            f"points: {points.shape[1]} columns, but state_dim is {state_dim}"
+        )
     if not np.all(np.isfinite(points)):
         raise InputError("points: entries must be finite")
     n = points.shape[1]
     eye = np.eye(n)
-    worst_g, worst_h, worst_x = 0.0, 0.0 if hess is not None else None, None
+    # a non-finite error (h, grad or hess returned NaN or inf) is the worst
+    worst_g, worst_h, worst_x = -1.0, -1.0 if hess is not None else None, None
+
+    def worst(err: np.ndarray) -> float:
+        return float("inf") if not np.all(np.isfinite(err)) else float(err.max())
+
     ok = True
     for x in points:
         g = np.asarray(grad(x), dtype=np.float64).reshape(-1)
@@ -47,8 +66,8 @@ def check_derivatives(
             raise InputError(f"grad: returned {g.shape[0]} entries, expected {n}")
         fd = np.array([(h(x + step * e) - h(x - step * e)) / (2 * step) for e in eye])
         err = np.abs(g - fd)
-        if err.max() > worst_g:
-            worst_g, worst_x = float(err.max()), x
+        if worst(err) > worst_g:
+            worst_g, worst_x = worst(err), x
         ok &= bool(np.all(err <= atol + rtol * np.abs(fd)))
         if hess is not None:
             H = np.asarray(hess(x), dtype=np.float64)
@@ -61,7 +80,7 @@ def check_derivatives(
                 ]
             )
             errh = np.abs(H - fdh)
-            if errh.max() > worst_h:
-                worst_h, worst_x = float(errh.max()), x
+            if worst(errh) > worst_h:
+                worst_h, worst_x = worst(errh), x
             ok &= bool(np.all(errh <= atol + rtol * np.abs(fdh)))
     return {"ok": ok, "grad_error": worst_g, "hess_error": worst_h, "worst_point": worst_x}

@@ -108,6 +108,10 @@ def model_cases(model, barrier):
         ("filter one bound", lambda: bc.SafetyFilter(model, [barrier], u_min=[-1.0]), "u_min"),
         ("filter bound length", lambda: bc.SafetyFilter(model, [barrier], u_min=[-1.0, 0], u_max=[1.0]), "u_min"),
         ("filter fallback", lambda: bc.SafetyFilter(model, [barrier], fallback="pray"), "fallback"),
+        ("filter x_d without CLF", lambda: bc.SafetyFilter(model, [barrier]).filter(
+            np.zeros(2), [0.0], x_d=np.zeros(2)), "x_d"),
+        ("moments samples", lambda: bc.moments(model, barrier, np.zeros(2), [0.0], samples=0), "samples"),
+        ("moments step", lambda: bc.moments(model, barrier, np.zeros(2), [0.0], step=float("nan")), "step"),
         ("filter clf dims", lambda: bc.SafetyFilter(model, [barrier], clf=bc.CLF.ackermann(1, 1, 1)), "clf"),
         ("filter x NaN", lambda: bc.SafetyFilter(model, [barrier]).filter(NAN2, [0.0]), "x"),
         ("filter u_ref length", lambda: bc.SafetyFilter(model, [barrier]).filter(np.zeros(2), [0.0, 1.0]), "u_ref"),

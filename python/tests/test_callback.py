@@ -113,3 +113,20 @@ def test_callback_exceptions_are_the_cause_and_interrupts_pass_through():
     with pytest.raises(bc.InputError) as e:
         f.filter([0.1, 0.2], [0.0])
     assert isinstance(e.value.__cause__, Mine)
+
+
+def test_check_derivatives_reports_failures_and_refuses_bad_settings():
+    h = lambda x: float(x @ x)
+    g = lambda x: 2 * x
+    good = bc.check_derivatives(h, g, hess=lambda x: 2 * np.eye(2), state_dim=2)
+    assert good["ok"] and good["grad_error"] < 1e-6 and good["hess_error"] < 1e-4
+    nan = bc.check_derivatives(h, lambda x: np.array([np.nan, 0.0]), state_dim=2)
+    assert not nan["ok"] and nan["grad_error"] == np.inf and nan["worst_point"] is not None
+    for kw, field in [
+        ({"state_dim": 2, "step": 0.0}, "step"),
+        ({"state_dim": 0}, "state_dim"),
+        ({"points": np.zeros((0, 2))}, "points"),
+        ({"points": np.zeros((3, 2)), "state_dim": 3}, "points"),
+    ]:
+        with pytest.raises(bc.InputError, match=field):
+            bc.check_derivatives(h, g, **kw)

@@ -41,6 +41,19 @@ pub struct PyBarrier {
     gains: Vec<f64>,
 }
 
+/// `alpha`, or 1 for a relative-degree-1 barrier given no gain (the
+/// default of every barrier constructor, as of `Barrier.callback`).
+fn default_alpha(
+    relative_degree: usize,
+    alpha: Option<f64>,
+    k_alpha: &Option<Vec<f64>>,
+) -> Option<f64> {
+    match (relative_degree, alpha, k_alpha) {
+        (1, None, None) => Some(1.0),
+        _ => alpha,
+    }
+}
+
 /// Calls `f(x)` in Python with `x` as a numpy array. A raised exception
 /// becomes the message the library carries, and is kept
 /// ([`crate::convert::keep_callback_error`]) to be raised again, as the
@@ -85,10 +98,7 @@ impl PyBarrier {
         alpha: Option<f64>,
         k_alpha: Option<Vec<f64>>,
     ) -> PyResult<Self> {
-        let alpha = match (relative_degree, alpha, &k_alpha) {
-            (1, None, None) => Some(1.0),
-            _ => alpha,
-        };
+        let alpha = default_alpha(relative_degree, alpha, &k_alpha);
         Self::of_spec(BarrierSpec::Expression {
             state: Some(state),
             params: params.unwrap_or_default().into(),
@@ -239,12 +249,7 @@ macro_rules! builtin_barriers {
                 alpha: Option<f64>,
                 k_alpha: Option<Vec<f64>>,
             ) -> PyResult<Self> {
-                // as for expression and callback barriers: α = 1 when a
-                // relative-degree-1 barrier is given no gain
-                let alpha = match (relative_degree, alpha, &k_alpha) {
-                    (1, None, None) => Some(1.0),
-                    _ => alpha,
-                };
+                let alpha = default_alpha(relative_degree, alpha, &k_alpha);
                 Self::of_spec(BarrierSpec::$variant {
                     $($field,)*
                     relative_degree,
@@ -671,6 +676,12 @@ impl PySafetyFilter {
         xdot_d: Option<&Bound<'_, PyAny>>,
     ) -> PyResult<PyFilterResult> {
         let started = Instant::now();
+        if self.ctrl.clf().is_none() && (x_d.is_some() || xdot_d.is_some()) {
+            let given = if x_d.is_some() { "x_d" } else { "xdot_d" };
+            return Err(input_err(format!(
+                "{given}: a reference for a CLF, but this filter has none (give clf=...)"
+            )));
+        }
         self.with_step((x, u_ref, x_d, xdot_d), |step| step())?;
         let (status, fallback, p_star, violated) = status_parts(&self.out);
         let reports = self

@@ -79,6 +79,9 @@ pub fn condition_moments(
     mc: &McSettings,
 ) -> Result<MomentsReport> {
     check_barrier(model, barrier, label)?;
+    // the Monte Carlo settings are checked whether or not this barrier
+    // needs them: a bad value is a bad value
+    mc.validate()?;
     check_len("x", x, model.state_dim(), "state_dim")?;
     check_len("u", u, model.control_dim(), "control_dim")?;
     let m = model.control_dim();

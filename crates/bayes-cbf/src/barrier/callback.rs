@@ -137,6 +137,25 @@ impl CallbackBarrier {
         }
     }
 
+    /// Records a failure (and NaN-fills `hess`) when the `n × n` Hessian
+    /// is not symmetric to `1e-8` of its largest entry: a Hessian of a
+    /// smooth `h` is, and the moments read only one triangle of it.
+    fn check_symmetric(&self, x: &[f64], hess: &mut [f64]) {
+        let n = self.n;
+        let scale = hess.iter().fold(0.0f64, |a, v| a.max(v.abs()));
+        let bad = (0..n)
+            .flat_map(|i| (0..i).map(move |j| (i, j)))
+            .find(|&(i, j)| (hess[i * n + j] - hess[j * n + i]).abs() > 1e-8 * scale.max(1e-300));
+        if let Some((i, j)) = bad {
+            self.fail(format!(
+                "hess returned a non-symmetric matrix at x = {x:?}: entry ({i}, {j}) = {}, ({j}, {i}) = {}",
+                hess[i * n + j],
+                hess[j * n + i]
+            ));
+            hess.fill(f64::NAN);
+        }
+    }
+
     fn eval_grad(&self, x: &[f64], out: &mut [f64]) {
         self.eval_array("grad", &self.grad, x, out);
     }
@@ -144,7 +163,9 @@ impl CallbackBarrier {
     fn eval_hess(&self, x: &[f64], out: &mut [f64]) {
         match &self.hess {
             Some(f) => {
-                self.eval_array("hess", f, x, out);
+                if self.eval_array("hess", f, x, out) {
+                    self.check_symmetric(x, out);
+                }
             }
             None => {
                 self.fail(
@@ -268,6 +289,38 @@ mod tests {
         }
         assert!(cb.take_error().is_none());
         assert_eq!(w1.re, cb.value(&x));
+    }
+
+    /// `h = x₀x₁` with the gradient right and the Hessian `hess`.
+    fn product_barrier(hess: [f64; 4]) -> CallbackBarrier {
+        let h: ValueFn = Box::new(|x| Ok(x[0] * x[1]));
+        let g: ArrayFn = Box::new(|x, out| {
+            out.copy_from_slice(&[x[1], x[0]]);
+            Ok(())
+        });
+        let hs: ArrayFn = Box::new(move |_, out| {
+            out.copy_from_slice(&hess);
+            Ok(())
+        });
+        CallbackBarrier::new("xy", 2, 2, vec![1.0, 2.0], h, g, Some(hs)).unwrap()
+    }
+
+    #[test]
+    fn a_non_symmetric_hessian_is_a_failure() {
+        let (mut grad, mut hess) = ([0.0; 2], [0.0; 4]);
+        let skew = product_barrier([0.0, 1.0, 0.9, 0.0]);
+        skew.hessian(&[0.5, 0.2], &mut grad, &mut hess, &mut []);
+        let e = skew.take_error().unwrap();
+        assert!(
+            e.contains("non-symmetric") && e.contains("(1, 0) = 0.9"),
+            "{e}"
+        );
+        assert!(hess.iter().all(|v| v.is_nan()));
+        // the symmetric one passes
+        let right = product_barrier([0.0, 1.0, 1.0, 0.0]);
+        right.hessian(&[0.5, 0.2], &mut grad, &mut hess, &mut []);
+        assert!(right.take_error().is_none());
+        assert_eq!(hess, [0.0, 1.0, 1.0, 0.0]);
     }
 
     #[test]

@@ -46,6 +46,20 @@ impl Default for McSettings {
     }
 }
 
+impl McSettings {
+    /// Checks `samples ≥ 2` and a finite `step > 0`.
+    pub fn validate(&self) -> Result<(), InputError> {
+        if self.samples < 2 {
+            return Err(InputError::invalid(
+                "samples",
+                self.samples as f64,
+                "must be ≥ 2",
+            ));
+        }
+        check_positive("step", self.step)
+    }
+}
+
 /// Monte Carlo moments with their standard errors.
 #[derive(Debug, Clone, PartialEq)]
 pub struct McMoments {
@@ -120,10 +134,7 @@ pub fn mc_cbc_moments<K: Kernel>(
         return Err(InputError::shape("x", n, x.len()).into());
     }
     crate::error::check_finite("x", x)?;
-    if settings.samples < 2 {
-        return Err(InputError::invalid("samples", settings.samples as f64, "must be ≥ 2").into());
-    }
-    check_positive("step", settings.step)?;
+    settings.validate()?;
     let s = settings.step;
     let rf = r - 1; // radius of the lattice where F is drawn
                     // the joint posterior of F on the lattice is a dense (P·(m+1))² matrix

@@ -172,19 +172,23 @@ fn errors_name_the_field_and_column() {
     }
 }
 
+/// A xorshift generator of the fuzz tests, from `seed`.
+fn xorshift(mut seed: u64) -> impl FnMut() -> u64 {
+    move || {
+        seed ^= seed << 13;
+        seed ^= seed >> 7;
+        seed ^= seed << 17;
+        seed
+    }
+}
+
 #[test]
 fn random_text_never_panics() {
     // a fuzz over the language's own alphabet: every outcome is a value or
     // a typed error
     let alphabet: Vec<char> = "xyab()+-*/^,. 0123456789esinqrtlogmaxpi#".chars().collect();
     let n = names();
-    let mut seed = 0x9E37_79B9_7F4A_7C15u64;
-    let mut next = || {
-        seed ^= seed << 13;
-        seed ^= seed >> 7;
-        seed ^= seed << 17;
-        seed
-    };
+    let mut next = xorshift(0x9E37_79B9_7F4A_7C15);
     let mut parsed = 0;
     for _ in 0..20_000 {
         let len = (next() % 24) as usize;
@@ -217,7 +221,7 @@ fn walk<D: DualNum<Primitive = f64> + Copy>(nodes: &[Node], i: u32, x: &[D]) -> 
 /// most `depth`.
 fn random_expression(next: &mut impl FnMut() -> u64, depth: usize) -> String {
     let leaf = ["x", "y", "a", "b", "0.5", "2", "pi"];
-    if depth == 0 || next() % 4 == 0 {
+    if depth == 0 || next().is_multiple_of(4) {
         return leaf[(next() % leaf.len() as u64) as usize].to_string();
     }
     let mut sub = || random_expression(next, depth - 1);
@@ -238,13 +242,7 @@ fn random_expression(next: &mut impl FnMut() -> u64, depth: usize) -> String {
 #[test]
 fn the_stack_machine_matches_a_recursive_walk() {
     let n = names();
-    let mut seed = 0xD1B5_4A32_D192_ED03u64;
-    let mut next = || {
-        seed ^= seed << 13;
-        seed ^= seed >> 7;
-        seed ^= seed << 17;
-        seed
-    };
+    let mut next = xorshift(0xD1B5_4A32_D192_ED03);
     let mut deep = 0;
     for case in 0..400 {
         let text = random_expression(&mut next, 2 + case % 7);

@@ -86,7 +86,10 @@ pub const MAX_DATA_MAGNITUDE: f64 = 1e150;
 /// [`MAX_DATA_MAGNITUDE`] in magnitude, naming `name[j][i]`; nothing is
 /// allocated unless an entry is bad.
 fn check_values(name: &str, j: usize, v: &[f64]) -> Result<(), InputError> {
-    match v.iter().position(|a| !(a.abs() <= MAX_DATA_MAGNITUDE)) {
+    match v
+        .iter()
+        .position(|a| a.is_nan() || a.abs() > MAX_DATA_MAGNITUDE)
+    {
         None => Ok(()),
         Some(i) => Err(InputError::invalid(
             &format!("{name}[{j}][{i}]"),
