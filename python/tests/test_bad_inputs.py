@@ -266,3 +266,25 @@ def test_results_read_as_python():
     out = bc.run_scenario("double-integrator", overrides={"steps": 5})
     status = out["trajectory"]["status"]
     assert isinstance(status, np.ndarray) and status.shape == (5,), status
+
+
+@pytest.mark.parametrize(
+    "name,thunk",
+    [
+        ("state_dim", lambda: mvgp(state_dim=-1)),
+        ("known_rows", lambda: mvgp(known_rows=[-1])),
+        ("max_iters", lambda: mvgp().fit(X, U, XD, max_iters=-1)),
+        ("seed", lambda: mvgp().fit(X, U, XD, seed=-1)),
+        ("restarts", lambda: mvgp().fit(X, U, XD, restarts=-1)),
+        ("budget", lambda: mvgp().add_observation_within_budget([0.1, 0.2], [0.5], [0.2, -0.4], budget=-1)),
+        ("relative_degree", lambda: bc.Barrier.expression("x", ["x"], relative_degree=-1)),
+        ("state_dim", lambda: bc.Barrier.disc(-3, [0, 1], [0.0, 0.0], 1.0)),
+        ("samples", lambda: bc.moments(mvgp(), bc.Barrier.half_space([1.0, 0.0], 0.0), [0.0, 0.0], [0.0], samples=-1)),
+        ("seed", lambda: bc.run_scenario("double-integrator", seed=-1)),
+    ],
+)
+def test_negative_integers_are_input_errors_naming_the_argument(name, thunk):
+    with pytest.raises(bc.InputError) as e:
+        thunk()
+    notes = " ".join(getattr(e.value, "__notes__", []))
+    assert "must be ≥ 0" in str(e.value) and name in notes, (str(e.value), notes)

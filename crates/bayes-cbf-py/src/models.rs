@@ -155,9 +155,9 @@ macro_rules! gp_methods {
                 Xdot: &Bound<'py, PyAny>,
                 $rank_1: RankArg,
                 $rank_2: RankArg,
-                max_iters: u64,
-                seed: u64,
-                restarts: usize,
+                #[pyo3(from_py_with = crate::convert::count)] max_iters: u64,
+                #[pyo3(from_py_with = crate::convert::count)] seed: u64,
+                #[pyo3(from_py_with = crate::convert::count)] restarts: usize,
                 $($extra: $ty,)*
             ) -> PyResult<PyRefMut<'py, Self>> {
                 let py = X.py();
@@ -269,8 +269,8 @@ impl PyMvgp {
     #[pyo3(signature = (state_dim, control_dim, lengthscales, A, B, noise_sigma, prior_mean=None, input_map=None, variance=1.0, known_rows=None))]
     #[allow(non_snake_case, clippy::too_many_arguments)]
     fn new(
-        state_dim: usize,
-        control_dim: usize,
+        #[pyo3(from_py_with = crate::convert::count)] state_dim: usize,
+        #[pyo3(from_py_with = crate::convert::count)] control_dim: usize,
         lengthscales: &Bound<'_, PyAny>,
         A: &Bound<'_, PyAny>,
         B: &Bound<'_, PyAny>,
@@ -278,7 +278,7 @@ impl PyMvgp {
         prior_mean: Option<&Bound<'_, PyAny>>,
         input_map: Option<&Bound<'_, PyAny>>,
         variance: f64,
-        known_rows: Option<Vec<usize>>,
+        #[pyo3(from_py_with = crate::convert::counts)] known_rows: Option<Vec<usize>>,
     ) -> PyResult<Self> {
         let (n, m) = (state_dim, control_dim);
         let ls = vector(lengthscales, "lengthscales", None)?;
@@ -327,7 +327,7 @@ impl PyMvgp {
         &self,
         py: Python<'_>,
         Xq: &Bound<'_, PyAny>,
-        repeats: usize,
+        #[pyo3(from_py_with = crate::convert::count)] repeats: usize,
     ) -> PyResult<f64> {
         let model = &self.model;
         let n = model.state_dim();
@@ -374,7 +374,7 @@ impl PyMvgp {
         x: &Bound<'_, PyAny>,
         u: &Bound<'_, PyAny>,
         xdot: &Bound<'_, PyAny>,
-        budget: usize,
+        #[pyo3(from_py_with = crate::convert::count)] budget: usize,
     ) -> PyResult<Option<usize>> {
         let (n, m) = (self.model.state_dim(), self.model.control_dim());
         let x = vector(x, "x", Some(n))?;
@@ -514,8 +514,8 @@ impl PyCogp {
     #[pyo3(signature = (state_dim, control_dim, lengthscales, Sigma=None, S=None, prior_mean=None, input_map=None, variance=1.0))]
     #[allow(non_snake_case, clippy::too_many_arguments)]
     fn new(
-        state_dim: usize,
-        control_dim: usize,
+        #[pyo3(from_py_with = crate::convert::count)] state_dim: usize,
+        #[pyo3(from_py_with = crate::convert::count)] control_dim: usize,
         lengthscales: &Bound<'_, PyAny>,
         Sigma: Option<&Bound<'_, PyAny>>,
         S: Option<&Bound<'_, PyAny>>,

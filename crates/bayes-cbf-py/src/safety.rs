@@ -3,7 +3,7 @@
 //! library's [`SafetyController`].
 
 use crate::convert::{
-    borrow, copy_into, core_err, input_err, scenario_err, square, to_numpy, vector, NdArray,
+    borrow, copy_into, core_err, count, input_err, scenario_err, square, to_numpy, vector, NdArray,
 };
 use crate::models::PyMvgp;
 use bayes_cbf::barrier::{ArrayFn, CallbackBarrier, DynBarrier, DynLyapunov, McSettings, ValueFn};
@@ -94,7 +94,7 @@ impl PyBarrier {
         h: String,
         state: Vec<String>,
         params: Option<std::collections::BTreeMap<String, f64>>,
-        relative_degree: usize,
+        #[pyo3(from_py_with = count)] relative_degree: usize,
         alpha: Option<f64>,
         k_alpha: Option<Vec<f64>>,
     ) -> PyResult<Self> {
@@ -122,8 +122,8 @@ impl PyBarrier {
         h: Py<PyAny>,
         grad: Py<PyAny>,
         hess: Option<Py<PyAny>>,
-        state_dim: usize,
-        relative_degree: usize,
+        #[pyo3(from_py_with = count)] state_dim: usize,
+        #[pyo3(from_py_with = count)] relative_degree: usize,
         alpha: f64,
         k_alpha: Option<Vec<f64>>,
         name: &str,
@@ -245,7 +245,7 @@ macro_rules! builtin_barriers {
             #[allow(clippy::too_many_arguments)]
             fn $name(
                 $($(#[pyo3(from_py_with = $with)])? $field: $ty,)*
-                relative_degree: usize,
+                #[pyo3(from_py_with = count)] relative_degree: usize,
                 alpha: Option<f64>,
                 k_alpha: Option<Vec<f64>>,
             ) -> PyResult<Self> {
@@ -287,7 +287,7 @@ builtin_barriers! {
 
     /// `h = ‖x[indices] − center‖² − radius²`: stay out of a disc.
     disc(
-        state_dim: usize,
+        #[pyo3(from_py_with = count)] state_dim: usize,
         #[pyo3(from_py_with = indices_of)] indices: [usize; 2],
         #[pyo3(from_py_with = center_of)] center: [f64; 2],
         radius: f64
@@ -460,9 +460,9 @@ pub fn moments(
     barrier: &Bound<'_, PyBarrier>,
     x: &Bound<'_, PyAny>,
     u: &Bound<'_, PyAny>,
-    samples: usize,
+    #[pyo3(from_py_with = count)] samples: usize,
     step: f64,
-    seed: u64,
+    #[pyo3(from_py_with = count)] seed: u64,
 ) -> PyResult<(f64, f64)> {
     let model = borrow(model, "the model")?;
     let b = barrier.get();
@@ -711,7 +711,7 @@ impl PySafetyFilter {
         &mut self,
         x: &Bound<'_, PyAny>,
         u_ref: &Bound<'_, PyAny>,
-        repeats: usize,
+        #[pyo3(from_py_with = count)] repeats: usize,
     ) -> PyResult<f64> {
         self.with_step((x, u_ref, None, None), |step| {
             let mut times = Vec::with_capacity(repeats.max(1));

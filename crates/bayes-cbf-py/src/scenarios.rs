@@ -16,7 +16,7 @@ use pyo3::types::{PyDict, PyList};
 pub fn run_scenario<'py>(
     py: Python<'py>,
     name: &str,
-    seed: Option<u64>,
+    #[pyo3(from_py_with = crate::convert::count_opt)] seed: Option<u64>,
     overrides: Option<&Bound<'py, PyDict>>,
 ) -> PyResult<Bound<'py, PyDict>> {
     let mut sets = Vec::new();
