@@ -288,3 +288,10 @@ def test_negative_integers_are_input_errors_naming_the_argument(name, thunk):
         thunk()
     notes = " ".join(getattr(e.value, "__notes__", []))
     assert "must be ≥ 0" in str(e.value) and name in notes, (str(e.value), notes)
+
+
+def test_prior_mean_dicts_take_numpy_numbers_and_refuse_nan():
+    prior = {"type": "pendulum", "mass": np.float32(1.0), "length": np.float64(1.0), "gravity": 10}
+    assert mvgp(prior_mean=prior).state_dim == 2
+    with pytest.raises(bc.InputError, match="prior_mean.*not JSON-serialisable.*finite numbers"):
+        mvgp(prior_mean={"type": "pendulum", "mass": float("nan"), "length": 1.0, "gravity": 10.0})

@@ -306,8 +306,19 @@ pub fn matrix_to_numpy<'py>(py: Python<'py>, m: &DMatrix<f64>) -> PyResult<NdArr
 /// Python JSON text of `obj` (a dict or list), for fields whose format is
 /// the model file's.
 pub fn json_of(obj: &Bound<'_, PyAny>, field: &str) -> PyResult<String> {
-    let json = obj.py().import("json")?;
-    json.call_method1("dumps", (obj,))
+    let py = obj.py();
+    let json = py.import("json")?;
+    let kwargs = PyDict::new(py);
+    // numpy scalars and arrays as their Python values; NaN and infinities
+    // refused (JSON has none)
+    kwargs.set_item("default", py.eval(c"lambda o: o.tolist()", None, None)?)?;
+    kwargs.set_item("allow_nan", false)?;
+    json.call_method("dumps", (obj,), Some(&kwargs))
         .and_then(|s| s.extract::<String>())
-        .map_err(|e| input_err(format!("{field}: not JSON-serialisable ({e})")))
+        .map_err(|e| {
+            input_err(format!(
+                "{field}: not JSON-serialisable ({e}); values are finite numbers, \
+                 strings, lists and dicts"
+            ))
+        })
 }
