@@ -4,6 +4,7 @@ survives. Constructors are fuzzed with hypothesis."""
 from __future__ import annotations
 
 import json
+import re
 
 import numpy as np
 import pytest
@@ -295,3 +296,25 @@ def test_prior_mean_dicts_take_numpy_numbers_and_refuse_nan():
     assert mvgp(prior_mean=prior).state_dim == 2
     with pytest.raises(bc.InputError, match="prior_mean.*not JSON-serialisable.*finite numbers"):
         mvgp(prior_mean={"type": "pendulum", "mass": float("nan"), "length": 1.0, "gravity": 10.0})
+
+
+def test_overflows_are_errors_not_non_finite_results():
+    """Dimensions that overflowed, lengthscales whose 1/ℓ² overflows, a
+    variance·B that overflows, and NaN derivatives are errors."""
+    for thunk, field in [
+        (lambda: bc.CoGP(2**32, 1, [1.0]), "state_dim"),
+        (lambda: bc.CoGP(1, 10**5, [1.0]), "control_dim"),
+        (lambda: bc.CoGP(200, 99, [1.0] * 200), "state_dim·(1 + control_dim)"),
+        (lambda: bc.MVGP(1, 2**64 - 1, [1.0], [[1.0]], np.zeros((0, 0)), 0.1), "control_dim"),
+        (lambda: mvgp(lengthscales=[1e-300, 1.0]), "lengthscales[0]"),
+        (lambda: bc.Barrier.expression("sqrt(x)", ["x", "y"]).gradient([0.0, 0.0]), "gradient"),
+    ]:
+        with pytest.raises(bc.InputError, match=re.escape(field)):
+            thunk()
+    big = bc.MVGP(1, 1, [1.0], [[1.0]], [[10.0, 0], [0, 10.0]], 0.1, variance=1e308)
+    with pytest.raises(bc.NumericalError, match="not finite"):
+        big.predict([[0.0]])
+    tiny = bc.MVGP(1, 1, [1.0], np.eye(1) * 1e-320, np.eye(2), 0.1)
+    tiny.add_observation([0.0], [1.0], [1.0])
+    with pytest.raises(bc.NumericalError):
+        tiny.log_marginal_likelihood()

@@ -207,6 +207,17 @@ pub fn run_predict(a: &PredictArgs) -> Result<()> {
             );
         }
         let post = model.posterior(&x).with_context(|| name.clone())?;
+        if post
+            .mean
+            .iter()
+            .chain(post.B.iter())
+            .any(|v| !v.is_finite())
+        {
+            bail!(
+                "{name}: the posterior is not finite: the hyperparameters (variance, A, B) \
+                 or the data overflow the model's arithmetic"
+            );
+        }
         predictions.push(Prediction {
             x,
             mean: rows(&post.mean),

@@ -111,6 +111,18 @@ fn predict_rows<'py>(
         })
     })?
     .map_err(core_err)?;
+    // an overflow of the hyperparameters (variance · B) or data shows here
+    if let Some(i) = means.iter().chain(&covs).position(|v| !v.is_finite()) {
+        let point = if i < means.len() {
+            i / (n * p)
+        } else {
+            (i - means.len()) / (c * c)
+        };
+        return Err(NumericalError::new_err(format!(
+            "the posterior at Xq[{point}] is not finite: the hyperparameters (variance, A, B) \
+             or the data overflow the model's arithmetic"
+        )));
+    }
     Ok((
         to_numpy(py, means, &[q, n, p])?,
         to_numpy(py, covs, &[q, c, c])?,
@@ -194,11 +206,12 @@ macro_rules! gp_methods {
             /// `log p(Ẋ | X, U)` under the current hyperparameters.
             fn log_marginal_likelihood(&self) -> PyResult<f64> {
                 let v = self.model.log_marginal_likelihood();
-                if v.is_nan() {
-                    return Err(NumericalError::new_err(
-                        "the log marginal likelihood is not a number: the data or the \
-                         hyperparameters overflow the model's arithmetic",
-                    ));
+                if !v.is_finite() {
+                    return Err(NumericalError::new_err(format!(
+                        "the log marginal likelihood is {v}: the data or the \
+                         hyperparameters (a covariance that is singular in floating \
+                         point, or one that overflows) are outside the model's arithmetic"
+                    )));
                 }
                 Ok(v)
             }
@@ -281,6 +294,7 @@ impl PyMvgp {
         #[pyo3(from_py_with = crate::convert::counts)] known_rows: Option<Vec<usize>>,
     ) -> PyResult<Self> {
         let (n, m) = (state_dim, control_dim);
+        bayes_cbf::gp::check_dims(n, m).map_err(core_err)?;
         let ls = vector(lengthscales, "lengthscales", None)?;
         let (a, _, _) = matrix(A, "A", Some(n), Some(n))?;
         let (b, _, _) = matrix(B, "B", Some(m + 1), Some(m + 1))?;
@@ -529,7 +543,7 @@ impl PyCogp {
                 "state_dim = {n}, control_dim = {m}: both must be ≥ 1"
             )));
         }
-        let big = n * (m + 1);
+        let big = bayes_cbf::gp::cogp_outputs(n, m).map_err(core_err)?;
         let sq = |obj: Option<&Bound<'_, PyAny>>, field: &str, d: usize, default: f64| {
             obj.filter(|o| !o.is_none())
                 .map(|o| square(o, field, d))

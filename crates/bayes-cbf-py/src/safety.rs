@@ -358,6 +358,17 @@ impl PyBarrier {
             (eval(b, &x, &mut out), out)
         });
         self.check(h)?;
+        if let Some(i) = out.iter().position(|v| !v.is_finite()) {
+            let what = if shape.len() == 1 {
+                "gradient"
+            } else {
+                "Hessian"
+            };
+            return Err(input_err(format!(
+                "barrier '{}': the {what} is not finite at x = {x:?} (entry {i} = {})",
+                self.label, out[i]
+            )));
+        }
         to_numpy(py, out, shape)
     }
 

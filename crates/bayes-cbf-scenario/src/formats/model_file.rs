@@ -191,6 +191,7 @@ impl ModelFile {
         if m == 0 {
             bail!("invalid control_dim = 0: must be ≥ 1");
         }
+        bayes_cbf::gp::check_dims(n, m)?;
         let input_map = self.input_map();
         input_map.validate(n)?;
         let d = input_map.output_dim(n);

@@ -38,6 +38,24 @@ use faer::Mat;
 use nalgebra::DMatrix;
 use std::sync::OnceLock;
 
+/// The CoGP's number of outputs `n(1 + m)`, the side of its dense `Σ`,
+/// checked against [`MAX_DIMENSION`](super::MAX_DIMENSION).
+pub fn cogp_outputs(n: usize, m: usize) -> Result<usize, InputError> {
+    super::check_dims(n, m)?;
+    let outputs = n * (m + 1);
+    if outputs > super::MAX_DIMENSION {
+        return Err(InputError::invalid(
+            "state_dim·(1 + control_dim)",
+            outputs as f64,
+            &format!(
+                "too large: the CoGP's output covariance Σ is dense, of side at most {}",
+                super::MAX_DIMENSION
+            ),
+        ));
+    }
+    Ok(outputs)
+}
+
 /// Hyperparameters of a CoGP: `vec F ~ GP(vec M0, Σ k0)`, noise `w ~ N(0, S)`.
 #[derive(Debug, Clone, PartialEq)]
 #[allow(non_snake_case)]
@@ -55,6 +73,7 @@ impl<K: Kernel> CogpHyper<K> {
     /// Validates shapes and positivity for state dim `n`, control dim `m`,
     /// kernel input dim `d`; errors name the field (`Sigma`, `S`, ...).
     pub fn validate(&self, n: usize, m: usize, d: usize) -> Result<(), InputError> {
+        cogp_outputs(n, m)?;
         if self.kernel.input_dim() != d {
             return Err(InputError::shape(
                 "kernel.lengthscales",
@@ -132,6 +151,7 @@ impl<K: Kernel> Cogp<K> {
         input_map: InputMap,
     ) -> Result<Self, InputError> {
         super::prior::check_model_dims(n, m, &input_map, &prior)?;
+        cogp_outputs(n, m)?;
         hyper.validate(n, m, input_map.output_dim(n))?;
         Ok(Self {
             n,

@@ -99,6 +99,13 @@ impl Rbf {
         }
         for (i, &l) in lengthscales.iter().enumerate() {
             check_positive(&format!("kernel.lengthscales[{i}]"), l)?;
+            if !(1.0 / (l * l)).is_finite() {
+                return Err(InputError::invalid(
+                    &format!("kernel.lengthscales[{i}]"),
+                    l,
+                    "too small: 1/ℓ² overflows (ℓ ≥ 1e-150)",
+                ));
+            }
         }
         check_positive("kernel.variance", variance)?;
         let inv_l2 = lengthscales.iter().map(|l| 1.0 / (l * l)).collect();

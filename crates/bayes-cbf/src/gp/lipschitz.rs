@@ -128,15 +128,22 @@ impl LipschitzSettings {
         if self.grid < 2 {
             return Err(InputError::invalid("grid", self.grid as f64, "must be ≥ 2"));
         }
-        if self
-            .grid
-            .checked_pow(n as u32)
-            .is_none_or(|g| g > 1_000_000)
-        {
+        let nodes = self.grid.checked_pow(n as u32);
+        if nodes.is_none_or(|g| g > 1_000_000) {
             return Err(InputError::invalid(
                 "grid",
                 self.grid as f64,
                 "grid^n must be ≤ 1e6 nodes",
+            ));
+        }
+        if nodes
+            .and_then(|g| g.checked_mul(self.samples))
+            .is_none_or(|d| d > 10_000_000)
+        {
+            return Err(InputError::invalid(
+                "samples",
+                self.samples as f64,
+                "samples · grid^n must be ≤ 1e7 Jacobian draws per evaluation",
             ));
         }
         Ok(())

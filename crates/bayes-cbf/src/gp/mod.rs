@@ -60,7 +60,7 @@ mod simd;
 mod theta;
 mod training;
 
-pub use cogp::{Cogp, CogpGradient, CogpHyper, CogpPosterior};
+pub use cogp::{cogp_outputs, Cogp, CogpGradient, CogpHyper, CogpPosterior};
 pub use cogp_training::{fit_cogp, CogpFitSettings};
 pub use factor::{CholFactor, JITTER_LEVELS};
 pub use input_map::{Feature, InputMap};
@@ -72,6 +72,6 @@ pub use lipschitz::{
 pub use metrics::{held_out_errors, variance_weighted_error, HeldOutErrors};
 pub use model::{DynamicsModel, ModelFitSettings};
 pub use mvgp::{check_spd, Mvgp, MvgpHyper, Posterior, PosteriorWorkspace};
-pub use prior::PriorMean;
+pub use prior::{check_dims, PriorMean, MAX_DIMENSION};
 pub use simd::set_linear_algebra_threads;
 pub use training::{fit, FitReport, FitSettings, MvgpLikelihood, Rank};

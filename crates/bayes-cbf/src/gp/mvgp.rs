@@ -89,6 +89,7 @@ impl<K: Kernel> MvgpHyper<K> {
     /// Validates shapes and positivity for state dim `n`, control dim `m`,
     /// kernel input dim `d`.
     pub fn validate(&self, n: usize, m: usize, d: usize) -> Result<(), InputError> {
+        super::check_dims(n, m)?;
         if self.kernel.input_dim() != d {
             return Err(InputError::shape(
                 "kernel.lengthscales",

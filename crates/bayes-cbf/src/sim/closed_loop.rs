@@ -157,6 +157,21 @@ impl LoopSettings {
             ));
         }
         SimSettings::new(self.sim.internal_step, self.sim.process_noise)?;
+        if let Some(t) = self.trigger.as_ref().filter(|t| t.hold) {
+            // the run ends at steps·dt, each hold at least τ_min long
+            let triggers = self.steps as f64 * self.dt / t.tau_min;
+            if triggers > super::MAX_TRIGGERS as f64 {
+                return Err(InputError::invalid(
+                    "steps",
+                    self.steps as f64,
+                    &format!(
+                        "steps · dt / trigger.tau_min = {} possible triggers, more than {}",
+                        crate::error::number(triggers),
+                        super::MAX_TRIGGERS
+                    ),
+                ));
+            }
+        }
         let longest = match &self.trigger {
             Some(t) if t.hold => ("trigger.tau_max", t.tau_max),
             _ => ("dt", self.dt),

@@ -25,6 +25,10 @@ use rand_distr::{Distribution, StandardNormal};
 /// refuses a `dt`, or a longest self-triggered hold, that needs more).
 pub const MAX_SUBSTEPS: usize = 1_000_000;
 
+/// Most triggers a self-triggered run may need: `steps · dt / τ_min`
+/// (each hold is at least `τ_min` long).
+pub const MAX_TRIGGERS: usize = 10_000_000;
+
 /// Settings of the zero-order-hold integrator.
 #[derive(Debug, Clone, Copy, PartialEq)]
 #[cfg_attr(feature = "serde", derive(serde::Serialize, serde::Deserialize))]
