@@ -23,6 +23,7 @@ use nalgebra::DMatrix;
 use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use rand_distr::{Distribution, StandardNormal};
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 
 /// Everything a run needs.
@@ -266,7 +267,17 @@ pub fn build(s: &Scenario) -> Result<Built> {
             None,
         ),
     };
-    // reference
+    // reference: only the planner gives a CLF its reference state x_d;
+    // the others hold x_d = x, where the CLF asks nothing
+    if s.clf.is_some() && !matches!(s.reference, ReferenceSpec::Planner { .. }) {
+        warn_once(
+            &CLF_WITHOUT_PLANNER,
+            "clf: the reference is not a planner, so the CLF's reference state x_d is the \
+             state itself and the CLF pulls nowhere; use reference.type = \"planner\" \
+             (with a goal) to steer towards the goal"
+                .to_string(),
+        );
+    }
     let reference: Box<dyn Reference> = match &s.reference {
         ReferenceSpec::Planner { duration } => {
             let goal = s
@@ -357,6 +368,17 @@ pub fn build(s: &Scenario) -> Result<Built> {
     })
 }
 
+static CLF_WITHOUT_PLANNER: AtomicBool = AtomicBool::new(false);
+static START_OUTSIDE: AtomicBool = AtomicBool::new(false);
+
+/// Logs `message` as a warning the first time `flag` is seen in this
+/// process (a sweep builds its scenario once per seed).
+fn warn_once(flag: &AtomicBool, message: String) {
+    if !flag.swap(true, Ordering::Relaxed) {
+        log::warn!("{message}");
+    }
+}
+
 /// Warns, once per process, when the start lies outside the set that a
 /// relative-degree-2 barrier's gains keep safe ([`start_margin`]).
 fn warn_start_margin(
@@ -365,16 +387,18 @@ fn warn_start_margin(
     x: &[f64],
     seed: u64,
 ) {
-    use std::sync::atomic::{AtomicBool, Ordering};
-    static WARNED: AtomicBool = AtomicBool::new(false);
     for (i, b) in barriers.iter().enumerate() {
         if let Ok(Some(psi)) = start_margin(truth, b.as_ref(), x) {
-            if psi < 0.0 && !WARNED.swap(true, Ordering::Relaxed) {
-                log::warn!(
-                    "barriers[{i}]: the start {x:?} (seed {seed}) is outside the set its gains \
-                     keep safe: ψ₁ = ḣ + λh = {psi:.3} < 0 (λ the larger root of s² + k₁s + k₀); \
-                     h can cross zero although every step meets its condition: raise k_alpha \
-                     or start slower (docs/robots.md, \"Noise and starts\")"
+            if psi < 0.0 {
+                warn_once(
+                    &START_OUTSIDE,
+                    format!(
+                        "barriers[{i}]: the start {x:?} (seed {seed}) is outside the set its \
+                         gains keep safe: ψ₁ = ḣ + λh = {psi:.3} < 0 (λ the larger root of \
+                         s² + k₁s + k₀); h can cross zero although every step meets its \
+                         condition: raise k_alpha or start slower (docs/robots.md, \
+                         \"Noise and starts\")"
+                    ),
                 );
             }
         }

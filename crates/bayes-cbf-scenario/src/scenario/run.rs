@@ -411,6 +411,15 @@ fn trajectory_columns(built: &Built, r: &LoopResult) -> Trajectory {
         columns.push((format!("h{i}_fine_min"), col(&|rec| rec.h_fine_min[i])));
         columns.push((format!("scbc{i}"), col(&|rec| rec.scbc[i])));
     }
+    // the recalibration's variance inflation of each barrier's condition
+    if built.loop_settings.recalibration.is_some() {
+        for i in 0..nb {
+            columns.push((
+                format!("kappa{i}"),
+                col(&|rec| rec.inflation.get(i).copied().unwrap_or(absent)),
+            ));
+        }
+    }
     let status = Column::Words(recs.iter().map(|rec| rec.status.name()).collect());
     let mut rest: Vec<(&str, Column)> = vec![
         ("sclc", col(&|rec| rec.sclc.unwrap_or(absent))),

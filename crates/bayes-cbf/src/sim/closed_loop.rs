@@ -623,6 +623,7 @@ impl<'a> ClosedLoop<'a> {
         self.buffer.push((mid, self.out.u.clone(), xdot));
         if self.learn(k) {
             self.controller.recalibrate(&self.model)?;
+            self.trim_window();
         }
         let refit = self.refit(k);
         let rec = StepRecord {
@@ -695,16 +696,24 @@ impl<'a> ClosedLoop<'a> {
                     bg.record_remove(j);
                 }
             }
-            if let DataPolicy::Window(w) = self.settings.data {
-                while self.model.len() > w {
-                    self.model.remove_oldest();
-                    if let Some(bg) = bg.as_mut() {
-                        bg.record_remove(0);
-                    }
+        }
+        true
+    }
+
+    /// Drops the oldest observations beyond a sliding window. Called after
+    /// the recalibration, which compares the condition before and after
+    /// the new observations only: removing old data moves the posterior by
+    /// more than the new data explain, and counted as misses it ratcheted
+    /// the inflation up while a robot stood still.
+    fn trim_window(&mut self) {
+        if let DataPolicy::Window(w) = self.settings.data {
+            while self.model.len() > w {
+                self.model.remove_oldest();
+                if let Some(bg) = self.background.as_mut() {
+                    bg.record_remove(0);
                 }
             }
         }
-        true
     }
 
     /// Swaps in a background refit that is due and runs or launches a
