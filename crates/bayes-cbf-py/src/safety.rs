@@ -298,22 +298,17 @@ builtin_barriers! {
     half_space(normal: Vec<f64>, offset: f64) = HalfSpace, relative_degree = 1;
 }
 
-/// The two values of `v` extracted for `field`, or an
-/// [`InputError`](crate::convert::InputError) naming it.
-fn pair<T>(v: PyResult<Vec<T>>, field: &str) -> PyResult<[T; 2]> {
-    let v = v.map_err(|e| input_err(format!("{field}: expected two numbers ({e})")))?;
-    let n = v.len();
-    <[T; 2]>::try_from(v).map_err(|_| input_err(format!("{field}: expected two values, got {n}")))
-}
-
-/// The `center` of a disc, two numbers.
+/// The `center` of a disc: two finite numbers ([`vector`]).
 fn center_of(obj: &Bound<'_, PyAny>) -> PyResult<[f64; 2]> {
-    pair(obj.extract(), "center")
+    let v = vector(obj, "center", Some(2))?;
+    Ok([v[0], v[1]])
 }
 
-/// The `indices` of a disc, two state indices.
+/// The `indices` of a disc: two state indices ([`crate::convert::counts`]).
 fn indices_of(obj: &Bound<'_, PyAny>) -> PyResult<[usize; 2]> {
-    pair(obj.extract(), "indices")
+    let v = crate::convert::counts::<usize>(obj)?.unwrap_or_default();
+    let n = v.len();
+    <[usize; 2]>::try_from(v).map_err(|_| input_err(format!("indices: expected two, got {n}")))
 }
 
 /// The `edge` of a sector edge, `"upper"` or `"lower"` (as in barrier files).

@@ -55,11 +55,7 @@ pub enum InputError {
 impl InputError {
     /// `Invalid` with a numeric value.
     pub fn invalid(field: &str, value: f64, reason: &str) -> Self {
-        Self::Invalid {
-            field: field.to_string(),
-            value: number(value),
-            reason: reason.to_string(),
-        }
+        Self::invalid_shown(field, number(value), reason)
     }
 
     /// `Invalid` with a value shown as `value` (a list, a pair of settings).
