@@ -276,14 +276,10 @@ fn stepping_equals_running() {
     });
 }
 
-/// The recalibration compares each condition before and after the new
-/// observations only; the window drops the oldest ones afterwards. A cart
-/// held still (`u = 0`) by a wall's barrier, with process noise the model
-/// is told of exactly, keeps its inflation near 1 through 3000 updates of
-/// a 30-point window: when the dropped points counted, the posterior's
-/// shifts from forgetting read as misses and ratcheted `κ` to 100.
-#[test]
-fn the_window_drops_old_points_after_the_recalibration() {
+/// The largest inflation `κ` over 3000 steps of a cart held still
+/// (`u = 0`) by a wall's barrier, with process noise the model is told of
+/// exactly, learning into a 30-point window.
+fn inflation_at_rest(seed: u64) -> f64 {
     use bayes_cbf::barrier::HalfSpace;
     use bayes_cbf::sim::{ConstantReference, SimSettings};
     use bayes_cbf::systems::ExpressionSystem;
@@ -305,7 +301,7 @@ fn the_window_drops_old_points_after_the_recalibration() {
         steps: 3000,
         data: DataPolicy::Window(30),
         sim: SimSettings::new(1e-3, 0.01).unwrap(),
-        seed: 11,
+        seed,
         ..LoopSettings::default()
     };
     let r = ClosedLoop::new(
@@ -320,10 +316,23 @@ fn the_window_drops_old_points_after_the_recalibration() {
     .unwrap()
     .run(&mut |_, _: &_| {})
     .unwrap();
-    let kappa: Vec<f64> = r.records.iter().map(|rec| rec.inflation[0]).collect();
-    let worst = kappa.iter().cloned().fold(1.0, f64::max);
-    // a right model's misses come at the rate 1 − p, and κ wanders a
-    // little above 1 (1.78 at most here); counting the dropped points
-    // drove it to its ceiling, 100
-    assert!(worst < 3.0, "inflation rose to {worst}");
+    r.records
+        .iter()
+        .map(|rec| rec.inflation[0])
+        .fold(1.0, f64::max)
+}
+
+/// The recalibration compares each condition before and after the new
+/// observations only; the window drops the oldest ones afterwards. At
+/// rest, with the noise told exactly, `κ` stays near 1 (a right model's
+/// misses come at the rate `1 − p`; its largest value was 1.42–1.80 on
+/// seeds 100–119): when the dropped points counted, the
+/// posterior's shifts from forgetting read as misses and ratcheted `κ` to
+/// its ceiling, 100.
+#[test]
+fn the_window_drops_old_points_after_the_recalibration() {
+    for seed in 11..16 {
+        let worst = inflation_at_rest(seed);
+        assert!(worst < 3.0, "seed {seed}: inflation rose to {worst}");
+    }
 }
