@@ -18,10 +18,11 @@
 //! Gaussian factor of relative degree 1, and at most `1 − p` under
 //! Cantelli's factor (relative degree 2), when the model is right and
 //! `κ_i = 1`. A biased or over-confident model misses more often. The
-//! comparison holds for added observations only: the closed loop drops the
-//! oldest ones of a sliding window after it (forgetting moves the
-//! posterior by more than `s_i` allows, and counted as misses it drove `κ`
-//! to its ceiling while a robot stood still).
+//! comparison holds for added observations only: the closed loop drops a
+//! sliding window's oldest points, or a budget's least informative ones,
+//! after it (forgetting moves the posterior by more than `s_i` allows, and
+//! counted as misses it drove `κ` to its ceiling while a robot stood
+//! still).
 //!
 //! ## The update (adaptive conformal inference)
 //! `log κ_i ← max(0, log κ_i + η (miss − (1 − p)))`: the online quantile

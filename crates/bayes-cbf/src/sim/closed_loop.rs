@@ -623,7 +623,7 @@ impl<'a> ClosedLoop<'a> {
         self.buffer.push((mid, self.out.u.clone(), xdot));
         if self.learn(k) {
             self.controller.recalibrate(&self.model)?;
-            self.trim_window();
+            self.forget();
         }
         let refit = self.refit(k);
         let rec = StepRecord {
@@ -651,67 +651,54 @@ impl<'a> ClosedLoop<'a> {
         Ok(rec)
     }
 
-    /// Adds the buffered observations when an update is due after step `k`,
-    /// keeping the data within the [`DataPolicy`]; whether it was due.
+    /// Adds the buffered observations when an update is due after step `k`
+    /// (the data may then exceed the [`DataPolicy`] until
+    /// [`forget`](Self::forget)); whether it was due.
     fn learn(&mut self, k: usize) -> bool {
         let every = self.settings.update_every;
         if every == 0 || !(k + 1).is_multiple_of(every) {
             return false;
         }
         for (xo, uo, xd) in self.buffer.drain(..) {
-            let bg = &mut self.background;
-            let added = match self.settings.data {
-                DataPolicy::Budget(b) => {
-                    while self.model.len() > b {
-                        let j = self.model.remove_least_informative();
-                        if let (Some(j), Some(bg)) = (j, bg.as_mut()) {
-                            bg.record_remove(j);
-                        }
-                    }
-                    let len = self.model.len();
-                    // the new point, if it is the least informative, is
-                    // not stored at all
-                    self.model
-                        .add_observation_within_budget(&xo, &uo, &xd, b)
-                        .map(|removed| (removed != Some(len), removed))
-                }
-                _ => self
-                    .model
-                    .add_observation(&xo, &uo, &xd)
-                    .map(|()| (true, None)),
-            };
             // an observation the factor cannot absorb even with bounded
             // jitter duplicates information already in the model
-            let (stored, removed) = match added {
-                Ok(r) => r,
-                Err(e) => {
-                    log::warn!("step {k}: observation skipped ({e})");
-                    continue;
-                }
-            };
+            if let Err(e) = self.model.add_observation(&xo, &uo, &xd) {
+                log::warn!("step {k}: observation skipped ({e})");
+                continue;
+            }
             // a refit running in the background replays these changes
-            if let Some(bg) = bg.as_mut().filter(|_| stored) {
+            if let Some(bg) = self.background.as_mut() {
                 bg.record_add(xo, uo, xd);
-                if let Some(j) = removed {
-                    bg.record_remove(j);
-                }
             }
         }
         true
     }
 
-    /// Drops the oldest observations beyond a sliding window. Called after
-    /// the recalibration, which compares the condition before and after
-    /// the new observations only: removing old data moves the posterior by
-    /// more than the new data explain, and counted as misses it ratcheted
-    /// the inflation up while a robot stood still.
-    fn trim_window(&mut self) {
-        if let DataPolicy::Window(w) = self.settings.data {
-            while self.model.len() > w {
+    /// Brings the data back within the [`DataPolicy`]: a window drops the
+    /// oldest observations, a budget the least informative ones (the same
+    /// choice as [`Mvgp::add_observation_within_budget`], which may be a
+    /// new point). Called after the recalibration, which compares the
+    /// condition before and after the new observations only: removing data
+    /// moves the posterior by more than the new data explain, and counted
+    /// as misses it ratcheted the inflation up while a robot stood still.
+    fn forget(&mut self) {
+        let (limit, oldest) = match self.settings.data {
+            DataPolicy::All => return,
+            DataPolicy::Window(w) => (w, true),
+            DataPolicy::Budget(b) => (b, false),
+        };
+        while self.model.len() > limit {
+            let j = if oldest {
                 self.model.remove_oldest();
-                if let Some(bg) = self.background.as_mut() {
-                    bg.record_remove(0);
+                0
+            } else {
+                match self.model.remove_least_informative() {
+                    Some(j) => j,
+                    None => break,
                 }
+            };
+            if let Some(bg) = self.background.as_mut() {
+                bg.record_remove(j);
             }
         }
     }
