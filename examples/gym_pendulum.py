@@ -36,7 +36,7 @@ fresh, untrained model. Compared: the unfiltered policy, the mean CBF (the
 filter on the posterior mean, p = 0.5) and the Bayes CBF (p = 0.99), both
 from the wrong prior, and the Bayes CBF from a zero prior.
 
-    python examples/gym_pendulum.py --episodes 100 --out docs/gym_pendulum.json
+    python examples/gym_pendulum.py --episodes 100 --seed 1000 --out docs/gym_pendulum.json
 """
 
 from __future__ import annotations
@@ -144,7 +144,7 @@ def episode(variant: str, kind: str, seed: int, zeta: float, trace: list | None 
     p = {"mean-cbf": 0.5, "bayes-cbf": 0.99, "bayes-cbf-zero-prior": 0.99}[variant]
     prior = None if variant.endswith("zero-prior") else WRONG_PRIOR
     filt = bc.SafetyFilter(new_model(prior), [barrier], probability=p, zeta=zeta,
-                           u_min=[-2.0], u_max=[2.0])
+                           u_min=[-2.0], u_max=[2.0], predictive=True)
     wrapped = SafetyFilterWrapper(env, filt, state_from_obs, learn=True, angle_indices=[0],
                                   max_data=200, label_at="start", barriers_for_log=[barrier])
     obs, _ = wrapped.reset(seed=seed)

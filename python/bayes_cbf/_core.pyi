@@ -221,7 +221,7 @@ class SafetyFilter:
         R: Optional[ArrayLike] = None,
         fallback: Literal["max_margin", "brake", "hold", "relax"] = "max_margin",
         clf_weight: float = 1.0,
-        predictive: bool = True,
+        predictive: bool = False,
     ) -> None: ...
     def filter(
         self,

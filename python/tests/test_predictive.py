@@ -32,10 +32,10 @@ def test_predictive_filter_widens_relative_degree_two_at_every_control(model):
     # the noise of the realised ∇(L_f h)ᵀ ẋ: a constant added to the
     # variance, the mean unchanged
     h = sector(2)
-    latent = bc.SafetyFilter(model, [h], probability=0.99, u_min=[-20], u_max=[20],
-                             predictive=False)
-    # predictive by default
-    pred = bc.SafetyFilter(model, [h], probability=0.99, u_min=[-20], u_max=[20])
+    # the paper's latent condition by default, as `bayes-cbf control`
+    latent = bc.SafetyFilter(model, [h], probability=0.99, u_min=[-20], u_max=[20])
+    pred = bc.SafetyFilter(model, [h], probability=0.99, u_min=[-20], u_max=[20],
+                           predictive=True)
     x = [0.4, 0.1]
     added = []
     for u_ref in ([-15.0], [0.0], [15.0]):

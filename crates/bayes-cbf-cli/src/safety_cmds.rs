@@ -30,7 +30,7 @@ pub struct MomentsArgs {
     #[arg(long, default_value_t = 20_000)]
     pub samples: usize,
     /// Finite-difference step of the Monte Carlo Lie derivatives.
-    #[arg(long, default_value_t = 1e-2)]
+    #[arg(long, default_value_t = 1e-2, allow_negative_numbers = true)]
     pub step: f64,
     /// Seed of the Monte Carlo draws.
     #[arg(long, default_value_t = 0)]
@@ -53,10 +53,10 @@ pub struct ControlArgs {
     #[arg(long, allow_hyphen_values = true)]
     pub x: String,
     /// Required probability of each barrier condition, in (0, 1).
-    #[arg(long)]
+    #[arg(long, allow_negative_numbers = true)]
     pub probability: f64,
     /// Margin ζ ≥ 0 on every barrier condition.
-    #[arg(long, default_value_t = 0.0)]
+    #[arg(long, default_value_t = 0.0, allow_negative_numbers = true)]
     pub zeta: f64,
     /// Reference control (default 0).
     #[arg(long = "u-ref", allow_hyphen_values = true)]
@@ -71,9 +71,14 @@ pub struct ControlArgs {
     /// feasible probability p*), brake or hold.
     #[arg(long, default_value = "max_margin")]
     pub fallback: String,
-    /// Promise each barrier condition on the latent F alone (the paper's
-    /// condition), instead of as realised over the step with the model's
-    /// observation noise σ²A in its variance (the default).
+    /// Promise each barrier condition as realised over the step: the
+    /// model's observation noise σ²A joins its variance. Without it, the
+    /// condition is the paper's, on the latent F, with the mean and
+    /// variance `bayes-cbf moments` prints.
+    #[arg(long, conflicts_with = "latent")]
+    pub predictive: bool,
+    /// The condition on the latent F (the default; kept for scripts that
+    /// name it).
     #[arg(long)]
     pub latent: bool,
     /// Write the JSON here instead of stdout.
@@ -143,7 +148,7 @@ pub fn run_control(a: &ControlArgs) -> Result<()> {
     let mut settings = SafetySettings::new(m);
     settings.probability = a.probability;
     settings.zeta = a.zeta;
-    settings.predictive = !a.latent;
+    settings.predictive = a.predictive;
     settings.u_min = a
         .u_min
         .as_deref()

@@ -107,10 +107,24 @@ fn predictive_control_widens_each_condition_by_the_observation_noise() {
     let dir = setup("control-predictive", &[("b1.json", SECTOR_RD1)]);
     let args = "control --model model.json --barrier b1.json --x 2.5,0.0 \
                 --probability 0.9 --u-ref=-3";
-    // predictive by default; --latent for the paper's condition
-    let pred = json_out(&dir, args);
-    let latent = json_out(&dir, &format!("{args} --latent"));
+    // the paper's latent condition by default (interfaces.md), --latent
+    // naming it; --predictive for the condition as realised
+    let latent = json_out(&dir, args);
+    assert_eq!(latent, json_out(&dir, &format!("{args} --latent")));
+    let pred = json_out(&dir, &format!("{args} --predictive"));
     let std = |v: &serde_json::Value| v["constraints"][0]["std"].as_f64().unwrap();
+    // the default's std is the square root of the variance `moments` prints
+    // at its control
+    let u = latent["u"][0].as_f64().unwrap();
+    let m = json_out(
+        &dir,
+        &format!("moments --model model.json --barrier b1.json --x 2.5,0.0 --u={u}"),
+    );
+    let var = m["variance"].as_f64().unwrap();
+    assert!(
+        (std(&latent) - var.sqrt()).abs() <= 1e-9 * var.sqrt(),
+        "{latent} {m}"
+    );
     // more variance at least at its own control, and the control moved
     // further from the unsafe reference
     assert!(std(&pred) > std(&latent), "{pred} {latent}");
@@ -163,6 +177,9 @@ fn bad_safety_input_names_the_field() {
     for (barrier_and_options, field) in [
         ("b.json --probability 1.5", "probability"),
         ("b.json --probability 0.9 --zeta=-1", "zeta"),
+        // a negative value after a space is the value, not a flag
+        ("b.json --probability 0.9 --zeta -1", "invalid --zeta = -1"),
+        ("b.json --probability -0.5", "probability"),
         ("b.json --probability 0.9 --u-min 1 --u-max 0", "u-min"),
         ("b.json --probability 0.9 --u-min 1", "u_min"),
         ("b.json --probability 0.9 --u-ref 1,2", "--u-ref"),

@@ -573,7 +573,10 @@ impl PyFilterResult {
 /// hold with probability `probability` under the model's posterior.
 ///
 /// The filter reads the model at every call, so observations added to it
-/// (`MVGP.add_observation`) take effect at the next step.
+/// (`MVGP.add_observation`) take effect at the next step. Each condition
+/// is the paper's, on the latent `F`, with the variance `moments` gives
+/// (as `bayes-cbf control`); `predictive=True` promises it as realised
+/// over the step instead, the model's noise `σ²A` in its variance.
 #[pyclass(name = "SafetyFilter", module = "bayes_cbf")]
 pub struct PySafetyFilter {
     model: Py<PyMvgp>,
@@ -590,7 +593,7 @@ pub struct PySafetyFilter {
 #[pymethods]
 impl PySafetyFilter {
     #[new]
-    #[pyo3(signature = (model, barriers, clf=None, probability=0.99, zeta=0.0, u_min=None, u_max=None, R=None, fallback="max_margin", clf_weight=1.0, predictive=true))]
+    #[pyo3(signature = (model, barriers, clf=None, probability=0.99, zeta=0.0, u_min=None, u_max=None, R=None, fallback="max_margin", clf_weight=1.0, predictive=false))]
     #[allow(non_snake_case, clippy::too_many_arguments)]
     fn new(
         model: Bound<'_, PyMvgp>,
