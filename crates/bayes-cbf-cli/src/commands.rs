@@ -147,6 +147,9 @@ pub fn run_fit(a: &FitArgs) -> Result<()> {
     let report: FitReport = hold_warnings("hyperparameter fitting", || fit(&mut model, &settings))
         .context("fitting hyperparameters")?;
     let secs = start.elapsed().as_secs_f64();
+    if let Some(m) = model.known_row_misfit().filter(|m| m.is_large()) {
+        log::warn!("--known-rows: {}", m.describe());
+    }
     let file = ModelFile::from_model(&model, &prior);
     write_atomic(&a.out, file.to_json()?.as_bytes())?;
     eprintln!(
@@ -164,7 +167,8 @@ pub fn run_fit(a: &FitArgs) -> Result<()> {
     Ok(())
 }
 
-/// One prediction: `M_k(x)` and `B_k(x, x)`, with `Cov(vec F(x)) = B ⊗ A`.
+/// One prediction: `M_k(x)` and `B_k(x, x)`, with `Cov(vec F(x)) = B ⊗ A`
+/// (`A` with the known rows and columns zeroed, `Mvgp::row_cov`).
 #[derive(Debug, Serialize)]
 #[allow(non_snake_case)]
 struct Prediction {
@@ -222,7 +226,7 @@ pub fn run_predict(a: &PredictArgs) -> Result<()> {
             x,
             mean: rows(&post.mean),
             B: rows(&post.B),
-            A: rows(&model.hyper().A),
+            A: rows(model.row_cov()),
         });
     }
     crate::output::emit(&Predictions { predictions }, &a.out, false)

@@ -355,3 +355,39 @@ fn quick_bench_writes_every_case() {
     assert!(err("budget") < err("window") / 5.0, "{q:?}");
     assert!(err("full") <= err("budget"), "{q:?}");
 }
+
+/// `--known-rows 0` on pendulum data: with the pendulum prior mean, whose
+/// row 0 (`θ̇ = ω`) is right, `predict` gives row 0 the prior's value and
+/// zero variance (its `A` has row and column 0 zeroed, so that
+/// `Cov(vec F) = B ⊗ A` holds); under the zero prior mean the row is not
+/// known at all, and `fit` warns that the data say otherwise.
+#[test]
+fn known_rows_are_zeroed_in_a_and_checked_against_the_data() {
+    let dir = scratch_dir("fit_known_rows");
+    let (csv, prior) = (dir.join("data.csv"), dir.join("p.json"));
+    write_pendulum_csv(&csv, 60, 3);
+    std::fs::write(
+        &prior,
+        r#"{"type": "pendulum", "mass": 1.0, "length": 1.0, "gravity": 9.81}"#,
+    )
+    .unwrap();
+    let known = dir.join("known.json");
+    let args = ["--known-rows", "0", "--prior-mean", prior.to_str().unwrap()];
+    let stderr = fit(&csv, &known, &args);
+    assert!(!stderr.contains("declared known"), "{stderr}");
+    let json = predict(&known, &["--x", "0.5,-1"]);
+    let p = &json["predictions"][0];
+    let (mean, b, a) = (matrix(&p["mean"]), matrix(&p["B"]), matrix(&p["A"]));
+    assert_eq!((a[0][0], a[0][1], a[1][0]), (0.0, 0.0, 0.0), "{a:?}");
+    assert!(a[1][1] > 0.0, "{a:?}");
+    // row 0 is the prior's θ̇ = ω exactly, and B ⊗ A gives it no variance
+    assert_eq!((mean[0][0], mean[0][1]), (-1.0, 0.0));
+    assert!(b[0][0] > 0.0 && a[0][0] * b[0][0] == 0.0);
+
+    let zero = dir.join("zero.json");
+    let stderr = fit(&csv, &zero, &["--known-rows", "0"]);
+    assert!(
+        stderr.contains("row 0 of F is declared known") && stderr.contains("prior mean"),
+        "{stderr}"
+    );
+}

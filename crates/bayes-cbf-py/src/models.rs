@@ -139,6 +139,26 @@ fn posterior_buffers(model: &Mvgp) -> (PosteriorWorkspace, Posterior) {
     (model.workspace(), post)
 }
 
+/// What a fit warns of: a row declared known that the data contradict
+/// ([`Mvgp::known_row_misfit`]).
+trait FitWarning {
+    fn fit_warning(&self) -> Option<String>;
+}
+
+impl FitWarning for Mvgp {
+    fn fit_warning(&self) -> Option<String> {
+        self.known_row_misfit()
+            .filter(|m| m.is_large())
+            .map(|m| format!("known_rows: {}", m.describe()))
+    }
+}
+
+impl FitWarning for Cogp {
+    fn fit_warning(&self) -> Option<String> {
+        None
+    }
+}
+
 /// The `#[pymethods]` that `MVGP` and `CoGP` share: `fit` (named rank
 /// settings, then `max_iters`, `seed`, `restarts` and the model's extra
 /// settings, with their defaults), `fit_report`, `log_marginal_likelihood`,
@@ -193,6 +213,11 @@ macro_rules! gp_methods {
                     })
                     .map_err(core_err)?;
                 slf.last_fit = Some(report);
+                if let Some(w) = FitWarning::fit_warning(&slf.model) {
+                    let msg = std::ffi::CString::new(w).unwrap_or_default();
+                    let category = py.get_type::<pyo3::exceptions::PyUserWarning>();
+                    PyErr::warn(py, &category, &msg, 1)?;
+                }
                 Ok(slf)
             }
 

@@ -253,3 +253,44 @@ fn bad_known_rows_are_errors_naming_the_field() {
         assert!(e.to_string().contains("known_rows"), "{e}");
     }
 }
+
+/// `known_row_misfit` finds the observation whose label strays furthest
+/// from the prior mean on a known row, by the amount it strays, and judges
+/// it against the label noise `σ · max √A_ll` of the learned rows.
+#[test]
+fn known_row_misfit_finds_the_label_that_strays_from_the_prior() {
+    let s = setup(8, &[0, 2]);
+    // labels of the known rows set to the prior's values (M0(x) u̲)[i],
+    // computed here from the prior's formulas
+    let mut xdot = s.xdot.clone();
+    for j in 0..K {
+        let (x, u) = (&s.xs[j * N..(j + 1) * N], s.us[j]);
+        xdot[j * N] = x[1];
+        xdot[j * N + 2] = 0.5 * x[2] + 0.2 * u;
+    }
+    let mut model = s.model.clone();
+    model.set_data(&s.xs, &s.us, &xdot).unwrap();
+    let clean = model.known_row_misfit().unwrap();
+    assert!(clean.misfit < 1e-12, "{clean:?}");
+    assert!(!clean.is_large());
+    let noise = s.sigma * s.a[(1, 1)].sqrt();
+    assert!((clean.noise - noise).abs() < 1e-15, "{clean:?} vs {noise}");
+    // one label off by 3 noise levels, another by 50
+    xdot[3 * N + 2] += 3.0 * noise;
+    xdot[5 * N] -= 50.0 * noise;
+    model.set_data(&s.xs, &s.us, &xdot).unwrap();
+    let off = model.known_row_misfit().unwrap();
+    assert_eq!((off.row, off.observation), (0, 5));
+    assert!((off.misfit - 50.0 * noise).abs() < 1e-9, "{off:?}");
+    assert!(off.is_large());
+    assert!(off.describe().contains("row 0"), "{}", off.describe());
+    // 3 noise levels is not large
+    xdot[5 * N] += 50.0 * noise;
+    model.set_data(&s.xs, &s.us, &xdot).unwrap();
+    let small = model.known_row_misfit().unwrap();
+    assert_eq!((small.row, small.observation), (2, 3));
+    assert!(!small.is_large());
+    // no known rows: nothing to report
+    let free = setup(8, &[]);
+    assert_eq!(free.model.known_row_misfit(), None);
+}

@@ -370,6 +370,19 @@ pub fn build(s: &Scenario) -> Result<Built> {
 
 static CLF_WITHOUT_PLANNER: AtomicBool = AtomicBool::new(false);
 static START_OUTSIDE: AtomicBool = AtomicBool::new(false);
+static KNOWN_ROW_MISFIT: AtomicBool = AtomicBool::new(false);
+
+/// Warns, once per process, when a run's data stray from a row declared
+/// known (`gp.known_rows`) by more than ten times the label noise
+/// ([`Mvgp::known_row_misfit`]).
+pub(crate) fn warn_known_row_misfit(model: &Mvgp, seed: u64) {
+    if let Some(m) = model.known_row_misfit().filter(|m| m.is_large()) {
+        warn_once(
+            &KNOWN_ROW_MISFIT,
+            format!("gp.known_rows (seed {seed}): {}", m.describe()),
+        );
+    }
+}
 
 /// Logs `message` as a warning the first time `flag` is seen in this
 /// process (a sweep builds its scenario once per seed).

@@ -187,6 +187,7 @@ pub fn run_scenario(
     .and_then(|l| l.run(&mut |k, _: &_| progress(k, steps)))
     .with_context(|| format!("scenario '{}'", scenario.name))?;
     let wall = started.elapsed().as_secs_f64();
+    super::build::warn_known_row_misfit(&result.model, scenario.seed);
     let summary = summarise(scenario, &built, &result, wall);
     Ok(RunOutput {
         scenario: scenario.clone(),

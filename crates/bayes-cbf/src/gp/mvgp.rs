@@ -14,6 +14,43 @@ use std::sync::OnceLock;
 
 mod budget;
 
+/// The largest disagreement between the data and a known row of `F`
+/// ([`Mvgp::known_row_misfit`]).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct KnownRowMisfit {
+    /// The known row `i`.
+    pub row: usize,
+    /// The observation `j` (0 = oldest).
+    pub observation: usize,
+    /// `|ẋ_j[i] − (M0(x_j) u̲_j)[i]|`.
+    pub misfit: f64,
+    /// The model's label noise on its learned rows, `σ · max_l √A_ll`
+    /// (`σ` alone when every row is known).
+    pub noise: f64,
+}
+
+impl KnownRowMisfit {
+    /// Whether the misfit exceeds ten times the label noise: the prior
+    /// mean, not noise, is off on the row.
+    pub fn is_large(&self) -> bool {
+        self.misfit > 10.0 * self.noise
+    }
+
+    /// A one-line explanation for a warning.
+    pub fn describe(&self) -> String {
+        format!(
+            "row {} of F is declared known, but observation {} differs from the prior \
+             mean's value on it by {:.3e}, {:.0} times the label noise {:.3e}: the prior \
+             mean does not give this row, and the model ignores what the data say about it",
+            self.row,
+            self.observation,
+            self.misfit,
+            self.misfit / self.noise.max(f64::MIN_POSITIVE),
+            self.noise
+        )
+    }
+}
+
 /// Hyperparameters of an MVGP with `B0(x, x') = B k0(x, x')`:
 /// `vec F ~ GP(vec M0, B k0 ⊗ A)`, noise `w ~ N(0, σ² A)`.
 #[derive(Debug, Clone, PartialEq)]
@@ -245,6 +282,47 @@ impl<K: Kernel> Mvgp<K> {
     /// Rows of `F` known exactly (sorted).
     pub fn known_rows(&self) -> &[usize] {
         &self.known
+    }
+
+    /// How far the data stray from the known rows: the largest
+    /// `|ẋ_j[i] − (M0(x_j) u̲_j)[i]|` over the observations `j` and the
+    /// known rows `i`; `None` without known rows or data. The posterior
+    /// replaces these labels by the prior's value, so a misfit well above
+    /// the label noise says that the prior mean does not give the row (a
+    /// kinematic row `θ̇ = ω` declared known under a zero prior mean, for
+    /// one). O(k) prior evaluations.
+    pub fn known_row_misfit(&self) -> Option<KnownRowMisfit> {
+        let (n, p) = (self.n, self.m + 1);
+        let learned = self.learned_rows();
+        let scale = if learned.is_empty() {
+            1.0
+        } else {
+            learned
+                .iter()
+                .map(|&l| self.hyper.A[(l, l)].sqrt())
+                .fold(0.0, f64::max)
+        };
+        let noise = self.hyper.sigma * scale;
+        let mut m0 = vec![0.0; n * p];
+        let mut worst: Option<KnownRowMisfit> = None;
+        for j in 0..self.len() {
+            let x = &self.data.xs[j * n..(j + 1) * n];
+            let u = &self.data.us[j * p..(j + 1) * p];
+            self.prior.eval(x, &mut m0);
+            for &i in &self.known {
+                let mean: f64 = (0..p).map(|c| m0[c * n + i] * u[c]).sum();
+                let misfit = (self.data.xdot[j * n + i] - mean).abs();
+                if worst.as_ref().is_none_or(|w| misfit > w.misfit) {
+                    worst = Some(KnownRowMisfit {
+                        row: i,
+                        observation: j,
+                        misfit,
+                        noise,
+                    });
+                }
+            }
+        }
+        worst
     }
 
     /// Rows of `F` that are learned (sorted).
