@@ -20,12 +20,18 @@ fn sweep(name: &str) -> Vec<SweepRow> {
 }
 
 fn sweep_seeds(name: &str, start: u64, end: u64) -> Vec<SweepRow> {
+    sweep_with(name, &[], start, end)
+}
+
+/// [`sweep_seeds`] with `--set` overrides.
+fn sweep_with(name: &str, sets: &[&str], start: u64, end: u64) -> Vec<SweepRow> {
     let meta = SweepMeta {
         scenario: name.into(),
-        sets: vec![
-            "outputs.plots=false".into(),
-            "outputs.animation=false".into(),
-        ],
+        sets: ["outputs.plots=false", "outputs.animation=false"]
+            .iter()
+            .chain(sets)
+            .map(|s| s.to_string())
+            .collect(),
         seeds: SeedRange { start, end },
         shard: Shard { index: 0, count: 1 },
         goal_tolerance: 0.5,
@@ -51,6 +57,20 @@ fn safe_on_every_seed(rows: &[SweepRow], closest: f64) {
 fn double_integrator_stops_before_the_wall_on_every_seed() {
     // h = 1 − p: the cart gets within 0.25 of the wall
     safe_on_every_seed(&sweep("double-integrator"), 0.25);
+}
+
+/// Under a quarter of its input bound (|a| ≤ 1: a deceleration of at most
+/// 0.5 against the 2 of the file) the cart still stops before the wall:
+/// where the input gain's spread exceeds `1/c(p)` of it, the `relax`
+/// fallback maximises the probability and brakes. The max-margin fallback
+/// kept 87 of 200 fresh seeds safe here: it preferred the controls the
+/// model knows best, the saturated push towards the wall, to an uncertain
+/// brake.
+#[test]
+fn double_integrator_stops_before_the_wall_under_a_quarter_of_its_input() {
+    let sets = ["controller.u_min=[-1.0]", "controller.u_max=[1.0]"];
+    let rows = sweep_with("double-integrator", &sets, 500, 600);
+    safe_on_every_seed(&rows, 0.25);
 }
 
 #[test]
@@ -89,4 +109,25 @@ fn the_example_drone_is_safe() {
     let path = concat!(env!("CARGO_MANIFEST_DIR"), "/../../examples/drone.toml");
     let rows = sweep_seeds(path, 600, 610);
     safe_on_every_seed(&rows, f64::INFINITY);
+}
+
+/// The README's own robot (`my-cart.toml` under "Your own robot") runs as
+/// written and stays off its wall, also under a quarter of its input bound
+/// (without process noise and with the predictive condition it stops about
+/// 0.5 from the wall, where the built-in stops within 0.25).
+#[test]
+fn the_readme_cart_is_safe_as_written() {
+    let readme =
+        std::fs::read_to_string(concat!(env!("CARGO_MANIFEST_DIR"), "/../../README.md")).unwrap();
+    let start = readme
+        .find("name = \"my-cart\"")
+        .expect("the README's scenario");
+    let end = start + readme[start..].find("```").unwrap();
+    let path = std::env::temp_dir().join(format!("readme-my-cart-{}.toml", std::process::id()));
+    std::fs::write(&path, &readme[start..end]).unwrap();
+    let name = path.to_str().unwrap();
+    safe_on_every_seed(&sweep_seeds(name, 700, 720), 1.0);
+    let sets = ["controller.u_min=[-1.0]", "controller.u_max=[1.0]"];
+    safe_on_every_seed(&sweep_with(name, &sets, 700, 720), 1.0);
+    std::fs::remove_file(&path).unwrap();
 }
