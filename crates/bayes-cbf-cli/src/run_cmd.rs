@@ -126,6 +126,12 @@ pub fn run(a: &RunArgs) -> Result<()> {
             a.scenario
         );
     }
+    if a.quick {
+        anyhow::bail!(
+            "--quick applies to the experiments, not to the scenario '{}' (its length: --set steps=N)",
+            a.scenario
+        );
+    }
     if let Some(seeds) = &a.seeds {
         if a.seed.is_some() || a.print_config {
             anyhow::bail!("--seeds runs many seeds: drop --seed and --print-config");

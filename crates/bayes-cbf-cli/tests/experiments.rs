@@ -62,6 +62,7 @@ fn experiment_sizes_are_checked() {
         ),
         ("run soak --fallback relax", "--fallback"),
         ("run pendulum-safe --fallback relax", "controller.fallback"),
+        ("run pendulum-safe --quick", "--set steps=N"),
         ("run no-such-experiment", "no-such-experiment"),
     ] {
         assert_fails(&run(&words(args)), &[want], args);

@@ -641,9 +641,49 @@ pub fn load(name: &str, sets: &[String]) -> Result<(Scenario, String)> {
     } else {
         toml::to_string(&table).context("cannot render the scenario")?
     };
-    let scenario: Scenario =
-        toml::from_str(&merged).map_err(|e| toml_error(&source, &merged, &e))?;
+    let scenario: Scenario = match toml::from_str(&merged) {
+        Ok(s) => s,
+        Err(e) if sets.is_empty() => return Err(toml_error(&source, &text, &e)),
+        Err(e) => return Err(blame(&source, &text, sets, &e)),
+    };
     Ok((scenario, merged))
+}
+
+/// The error of a scenario that its overrides make invalid, told against
+/// what the user wrote: the file's own error with its line, or the first
+/// `--set` after which the scenario no longer parses (the merged text's
+/// lines are in no file).
+fn blame(
+    source: &str,
+    text: &str,
+    sets: &[String],
+    merged: &toml::de::Error,
+) -> crate::error::Error {
+    if let Err(e) = toml::from_str::<Scenario>(text) {
+        return toml_error(source, text, &e);
+    }
+    let Ok(mut table) = text.parse::<toml::Table>() else {
+        return err!(
+            "scenario '{source}': {}",
+            merged.message().replace('\n', " ")
+        );
+    };
+    for s in sets {
+        if apply_set(&mut table, s).is_err() {
+            break;
+        }
+        let rendered = toml::to_string(&table).unwrap_or_default();
+        if let Err(e) = toml::from_str::<Scenario>(&rendered) {
+            return err!(
+                "scenario '{source}', override `{s}`: {}",
+                e.message().replace('\n', " ")
+            );
+        }
+    }
+    err!(
+        "scenario '{source}': {}",
+        merged.message().replace('\n', " ")
+    )
 }
 
 #[cfg(test)]
@@ -715,6 +755,21 @@ mod tests {
             assert!(err.contains(want), "{set}: {err}");
             assert!(!err.contains('\n'), "{err}");
         }
+        // the override that breaks the scenario is named, not a line of
+        // the merged text, which is in no file
+        let err = format!(
+            "{:#}",
+            load(
+                "ackermann-bayes-cbf",
+                &["seed=3".into(), "controller.probabilty=0.9".into()]
+            )
+            .unwrap_err()
+        );
+        assert!(
+            err.contains("override `controller.probabilty=0.9`"),
+            "{err}"
+        );
+        assert!(!err.contains("line"), "{err}");
         assert!(format!("{:#}", load("no-such-scenario", &[]).unwrap_err())
             .contains("unknown scenario"));
     }
