@@ -21,3 +21,13 @@ def test_calibration_table_is_the_stored_summarys():
     # the page's first table is the summary's; tables below it quote other runs
     assert len(made) == 40
     assert table[: len(made)] == made
+
+
+def test_the_readmes_python_runs_as_written():
+    """Every ```python block of the README runs on its own, in order."""
+    text = (ROOT / "README.md").read_text()
+    blocks = text.split("```python\n")[1:]
+    assert len(blocks) >= 2
+    for block in blocks:
+        code = block.split("```", 1)[0]
+        exec(compile(code, "README.md", "exec"), {})
