@@ -181,10 +181,11 @@ pub fn pendulum_control_written(k: usize, seed: u64, written: Written) -> Result
     )
 }
 
-/// `pendulum-safe` as the paper wrote it: zero prior mean, one sector
-/// barrier, the max-margin fallback.
+/// `pendulum-safe` as the paper wrote it: zero prior mean (no known row),
+/// one sector barrier, the max-margin fallback.
 fn as_in_the_paper(sc: &mut Scenario) {
     sc.gp.prior_mean = PriorSpec::Zero;
+    sc.gp.known_rows.clear();
     sc.barriers = vec![BarrierSpec::PendulumSector {
         theta_c: std::f64::consts::FRAC_PI_4,
         delta: std::f64::consts::FRAC_PI_8,
