@@ -170,3 +170,19 @@ def test_known_rows_fit_equals_the_cli_and_round_trips(cli, fitted, tmp_path):
     back = bc.MVGP.load(tmp_path / "again.json")
     assert back.known_rows == [0]
     np.testing.assert_array_equal(back.predict(xs)[0], mean)
+
+
+def test_a_known_row_that_the_data_contradict_warns(fitted):
+    """Under a zero prior mean a known row says θ̇ = 0, which the pendulum's
+    data contradict: fit warns. The pendulum prior gives the row: no warning."""
+    import warnings
+
+    _, (X, U, Xdot) = fitted
+    with pytest.warns(UserWarning, match="row 0 of F is declared known"):
+        bc.MVGP(2, 1, [1.0, 1.0], np.eye(2), np.eye(2), 0.1,
+                known_rows=[0]).fit(X, U, Xdot, max_iters=5)
+    prior = {"type": "pendulum", "mass": 1.0, "length": 1.0, "gravity": 10.0}
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        bc.MVGP(2, 1, [1.0, 1.0], np.eye(2), np.eye(2), 0.1, prior_mean=prior,
+                known_rows=[0]).fit(X, U, Xdot, max_iters=5)
