@@ -14,39 +14,47 @@ use std::sync::OnceLock;
 
 mod budget;
 
-/// The largest disagreement between the data and a known row of `F`
+/// How far the data stray from a known row of `F`
 /// ([`Mvgp::known_row_misfit`]).
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct KnownRowMisfit {
     /// The known row `i`.
     pub row: usize,
-    /// The observation `j` (0 = oldest).
+    /// Root mean square over the observations of the misfit
+    /// `ẋ_j[i] − (M0(x_j) u̲_j)[i]`.
+    pub rms_misfit: f64,
+    /// Root mean square of the labels `ẋ_j[i]`.
+    pub rms_label: f64,
+    /// The largest `|misfit|` on the row.
+    pub max_misfit: f64,
+    /// Its observation `j` (0 = oldest).
     pub observation: usize,
-    /// `|ẋ_j[i] − (M0(x_j) u̲_j)[i]|`.
-    pub misfit: f64,
     /// The model's label noise on its learned rows, `σ · max_l √A_ll`
     /// (`σ` alone when every row is known).
     pub noise: f64,
 }
 
 impl KnownRowMisfit {
-    /// Whether the misfit exceeds ten times the label noise: the prior
-    /// mean, not noise, is off on the row.
+    /// Whether the prior mean, not noise or the labels' own error, is off
+    /// on the row: the misfit is more than a tenth of the labels (a finite
+    /// difference's O(dt) error on a right row is far less) and more than
+    /// three times the label noise.
     pub fn is_large(&self) -> bool {
-        self.misfit > 10.0 * self.noise
+        self.rms_misfit > 0.1 * self.rms_label && self.rms_misfit > 3.0 * self.noise
     }
 
     /// A one-line explanation for a warning.
     pub fn describe(&self) -> String {
         format!(
-            "row {} of F is declared known, but observation {} differs from the prior \
-             mean's value on it by {:.3e}, {:.0} times the label noise {:.3e}: the prior \
-             mean does not give this row, and the model ignores what the data say about it",
+            "row {} of F is declared known, but the data differ from the prior mean's \
+             value on it by {:.3e} (root mean square; {:.0} % of the labels', at most \
+             {:.3e} at observation {}): the prior mean does not give this row, and the \
+             model ignores what the data say about it",
             self.row,
-            self.observation,
-            self.misfit,
-            self.misfit / self.noise.max(f64::MIN_POSITIVE),
-            self.noise
+            self.rms_misfit,
+            100.0 * self.rms_misfit / self.rms_label.max(f64::MIN_POSITIVE),
+            self.max_misfit,
+            self.observation
         )
     }
 }
@@ -284,15 +292,19 @@ impl<K: Kernel> Mvgp<K> {
         &self.known
     }
 
-    /// How far the data stray from the known rows: the largest
-    /// `|ẋ_j[i] − (M0(x_j) u̲_j)[i]|` over the observations `j` and the
-    /// known rows `i`; `None` without known rows or data. The posterior
-    /// replaces these labels by the prior's value, so a misfit well above
-    /// the label noise says that the prior mean does not give the row (a
-    /// kinematic row `θ̇ = ω` declared known under a zero prior mean, for
-    /// one). O(k) prior evaluations.
+    /// How far the data stray from the known rows: for each known row `i`
+    /// the misfits `ẋ_j[i] − (M0(x_j) u̲_j)[i]` over the observations `j`,
+    /// summarised ([`KnownRowMisfit`]) for the row whose misfit is the
+    /// largest share of its labels; `None` without known rows or data. The
+    /// posterior replaces these labels by the prior's value, so a large
+    /// misfit ([`KnownRowMisfit::is_large`]) says that the prior mean does
+    /// not give the row (a kinematic row `θ̇ = ω` declared known under a
+    /// zero prior mean, for one). O(k) prior evaluations.
     pub fn known_row_misfit(&self) -> Option<KnownRowMisfit> {
-        let (n, p) = (self.n, self.m + 1);
+        let (n, p, k) = (self.n, self.m + 1, self.len());
+        if self.known.is_empty() || k == 0 {
+            return None;
+        }
         let learned = self.learned_rows();
         let scale = if learned.is_empty() {
             1.0
@@ -303,26 +315,39 @@ impl<K: Kernel> Mvgp<K> {
                 .fold(0.0, f64::max)
         };
         let noise = self.hyper.sigma * scale;
+        // per known row: Σ misfit², Σ label², the largest |misfit| and where
+        let mut sums = vec![(0.0, 0.0, 0.0, 0usize); self.known.len()];
         let mut m0 = vec![0.0; n * p];
-        let mut worst: Option<KnownRowMisfit> = None;
-        for j in 0..self.len() {
+        for j in 0..k {
             let x = &self.data.xs[j * n..(j + 1) * n];
             let u = &self.data.us[j * p..(j + 1) * p];
             self.prior.eval(x, &mut m0);
-            for &i in &self.known {
-                let mean: f64 = (0..p).map(|c| m0[c * n + i] * u[c]).sum();
-                let misfit = (self.data.xdot[j * n + i] - mean).abs();
-                if worst.as_ref().is_none_or(|w| misfit > w.misfit) {
-                    worst = Some(KnownRowMisfit {
-                        row: i,
-                        observation: j,
-                        misfit,
-                        noise,
-                    });
+            for (acc, &i) in sums.iter_mut().zip(&self.known) {
+                let label = self.data.xdot[j * n + i];
+                let misfit = label - (0..p).map(|c| m0[c * n + i] * u[c]).sum::<f64>();
+                acc.0 += misfit * misfit;
+                acc.1 += label * label;
+                if misfit.abs() > acc.2 {
+                    (acc.2, acc.3) = (misfit.abs(), j);
                 }
             }
         }
-        worst
+        let summary = |(acc, &row): (&(f64, f64, f64, usize), &usize)| KnownRowMisfit {
+            row,
+            rms_misfit: (acc.0 / k as f64).sqrt(),
+            rms_label: (acc.1 / k as f64).sqrt(),
+            max_misfit: acc.2,
+            observation: acc.3,
+            noise,
+        };
+        let share = |m: &KnownRowMisfit| m.rms_misfit / m.rms_label.max(f64::MIN_POSITIVE);
+        sums.iter()
+            .zip(&self.known)
+            .map(summary)
+            .fold(None, |best: Option<KnownRowMisfit>, m| match best {
+                Some(b) if share(&b) >= share(&m) => Some(b),
+                _ => Some(m),
+            })
     }
 
     /// Rows of `F` that are learned (sorted).
