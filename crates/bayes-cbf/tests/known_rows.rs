@@ -254,60 +254,75 @@ fn bad_known_rows_are_errors_naming_the_field() {
     }
 }
 
-/// `known_row_misfit` summarises how far the labels of the known rows
-/// stray from the prior mean: root mean squares of the misfit and of the
-/// labels, the largest misfit and its observation, for the row whose misfit
-/// is the largest share of its labels; large when that share passes a tenth
-/// and the misfit three label noises.
-#[test]
-fn known_row_misfit_measures_the_labels_against_the_prior() {
-    let s = setup(8, &[0, 2]);
-    // labels of the known rows set to the prior's values (M0(x) u̲)[i],
-    // computed here from the prior's formulas
-    let mut xdot = s.xdot.clone();
-    for j in 0..K {
-        let (x, u) = (&s.xs[j * N..(j + 1) * N], s.us[j]);
-        xdot[j * N] = x[1];
+/// A model with rows 0 and 2 known and `k` observations whose known rows'
+/// labels are the prior's values plus `off(x, u, rng)` on row 0.
+fn labelled(k: usize, off: impl Fn(&[f64], f64, &mut ChaCha8Rng) -> f64) -> (Mvgp, Vec<f64>) {
+    let mut rng = ChaCha8Rng::seed_from_u64(9);
+    let hyper = MvgpHyper {
+        kernel: Rbf::new(vec![0.9, 1.2, 1.0], 1.1).unwrap(),
+        A: random_spd(N, &mut rng),
+        B: random_spd(M + 1, &mut rng),
+        sigma: 0.2,
+    };
+    let xs: Vec<f64> = (0..k * N).map(|_| rng.random_range(-1.5..1.5)).collect();
+    let us: Vec<f64> = (0..k * M).map(|_| rng.random_range(-2.0..2.0)).collect();
+    let mut xdot = vec![0.0; k * N];
+    for j in 0..k {
+        let (x, u) = (&xs[j * N..(j + 1) * N], us[j]);
+        xdot[j * N] = x[1] + off(x, u, &mut rng);
+        xdot[j * N + 1] = rng.random_range(-2.0..2.0);
         xdot[j * N + 2] = 0.5 * x[2] + 0.2 * u;
     }
-    let mut model = s.model.clone();
-    model.set_data(&s.xs, &s.us, &xdot).unwrap();
-    let clean = model.known_row_misfit().unwrap();
-    assert!(
-        clean.rms_misfit < 1e-12 && clean.max_misfit < 1e-12,
-        "{clean:?}"
-    );
-    assert!(!clean.is_large());
-    let noise = s.sigma * s.a[(1, 1)].sqrt();
-    assert!((clean.noise - noise).abs() < 1e-15, "{clean:?} vs {noise}");
-    // one label of row 0 off by 50 noise levels
-    xdot[5 * N] -= 50.0 * noise;
-    model.set_data(&s.xs, &s.us, &xdot).unwrap();
-    let off = model.known_row_misfit().unwrap();
-    let labels: f64 = (0..K).map(|j| xdot[j * N].powi(2)).sum::<f64>() / K as f64;
-    assert_eq!((off.row, off.observation), (0, 5));
-    assert!((off.max_misfit - 50.0 * noise).abs() < 1e-9, "{off:?}");
-    assert!((off.rms_misfit - 50.0 * noise / (K as f64).sqrt()).abs() < 1e-9);
-    assert!((off.rms_label - labels.sqrt()).abs() < 1e-12);
-    assert!(off.is_large(), "{off:?}");
-    assert!(off.describe().contains("row 0"), "{}", off.describe());
-    // instead one label of row 2 off by three noise levels: not large
-    xdot[5 * N] += 50.0 * noise;
-    xdot[3 * N + 2] += 3.0 * noise;
-    model.set_data(&s.xs, &s.us, &xdot).unwrap();
-    let small = model.known_row_misfit().unwrap();
-    assert_eq!((small.row, small.observation), (2, 3));
-    assert!(!small.is_large(), "{small:?}");
-    // a row whose prior is off by a twentieth of its labels everywhere (a
-    // finite difference's bias) is not large either
-    for j in 0..K {
-        xdot[j * N] *= 1.05;
-    }
-    xdot[3 * N + 2] -= 3.0 * noise;
-    model.set_data(&s.xs, &s.us, &xdot).unwrap();
-    let biased = model.known_row_misfit().unwrap();
-    assert_eq!(biased.row, 0);
-    assert!(!biased.is_large(), "{biased:?}");
+    let mut model = Mvgp::new(N, M, hyper, prior(), InputMap::Identity)
+        .unwrap()
+        .with_known_rows(&[0, 2])
+        .unwrap();
+    model.set_data(&xs, &us, &xdot).unwrap();
+    (model, xdot)
+}
+
+/// `known_row_misfit` summarises how far the labels of the known rows
+/// stray from the prior mean (root mean squares of the misfit and of the
+/// labels, the largest misfit and its observation) and how much of it
+/// neighbouring observations share: a wrong prior's misfit follows the
+/// state, label noise does not. Only a shared misfit above half the labels
+/// is large.
+#[test]
+fn known_row_misfit_tells_a_wrong_prior_from_noise() {
+    use rand_distr::{Distribution, StandardNormal};
+    let normal = |rng: &mut ChaCha8Rng| -> f64 { StandardNormal.sample(rng) };
+    // labels as the prior says: no misfit
+    let (clean, _) = labelled(300, |_, _, _| 0.0);
+    let m = clean.known_row_misfit().unwrap();
+    assert!(m.rms_misfit < 1e-12 && m.max_misfit < 1e-12, "{m:?}");
+    assert!(!m.is_large());
+    // a prior that misses a term of the state (θ̇ = ω + x₂ in the data)
+    let (wrong, xdot) = labelled(300, |x, _, _| x[2]);
+    let m = wrong.known_row_misfit().unwrap();
+    let (rms, labels) = (0..300).fold((0.0, 0.0), |(a, b), j| {
+        let e = xdot[j * N] - wrong.xs()[j * N + 1];
+        (a + e * e / 300.0, b + xdot[j * N].powi(2) / 300.0)
+    });
+    assert_eq!(m.row, 0);
+    assert!((m.rms_misfit - rms.sqrt()).abs() < 1e-12, "{m:?}");
+    assert!((m.rms_label - labels.sqrt()).abs() < 1e-12, "{m:?}");
+    assert!(m.smooth_share > 0.8, "{m:?}");
+    assert!(m.is_large(), "{m:?}");
+    assert!(m.describe().contains("row 0"), "{}", m.describe());
+    // label noise as large as the labels: a right prior, not flagged
+    let (noisy, _) = labelled(300, |_, _, rng| normal(rng));
+    let m = noisy.known_row_misfit().unwrap();
+    assert!(m.rms_misfit > 0.5 && m.smooth_share.abs() < 0.3, "{m:?}");
+    assert!(!m.is_large(), "{m:?}");
+    // the wrong prior under that noise is still found
+    let (both, _) = labelled(300, |x, _, rng| 2.0 * x[2] + normal(rng));
+    let m = both.known_row_misfit().unwrap();
+    assert!(m.is_large(), "{m:?}");
+    // a fifth off everywhere (far more than a finite difference's bias):
+    // not large
+    let (biased, _) = labelled(300, |x, _, _| 0.2 * x[1]);
+    let m = biased.known_row_misfit().unwrap();
+    assert!(m.smooth_share > 0.8 && !m.is_large(), "{m:?}");
     // no known rows: nothing to report
     let free = setup(8, &[]);
     assert_eq!(free.model.known_row_misfit(), None);

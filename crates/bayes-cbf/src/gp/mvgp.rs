@@ -21,26 +21,31 @@ pub struct KnownRowMisfit {
     /// The known row `i`.
     pub row: usize,
     /// Root mean square over the observations of the misfit
-    /// `ẋ_j[i] − (M0(x_j) u̲_j)[i]`.
+    /// `e_j = ẋ_j[i] − (M0(x_j) u̲_j)[i]`.
     pub rms_misfit: f64,
     /// Root mean square of the labels `ẋ_j[i]`.
     pub rms_label: f64,
-    /// The largest `|misfit|` on the row.
+    /// The largest `|e_j|` on the row.
     pub max_misfit: f64,
     /// Its observation `j` (0 = oldest).
     pub observation: usize,
-    /// The model's label noise on its learned rows, `σ · max_l √A_ll`
-    /// (`σ` alone when every row is known).
-    pub noise: f64,
+    /// How much of the misfit is a function of the inputs rather than
+    /// noise: `Σ_j e_j e_{ν(j)} / Σ_j e_j²`, with `ν(j)` the observation
+    /// nearest to `j` in the kernel's inputs and the controls (each
+    /// coordinate scaled by its spread over the data). Near 1 when the
+    /// prior is wrong (neighbours share the error), near 0 or below for
+    /// label noise, which neighbours do not share.
+    pub smooth_share: f64,
 }
 
 impl KnownRowMisfit {
     /// Whether the prior mean, not noise or the labels' own error, is off
-    /// on the row: the misfit is more than a tenth of the labels (a finite
-    /// difference's O(dt) error on a right row is far less) and more than
-    /// three times the label noise.
+    /// on the row: the misfit varies smoothly with the inputs
+    /// (`smooth_share > 0.5`) and is more than half the labels (a finite
+    /// difference's O(dt) error on a right row is far less; the warning is
+    /// for a row the prior does not give at all).
     pub fn is_large(&self) -> bool {
-        self.rms_misfit > 0.1 * self.rms_label && self.rms_misfit > 3.0 * self.noise
+        self.smooth_share > 0.5 && self.rms_misfit > 0.5 * self.rms_label
     }
 
     /// A one-line explanation for a warning.
@@ -48,8 +53,9 @@ impl KnownRowMisfit {
         format!(
             "row {} of F is declared known, but the data differ from the prior mean's \
              value on it by {:.3e} (root mean square; {:.0} % of the labels', at most \
-             {:.3e} at observation {}): the prior mean does not give this row, and the \
-             model ignores what the data say about it",
+             {:.3e} at observation {}), in a way that follows the state and control \
+             rather than noise: the prior mean does not give this row, and the model \
+             ignores what the data say about it",
             self.row,
             self.rms_misfit,
             100.0 * self.rms_misfit / self.rms_label.max(f64::MIN_POSITIVE),
@@ -293,61 +299,112 @@ impl<K: Kernel> Mvgp<K> {
     }
 
     /// How far the data stray from the known rows: for each known row `i`
-    /// the misfits `ẋ_j[i] − (M0(x_j) u̲_j)[i]` over the observations `j`,
-    /// summarised ([`KnownRowMisfit`]) for the row whose misfit is the
-    /// largest share of its labels; `None` without known rows or data. The
-    /// posterior replaces these labels by the prior's value, so a large
-    /// misfit ([`KnownRowMisfit::is_large`]) says that the prior mean does
-    /// not give the row (a kinematic row `θ̇ = ω` declared known under a
-    /// zero prior mean, for one). O(k) prior evaluations.
+    /// the misfits `e_j = ẋ_j[i] − (M0(x_j) u̲_j)[i]` over the observations
+    /// `j`, summarised ([`KnownRowMisfit`]) for the row whose misfit is the
+    /// largest share of its labels; `None` without known rows or with fewer
+    /// than two observations. The posterior replaces these labels by the
+    /// prior's value, so a large misfit ([`KnownRowMisfit::is_large`]) says
+    /// that the prior mean does not give the row (a kinematic row `θ̇ = ω`
+    /// declared known under a zero prior mean, for one). O(k²) for the
+    /// nearest neighbours, O(k) prior evaluations.
     pub fn known_row_misfit(&self) -> Option<KnownRowMisfit> {
         let (n, p, k) = (self.n, self.m + 1, self.len());
-        if self.known.is_empty() || k == 0 {
+        if self.known.is_empty() || k < 2 {
             return None;
         }
-        let learned = self.learned_rows();
-        let scale = if learned.is_empty() {
-            1.0
-        } else {
-            learned
-                .iter()
-                .map(|&l| self.hyper.A[(l, l)].sqrt())
-                .fold(0.0, f64::max)
-        };
-        let noise = self.hyper.sigma * scale;
-        // per known row: Σ misfit², Σ label², the largest |misfit| and where
-        let mut sums = vec![(0.0, 0.0, 0.0, 0usize); self.known.len()];
+        let nearest = self.nearest_observations();
+        let r = self.known.len();
+        // misfits, row-major k × r
+        let mut e = vec![0.0; k * r];
         let mut m0 = vec![0.0; n * p];
         for j in 0..k {
             let x = &self.data.xs[j * n..(j + 1) * n];
             let u = &self.data.us[j * p..(j + 1) * p];
             self.prior.eval(x, &mut m0);
-            for (acc, &i) in sums.iter_mut().zip(&self.known) {
-                let label = self.data.xdot[j * n + i];
-                let misfit = label - (0..p).map(|c| m0[c * n + i] * u[c]).sum::<f64>();
-                acc.0 += misfit * misfit;
-                acc.1 += label * label;
-                if misfit.abs() > acc.2 {
-                    (acc.2, acc.3) = (misfit.abs(), j);
-                }
+            for (q, &i) in self.known.iter().enumerate() {
+                let mean: f64 = (0..p).map(|c| m0[c * n + i] * u[c]).sum();
+                e[j * r + q] = self.data.xdot[j * n + i] - mean;
             }
         }
-        let summary = |(acc, &row): (&(f64, f64, f64, usize), &usize)| KnownRowMisfit {
-            row,
-            rms_misfit: (acc.0 / k as f64).sqrt(),
-            rms_label: (acc.1 / k as f64).sqrt(),
-            max_misfit: acc.2,
-            observation: acc.3,
-            noise,
+        let summary = |q: usize| {
+            let i = self.known[q];
+            let (mut sq, mut labels, mut shared, mut max, mut at) = (0.0, 0.0, 0.0, 0.0, 0);
+            for j in 0..k {
+                let ej = e[j * r + q];
+                let label = self.data.xdot[j * n + i];
+                sq += ej * ej;
+                labels += label * label;
+                shared += ej * e[nearest[j] * r + q];
+                if ej.abs() > max {
+                    (max, at) = (ej.abs(), j);
+                }
+            }
+            KnownRowMisfit {
+                row: i,
+                rms_misfit: (sq / k as f64).sqrt(),
+                rms_label: (labels / k as f64).sqrt(),
+                max_misfit: max,
+                observation: at,
+                smooth_share: if sq > 0.0 { shared / sq } else { 0.0 },
+            }
         };
         let share = |m: &KnownRowMisfit| m.rms_misfit / m.rms_label.max(f64::MIN_POSITIVE);
-        sums.iter()
-            .zip(&self.known)
+        (0..r)
             .map(summary)
             .fold(None, |best: Option<KnownRowMisfit>, m| match best {
                 Some(b) if share(&b) >= share(&m) => Some(b),
                 _ => Some(m),
             })
+    }
+
+    /// For each observation, the nearest other one in the kernel's inputs
+    /// `z = φ(x)` and the controls, each coordinate scaled by its standard
+    /// deviation over the data (a constant coordinate is left out). O(k²).
+    fn nearest_observations(&self) -> Vec<usize> {
+        let (k, p) = (self.len(), self.m + 1);
+        let d = self.data.zs.len() / k;
+        let coords = |j: usize| {
+            self.data.zs[j * d..(j + 1) * d]
+                .iter()
+                .chain(&self.data.us[j * p + 1..(j + 1) * p])
+                .copied()
+        };
+        let dim = d + p - 1;
+        let (mut mean, mut sq) = (vec![0.0; dim], vec![0.0; dim]);
+        for j in 0..k {
+            for (c, v) in coords(j).enumerate() {
+                mean[c] += v / k as f64;
+                sq[c] += v * v / k as f64;
+            }
+        }
+        let scale: Vec<f64> = mean
+            .iter()
+            .zip(&sq)
+            .map(|(m, s)| {
+                let var = (s - m * m).max(0.0);
+                if var > 0.0 {
+                    1.0 / var.sqrt()
+                } else {
+                    0.0
+                }
+            })
+            .collect();
+        (0..k)
+            .map(|j| {
+                let mut best = (f64::INFINITY, if j == 0 { 1 } else { 0 });
+                for l in (0..k).filter(|&l| l != j) {
+                    let dist: f64 = coords(j)
+                        .zip(coords(l))
+                        .zip(&scale)
+                        .map(|((a, b), w)| ((a - b) * w).powi(2))
+                        .sum();
+                    if dist < best.0 {
+                        best = (dist, l);
+                    }
+                }
+                best.1
+            })
+            .collect()
     }
 
     /// Rows of `F` that are learned (sorted).
