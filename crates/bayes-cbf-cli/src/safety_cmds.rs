@@ -30,7 +30,7 @@ pub struct MomentsArgs {
     #[arg(long, default_value_t = 20_000)]
     pub samples: usize,
     /// Finite-difference step of the Monte Carlo Lie derivatives.
-    #[arg(long, default_value_t = 1e-2, allow_negative_numbers = true)]
+    #[arg(long, default_value_t = 1e-2, allow_hyphen_values = true)]
     pub step: f64,
     /// Seed of the Monte Carlo draws.
     #[arg(long, default_value_t = 0)]
@@ -53,10 +53,10 @@ pub struct ControlArgs {
     #[arg(long, allow_hyphen_values = true)]
     pub x: String,
     /// Required probability of each barrier condition, in (0, 1).
-    #[arg(long, allow_negative_numbers = true)]
+    #[arg(long, allow_hyphen_values = true)]
     pub probability: f64,
     /// Margin ζ ≥ 0 on every barrier condition.
-    #[arg(long, default_value_t = 0.0, allow_negative_numbers = true)]
+    #[arg(long, default_value_t = 0.0, allow_hyphen_values = true)]
     pub zeta: f64,
     /// Reference control (default 0).
     #[arg(long = "u-ref", allow_hyphen_values = true)]

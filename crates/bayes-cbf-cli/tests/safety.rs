@@ -180,6 +180,8 @@ fn bad_safety_input_names_the_field() {
         // a negative value after a space is the value, not a flag
         ("b.json --probability 0.9 --zeta -1", "invalid --zeta = -1"),
         ("b.json --probability -0.5", "probability"),
+        ("b.json --probability 0.9 --zeta -1e-3", "invalid --zeta"),
+        ("b.json --probability 0.9 --zeta -inf", "zeta"),
         ("b.json --probability 0.9 --u-min 1 --u-max 0", "u-min"),
         ("b.json --probability 0.9 --u-min 1", "u_min"),
         ("b.json --probability 0.9 --u-ref 1,2", "--u-ref"),

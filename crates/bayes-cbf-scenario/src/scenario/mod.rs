@@ -650,9 +650,9 @@ pub fn load(name: &str, sets: &[String]) -> Result<(Scenario, String)> {
 }
 
 /// The error of a scenario that its overrides make invalid, told against
-/// what the user wrote: the file's own error with its line, or the first
-/// `--set` after which the scenario no longer parses (the merged text's
-/// lines are in no file).
+/// what the user wrote: the file's own error with its line, or the `--set`
+/// after which the scenario stopped parsing and no later one repaired it
+/// (the merged text's lines are in no file).
 fn blame(
     source: &str,
     text: &str,
@@ -668,22 +668,28 @@ fn blame(
             merged.message().replace('\n', " ")
         );
     };
+    let mut culprit: Option<(&String, toml::de::Error)> = None;
     for s in sets {
         if apply_set(&mut table, s).is_err() {
             break;
         }
         let rendered = toml::to_string(&table).unwrap_or_default();
-        if let Err(e) = toml::from_str::<Scenario>(&rendered) {
-            return err!(
-                "scenario '{source}', override `{s}`: {}",
-                e.message().replace('\n', " ")
-            );
+        match toml::from_str::<Scenario>(&rendered) {
+            Err(e) if culprit.is_none() => culprit = Some((s, e)),
+            Err(_) => {}
+            Ok(_) => culprit = None,
         }
     }
-    err!(
-        "scenario '{source}': {}",
-        merged.message().replace('\n', " ")
-    )
+    match culprit {
+        Some((s, e)) => err!(
+            "scenario '{source}', override `{s}`: {}",
+            e.message().replace('\n', " ")
+        ),
+        None => err!(
+            "scenario '{source}': {}",
+            merged.message().replace('\n', " ")
+        ),
+    }
 }
 
 #[cfg(test)]
@@ -770,6 +776,23 @@ mod tests {
             "{err}"
         );
         assert!(!err.contains("line"), "{err}");
+        // one that a later override repairs is not blamed
+        let err = format!(
+            "{:#}",
+            load(
+                "double-integrator",
+                &[
+                    "gp.prior_mean.type=zero".into(),
+                    "gp.prior_mean={type=\"zero\"}".into(),
+                    "controller.probabilty=0.9".into()
+                ]
+            )
+            .unwrap_err()
+        );
+        assert!(
+            err.contains("override `controller.probabilty=0.9`"),
+            "{err}"
+        );
         assert!(format!("{:#}", load("no-such-scenario", &[]).unwrap_err())
             .contains("unknown scenario"));
     }
