@@ -406,10 +406,13 @@ pub fn cbc_moments(
             .into());
         }
     }
+    // once per process: a run would repeat it at every step
+    static NO_INPUT_WARNED: std::sync::atomic::AtomicBool =
+        std::sync::atomic::AtomicBool::new(false);
     let nrm: f64 = out.e[1..].iter().map(|v| v * v).sum::<f64>().sqrt();
     let scale = out.e[0].abs().max(1.0);
-    if nrm < 1e-9 * scale {
-        log::warn!("barrier '{}': L_g L_f^(r-1) h ≈ 0 at x = {:?} (|e_u| = {nrm:.2e}); is relative degree {r} right?", barrier.name(), ws.x);
+    if nrm < 1e-9 * scale && !NO_INPUT_WARNED.swap(true, std::sync::atomic::Ordering::Relaxed) {
+        log::warn!("barrier '{}': L_g L_f^(r-1) h ≈ 0 at x = {:?} (|e_u| = {nrm:.2e}); is relative degree {r} right? (shown once)", barrier.name(), ws.x);
     }
     Ok(())
 }
