@@ -6,6 +6,7 @@ import csv
 import json
 
 import numpy as np
+import pytest
 
 import bayes_cbf as bc
 from conftest import run_cli
@@ -45,9 +46,15 @@ def test_run_scenario_equals_the_cli(cli, tmp_path):
 
 
 def test_run_scenario_rejects_bad_overrides():
-    import pytest
-
     with pytest.raises(bc.InputError, match="nosuchkey"):
         bc.run_scenario("pendulum-safe", overrides={"nosuchkey": 1})
     with pytest.raises(bc.InputError, match="unknown scenario"):
         bc.run_scenario("no-such-scenario")
+
+
+def test_the_librarys_warnings_reach_python():
+    """A warning the run logs (here: a row declared known that a zero prior
+    mean gets wrong) is a UserWarning in Python, not lost."""
+    with pytest.warns(UserWarning, match="row 0 of F is declared known"):
+        bc.run_scenario("pendulum-safe", seed=1,
+                        overrides={"steps": 60, "gp.prior_mean": "zero"})

@@ -10,6 +10,7 @@ mod models;
 mod safety;
 mod scenarios;
 mod sweeps;
+mod warnings;
 
 use pyo3::prelude::*;
 
@@ -17,6 +18,7 @@ use pyo3::prelude::*;
 #[pymodule]
 fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     let py = m.py();
+    warnings::install();
     m.add("InputError", py.get_type::<convert::InputError>())?;
     m.add("NumericalError", py.get_type::<convert::NumericalError>())?;
     m.add_class::<models::PyMvgp>()?;

@@ -206,12 +206,12 @@ macro_rules! gp_methods {
                 };
                 settings.validate().map_err(core_err)?;
                 let model = &mut slf.model;
-                let report = py
-                    .detach(|| -> Result<FitReport, bayes_cbf::Error> {
-                        model.set_data(&xs, &us, &xd)?;
-                        $fit(model, &settings)
-                    })
-                    .map_err(core_err)?;
+                let report = py.detach(|| -> Result<FitReport, bayes_cbf::Error> {
+                    model.set_data(&xs, &us, &xd)?;
+                    $fit(model, &settings)
+                });
+                crate::warnings::emit(py)?;
+                let report = report.map_err(core_err)?;
                 slf.last_fit = Some(report);
                 if let Some(w) = FitWarning::fit_warning(&slf.model) {
                     let msg = std::ffi::CString::new(w).unwrap_or_default();

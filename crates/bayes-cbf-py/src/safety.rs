@@ -480,18 +480,18 @@ pub fn moments(
         seed,
     };
     let m = &model.model;
-    let r = py
-        .detach(|| {
-            condition_moments(
-                m,
-                b.barrier.as_ref(),
-                &format!("barrier '{}'", b.label),
-                &x,
-                &u,
-                &mc,
-            )
-        })
-        .map_err(scenario_err)?;
+    let r = py.detach(|| {
+        condition_moments(
+            m,
+            b.barrier.as_ref(),
+            &format!("barrier '{}'", b.label),
+            &x,
+            &u,
+            &mc,
+        )
+    });
+    crate::warnings::emit(py)?;
+    let r = r.map_err(scenario_err)?;
     Ok((r.mean, r.variance))
 }
 
@@ -691,7 +691,9 @@ impl PySafetyFilter {
                 "{given}: a reference for a CLF, but this filter has none (give clf=...)"
             )));
         }
-        self.with_step((x, u_ref, x_d, xdot_d), |step| step())?;
+        let stepped = self.with_step((x, u_ref, x_d, xdot_d), |step| step());
+        crate::warnings::emit(py)?;
+        stepped?;
         let (status, fallback, p_star, violated) = status_parts(&self.out);
         let reports = self
             .labels

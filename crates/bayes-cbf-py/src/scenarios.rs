@@ -41,14 +41,14 @@ pub fn run_scenario<'py>(
     if let Some(s) = seed {
         sets.push(format!("seed={s}"));
     }
-    let (output, summary_json) = py
-        .detach(|| -> bayes_cbf_scenario::Result<_> {
-            let (sc, _) = scenario::load(name, &sets)?;
-            let out = run(&sc, |_, _| {})?;
-            let json = serde_json::to_string(&out.summary)?;
-            Ok((Trajectory::of(&out), json))
-        })
-        .map_err(scenario_err)?;
+    let result = py.detach(|| -> bayes_cbf_scenario::Result<_> {
+        let (sc, _) = scenario::load(name, &sets)?;
+        let out = run(&sc, |_, _| {})?;
+        let json = serde_json::to_string(&out.summary)?;
+        Ok((Trajectory::of(&out), json))
+    });
+    crate::warnings::emit(py)?;
+    let (output, summary_json) = result.map_err(scenario_err)?;
     let summary = py
         .import("json")?
         .call_method1("loads", (summary_json,))?

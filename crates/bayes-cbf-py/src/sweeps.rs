@@ -57,10 +57,9 @@ pub fn check_scenario(name: &str, sets: Vec<String>) -> PyResult<()> {
 #[pyfunction]
 pub fn sweep_shard(py: Python<'_>, meta: &str) -> PyResult<String> {
     let meta = parse_meta(meta)?;
-    let rows = py
-        .detach(|| run_seeds(&meta, &|_, _| {}))
-        .map_err(scenario_err)?;
-    Ok(rows_csv(&rows))
+    let rows = py.detach(|| run_seeds(&meta, &|_, _| {}));
+    crate::warnings::emit(py)?;
+    Ok(rows_csv(&rows.map_err(scenario_err)?))
 }
 
 /// Merges shards `(meta JSON, rows CSV)` into the whole sweep: returns the
@@ -99,9 +98,9 @@ pub fn calibration_shard(
         .transpose()
         .map_err(core_err)?;
     let options = calibration::Options { episodes, fallback };
-    let part = py
-        .detach(|| calibration::run_shard(&args, &options, s, &|_: usize, _: usize| {}))
-        .map_err(scenario_err)?;
+    let part = py.detach(|| calibration::run_shard(&args, &options, s, &|_: usize, _: usize| {}));
+    crate::warnings::emit(py)?;
+    let part = part.map_err(scenario_err)?;
     serde_json::to_string(&part).map_err(|e| input_err(e.to_string()))
 }
 
