@@ -57,4 +57,4 @@ def test_the_librarys_warnings_reach_python():
     mean gets wrong) is a UserWarning in Python, not lost."""
     with pytest.warns(UserWarning, match="row 0 of F is declared known"):
         bc.run_scenario("pendulum-safe", seed=1,
-                        overrides={"steps": 60, "gp.prior_mean": "zero"})
+                        overrides={"steps": 60, "gp.prior_mean": {"type": "zero"}})

@@ -523,7 +523,8 @@ pub fn validate(s: &Scenario) -> Result<()> {
 }
 
 /// Applies `key=value` to a TOML table; `key` is a dotted path whose numeric
-/// segments index arrays; `value` is a TOML literal (strings may be bare).
+/// segments index arrays; `value` is a TOML literal (strings may be bare)
+/// or a JSON object (as Python's `json.dumps` writes a dict).
 /// A key the file leaves out (a field with a default, an optional section)
 /// is added, and the typed parse judges it: an unknown one is refused there,
 /// with the list of the known ones.
@@ -542,6 +543,12 @@ pub fn apply_set(table: &mut toml::Table, assignment: &str) -> Result<()> {
             "override '{key}': {text} is outside the range of integers \
              (-9223372036854775808 to 9223372036854775807)"
         ),
+        Err(_) if text.starts_with('{') => match serde_json::from_str::<serde_json::Value>(text) {
+            Ok(json) => {
+                toml::Value::try_from(json).map_err(|e| err!("override '{key}': {text}: {e}"))?
+            }
+            Err(_) => toml::Value::String(text.to_string()),
+        },
         Err(_) => toml::Value::String(text.to_string()),
     };
     let parts: Vec<&str> = key.split('.').collect();
@@ -776,6 +783,26 @@ mod tests {
             "{err}"
         );
         assert!(!err.contains("line"), "{err}");
+        // a JSON object (a Python dict) is the TOML inline table
+        let as_json = load(
+            "double-integrator",
+            &[
+                r#"gp.prior_mean={"type": "pendulum", "mass": 2, "length": 0.5, "gravity": 9.0}"#
+                    .into(),
+            ],
+        )
+        .unwrap()
+        .0;
+        let as_toml = load(
+            "double-integrator",
+            &[
+                r#"gp.prior_mean={type = "pendulum", mass = 2, length = 0.5, gravity = 9.0}"#
+                    .into(),
+            ],
+        )
+        .unwrap()
+        .0;
+        assert_eq!(as_json, as_toml);
         // one that a later override repairs is not blamed
         let err = format!(
             "{:#}",
