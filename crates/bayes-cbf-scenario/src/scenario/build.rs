@@ -372,9 +372,9 @@ static CLF_WITHOUT_PLANNER: AtomicBool = AtomicBool::new(false);
 static START_OUTSIDE: AtomicBool = AtomicBool::new(false);
 static KNOWN_ROW_MISFIT: AtomicBool = AtomicBool::new(false);
 
-/// Warns, once per process, when a run's data stray from a row declared
-/// known (`gp.known_rows`) by more than ten times the label noise
-/// ([`Mvgp::known_row_misfit`]).
+/// Warns, once per process, when a run's data contradict a row declared
+/// known (`gp.known_rows`): a misfit that follows the state and exceeds
+/// half the labels ([`Mvgp::known_row_misfit`]).
 pub(crate) fn warn_known_row_misfit(model: &Mvgp, seed: u64) {
     if let Some(m) = model.known_row_misfit().filter(|m| m.is_large()) {
         warn_once(
