@@ -343,16 +343,17 @@ fn old_points_are_dropped_after_the_recalibration() {
     }
 }
 
-/// The figures quoted above: `cargo test --release --test
-/// closed_loop_learning -- --ignored --nocapture`.
+/// The figures quoted above, on seeds the check above was not written on:
+/// the largest `κ` over seeds 100–119 stays below 3 under both policies
+/// (`-- --nocapture` prints the ranges: 1.42–1.79 and 1.42–1.89).
 #[test]
-#[ignore]
-fn inflation_at_rest_on_fresh_seeds() {
+fn inflation_at_rest_stays_near_one_on_fresh_seeds() {
     for data in [DataPolicy::Window(30), DataPolicy::Budget(30)] {
         let worst: Vec<f64> = (100..120).map(|s| inflation_at_rest(s, data)).collect();
         let (lo, hi) = worst
             .iter()
             .fold((f64::INFINITY, 0.0f64), |(a, b), &w| (a.min(w), b.max(w)));
         println!("{data:?}: largest κ over seeds 100-119 in [{lo:.2}, {hi:.2}]");
+        assert!(hi < 3.0, "{data:?}: inflation rose to {hi} ({worst:?})");
     }
 }
