@@ -114,9 +114,33 @@ macro_rules! bail {
     ($($t:tt)*) => { return Err($crate::err!($($t)*).into()) };
 }
 
+/// Checks that `v` has `len` entries, all finite, naming `field` and what
+/// `len` is (`"the state dimension"`, `"the model's control_dim"`, ...).
+pub fn check_vector(field: &str, v: &[f64], len: usize, what: &str) -> Result<()> {
+    if v.len() != len {
+        bail!("{field} has {} entries, expected {len} ({what})", v.len());
+    }
+    if let Some(i) = v.iter().position(|x| !x.is_finite()) {
+        bail!("{field}[{i}] = {} is not finite", v[i]);
+    }
+    Ok(())
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn vectors_are_checked_for_length_then_finiteness() {
+        let short = check_vector("start", &[0.0], 2, "the state dimension").unwrap_err();
+        assert_eq!(
+            short.to_string(),
+            "start has 1 entries, expected 2 (the state dimension)"
+        );
+        let nan = check_vector("x", &[0.0, f64::NAN], 2, "state_dim").unwrap_err();
+        assert_eq!(nan.to_string(), "x[1] = NaN is not finite");
+        assert!(check_vector("x", &[0.0, 1.0], 2, "state_dim").is_ok());
+    }
 
     #[test]
     fn context_reads_as_a_path() {

@@ -4,7 +4,7 @@
 //! them (interfaces.md).
 
 use crate::bail;
-use crate::error::{Context, Result};
+use crate::error::{check_vector, Context, Result};
 use bayes_cbf::barrier::{
     cbc_moments, mc_cbc_moments, ConditionMoments, DynBarrier, McSettings, MomentWorkspace,
 };
@@ -42,20 +42,6 @@ pub struct MomentsReport {
     pub variance_se: Option<f64>,
 }
 
-/// Checks that `v` has `len` entries, naming `field` and the model's `what`.
-pub fn check_len(field: &str, v: &[f64], len: usize, what: &str) -> Result<()> {
-    if v.len() != len {
-        bail!(
-            "{field} has {} values, but the model's {what} is {len}",
-            v.len()
-        );
-    }
-    if let Some(i) = v.iter().position(|x| !x.is_finite()) {
-        bail!("{field}[{i}] = {} is not finite", v[i]);
-    }
-    Ok(())
-}
-
 /// Checks that `barrier` is for the model's state dimension; `label` names it.
 pub fn check_barrier(model: &Mvgp, barrier: &dyn DynBarrier, label: &str) -> Result<()> {
     let n = model.state_dim();
@@ -82,8 +68,8 @@ pub fn condition_moments(
     // the Monte Carlo settings are checked whether or not this barrier
     // needs them: a bad value is a bad value
     mc.validate()?;
-    check_len("x", x, model.state_dim(), "state_dim")?;
-    check_len("u", u, model.control_dim(), "control_dim")?;
+    check_vector("x", x, model.state_dim(), "the model's state_dim")?;
+    check_vector("u", u, model.control_dim(), "the model's control_dim")?;
     let m = model.control_dim();
     let (mom, method, samples, mean_se, variance_se) = if barrier.relative_degree() <= 2 {
         let mut ws = MomentWorkspace::new(model);
@@ -228,8 +214,8 @@ pub fn control_step(
     for (label, b) in &barriers {
         check_barrier(model, b.as_ref(), label)?;
     }
-    check_len("x", x, n, "state_dim")?;
-    check_len("u_ref", u_ref, m, "control_dim")?;
+    check_vector("x", x, n, "the model's state_dim")?;
+    check_vector("u_ref", u_ref, m, "the model's control_dim")?;
     let labels: Vec<String> = barriers.iter().map(|(l, _)| l.clone()).collect();
     let degrees: Vec<usize> = barriers.iter().map(|(_, b)| b.relative_degree()).collect();
     let bs = barriers.into_iter().map(|(_, b)| b).collect();

@@ -2,7 +2,7 @@
 //! keys rejected, validation with errors that name the field, and
 //! conversion to and from [`Mvgp`].
 
-use crate::error::{Context, Result};
+use crate::error::{check_vector, Context, Result};
 use crate::input_map_spec::{from_input_map, to_input_map, FeatureSpec};
 use crate::prior_spec::PriorSpec;
 use crate::{bail, err};
@@ -114,15 +114,7 @@ fn to_matrix(
 /// names the width).
 fn check_rows(field: &str, rows: &[Vec<f64>], width: usize, what: &str) -> Result<()> {
     for (i, r) in rows.iter().enumerate() {
-        if r.len() != width {
-            bail!(
-                "{field}[{i}] has {} entries, expected {width} ({what})",
-                r.len()
-            );
-        }
-        if let Some(j) = r.iter().position(|v| !v.is_finite()) {
-            bail!("{field}[{i}][{j}] = {} is not finite", r[j]);
-        }
+        check_vector(&format!("{field}[{i}]"), r, width, what)?;
     }
     Ok(())
 }

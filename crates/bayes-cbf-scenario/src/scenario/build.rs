@@ -4,7 +4,7 @@
 use super::{MatrixSpec, ReferenceSpec, Scenario};
 use crate::bail;
 use crate::barrier_file::BarrierSpec;
-use crate::error::{Context, Result};
+use crate::error::{check_vector, Context, Result};
 use crate::input_map_spec::to_input_map;
 use crate::parse::parse_rank;
 use crate::prior_spec::{PriorSpec, SystemNames};
@@ -93,24 +93,14 @@ fn truth(spec: &PriorSpec) -> Result<(Arc<dyn DynSystem>, SystemNames)> {
     Ok((system, names))
 }
 
-fn vector(field: &str, v: &[f64], len: usize, what: &str) -> Result<()> {
-    if v.len() != len {
-        bail!("{field} has {} entries, expected {len} ({what})", v.len());
-    }
-    if let Some(i) = v.iter().position(|x| !x.is_finite()) {
-        bail!("{field}[{i}] = {} is not finite", v[i]);
-    }
-    Ok(())
-}
-
 /// Builds and validates a scenario.
 pub fn build(s: &Scenario) -> Result<Built> {
     let (truth, names) = truth(&s.system)?;
     let (n, m) = (truth.state_dim(), truth.control_dim());
-    vector("start", &s.start, n, "the state dimension")?;
+    check_vector("start", &s.start, n, "the state dimension")?;
     let mut start = s.start.clone();
     if let Some(spread) = &s.start_spread {
-        vector("start_spread", spread, n, "the state dimension")?;
+        check_vector("start_spread", spread, n, "the state dimension")?;
         if let Some(i) = spread.iter().position(|v| *v < 0.0) {
             bail!("start_spread[{i}] = {}: must be ≥ 0", spread[i]);
         }
@@ -130,7 +120,7 @@ pub fn build(s: &Scenario) -> Result<Built> {
         }
     }
     if let Some(g) = &s.goal {
-        vector("goal", g, n, "the state dimension")?;
+        check_vector("goal", g, n, "the state dimension")?;
     }
     if !(s.dt.is_finite() && s.dt > 0.0) {
         bail!(
@@ -199,7 +189,7 @@ pub fn build(s: &Scenario) -> Result<Built> {
         bail!("obstacles: discs in the plane of states 0 and 1 need at least two states");
     }
     for (i, o) in s.obstacles.iter().enumerate() {
-        vector(
+        check_vector(
             &format!("obstacles[{i}].center"),
             &o.center,
             2,
@@ -218,7 +208,7 @@ pub fn build(s: &Scenario) -> Result<Built> {
     let trigger = match &s.trigger {
         None => None,
         Some(t) => {
-            vector("trigger.cuboid", &t.cuboid, n, "the state dimension")?;
+            check_vector("trigger.cuboid", &t.cuboid, n, "the state dimension")?;
             Some(TriggerSettings {
                 lipschitz: LipschitzSettings {
                     delta_l: t.delta_l,
@@ -243,14 +233,14 @@ pub fn build(s: &Scenario) -> Result<Built> {
     settings.lambda = c.lambda;
     settings.predictive = c.predictive;
     if let Some(r) = &c.r {
-        vector("controller.r", r, m, "the control dimension")?;
+        check_vector("controller.r", r, m, "the control dimension")?;
         settings.r = DMatrix::from_diagonal(&nalgebra::DVector::from_column_slice(r));
     }
     if let Some(v) = &c.u_min {
-        vector("controller.u_min", v, m, "the control dimension")?;
+        check_vector("controller.u_min", v, m, "the control dimension")?;
     }
     if let Some(v) = &c.u_max {
-        vector("controller.u_max", v, m, "the control dimension")?;
+        check_vector("controller.u_max", v, m, "the control dimension")?;
     }
     settings.u_min = c.u_min.clone();
     settings.u_max = c.u_max.clone();
@@ -290,20 +280,20 @@ pub fn build(s: &Scenario) -> Result<Built> {
             )
         }
         ReferenceSpec::EpsilonGreedy { lo, hi, decay } => {
-            vector("reference.lo", lo, m, "the control dimension")?;
-            vector("reference.hi", hi, m, "the control dimension")?;
+            check_vector("reference.lo", lo, m, "the control dimension")?;
+            check_vector("reference.hi", hi, m, "the control dimension")?;
             Box::new(
                 EpsilonGreedy::new(lo.clone(), hi.clone(), *decay)
                     .map_err(|e| crate::err!("reference: {e}"))?,
             )
         }
         ReferenceSpec::Constant { u } => {
-            vector("reference.u", u, m, "the control dimension")?;
+            check_vector("reference.u", u, m, "the control dimension")?;
             Box::new(ConstantReference(u.clone()))
         }
         ReferenceSpec::Feedback { u0, gain, target } => {
-            vector("reference.u0", u0, m, "the control dimension")?;
-            vector("reference.target", target, n, "the state dimension")?;
+            check_vector("reference.u0", u0, m, "the control dimension")?;
+            check_vector("reference.target", target, n, "the state dimension")?;
             Box::new(
                 LinearFeedback::new(
                     u0.clone(),
