@@ -193,25 +193,24 @@ where
             false
         }
         Layer::HLine {
-            y,
+            y: at,
             color,
             dashed,
             name,
-        } => {
-            let style = solid(*color, 2);
-            let segs = segments(vec![(x0, *y), (x1, *y)]);
-            let anno = draw_lines(ch, segs, style, *dashed)?;
-            legend(anno, name, style, if *dashed { 5 } else { 0 })
         }
-        Layer::VLine {
-            x,
+        | Layer::VLine {
+            x: at,
             color,
             dashed,
             name,
         } => {
             let style = solid(*color, 2);
-            let segs = segments(vec![(*x, y0), (*x, y1)]);
-            let anno = draw_lines(ch, segs, style, *dashed)?;
+            let ends = if matches!(layer, Layer::HLine { .. }) {
+                vec![(x0, *at), (x1, *at)]
+            } else {
+                vec![(*at, y0), (*at, y1)]
+            };
+            let anno = draw_lines(ch, segments(ends), style, *dashed)?;
             legend(anno, name, style, if *dashed { 5 } else { 0 })
         }
         Layer::HBand {
