@@ -1,4 +1,5 @@
-//! All-or-nothing file output: a file is written completely or not at all.
+//! All-or-nothing file output: a file is written completely or not at all,
+//! and a run's directory receives all of its files or none.
 
 use crate::err;
 use crate::error::{Context, Result};
@@ -6,10 +7,50 @@ use std::io::Write;
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicU64, Ordering};
 
-/// Writes `contents` to `path` completely or not at all: the bytes go to a
-/// temporary file in the same directory, which is then renamed over `path`.
-/// Missing parent directories are created.
-pub fn write_atomic(path: &Path, contents: &[u8]) -> Result<()> {
+/// Where the bytes meant for a path go.
+enum Destination {
+    /// A regular file, or none yet: a temporary sibling renamed over it.
+    Replace(PathBuf),
+    /// A FIFO, a terminal or another device (`/dev/stdout`): written in
+    /// place, as a rename would put a regular file in its stead.
+    Stream(PathBuf),
+}
+
+/// Says how the file at `path` is written, through symbolic links (the
+/// link stays, its file is written).
+fn destination(path: &Path) -> Result<Destination> {
+    match std::fs::metadata(path) {
+        Ok(m) if m.is_dir() => Err(err!("output path '{}' is a directory", path.display())),
+        Ok(m) if m.is_file() => Ok(Destination::Replace(
+            std::fs::canonicalize(path)
+                .with_context(|| format!("cannot resolve '{}'", path.display()))?,
+        )),
+        Ok(_) => Ok(Destination::Stream(path.to_path_buf())),
+        // missing, or a link to a missing file: the link's file is created
+        Err(_) => {
+            let mut p = path.to_path_buf();
+            for _ in 0..40 {
+                match std::fs::read_link(&p) {
+                    Ok(target) => {
+                        p = match p.parent() {
+                            Some(dir) => dir.join(target),
+                            None => target,
+                        }
+                    }
+                    Err(_) => return Ok(Destination::Replace(p)),
+                }
+            }
+            Err(err!(
+                "output path '{}': too many levels of symbolic links",
+                path.display()
+            ))
+        }
+    }
+}
+
+/// A temporary sibling of `path`, keeping its extension (plotters picks the
+/// image format from it); the directory is created if missing.
+fn temp_sibling(path: &Path) -> Result<PathBuf> {
     static COUNTER: AtomicU64 = AtomicU64::new(0);
     let name = path
         .file_name()
@@ -20,24 +61,61 @@ pub fn write_atomic(path: &Path, contents: &[u8]) -> Result<()> {
     };
     std::fs::create_dir_all(&dir)
         .with_context(|| format!("cannot create output directory '{}'", dir.display()))?;
-    let tmp = dir.join(format!(
-        ".{}.tmp-{}-{}",
+    let ext = path
+        .extension()
+        .map(|e| format!(".{}", e.to_string_lossy()))
+        .unwrap_or_default();
+    Ok(dir.join(format!(
+        ".{}.tmp-{}-{}{ext}",
         name.to_string_lossy(),
         std::process::id(),
         COUNTER.fetch_add(1, Ordering::Relaxed)
-    ));
-    let result = (|| -> std::io::Result<()> {
-        let mut f = std::fs::File::create(&tmp)?;
-        f.write_all(contents)?;
-        f.sync_all()?;
-        drop(f);
-        std::fs::rename(&tmp, path)
-    })();
-    if let Err(e) = result {
-        let _ = std::fs::remove_file(&tmp);
-        return Err(e).with_context(|| format!("cannot write output file '{}'", path.display()));
+    )))
+}
+
+/// Runs `write(tmp)`, which writes a temporary file, and moves its bytes to
+/// `path`: renamed over a regular file (or a new one), copied into a FIFO
+/// or device; through symbolic links to their file. The temporary file is
+/// removed on failure, so `path` is written completely or not at all.
+pub fn write_via_temp(path: &Path, write: impl FnOnce(&Path) -> Result<()>) -> Result<()> {
+    let fail = || format!("cannot write output file '{}'", path.display());
+    match destination(path)? {
+        Destination::Replace(dest) => {
+            let tmp = temp_sibling(&dest)?;
+            let result = write(&tmp).and_then(|()| std::fs::rename(&tmp, &dest).with_context(fail));
+            if result.is_err() {
+                let _ = std::fs::remove_file(&tmp);
+            }
+            result
+        }
+        Destination::Stream(dest) => {
+            let tmp =
+                temp_sibling(&std::env::temp_dir().join(path.file_name().unwrap_or_default()))?;
+            let result = write(&tmp).and_then(|()| {
+                (|| -> std::io::Result<()> {
+                    let mut to = std::fs::OpenOptions::new().write(true).open(&dest)?;
+                    std::io::copy(&mut std::fs::File::open(&tmp)?, &mut to)?;
+                    to.flush()
+                })()
+                .with_context(fail)
+            });
+            let _ = std::fs::remove_file(&tmp);
+            result
+        }
     }
-    Ok(())
+}
+
+/// Writes `contents` to `path` completely or not at all (see
+/// [`write_via_temp`]). Missing parent directories are created.
+pub fn write_atomic(path: &Path, contents: &[u8]) -> Result<()> {
+    write_via_temp(path, |tmp| {
+        (|| -> std::io::Result<()> {
+            let mut f = std::fs::File::create(tmp)?;
+            f.write_all(contents)?;
+            f.sync_all()
+        })()
+        .with_context(|| format!("cannot write output file '{}'", path.display()))
+    })
 }
 
 /// Writes `value` as pretty JSON (and a final newline) to `path`,
@@ -48,19 +126,193 @@ pub fn write_json<T: serde::Serialize + ?Sized>(path: &Path, value: &T) -> Resul
     write_atomic(path, text.as_bytes())
 }
 
+/// An output directory filled all at once: files are written into a hidden
+/// sibling staging directory ([`path`](Self::path)), and
+/// [`publish`](Self::publish) moves them into place. Dropped unpublished
+/// (an error on the way), the staging directory is removed and the output
+/// directory is left as it was.
+#[derive(Debug)]
+pub struct StagedDir {
+    stage: PathBuf,
+    out: PathBuf,
+}
+
+impl StagedDir {
+    /// Stages the files of the output directory `out`. Errors if `out`
+    /// exists and is not a directory, or its parent cannot be written.
+    pub fn new(out: &Path) -> Result<Self> {
+        if out.exists() && !out.is_dir() {
+            return Err(err!(
+                "output directory '{}' exists and is not a directory",
+                out.display()
+            ));
+        }
+        // `--out .`: the staging directory goes next to the directory itself
+        let named = match out.file_name() {
+            Some(_) => out.to_path_buf(),
+            None => std::fs::canonicalize(out)
+                .with_context(|| format!("cannot resolve '{}'", out.display()))?,
+        };
+        let tmp = temp_sibling(&named)?;
+        std::fs::create_dir(&tmp)
+            .with_context(|| format!("cannot create a directory next to '{}'", out.display()))?;
+        Ok(Self {
+            stage: tmp,
+            out: out.to_path_buf(),
+        })
+    }
+
+    /// The staging directory: write the outputs here.
+    pub fn path(&self) -> &Path {
+        &self.stage
+    }
+
+    /// The final output directory.
+    pub fn out(&self) -> &Path {
+        &self.out
+    }
+
+    /// Moves every staged file into the output directory (created if
+    /// missing; files of the same names replaced, others kept), each by a
+    /// rename.
+    pub fn publish(self) -> Result<()> {
+        move_tree(&self.stage, &self.out)
+            .with_context(|| format!("cannot move the outputs into '{}'", self.out.display()))
+    }
+}
+
+impl Drop for StagedDir {
+    fn drop(&mut self) {
+        let _ = std::fs::remove_dir_all(&self.stage);
+    }
+}
+
+/// Renames every file below `from` to the same place below `to`.
+fn move_tree(from: &Path, to: &Path) -> std::io::Result<()> {
+    std::fs::create_dir_all(to)?;
+    let mut entries: Vec<_> = std::fs::read_dir(from)?.collect::<std::io::Result<_>>()?;
+    // files before subdirectories, and in a fixed order
+    entries.sort_by_key(|e| (e.path().is_dir(), e.file_name()));
+    for e in entries {
+        let target = to.join(e.file_name());
+        if e.file_type()?.is_dir() {
+            move_tree(&e.path(), &target)?;
+        } else {
+            std::fs::rename(e.path(), &target)?;
+        }
+    }
+    Ok(())
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
 
+    fn scratch(name: &str) -> PathBuf {
+        let dir = std::env::temp_dir().join(format!("bayes-cbf-io-{}-{name}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        dir
+    }
+
     #[test]
     fn atomic_write_replaces_file() {
-        let dir = std::env::temp_dir().join(format!("bayes-cbf-util-{}", std::process::id()));
+        let dir = scratch("replace");
         let p = dir.join("sub").join("out.txt");
         write_atomic(&p, b"one").unwrap();
         write_atomic(&p, b"two").unwrap();
         assert_eq!(std::fs::read_to_string(&p).unwrap(), "two");
         let leftovers = std::fs::read_dir(p.parent().unwrap()).unwrap().count();
         assert_eq!(leftovers, 1);
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    #[cfg(unix)]
+    #[test]
+    fn links_are_written_through_and_fifos_in_place() {
+        let dir = scratch("links");
+        std::fs::create_dir_all(&dir).unwrap();
+        let real = dir.join("real.json");
+        std::fs::write(&real, "old").unwrap();
+        let link = dir.join("link.json");
+        std::os::unix::fs::symlink("real.json", &link).unwrap();
+        write_atomic(&link, b"new").unwrap();
+        assert!(std::fs::symlink_metadata(&link)
+            .unwrap()
+            .file_type()
+            .is_symlink());
+        assert_eq!(std::fs::read_to_string(&real).unwrap(), "new");
+        // a dangling link creates its file
+        let dangling = dir.join("dangling.json");
+        std::os::unix::fs::symlink("made.json", &dangling).unwrap();
+        write_atomic(&dangling, b"made").unwrap();
+        assert_eq!(
+            std::fs::read_to_string(dir.join("made.json")).unwrap(),
+            "made"
+        );
+        // a FIFO is written in place and stays a FIFO
+        let fifo = dir.join("fifo");
+        let made = std::process::Command::new("mkfifo").arg(&fifo).status();
+        if made.is_ok_and(|s| s.success()) {
+            // (checked first: a FIFO renamed over would leave the reader waiting)
+            assert!(matches!(destination(&fifo), Ok(Destination::Stream(_))));
+            let reader = {
+                let fifo = fifo.clone();
+                std::thread::spawn(move || std::fs::read(fifo).unwrap())
+            };
+            write_atomic(&fifo, b"through").unwrap();
+            assert_eq!(reader.join().unwrap(), b"through");
+            assert!(!std::fs::metadata(&fifo).unwrap().is_file());
+        }
+        let e = write_atomic(&dir, b"x").unwrap_err();
+        assert!(e.to_string().contains("is a directory"), "{e}");
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    #[test]
+    fn a_staged_directory_is_published_whole_or_not_at_all() {
+        let dir = scratch("staged");
+        let out = dir.join("run");
+        // an earlier run's files: replaced by name, others kept
+        write_atomic(&out.join("summary.json"), b"old").unwrap();
+        write_atomic(&out.join("keep.txt"), b"keep").unwrap();
+        {
+            let st = StagedDir::new(&out).unwrap();
+            write_atomic(&st.path().join("summary.json"), b"half").unwrap();
+            // dropped without publishing: nothing moves, nothing is left
+        }
+        assert_eq!(
+            std::fs::read_to_string(out.join("summary.json")).unwrap(),
+            "old"
+        );
+        assert_eq!(
+            std::fs::read_dir(&dir).unwrap().count(),
+            1,
+            "staging left behind"
+        );
+        let st = StagedDir::new(&out).unwrap();
+        write_atomic(&st.path().join("summary.json"), b"new").unwrap();
+        write_atomic(&st.path().join("sub").join("a.csv"), b"a").unwrap();
+        st.publish().unwrap();
+        assert_eq!(
+            std::fs::read_to_string(out.join("summary.json")).unwrap(),
+            "new"
+        );
+        assert_eq!(
+            std::fs::read_to_string(out.join("sub").join("a.csv")).unwrap(),
+            "a"
+        );
+        assert_eq!(
+            std::fs::read_to_string(out.join("keep.txt")).unwrap(),
+            "keep"
+        );
+        assert_eq!(
+            std::fs::read_dir(&dir).unwrap().count(),
+            1,
+            "staging left behind"
+        );
+        // an output path that is a file is refused before anything runs
+        let e = StagedDir::new(&out.join("keep.txt")).unwrap_err();
+        assert!(e.to_string().contains("not a directory"), "{e}");
         std::fs::remove_dir_all(&dir).unwrap();
     }
 }

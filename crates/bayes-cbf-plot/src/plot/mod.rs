@@ -31,9 +31,9 @@ mod layers;
 mod tests;
 
 use crate::{bail, err, Context, Result};
+use bayes_cbf_scenario::io::write_via_temp;
 use plotters::prelude::*;
-use std::path::{Path, PathBuf};
-use std::sync::atomic::{AtomicU64, Ordering};
+use std::path::Path;
 use std::sync::OnceLock;
 
 pub use colormap::finite_min_max as finite_range;
@@ -385,43 +385,21 @@ pub(crate) fn ensure_font() -> Result<()> {
     }
 }
 
-/// A temporary sibling of `path` keeping its extension (plotters picks the
-/// image format from it), and the directory, created if missing.
-fn temp_sibling(path: &Path) -> Result<PathBuf> {
-    static COUNTER: AtomicU64 = AtomicU64::new(0);
-    let name = path
-        .file_name()
-        .ok_or_else(|| err!("output path '{}' has no file name", path.display()))?;
-    let ext = path.extension().and_then(|e| e.to_str()).unwrap_or("png");
-    let dir = match path.parent() {
-        Some(d) if !d.as_os_str().is_empty() => d.to_path_buf(),
-        _ => PathBuf::from("."),
-    };
-    std::fs::create_dir_all(&dir)
-        .with_context(|| format!("cannot create output directory '{}'", dir.display()))?;
-    Ok(dir.join(format!(
-        ".{}.tmp-{}-{}.{ext}",
-        name.to_string_lossy(),
-        std::process::id(),
-        COUNTER.fetch_add(1, Ordering::Relaxed)
-    )))
-}
-
-/// Runs `write(tmp)` and renames `tmp` over `path`, removing `tmp` on failure.
-fn write_via_temp(path: &Path, write: impl FnOnce(&Path) -> Result<()>) -> Result<()> {
-    let tmp = temp_sibling(path)?;
-    let result = write(&tmp).and_then(|()| {
-        std::fs::rename(&tmp, path)
-            .with_context(|| format!("cannot write output file '{}'", path.display()))
-    });
-    if result.is_err() {
-        let _ = std::fs::remove_file(&tmp);
+/// Checks that `path` ends in `.{ext}`, from which the encoder picks the
+/// image format.
+fn check_extension(path: &Path, ext: &str) -> Result<()> {
+    match path.extension() {
+        Some(e) if e.eq_ignore_ascii_case(ext) => Ok(()),
+        _ => Err(err!(
+            "output file '{}' must end in .{ext} (the image format)",
+            path.display()
+        )),
     }
-    result
 }
 
 /// Renders `fig` to the PNG file `path` (written completely or not at all).
 pub fn render_png(fig: &Figure, path: &Path) -> Result<()> {
+    check_extension(path, "png")?;
     fig.check()?;
     ensure_font()?;
     write_via_temp(path, |tmp| {
@@ -437,6 +415,7 @@ pub fn render_png(fig: &Figure, path: &Path) -> Result<()> {
 /// Renders `frames` as an animated GIF at `path`, `frame_delay_ms` per frame
 /// (written completely or not at all). All frames take the first frame's size.
 pub fn render_gif(frames: &[Figure], frame_delay_ms: u32, path: &Path) -> Result<()> {
+    check_extension(path, "gif")?;
     let first = frames
         .first()
         .ok_or_else(|| err!("an animation needs at least one frame"))?;

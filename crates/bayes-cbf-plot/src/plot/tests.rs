@@ -367,7 +367,14 @@ fn invalid_figures_are_errors_and_leave_no_file() {
         .unwrap_err()
         .to_string()
         .contains("frame 1"));
+    let plain = Figure::single(400, 300, Panel::default());
+    assert!(render_png(&plain, &dir.join("x.gif"))
+        .unwrap_err()
+        .to_string()
+        .contains("must end in .png"));
     assert_eq!(std::fs::read_dir(&dir).unwrap().count(), 0);
+    render_png(&plain, &dir.join("upper.PNG")).unwrap();
+    assert_eq!(png_size(&dir.join("upper.PNG")), (400, 300));
     std::fs::remove_dir_all(&dir).unwrap();
 }
 
