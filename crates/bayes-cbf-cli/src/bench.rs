@@ -22,6 +22,6 @@ pub struct BenchArgs {
 
 /// Runs `bayes-cbf bench`.
 pub fn run_bench(a: &BenchArgs) -> Result<()> {
-    let result = measure(a.quick, a.threads, &|stage| eprintln!("bench: {stage}"))?;
+    let result = measure(a.quick, a.threads, &|stage| note!("bench: {stage}"))?;
     crate::output::emit(&result, &a.out, true)
 }

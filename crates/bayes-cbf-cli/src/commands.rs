@@ -152,7 +152,7 @@ pub fn run_fit(a: &FitArgs) -> Result<()> {
     }
     let file = ModelFile::from_model(&model, &prior);
     write_atomic(&a.out, file.to_json()?.as_bytes())?;
-    eprintln!(
+    note!(
         "fit: k = {}, log-likelihood {:.3} -> {:.3}, {} start(s), {} evaluations, rank A {} / B {}, {:.2} s, wrote {}",
         model.len(),
         report.initial_log_likelihood,

@@ -3,12 +3,12 @@
 //! report.
 
 use crate::logger::hold_warnings;
+use crate::output::print_stdout;
 use anyhow::{Context, Result};
 use bayes_cbf_scenario::experiments::learning_demo::{self, Settings};
-use bayes_cbf_scenario::io::{write_atomic, write_json};
+use bayes_cbf_scenario::io::{write_atomic, write_json, StagedDir};
 use clap::{Args, ValueEnum};
 use serde_json::json;
-use std::io::Write;
 use std::path::PathBuf;
 
 /// How the demo collects its training data.
@@ -68,16 +68,22 @@ pub fn run_demo(a: &DemoArgs) -> Result<()> {
             Sampling::Uniform => learning_demo::Sampling::Uniform,
         },
     };
+    let staged = StagedDir::new(&a.out)?;
     let demo = hold_warnings("hyperparameter fitting", || learning_demo::run(&settings))?;
     let s = &demo.summary;
     let model_path = a.out.join("model.json");
     let grid_path = a.out.join(&demo.grid.file);
     let summary_path = a.out.join("summary.json");
-    write_atomic(&model_path, demo.model_file().to_json()?.as_bytes())?;
-    write_atomic(&grid_path, demo.grid.csv.as_bytes())?;
+    let stage = staged.path();
+    write_atomic(
+        &stage.join("model.json"),
+        demo.model_file().to_json()?.as_bytes(),
+    )?;
+    write_atomic(&stage.join(&demo.grid.file), demo.grid.csv.as_bytes())?;
     let mut summary = serde_json::to_value(s).context("cannot serialise the summary")?;
     summary["files"] = json!({"model": model_path, "grid": grid_path, "summary": summary_path});
-    write_json(&summary_path, &summary)?;
+    write_json(&stage.join("summary.json"), &summary)?;
+    staged.publish()?;
 
     let (g, r) = (a.grid, &s.rel_rmse);
     let report_text = format!(
@@ -102,8 +108,5 @@ pub fn run_demo(a: &DemoArgs) -> Result<()> {
         gp = grid_path.display(),
         sp = summary_path.display(),
     );
-    let mut out = std::io::stdout().lock();
-    out.write_all(report_text.as_bytes())
-        .and_then(|()| out.flush())
-        .context("cannot write to stdout")
+    print_stdout(&report_text)
 }

@@ -46,7 +46,7 @@ impl log::Log for StderrLogger {
             }
             return;
         }
-        eprintln!("{}: {}", label(record.level()), record.args());
+        note!("{}: {}", label(record.level()), record.args());
     }
 
     fn flush(&self) {}
@@ -72,7 +72,7 @@ pub fn hold_warnings<T>(what: &str, f: impl FnOnce() -> T) -> T {
     let (out, held, first) = collect_warnings(f);
     if held > 0 {
         let first = first.unwrap_or_default();
-        eprintln!("warning: {held} warning(s) during {what}, the first: {first} (-v shows all)");
+        note!("warning: {held} warning(s) during {what}, the first: {first} (-v shows all)");
     }
     out
 }

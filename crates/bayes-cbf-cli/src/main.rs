@@ -1,9 +1,27 @@
 //! `bayes-cbf`: learn control-affine dynamics `ẋ = F(x)u̲` with a
 //! matrix-variate Gaussian process and query the learned model.
 //!
-//! Without a subcommand it runs the pendulum learning demo. Every error
-//! exits non-zero with a one-line `error: ...` message on stderr naming the
-//! bad field or value; JSON results go to stdout unless `--out` is given.
+//! Without a subcommand it runs the default job: the mean CBF against the
+//! Bayes CBF on the Ackermann vehicle (paper, Fig. 7). Every error exits
+//! non-zero with a one-line `error: ...` message on stderr naming the bad
+//! field or value; JSON results go to stdout unless `--out` is given.
+
+/// `eprintln!` that ignores a failed write: a full or closed stderr does
+/// not end a run, nor change its exit status.
+macro_rules! note {
+    ($($t:tt)*) => {{
+        use std::io::Write as _;
+        let _ = writeln!(std::io::stderr(), $($t)*);
+    }};
+}
+
+/// `eprint!` that ignores a failed write (see `note!`).
+macro_rules! note_part {
+    ($($t:tt)*) => {{
+        use std::io::Write as _;
+        let _ = write!(std::io::stderr(), $($t)*);
+    }};
+}
 
 mod bench;
 mod commands;
@@ -20,7 +38,8 @@ use std::process::ExitCode;
 /// Matrix-variate Gaussian-process learning of control-affine dynamics with
 /// probabilistic control barrier functions (Dhiman et al., IEEE TAC 2021).
 ///
-/// Without a subcommand, runs the pendulum learning demo (`bayes-cbf demo`).
+/// Without a subcommand, runs the default job: the mean CBF against the
+/// Bayes CBF on the Ackermann vehicle, outputs in runs/demo/.
 #[derive(Debug, Parser)]
 #[command(name = "bayes-cbf", version, about, long_about = None)]
 struct Cli {
@@ -85,7 +104,7 @@ fn main() -> ExitCode {
                     ExitCode::SUCCESS
                 }
                 _ => {
-                    eprintln!("{}", one_line_clap_error(&e));
+                    note!("{}", one_line_clap_error(&e));
                     ExitCode::from(2)
                 }
             };
@@ -109,7 +128,7 @@ fn main() -> ExitCode {
         Err(e) => {
             // `{:#}` joins the context chain with ": " on one line.
             let msg = format!("{e:#}").replace('\n', " ");
-            eprintln!("error: {msg}");
+            note!("error: {msg}");
             ExitCode::FAILURE
         }
     }

@@ -18,11 +18,15 @@ pub fn emit<T: Serialize + ?Sized>(value: &T, out: &Option<PathBuf>, pretty: boo
     json.push('\n');
     match out {
         Some(p) => Ok(write_atomic(p, json.as_bytes())?),
-        None => {
-            let mut o = std::io::stdout().lock();
-            o.write_all(json.as_bytes())
-                .and_then(|()| o.flush())
-                .context("cannot write to stdout")
-        }
+        None => print_stdout(&json),
     }
+}
+
+/// Writes `text` to stdout; a full disk or a closed pipe is an error, not
+/// a panic.
+pub fn print_stdout(text: &str) -> Result<()> {
+    let mut o = std::io::stdout().lock();
+    o.write_all(text.as_bytes())
+        .and_then(|()| o.flush())
+        .context("cannot write to stdout")
 }

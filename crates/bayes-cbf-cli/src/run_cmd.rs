@@ -1,11 +1,12 @@
 //! `bayes-cbf run` and `bayes-cbf list`.
 
 use crate::logger::hold_warnings;
+use crate::output::print_stdout;
 use anyhow::Result;
 use bayes_cbf::control::Fallback;
 use bayes_cbf_plot::{comparison_figure, experiment_figures, write_figures};
 use bayes_cbf_scenario::experiments::{self, calibration, ExperimentArgs, ExperimentResult, Sizes};
-use bayes_cbf_scenario::io::{write_atomic, write_json};
+use bayes_cbf_scenario::io::{write_atomic, write_json, StagedDir};
 use bayes_cbf_scenario::scenario::{self, trajectory_csv, RunOutput, BUILTIN};
 use clap::Args;
 use indicatif::{ProgressBar, ProgressStyle};
@@ -152,21 +153,22 @@ pub fn run(a: &RunArgs) -> Result<()> {
     }
     let (sc, merged) = scenario::load(&a.scenario, &sets)?;
     if a.print_config {
-        print!("{merged}");
-        return Ok(());
+        return print_stdout(&merged);
     }
     let out = a
         .out
         .clone()
         .unwrap_or_else(|| PathBuf::from("runs").join(&sc.name));
-    let (output, figures) = run_and_plot(&sc, &out, true)?;
+    let staged = StagedDir::new(&out)?;
+    let (output, figures) = run_and_plot(&sc, staged.path(), true)?;
+    staged.publish()?;
     let s = &output.summary;
     let opt = |v: Option<f64>| v.map_or("null".to_string(), |d| d.to_string());
-    eprintln!(
+    note!(
         "{}: collided {}, min barrier {:?}, min obstacle distance {}, final goal distance {}, infeasible steps {}, control step p50 {:.0} µs",
         sc.name, s.collided, s.min_barrier, opt(s.min_obstacle_distance), opt(s.final_goal_distance), s.infeasible_steps, s.control_step_us.p50
     );
-    eprintln!(
+    note!(
         "wrote {}: summary.json, trajectory.csv{}",
         out.display(),
         figures
@@ -200,9 +202,9 @@ fn run_and_plot(
     let name = sc.name.clone();
     let output = scenario::run_scenario(sc, |k, steps| {
         if show && (k % 10 == 0 || k + 1 == steps) {
-            eprint!("\r{name}: step {}/{steps}", k + 1);
+            note_part!("\r{name}: step {}/{steps}", k + 1);
             if k + 1 == steps {
-                eprintln!();
+                note!();
             }
         }
     })?;
@@ -224,6 +226,7 @@ fn run_experiment(name: &str, out: &Path, args: &ExperimentArgs, sizes: &Sizes) 
         "soak" => "steps",
         _ => "fits",
     };
+    let staged = StagedDir::new(out)?;
     let bar = progress_bar(name, unit);
     let progress = |done: usize, total: usize| {
         bar.set_length(total as u64);
@@ -233,25 +236,34 @@ fn run_experiment(name: &str, out: &Path, args: &ExperimentArgs, sizes: &Sizes) 
         experiments::run_sized(name, args, sizes, &progress)
     })?;
     bar.finish_and_clear();
-    write_experiment(name, &result, out)
+    write_experiment(name, &result, staged)
 }
 
-/// Writes an experiment's tables, figures and summary into `out`, the
-/// summary last.
-pub fn write_experiment(name: &str, result: &ExperimentResult, out: &Path) -> Result<()> {
-    std::fs::create_dir_all(out)?;
+/// Writes an experiment's tables, figures and summary into the output
+/// directory `staged` stands for, all of them or none.
+pub fn write_experiment(name: &str, result: &ExperimentResult, staged: StagedDir) -> Result<()> {
+    let stage = staged.path();
     for t in result.tables() {
-        write_atomic(&out.join(&t.file), t.csv.as_bytes())?;
+        write_atomic(&stage.join(&t.file), t.csv.as_bytes())?;
     }
     if let ExperimentResult::AckermannTriggering(r) = result {
         for (dir, o) in &r.runs {
-            write_run(o, &out.join(dir))?;
+            write_run(o, &stage.join(dir))?;
         }
     }
-    let figures = experiment_figures(result, out)?;
-    write_json(&out.join("summary.json"), &result.summary())?;
+    let figures = experiment_figures(result, stage)?;
+    write_json(&stage.join("summary.json"), &result.summary())?;
+    let in_top = |p: &&PathBuf| p.parent() == Some(stage);
+    let figures: Vec<String> = figures
+        .iter()
+        .filter(in_top)
+        .filter_map(|p| p.file_name())
+        .map(|n| n.to_string_lossy().into_owned())
+        .collect();
+    let out = staged.out().to_path_buf();
+    staged.publish()?;
     match result {
-        ExperimentResult::Calibration(r) => eprint!("{}", r.console_table),
+        ExperimentResult::Calibration(r) => note_part!("{}", r.console_table),
         ExperimentResult::Soak(r) if r.non_finite > 0 => anyhow::bail!(
             "soak: {} step(s) produced non-finite values (see {})",
             r.non_finite,
@@ -261,30 +273,25 @@ pub fn write_experiment(name: &str, result: &ExperimentResult, out: &Path) -> Re
     }
     let files: Vec<String> = std::iter::once("summary.json".to_string())
         .chain(result.tables().iter().map(|t| t.file.clone()))
-        .chain(
-            figures
-                .iter()
-                .filter(|p| p.parent() == Some(out))
-                .filter_map(|p| p.file_name())
-                .map(|n| n.to_string_lossy().into_owned()),
-        )
+        .chain(figures)
         .collect();
-    eprintln!("{name}: wrote {}: {}", out.display(), files.join(", "));
+    note!("{name}: wrote {}: {}", out.display(), files.join(", "));
     Ok(())
 }
 
 /// Runs `bayes-cbf list`.
 pub fn list() -> Result<()> {
+    let mut text = String::new();
     for (name, _) in BUILTIN {
         let desc = scenario::load(name, &[])
             .map(|(s, _)| s.description)
             .unwrap_or_default();
-        println!("{name:<24} {desc}");
+        text += &format!("{name:<24} {desc}\n");
     }
     for (name, desc) in experiments::EXPERIMENTS {
-        println!("{name:<24} {desc}");
+        text += &format!("{name:<24} {desc}\n");
     }
-    Ok(())
+    print_stdout(&text)
 }
 
 /// The default job (`bayes-cbf` without a subcommand): the mean CBF against
@@ -292,21 +299,26 @@ pub fn list() -> Result<()> {
 /// from the model's (1), side by side (paper, Fig. 7).
 pub fn default_job() -> Result<()> {
     let root = PathBuf::from("runs/demo");
+    let staged = StagedDir::new(&root)?;
     let mut outputs = Vec::new();
     for (name, dir) in [
         ("ackermann-mean-cbf", "mean-cbf"),
         ("ackermann-bayes-cbf", "bayes-cbf"),
     ] {
         let (sc, _) = scenario::load(name, &[])?;
-        let out = root.join(dir);
-        outputs.push(run_and_plot(&sc, &out, true)?.0);
+        outputs.push(run_and_plot(&sc, &staged.path().join(dir), true)?.0);
     }
+    comparison_figure(
+        &outputs[0],
+        &outputs[1],
+        &staged.path().join("comparison.png"),
+    )?;
+    staged.publish()?;
     let comparison = root.join("comparison.png");
-    comparison_figure(&outputs[0], &outputs[1], &comparison)?;
-    eprintln!("Ackermann vehicle, true wheelbase 12, model wheelbase 1 (paper, Fig. 7):");
+    note!("Ackermann vehicle, true wheelbase 12, model wheelbase 1 (paper, Fig. 7):");
     for o in &outputs {
         let s = &o.summary;
-        eprintln!(
+        note!(
             "  {:<22} p = {:<4}  collided: {:<5}  closest obstacle distance {:>7.3} m  final distance to goal {:.2} m",
             o.scenario.name,
             o.scenario.controller.probability,
@@ -315,9 +327,7 @@ pub fn default_job() -> Result<()> {
             s.final_goal_distance.unwrap_or(f64::NAN)
         );
     }
-    eprintln!("wrote {} (side by side), and runs/demo/mean-cbf/, runs/demo/bayes-cbf/ (summary.json, trajectory.csv, trajectory.png, timeseries.png, animation.gif)", comparison.display());
-    eprintln!(
-        "more: `bayes-cbf list` shows every built-in scenario; `bayes-cbf run NAME` runs one"
-    );
+    note!("wrote {} (side by side), and runs/demo/mean-cbf/, runs/demo/bayes-cbf/ (summary.json, trajectory.csv, trajectory.png, timeseries.png, animation.gif)", comparison.display());
+    note!("more: `bayes-cbf list` shows every built-in scenario; `bayes-cbf run NAME` runs one");
     Ok(())
 }

@@ -5,7 +5,7 @@ use crate::run_cmd::{progress_bar, write_experiment};
 use anyhow::{bail, Context, Result};
 use bayes_cbf_scenario::experiments::calibration::{self, CalibrationPart};
 use bayes_cbf_scenario::experiments::{ExperimentArgs, ExperimentResult};
-use bayes_cbf_scenario::io::{write_atomic, write_json};
+use bayes_cbf_scenario::io::{write_atomic, write_json, StagedDir};
 use bayes_cbf_scenario::sweep::{
     merge_sweeps, parse_rows_csv, rows_csv, run_seeds, summarise, SeedRange, Shard, SweepMeta,
 };
@@ -45,21 +45,25 @@ pub fn run_sweep(
             .unwrap_or(Shard::WHOLE),
         goal_tolerance: GOAL_TOLERANCE,
     };
+    let staged = StagedDir::new(out)?;
     let bar = progress_bar(&format!("{scenario} seeds"), "runs");
     let rows = run_seeds(&meta, &|done, total| {
         bar.set_length(total as u64);
         bar.set_position(done as u64);
     })?;
     bar.finish_and_clear();
-    std::fs::create_dir_all(out)?;
-    write_atomic(&out.join("sweep.csv"), rows_csv(&rows).as_bytes())?;
-    write_json(&out.join("shard.json"), &meta)?;
+    let stage = staged.path();
+    write_atomic(&stage.join("sweep.csv"), rows_csv(&rows).as_bytes())?;
+    write_json(&stage.join("shard.json"), &meta)?;
     let mut files = "sweep.csv, shard.json".to_string();
-    if meta.shard == Shard::WHOLE {
-        let summary = summarise(&meta, &rows);
-        write_json(&out.join("sweep_summary.json"), &summary)?;
+    let summary = (meta.shard == Shard::WHOLE).then(|| summarise(&meta, &rows));
+    if let Some(summary) = &summary {
+        write_json(&stage.join("sweep_summary.json"), summary)?;
         files += ", sweep_summary.json";
-        eprintln!(
+    }
+    staged.publish()?;
+    if let Some(summary) = &summary {
+        note!(
             "{scenario}: {} seeds, safe {}/{}, no infeasible step {}/{}{}",
             summary.episodes,
             summary.safe.count,
@@ -73,7 +77,7 @@ pub fn run_sweep(
                 .unwrap_or_default()
         );
     }
-    eprintln!("wrote {}: {files}", out.display());
+    note!("wrote {}: {files}", out.display());
     Ok(())
 }
 
@@ -85,15 +89,16 @@ pub fn run_calibration_shard(
     out: &Path,
 ) -> Result<()> {
     let shard: Shard = shard.parse()?;
+    let staged = StagedDir::new(out)?;
     let bar = progress_bar("calibration shard", "episodes");
     let part = calibration::run_shard(args, options, shard, &|done: usize, total: usize| {
         bar.set_length(total as u64);
         bar.set_position(done as u64);
     })?;
     bar.finish_and_clear();
-    std::fs::create_dir_all(out)?;
-    write_json(&out.join("part.json"), &part)?;
-    eprintln!(
+    write_json(&staged.path().join("part.json"), &part)?;
+    staged.publish()?;
+    note!(
         "calibration shard {}/{}: wrote {}: part.json (merge the shards with `bayes-cbf merge`)",
         shard.index,
         shard.count,
@@ -115,6 +120,20 @@ pub fn run_merge(a: &MergeArgs) -> Result<()> {
     if let Some(d) = a.dirs.iter().find(|d| !d.is_dir()) {
         bail!("merge: '{}' is not a directory", d.display());
     }
+    if let Ok(o) = out.canonicalize() {
+        if let Some(d) = a
+            .dirs
+            .iter()
+            .find(|d| d.canonicalize().is_ok_and(|d| d == o))
+        {
+            bail!(
+                "merge: --out '{}' is the shard '{}': the merged result would overwrite it",
+                out.display(),
+                d.display()
+            );
+        }
+    }
+    let staged = StagedDir::new(&out).context("merge: --out")?;
     let calib = a
         .dirs
         .iter()
@@ -134,7 +153,7 @@ pub fn run_merge(a: &MergeArgs) -> Result<()> {
             parts.push(part);
         }
         let result = ExperimentResult::Calibration(calibration::merge(parts)?);
-        write_experiment("calibration", &result, &out)
+        write_experiment("calibration", &result, staged)
     } else if sweeps == a.dirs.len() {
         let mut parts = Vec::new();
         for d in &a.dirs {
@@ -147,11 +166,12 @@ pub fn run_merge(a: &MergeArgs) -> Result<()> {
         }
         let (meta, rows) = merge_sweeps(parts)?;
         let summary = summarise(&meta, &rows);
-        std::fs::create_dir_all(&out)?;
-        write_atomic(&out.join("sweep.csv"), rows_csv(&rows).as_bytes())?;
-        write_json(&out.join("shard.json"), &meta)?;
-        write_json(&out.join("sweep_summary.json"), &summary)?;
-        eprintln!(
+        let stage = staged.path();
+        write_atomic(&stage.join("sweep.csv"), rows_csv(&rows).as_bytes())?;
+        write_json(&stage.join("shard.json"), &meta)?;
+        write_json(&stage.join("sweep_summary.json"), &summary)?;
+        staged.publish()?;
+        note!(
             "merged {} shards of {} ({} seeds): wrote {}: sweep.csv, shard.json, sweep_summary.json",
             a.dirs.len(),
             meta.scenario,

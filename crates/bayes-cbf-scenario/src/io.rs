@@ -176,6 +176,9 @@ impl StagedDir {
     /// missing; files of the same names replaced, others kept), each by a
     /// rename.
     pub fn publish(self) -> Result<()> {
+        // a file in the way of a directory, or the reverse, fails before
+        // anything moves
+        check_tree(&self.stage, &self.out)?;
         move_tree(&self.stage, &self.out)
             .with_context(|| format!("cannot move the outputs into '{}'", self.out.display()))
     }
@@ -185,6 +188,35 @@ impl Drop for StagedDir {
     fn drop(&mut self) {
         let _ = std::fs::remove_dir_all(&self.stage);
     }
+}
+
+/// Checks that every file below `from` can replace its namesake below `to`:
+/// no directory stands where a file goes, no file where a directory goes.
+fn check_tree(from: &Path, to: &Path) -> Result<()> {
+    let entries =
+        std::fs::read_dir(from).with_context(|| format!("cannot read '{}'", from.display()))?;
+    for e in entries {
+        let e = e.with_context(|| format!("cannot read '{}'", from.display()))?;
+        let target = to.join(e.file_name());
+        let is_dir = e.path().is_dir();
+        match std::fs::metadata(&target) {
+            Ok(m) if m.is_dir() && !is_dir => {
+                return Err(err!(
+                    "cannot write output file '{}': a directory of that name exists",
+                    target.display()
+                ))
+            }
+            Ok(m) if !m.is_dir() && is_dir => {
+                return Err(err!(
+                    "cannot create output directory '{}': a file of that name exists",
+                    target.display()
+                ))
+            }
+            _ if is_dir => check_tree(&e.path(), &target)?,
+            _ => {}
+        }
+    }
+    Ok(())
 }
 
 /// Renames every file below `from` to the same place below `to`.
@@ -310,6 +342,14 @@ mod tests {
             1,
             "staging left behind"
         );
+        // a directory in the way of a file: nothing moves
+        std::fs::create_dir_all(out.join("table.csv")).unwrap();
+        let st = StagedDir::new(&out).unwrap();
+        write_atomic(&st.path().join("a.txt"), b"a").unwrap();
+        write_atomic(&st.path().join("table.csv"), b"t").unwrap();
+        let e = st.publish().unwrap_err();
+        assert!(e.to_string().contains("table.csv': a directory"), "{e}");
+        assert!(!out.join("a.txt").exists());
         // an output path that is a file is refused before anything runs
         let e = StagedDir::new(&out.join("keep.txt")).unwrap_err();
         assert!(e.to_string().contains("not a directory"), "{e}");

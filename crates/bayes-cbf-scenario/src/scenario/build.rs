@@ -93,8 +93,24 @@ fn truth(spec: &PriorSpec) -> Result<(Arc<dyn DynSystem>, SystemNames)> {
     Ok((system, names))
 }
 
+/// Checks that `name` can name the default output directory `runs/<name>`
+/// and nothing else: letters, digits, `-`, `_` and `.`, not first.
+pub(crate) fn check_name(name: &str) -> Result<()> {
+    let ok = name
+        .chars()
+        .all(|c| c.is_ascii_alphanumeric() || matches!(c, '-' | '_' | '.'));
+    if name.is_empty() || name.starts_with('.') || !ok {
+        bail!(
+            "name = {name:?}: names the output directory runs/<name>, so it takes letters, \
+             digits, '-', '_' and '.' (not first)"
+        );
+    }
+    Ok(())
+}
+
 /// Builds and validates a scenario.
 pub fn build(s: &Scenario) -> Result<Built> {
+    check_name(&s.name)?;
     let (truth, names) = truth(&s.system)?;
     let (n, m) = (truth.state_dim(), truth.control_dim());
     check_vector("start", &s.start, n, "the state dimension")?;

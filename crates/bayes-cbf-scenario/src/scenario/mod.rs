@@ -653,6 +653,7 @@ pub fn load(name: &str, sets: &[String]) -> Result<(Scenario, String)> {
         Err(e) if sets.is_empty() => return Err(toml_error(&source, &text, &e)),
         Err(e) => return Err(blame(&source, &text, sets, &e)),
     };
+    build::check_name(&scenario.name).with_context(|| format!("scenario '{source}'"))?;
     Ok((scenario, merged))
 }
 
@@ -735,6 +736,18 @@ mod tests {
             let built = build::build(sc).unwrap();
             assert_eq!(built.controller.settings().predictive, want);
         }
+    }
+
+    #[test]
+    fn names_stay_inside_the_output_directory() {
+        for bad in ["../escape", "/tmp/abs", "", "a/b", ".hidden", "a b"] {
+            let e = load("double-integrator", &[format!("name=\"{bad}\"")])
+                .unwrap_err()
+                .to_string();
+            assert!(e.contains("names the output directory"), "{bad}: {e}");
+        }
+        let (s, _) = load("double-integrator", &["name=my-cart_2.v1".into()]).unwrap();
+        assert_eq!(s.name, "my-cart_2.v1");
     }
 
     #[test]

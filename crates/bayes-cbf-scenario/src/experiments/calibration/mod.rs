@@ -110,6 +110,9 @@ pub struct Options {
     pub fallback: Option<Fallback>,
 }
 
+/// Largest `--episodes`: its task list and episode table stay in memory.
+pub const MAX_EPISODES: usize = 1_000_000;
+
 /// Default number of episodes per (system, truth).
 pub(crate) const DEFAULT_EPISODES: usize = 200;
 /// The controllers' fallback unless `--fallback` says otherwise: `relax`,
@@ -137,8 +140,13 @@ impl Plan {
     /// `fallback` (default [`DEFAULT_FALLBACK`]); `--quick` runs fewer and shorter
     /// episodes.
     pub fn new(quick: bool, episodes: Option<usize>, fallback: Option<Fallback>) -> Result<Self> {
-        if episodes == Some(0) {
-            bail!("--episodes = 0: must be ≥ 1");
+        match episodes {
+            Some(0) => bail!("--episodes = 0: must be ≥ 1"),
+            Some(e) if e > MAX_EPISODES => bail!(
+                "--episodes = {e}: too large (at most {MAX_EPISODES} per system and truth; \
+                 each is one closed-loop run per controller)"
+            ),
+            _ => {}
         }
         let (default, steps) = if quick {
             (
@@ -350,6 +358,23 @@ pub fn run(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// `--episodes` is checked before anything is allocated.
+    #[test]
+    fn episodes_are_bounded() {
+        for (e, msg) in [
+            (0, "--episodes = 0: must be ≥ 1"),
+            (usize::MAX, "too large (at most 1000000"),
+            (MAX_EPISODES + 1, "too large"),
+        ] {
+            let err = Plan::new(true, Some(e), None).unwrap_err().to_string();
+            assert!(err.contains(msg), "{err}");
+        }
+        assert_eq!(
+            Plan::new(true, Some(MAX_EPISODES), None).unwrap().episodes,
+            MAX_EPISODES
+        );
+    }
 
     /// `--fallback` reaches every controller of both systems, and the
     /// default is `relax`.

@@ -1,0 +1,173 @@
+//! Where the binary's outputs go: a run's directory gets all of its files or
+//! none, an output path is never replaced by something of another kind, and
+//! a full or closed stdout or stderr is an error or ignored, never a panic.
+
+mod common;
+
+use common::{run_in, scratch_dir};
+use std::process::{Command, Stdio};
+
+/// A short run of the double integrator, extra arguments appended.
+fn short_run<'a>(extra: &[&'a str]) -> Vec<&'a str> {
+    let mut args = vec!["run", "double-integrator", "--set", "steps=20"];
+    args.extend_from_slice(extra);
+    args
+}
+
+#[test]
+fn a_run_that_cannot_write_one_file_writes_none() {
+    let dir = scratch_dir("outputs-partial");
+    std::fs::create_dir_all(dir.join("out").join("summary.json")).unwrap();
+    let r = run_in(&dir, &short_run(&["--out", "out"]));
+    assert!(!r.status.success());
+    assert!(
+        r.stderr
+            .contains("out/summary.json': a directory of that name exists"),
+        "{}",
+        r.stderr
+    );
+    let left: Vec<_> = std::fs::read_dir(dir.join("out"))
+        .unwrap()
+        .map(|e| e.unwrap().file_name())
+        .collect();
+    assert_eq!(left, ["summary.json"], "files left behind");
+    // nor a staging directory
+    assert_eq!(std::fs::read_dir(&*dir).unwrap().count(), 1);
+    // an output path that is a file is refused before the run
+    std::fs::write(dir.join("file"), "keep").unwrap();
+    let r = run_in(&dir, &short_run(&["--out", "file"]));
+    assert!(r.stderr.contains("'file' exists and is not a directory"));
+    assert_eq!(std::fs::read_to_string(dir.join("file")).unwrap(), "keep");
+    // a complete run, into `--out .` as well
+    std::fs::create_dir(dir.join("here")).unwrap();
+    let r = run_in(&dir.join("here"), &short_run(&["--out", "."]));
+    assert!(r.status.success(), "{}", r.stderr);
+    assert!(dir.join("here").join("summary.json").is_file());
+    assert_eq!(std::fs::read_dir(&*dir).unwrap().count(), 3, "staging left");
+}
+
+#[test]
+fn merge_does_not_overwrite_a_shard() {
+    let dir = scratch_dir("outputs-merge");
+    for i in 0..2 {
+        let shard = format!("{i}/2");
+        let out = format!("s{i}");
+        let mut args = short_run(&["--seeds", "0..4", "--shard", &shard, "--out", &out]);
+        args[3] = "steps=10";
+        let r = run_in(&dir, &args);
+        assert!(r.status.success(), "{}", r.stderr);
+    }
+    let before = std::fs::read(dir.join("s0").join("shard.json")).unwrap();
+    let r = run_in(&dir, &["merge", "s0", "s1", "--out", "./s0"]);
+    assert!(r.stderr.contains("is the shard 's0'"), "{}", r.stderr);
+    assert_eq!(
+        std::fs::read(dir.join("s0").join("shard.json")).unwrap(),
+        before
+    );
+    std::fs::write(dir.join("file"), "x").unwrap();
+    let r = run_in(&dir, &["merge", "s0", "s1", "--out", "file"]);
+    assert!(
+        r.stderr.contains("--out: output directory 'file'"),
+        "{}",
+        r.stderr
+    );
+    let r = run_in(&dir, &["merge", "s0", "s1", "--out", "m"]);
+    assert!(r.status.success(), "{}", r.stderr);
+    assert!(dir.join("m").join("sweep_summary.json").is_file());
+}
+
+#[cfg(unix)]
+#[test]
+fn a_link_as_output_is_written_through() {
+    let dir = scratch_dir("outputs-link");
+    std::fs::write(dir.join("real.json"), "old").unwrap();
+    std::os::unix::fs::symlink("real.json", dir.join("link.json")).unwrap();
+    let r = run_in(
+        &dir,
+        &[
+            "fit",
+            "--data",
+            "missing.csv",
+            "--state-dim",
+            "2",
+            "--control-dim",
+            "1",
+            "--out",
+            "link.json",
+        ],
+    );
+    // a failed command leaves both as they were
+    assert!(!r.status.success());
+    assert_eq!(
+        std::fs::read_to_string(dir.join("real.json")).unwrap(),
+        "old"
+    );
+    std::fs::write(
+        dir.join("d.csv"),
+        "x1,x2,u1,xdot1,xdot2\n0.1,0.2,0.5,0.2,-0.4\n0.3,-0.1,1.0,-0.1,-1.9\n0.5,0.4,-1.0,0.4,-3.0\n",
+    )
+    .unwrap();
+    let r = run_in(
+        &dir,
+        &[
+            "fit",
+            "--data",
+            "d.csv",
+            "--state-dim",
+            "2",
+            "--control-dim",
+            "1",
+            "--max-iters",
+            "3",
+            "--out",
+            "link.json",
+        ],
+    );
+    assert!(r.status.success(), "{}", r.stderr);
+    let link = std::fs::symlink_metadata(dir.join("link.json")).unwrap();
+    assert!(link.file_type().is_symlink(), "the link was replaced");
+    assert!(std::fs::read_to_string(dir.join("real.json"))
+        .unwrap()
+        .contains("\"state_dim\""));
+}
+
+#[cfg(target_os = "linux")]
+#[test]
+fn a_full_or_closed_stream_is_not_a_panic() {
+    let bin = env!("CARGO_BIN_EXE_bayes-cbf");
+    // stdout on a full device: an error naming stdout
+    let full = std::fs::OpenOptions::new().write(true).open("/dev/full");
+    if let Ok(full) = full {
+        let out = Command::new(bin)
+            .arg("list")
+            .stdout(Stdio::from(full))
+            .output()
+            .unwrap();
+        let stderr = String::from_utf8_lossy(&out.stderr);
+        assert_eq!(out.status.code(), Some(1), "{stderr}");
+        assert!(stderr.contains("cannot write to stdout"), "{stderr}");
+        assert!(!stderr.contains("panicked"), "{stderr}");
+    }
+    // stdout closed before the listing is written
+    let mut child = Command::new(bin)
+        .arg("list")
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    drop(child.stdout.take());
+    let out = child.wait_with_output().unwrap();
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert_ne!(out.status.code(), Some(101), "{stderr}");
+    assert!(!stderr.contains("panicked"), "{stderr}");
+    // stderr on a full device: the exit status is the command's own
+    if let Ok(full) = std::fs::OpenOptions::new().write(true).open("/dev/full") {
+        let status = Command::new(bin)
+            .args(["predict", "--model", "missing.json", "--x", "0.1"])
+            .stdout(Stdio::null())
+            .stderr(Stdio::from(full))
+            .status()
+            .unwrap();
+        assert_eq!(status.code(), Some(1));
+    }
+}
