@@ -535,6 +535,41 @@ fn infeasible_step_reports_fallback_and_p_star() {
     );
 }
 
+/// The hold fallback stays within the bounds: before any control was
+/// applied it brakes (zero, clamped), afterwards it repeats the last control
+/// (clamped too).
+#[test]
+fn hold_stays_within_the_bounds() {
+    // E[C] = −1 + u, no variance: feasible for u ≥ 1 + ζ
+    let mom = ConditionMoments::from_parts(vec![-1.0, 1.0], DMatrix::zeros(2, 2), 1).unwrap();
+    let mut settings = SafetySettings::new(1);
+    settings.probability = 0.9;
+    settings.zeta = 0.0;
+    settings.u_min = Some(vec![0.5]);
+    settings.u_max = Some(vec![2.0]);
+    settings.fallback = Fallback::Hold;
+    let mut filter = SafetyFilter::new(1, 1, false, settings).unwrap();
+    let mut out = ControlOutput::new(1, 1);
+    // infeasible at the first step (ζ = 5 > what u ≤ 2 affords): nothing to hold
+    let hard = ConditionMoments::from_parts(vec![-5.0, 1.0], DMatrix::zeros(2, 2), 1).unwrap();
+    filter
+        .solve(std::slice::from_ref(&hard), None, &[5.0], &mut out)
+        .unwrap();
+    assert!(out.is_infeasible());
+    assert_eq!(out.u, vec![0.5], "braking, clamped into [0.5, 2]");
+    // a feasible step applies u = 1.5, then an infeasible one holds it
+    filter
+        .solve(std::slice::from_ref(&mom), None, &[1.5], &mut out)
+        .unwrap();
+    assert!(!out.is_infeasible());
+    assert!((out.u[0] - 1.5).abs() < 1e-6, "{:?}", out.u);
+    filter
+        .solve(std::slice::from_ref(&hard), None, &[5.0], &mut out)
+        .unwrap();
+    assert!(out.is_infeasible());
+    assert!((out.u[0] - 1.5).abs() < 1e-6, "held {:?}", out.u);
+}
+
 #[test]
 fn bad_settings_are_rejected() {
     let mut s = SafetySettings::new(2);

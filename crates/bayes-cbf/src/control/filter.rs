@@ -26,7 +26,8 @@ pub enum Fallback {
     MaxMargin,
     /// Apply `u = 0` (clamped into the bounds).
     Brake,
-    /// Hold the previous control.
+    /// Hold the previous control, clamped into the bounds (before any
+    /// control was applied, brake).
     Hold,
     /// Solve the same SOCP at the largest feasible probability `p*`
     /// (graceful degradation; the maximal-margin control if no `p*` exists).
@@ -677,16 +678,22 @@ impl SafetyFilter {
             Fallback::MaxMargin | Fallback::Relax if margin.is_some() => {
                 out.u.copy_from_slice(u_mm)
             }
-            Fallback::MaxMargin | Fallback::Relax | Fallback::Brake => {
+            // brake: zero, within the bounds; hold: the last control, within
+            // the bounds (zero before the first step, which holds nothing)
+            _ => {
                 for j in 0..m {
                     let (lo, hi) = match (&self.settings.u_min, &self.settings.u_max) {
                         (Some(l), Some(h)) => (l[j], h[j]),
                         _ => (f64::NEG_INFINITY, f64::INFINITY),
                     };
-                    out.u[j] = 0.0f64.clamp(lo, hi);
+                    let held = if fallback == Fallback::Hold {
+                        self.last_u[j]
+                    } else {
+                        0.0
+                    };
+                    out.u[j] = held.clamp(lo, hi);
                 }
             }
-            Fallback::Hold => out.u.copy_from_slice(&self.last_u),
         }
         // the list of the last infeasible step, refilled
         let mut violated = match &mut out.status {
