@@ -173,6 +173,29 @@ pub enum GpError {
     NoData,
 }
 
+/// Numerical failures of the safety filter.
+#[derive(Debug, Clone, Error, PartialEq)]
+#[non_exhaustive]
+pub enum ControlError {
+    /// The SOCP reported a solution that misses a barrier's condition by
+    /// more than the solver's tolerance: the condition's covariance is too
+    /// large for double precision to resolve its standard deviation at the
+    /// control (a kernel variance of ~10¹⁶ does this).
+    #[error("barrier {barrier}: the solver's control misses the condition by {slack:.3e} (mean {mean:.3e}, std {std:.3e}); the condition's covariance (largest entry {scale:.1e}) is beyond what double precision resolves: check the model's kernel variance and noise")]
+    Unresolved {
+        /// Index of the barrier.
+        barrier: usize,
+        /// `E[C] − ζ − c·std` at the control.
+        slack: f64,
+        /// `E[C]` at the control.
+        mean: f64,
+        /// Standard deviation at the control.
+        std: f64,
+        /// Largest absolute entry of the condition's covariance.
+        scale: f64,
+    },
+}
+
 /// Any error of this library.
 #[derive(Debug, Clone, Error, PartialEq)]
 #[non_exhaustive]
@@ -183,6 +206,9 @@ pub enum Error {
     /// Numerical failure in the GP layer.
     #[error(transparent)]
     Gp(#[from] GpError),
+    /// Numerical failure in the safety filter.
+    #[error(transparent)]
+    Control(#[from] ControlError),
 }
 
 #[cfg(test)]

@@ -40,4 +40,4 @@ pub mod gp;
 pub mod sim;
 pub mod systems;
 
-pub use error::{Error, GpError, InputError};
+pub use error::{ControlError, Error, GpError, InputError};

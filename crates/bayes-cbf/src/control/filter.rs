@@ -6,7 +6,9 @@ use crate::barrier::{
     add_observation_noise, cbc_moments, clc_moments, factor_probability, mc_cbc_moments,
     quantile_factor, ConditionMoments, DynBarrier, DynLyapunov, McSettings, MomentWorkspace,
 };
-use crate::error::{check_finite, check_nonnegative, check_positive, Error, InputError};
+use crate::error::{
+    check_finite, check_nonnegative, check_positive, ControlError, Error, InputError,
+};
 use crate::gp::{Kernel, Mvgp};
 use nalgebra::DMatrix;
 use std::sync::Arc;
@@ -282,6 +284,35 @@ fn report(mom: &ConditionMoments, c: f64, u: &[f64], zeta: f64) -> ConstraintRep
     }
 }
 
+/// Checks that a solved program's control meets every barrier condition to
+/// the solver's tolerance (relative `1e-6`, `1e-4` at reduced accuracy),
+/// recomputed from the covariance: a solver working at the rounding level
+/// of a huge covariance can report a solution that misses by far more.
+fn check_solution(
+    cbcs: &[ConditionMoments],
+    reports: &[ConstraintReport],
+    status: SolveStatus,
+) -> Result<(), ControlError> {
+    let rel = if status == SolveStatus::Optimal {
+        1e-6
+    } else {
+        1e-4
+    };
+    for (k, (mom, r)) in cbcs.iter().zip(reports).enumerate() {
+        let tol = rel * (1.0 + r.mean.abs() + r.c.abs() * r.std);
+        if r.slack < -tol {
+            return Err(ControlError::Unresolved {
+                barrier: k,
+                slack: r.slack,
+                mean: r.mean,
+                std: r.std,
+                scale: mom.cov.amax(),
+            });
+        }
+    }
+    Ok(())
+}
+
 /// The one check of the probability against the conditions: with a
 /// relative-degree-1 condition (a barrier of relative degree 1 or a CLF)
 /// `p ≥ 0.5` is required, since `c(p) < 0` would make the cone constraint
@@ -452,6 +483,9 @@ impl SafetyFilter {
         for (k, mom) in cbcs.iter().enumerate() {
             let c = quantile_factor(p, mom.relative_degree)?;
             out.constraints[k] = report(mom, c, &out.u, zeta);
+        }
+        if !out.is_infeasible() {
+            check_solution(cbcs, &out.constraints, status)?;
         }
         let (u, delta) = (&out.u, out.delta);
         out.clf = clc.map(|mom| {
