@@ -247,7 +247,8 @@ def moments(
 
 def run_scenario(
     name: str, seed: Optional[int] = None, overrides: Optional[dict[str, Any]] = None
-) -> dict[str, Any]: ...
+) -> dict[str, Any]:
+    """The summary and trajectory of a scenario run; seed from 0 to 2^63 − 1."""
 def list_scenarios() -> list[str]: ...
 
 # Private: the engine of bayes_cbf.sweep (JSON and CSV text in and out).

@@ -182,7 +182,7 @@ anything = st.one_of(st.floats(allow_nan=True, allow_infinity=True), st.integers
 def test_fuzz_mvgp_constructor(n, m, ls, a, b, sigma):
     try:
         model = bc.MVGP(n, m, ls, a, b, sigma)
-    except (bc.InputError, TypeError):
+    except bc.InputError:
         return
     assert model.state_dim == n and model.control_dim == m
 
@@ -207,7 +207,7 @@ def test_fuzz_filter_constructor(model, barrier, p, zeta, lo, hi, fallback):
     try:
         f = bc.SafetyFilter(model, [barrier], probability=p, zeta=zeta, u_min=lo, u_max=hi,
                             fallback=fallback)
-    except (bc.InputError, TypeError):
+    except bc.InputError:
         return
     res = f.filter(np.zeros(2), [0.0])
     assert res.status in ("optimal", "infeasible")
@@ -287,8 +287,7 @@ def test_results_read_as_python():
 def test_negative_integers_are_input_errors_naming_the_argument(name, thunk):
     with pytest.raises(bc.InputError) as e:
         thunk()
-    notes = " ".join(getattr(e.value, "__notes__", []))
-    assert "must be ≥ 0" in str(e.value) and name in notes, (str(e.value), notes)
+    assert name in str(e.value) and "must be ≥ 0" in str(e.value), str(e.value)
 
 
 def test_prior_mean_dicts_take_numpy_numbers_and_refuse_nan():

@@ -36,40 +36,6 @@ pub fn borrow<'py, T: pyo3::PyClass>(obj: &Bound<'py, T>, what: &str) -> PyResul
     })
 }
 
-/// A non-negative integer argument (a count, an index, a seed) as `T`: a
-/// negative or too large value is an [`InputError`] where pyo3 would raise
-/// `OverflowError` (pyo3 notes the argument's name on the exception).
-pub fn count<T: TryFrom<i128>>(obj: &Bound<'_, PyAny>) -> PyResult<T> {
-    let v: i128 = obj.extract()?;
-    T::try_from(v).map_err(|_| {
-        input_err(if v < 0 {
-            format!("{v} must be ≥ 0")
-        } else {
-            format!("{v} is too large")
-        })
-    })
-}
-
-/// [`count`] of an optional argument (`None` stays `None`).
-pub fn count_opt<T: TryFrom<i128>>(obj: &Bound<'_, PyAny>) -> PyResult<Option<T>> {
-    if obj.is_none() {
-        Ok(None)
-    } else {
-        count(obj).map(Some)
-    }
-}
-
-/// [`count`] of each entry of a sequence.
-pub fn counts<T: TryFrom<i128>>(obj: &Bound<'_, PyAny>) -> PyResult<Option<Vec<T>>> {
-    if obj.is_none() {
-        return Ok(None);
-    }
-    obj.try_iter()?
-        .map(|item| count(&item?))
-        .collect::<PyResult<Vec<T>>>()
-        .map(Some)
-}
-
 /// An [`InputError`] with `msg` (caused by the callback exception it
 /// quotes, if any).
 pub fn input_err(msg: impl Into<String>) -> PyErr {
@@ -171,7 +137,8 @@ pub fn array<'py>(
     Ok(arr)
 }
 
-fn type_name(obj: &Bound<'_, PyAny>) -> String {
+/// The name of `obj`'s type (`float`, `str`, `ndarray`).
+pub fn type_name(obj: &Bound<'_, PyAny>) -> String {
     obj.get_type()
         .name()
         .map(|n| n.to_string())

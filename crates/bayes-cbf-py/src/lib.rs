@@ -1,10 +1,12 @@
 //! The compiled module `bayes_cbf._core` of the Python package `bayes_cbf`.
 //!
-//! A thin wrapper: numpy arrays in and out, the library's errors as typed
-//! exceptions (`InputError`, a `ValueError` naming the field, and
-//! `NumericalError`), the GIL released during fits, runs and filter steps.
-//! Every computation is the core or scenario crate's.
+//! A thin wrapper: numpy arrays in and out, arguments converted by name
+//! (a wrong type or value is an `InputError` naming the argument), the
+//! library's errors as typed exceptions (`InputError`, a `ValueError` naming
+//! the field, and `NumericalError`), the GIL released during fits, runs and
+//! filter steps. Every computation is the core or scenario crate's.
 
+mod args;
 mod convert;
 mod models;
 mod safety;

@@ -1,6 +1,7 @@
 //! `MVGP` and `CoGP`: thin wrappers over [`Mvgp`] and [`Cogp`], the model
 //! file (`model.json`) of the scenario crate, and the fits.
 
+use crate::args;
 use crate::convert::{
     core_err, extend_rows, input_err, json_of, matrix, matrix_to_numpy, rows, scenario_err, square,
     to_numpy, vector, with_matrix, NdArray, NumericalError,
@@ -12,7 +13,6 @@ use bayes_cbf::gp::{
 use bayes_cbf_scenario::input_map_spec::{to_input_map, FeatureSpec};
 use bayes_cbf_scenario::io::write_atomic;
 use bayes_cbf_scenario::model_file::ModelFile;
-use bayes_cbf_scenario::parse::parse_rank;
 use bayes_cbf_scenario::prior_spec::PriorSpec;
 use pyo3::prelude::*;
 use pyo3::types::PyDict;
@@ -40,30 +40,6 @@ fn input_map_of(obj: Option<&Bound<'_, PyAny>>) -> PyResult<Option<Vec<FeatureSp
             .map(Some)
             .map_err(|e| input_err(format!("input_map: {e}"))),
     }
-}
-
-/// A rank as given: `"full"`, `"diag"` or an integer.
-#[derive(FromPyObject)]
-pub enum RankArg {
-    /// An integer rank.
-    Int(i64),
-    /// `"full"` or `"diag"`.
-    Name(String),
-}
-
-impl RankArg {
-    fn full() -> Self {
-        RankArg::Name("full".into())
-    }
-}
-
-/// The rank named by `arg`, errors naming `field`.
-fn rank_of(arg: &RankArg, field: &str) -> PyResult<Rank> {
-    let text = match arg {
-        RankArg::Int(r) => r.to_string(),
-        RankArg::Name(s) => s.clone(),
-    };
-    parse_rank(field, &text).map_err(scenario_err)
 }
 
 /// Training data `(X, U, Xdot)` as row-major arrays, shapes checked.
@@ -176,7 +152,7 @@ macro_rules! gp_methods {
             $(#[doc = $doc])*
             #[pyo3(text_signature = $text)]
             #[pyo3(signature = (
-                X, U, Xdot, $rank_1=RankArg::full(), $rank_2=RankArg::full(), max_iters=100,
+                X, U, Xdot, $rank_1=Rank::Full, $rank_2=Rank::Full, max_iters=100,
                 seed=0, restarts=0 $(, $extra=$default)*
             ))]
             #[allow(non_snake_case, clippy::too_many_arguments)]
@@ -185,19 +161,19 @@ macro_rules! gp_methods {
                 X: &Bound<'py, PyAny>,
                 U: &Bound<'py, PyAny>,
                 Xdot: &Bound<'py, PyAny>,
-                $rank_1: RankArg,
-                $rank_2: RankArg,
-                #[pyo3(from_py_with = crate::convert::count)] max_iters: u64,
-                #[pyo3(from_py_with = crate::convert::count)] seed: u64,
-                #[pyo3(from_py_with = crate::convert::count)] restarts: usize,
-                $($extra: $ty,)*
+                #[pyo3(from_py_with = args::$rank_1)] $rank_1: Rank,
+                #[pyo3(from_py_with = args::$rank_2)] $rank_2: Rank,
+                #[pyo3(from_py_with = args::max_iters)] max_iters: u64,
+                #[pyo3(from_py_with = args::seed)] seed: u64,
+                #[pyo3(from_py_with = args::restarts)] restarts: usize,
+                $(#[pyo3(from_py_with = args::$extra)] $extra: $ty,)*
             ) -> PyResult<PyRefMut<'py, Self>> {
                 let py = X.py();
                 let (n, m) = (slf.model.state_dim(), slf.model.control_dim());
                 let (xs, us, xd) = data_of(X, U, Xdot, n, m)?;
                 let settings = $settings {
-                    $rank_1: rank_of(&$rank_1, stringify!($rank_1))?,
-                    $rank_2: rank_of(&$rank_2, stringify!($rank_2))?,
+                    $rank_1,
+                    $rank_2,
                     max_iters,
                     restarts,
                     seed,
@@ -307,16 +283,16 @@ impl PyMvgp {
     #[pyo3(signature = (state_dim, control_dim, lengthscales, A, B, noise_sigma, prior_mean=None, input_map=None, variance=1.0, known_rows=None))]
     #[allow(non_snake_case, clippy::too_many_arguments)]
     fn new(
-        #[pyo3(from_py_with = crate::convert::count)] state_dim: usize,
-        #[pyo3(from_py_with = crate::convert::count)] control_dim: usize,
+        #[pyo3(from_py_with = args::state_dim)] state_dim: usize,
+        #[pyo3(from_py_with = args::control_dim)] control_dim: usize,
         lengthscales: &Bound<'_, PyAny>,
         A: &Bound<'_, PyAny>,
         B: &Bound<'_, PyAny>,
-        noise_sigma: f64,
+        #[pyo3(from_py_with = args::noise_sigma)] noise_sigma: f64,
         prior_mean: Option<&Bound<'_, PyAny>>,
         input_map: Option<&Bound<'_, PyAny>>,
-        variance: f64,
-        #[pyo3(from_py_with = crate::convert::counts)] known_rows: Option<Vec<usize>>,
+        #[pyo3(from_py_with = args::variance)] variance: f64,
+        #[pyo3(from_py_with = args::known_rows)] known_rows: Option<Vec<usize>>,
     ) -> PyResult<Self> {
         let (n, m) = (state_dim, control_dim);
         bayes_cbf::gp::check_dims(n, m).map_err(core_err)?;
@@ -366,7 +342,7 @@ impl PyMvgp {
         &self,
         py: Python<'_>,
         Xq: &Bound<'_, PyAny>,
-        #[pyo3(from_py_with = crate::convert::count)] repeats: usize,
+        #[pyo3(from_py_with = args::repeats)] repeats: usize,
     ) -> PyResult<f64> {
         let model = &self.model;
         let n = model.state_dim();
@@ -413,7 +389,7 @@ impl PyMvgp {
         x: &Bound<'_, PyAny>,
         u: &Bound<'_, PyAny>,
         xdot: &Bound<'_, PyAny>,
-        #[pyo3(from_py_with = crate::convert::count)] budget: usize,
+        #[pyo3(from_py_with = args::budget)] budget: usize,
     ) -> PyResult<Option<usize>> {
         let (n, m) = (self.model.state_dim(), self.model.control_dim());
         let x = vector(x, "x", Some(n))?;
@@ -435,7 +411,11 @@ impl PyMvgp {
 
     /// Writes the model file (`model.json`, the CLI's format) completely or
     /// not at all.
-    fn save(&self, py: Python<'_>, path: PathBuf) -> PyResult<()> {
+    fn save(
+        &self,
+        py: Python<'_>,
+        #[pyo3(from_py_with = args::path)] path: PathBuf,
+    ) -> PyResult<()> {
         let text = self.file().to_json().map_err(scenario_err)?;
         py.detach(|| write_atomic(&path, text.as_bytes()))
             .map_err(scenario_err)
@@ -443,14 +423,14 @@ impl PyMvgp {
 
     /// Reads a model file (`model.json`).
     #[staticmethod]
-    fn load(py: Python<'_>, path: PathBuf) -> PyResult<Self> {
+    fn load(py: Python<'_>, #[pyo3(from_py_with = args::path)] path: PathBuf) -> PyResult<Self> {
         let file = py.detach(|| ModelFile::load(&path)).map_err(scenario_err)?;
         Self::from_file(&file)
     }
 
     /// The model from model-file text.
     #[staticmethod]
-    fn from_json(text: &str) -> PyResult<Self> {
+    fn from_json(#[pyo3(from_py_with = args::text)] text: &str) -> PyResult<Self> {
         let file = ModelFile::parse(text, "model").map_err(scenario_err)?;
         Self::from_file(&file)
     }
@@ -553,14 +533,14 @@ impl PyCogp {
     #[pyo3(signature = (state_dim, control_dim, lengthscales, Sigma=None, S=None, prior_mean=None, input_map=None, variance=1.0))]
     #[allow(non_snake_case, clippy::too_many_arguments)]
     fn new(
-        #[pyo3(from_py_with = crate::convert::count)] state_dim: usize,
-        #[pyo3(from_py_with = crate::convert::count)] control_dim: usize,
+        #[pyo3(from_py_with = args::state_dim)] state_dim: usize,
+        #[pyo3(from_py_with = args::control_dim)] control_dim: usize,
         lengthscales: &Bound<'_, PyAny>,
         Sigma: Option<&Bound<'_, PyAny>>,
         S: Option<&Bound<'_, PyAny>>,
         prior_mean: Option<&Bound<'_, PyAny>>,
         input_map: Option<&Bound<'_, PyAny>>,
-        variance: f64,
+        #[pyo3(from_py_with = args::variance)] variance: f64,
     ) -> PyResult<Self> {
         let (n, m) = (state_dim, control_dim);
         if n == 0 || m == 0 {

@@ -2,8 +2,9 @@
 //! barrier files of the scenario crate, [`CallbackBarrier`] and the
 //! library's [`SafetyController`].
 
+use crate::args;
 use crate::convert::{
-    borrow, copy_into, core_err, count, input_err, scenario_err, square, to_numpy, vector, NdArray,
+    borrow, copy_into, core_err, input_err, scenario_err, square, to_numpy, vector, NdArray,
 };
 use crate::models::PyMvgp;
 use bayes_cbf::barrier::{ArrayFn, CallbackBarrier, DynBarrier, DynLyapunov, McSettings, ValueFn};
@@ -14,6 +15,7 @@ use bayes_cbf_scenario::scenario::ClfSpec;
 use numpy::PyArray1;
 use pyo3::prelude::*;
 use pyo3::types::PyDict;
+use std::collections::BTreeMap;
 use std::path::PathBuf;
 use std::sync::Arc;
 use std::time::Instant;
@@ -72,13 +74,13 @@ fn call_py<'py>(py: Python<'py>, f: &Py<PyAny>, x: &[f64]) -> Result<Bound<'py, 
 impl PyBarrier {
     /// A barrier from barrier-file JSON text (interfaces.md).
     #[staticmethod]
-    fn from_json(text: &str) -> PyResult<Self> {
+    fn from_json(#[pyo3(from_py_with = args::text)] text: &str) -> PyResult<Self> {
         Self::of_spec(BarrierSpec::parse(text, "barrier").map_err(scenario_err)?)
     }
 
     /// Reads a barrier file.
     #[staticmethod]
-    fn load(path: PathBuf) -> PyResult<Self> {
+    fn load(#[pyo3(from_py_with = args::path)] path: PathBuf) -> PyResult<Self> {
         let (spec, barrier) = BarrierSpec::load(&path).map_err(scenario_err)?;
         Ok(Self::new(barrier, Some(spec), path.display().to_string()))
     }
@@ -91,12 +93,12 @@ impl PyBarrier {
     #[staticmethod]
     #[pyo3(signature = (h, state, params=None, relative_degree=1, alpha=None, k_alpha=None))]
     fn expression(
-        h: String,
-        state: Vec<String>,
-        params: Option<std::collections::BTreeMap<String, f64>>,
-        #[pyo3(from_py_with = count)] relative_degree: usize,
-        alpha: Option<f64>,
-        k_alpha: Option<Vec<f64>>,
+        #[pyo3(from_py_with = args::h)] h: String,
+        #[pyo3(from_py_with = args::state)] state: Vec<String>,
+        #[pyo3(from_py_with = args::params)] params: Option<BTreeMap<String, f64>>,
+        #[pyo3(from_py_with = args::relative_degree)] relative_degree: usize,
+        #[pyo3(from_py_with = args::alpha)] alpha: Option<f64>,
+        #[pyo3(from_py_with = args::k_alpha)] k_alpha: Option<Vec<f64>>,
     ) -> PyResult<Self> {
         let alpha = default_alpha(relative_degree, alpha, &k_alpha);
         Self::of_spec(BarrierSpec::Expression {
@@ -122,11 +124,11 @@ impl PyBarrier {
         h: Py<PyAny>,
         grad: Py<PyAny>,
         hess: Option<Py<PyAny>>,
-        #[pyo3(from_py_with = count)] state_dim: usize,
-        #[pyo3(from_py_with = count)] relative_degree: usize,
-        alpha: f64,
-        k_alpha: Option<Vec<f64>>,
-        name: &str,
+        #[pyo3(from_py_with = args::state_dim)] state_dim: usize,
+        #[pyo3(from_py_with = args::relative_degree)] relative_degree: usize,
+        #[pyo3(from_py_with = args::alpha)] alpha: f64,
+        #[pyo3(from_py_with = args::k_alpha)] k_alpha: Option<Vec<f64>>,
+        #[pyo3(from_py_with = args::name)] name: &str,
     ) -> PyResult<Self> {
         Python::attach(|py| -> PyResult<()> {
             for (field, f) in [
@@ -233,9 +235,7 @@ impl PyBarrier {
 macro_rules! builtin_barriers {
     ($(
         $(#[doc = $doc:tt])*
-        $name:ident(
-            $($(#[pyo3(from_py_with = $with:ident)])? $field:ident: $ty:ty),*
-        ) = $variant:ident, relative_degree = $rd:tt;
+        $name:ident($($field:ident: $ty:ty),*) = $variant:ident, relative_degree = $rd:tt;
     )*) => {
         #[pymethods]
         impl PyBarrier {$(
@@ -244,10 +244,10 @@ macro_rules! builtin_barriers {
             #[pyo3(signature = ($($field,)* relative_degree=$rd, alpha=None, k_alpha=None))]
             #[allow(clippy::too_many_arguments)]
             fn $name(
-                $($(#[pyo3(from_py_with = $with)])? $field: $ty,)*
-                #[pyo3(from_py_with = count)] relative_degree: usize,
-                alpha: Option<f64>,
-                k_alpha: Option<Vec<f64>>,
+                $(#[pyo3(from_py_with = args::$field)] $field: $ty,)*
+                #[pyo3(from_py_with = args::relative_degree)] relative_degree: usize,
+                #[pyo3(from_py_with = args::alpha)] alpha: Option<f64>,
+                #[pyo3(from_py_with = args::k_alpha)] k_alpha: Option<Vec<f64>>,
             ) -> PyResult<Self> {
                 let alpha = default_alpha(relative_degree, alpha, &k_alpha);
                 Self::of_spec(BarrierSpec::$variant {
@@ -270,50 +270,19 @@ builtin_barriers! {
     /// `φ = (θ − θ_c) mod 2π`: `h = φ − δ` (`edge="upper"`) or
     /// `h = 2π − δ − φ` (`edge="lower"`); the two edges together keep the
     /// pendulum in the free arc with a control-invariant safe set.
-    pendulum_sector_edge(
-        theta_c: f64,
-        delta: f64,
-        #[pyo3(from_py_with = edge_of)] edge: EdgeSpec
-    ) = PendulumSectorEdge, relative_degree = 2;
+    pendulum_sector_edge(theta_c: f64, delta: f64, edge: EdgeSpec) = PendulumSectorEdge,
+        relative_degree = 2;
 
     /// The Ackermann obstacle barrier with heading term (paper, Sec. VII-B).
-    circle_heading(
-        #[pyo3(from_py_with = center_of)] center: [f64; 2],
-        radius: f64,
-        q1: f64,
-        q2: f64
-    ) = CircleHeading,
+    circle_heading(center: [f64; 2], radius: f64, q1: f64, q2: f64) = CircleHeading,
         relative_degree = 1;
 
     /// `h = ‖x[indices] − center‖² − radius²`: stay out of a disc.
-    disc(
-        #[pyo3(from_py_with = count)] state_dim: usize,
-        #[pyo3(from_py_with = indices_of)] indices: [usize; 2],
-        #[pyo3(from_py_with = center_of)] center: [f64; 2],
-        radius: f64
-    ) = Disc,
+    disc(state_dim: usize, indices: [usize; 2], center: [f64; 2], radius: f64) = Disc,
         relative_degree = 1;
 
     /// `h = normalᵀx − offset`: stay in a half-space.
     half_space(normal: Vec<f64>, offset: f64) = HalfSpace, relative_degree = 1;
-}
-
-/// The `center` of a disc: two finite numbers ([`vector`]).
-fn center_of(obj: &Bound<'_, PyAny>) -> PyResult<[f64; 2]> {
-    let v = vector(obj, "center", Some(2))?;
-    Ok([v[0], v[1]])
-}
-
-/// The `indices` of a disc: two state indices ([`crate::convert::counts`]).
-fn indices_of(obj: &Bound<'_, PyAny>) -> PyResult<[usize; 2]> {
-    let v = crate::convert::counts::<usize>(obj)?.unwrap_or_default();
-    let n = v.len();
-    <[usize; 2]>::try_from(v).map_err(|_| input_err(format!("indices: expected two, got {n}")))
-}
-
-/// The `edge` of a sector edge, `"upper"` or `"lower"` (as in barrier files).
-fn edge_of(obj: &Bound<'_, PyAny>) -> PyResult<EdgeSpec> {
-    obj.extract::<String>()?.parse().map_err(scenario_err)
 }
 
 impl PyBarrier {
@@ -397,7 +366,7 @@ pub struct PyClf {
 impl PyClf {
     /// A CLF from JSON text.
     #[staticmethod]
-    fn from_json(text: &str) -> PyResult<Self> {
+    fn from_json(#[pyo3(from_py_with = args::text)] text: &str) -> PyResult<Self> {
         let mut v: serde_json::Value =
             serde_json::from_str(text).map_err(|e| input_err(format!("clf: {e}")))?;
         let state = match v.as_object_mut().and_then(|o| o.remove("state")) {
@@ -418,10 +387,10 @@ impl PyClf {
     #[pyo3(signature = (V, state, params=None, gamma=1.0))]
     #[allow(non_snake_case)]
     fn expression(
-        V: String,
-        state: Vec<String>,
-        params: Option<std::collections::BTreeMap<String, f64>>,
-        gamma: f64,
+        #[pyo3(from_py_with = args::V)] V: String,
+        #[pyo3(from_py_with = args::state)] state: Vec<String>,
+        #[pyo3(from_py_with = args::params)] params: Option<BTreeMap<String, f64>>,
+        #[pyo3(from_py_with = args::gamma)] gamma: f64,
     ) -> PyResult<Self> {
         let spec = ClfSpec::Expression {
             v: V,
@@ -438,7 +407,11 @@ impl PyClf {
     /// `V = w1/2 ρ² + w2 (1 − cos α)` for the Ackermann vehicle (paper,
     /// Sec. VII-B), decay rate `gamma`.
     #[staticmethod]
-    fn ackermann(w1: f64, w2: f64, gamma: f64) -> PyResult<Self> {
+    fn ackermann(
+        #[pyo3(from_py_with = args::w1)] w1: f64,
+        #[pyo3(from_py_with = args::w2)] w2: f64,
+        #[pyo3(from_py_with = args::gamma)] gamma: f64,
+    ) -> PyResult<Self> {
         // checked now, not when a filter is built
         bayes_cbf::barrier::AckermannClf::new(w1, w2, gamma).map_err(core_err)?;
         Ok(Self {
@@ -460,17 +433,17 @@ impl PyClf {
 #[pyfunction]
 #[pyo3(signature = (model, barrier, x, u, samples=20_000, step=1e-2, seed=0))]
 #[allow(clippy::too_many_arguments)]
-pub fn moments(
-    py: Python<'_>,
-    model: &Bound<'_, PyMvgp>,
-    barrier: &Bound<'_, PyBarrier>,
-    x: &Bound<'_, PyAny>,
-    u: &Bound<'_, PyAny>,
-    #[pyo3(from_py_with = count)] samples: usize,
-    step: f64,
-    #[pyo3(from_py_with = count)] seed: u64,
+pub fn moments<'py>(
+    py: Python<'py>,
+    #[pyo3(from_py_with = args::model)] model: Bound<'py, PyMvgp>,
+    #[pyo3(from_py_with = args::barrier)] barrier: Bound<'py, PyBarrier>,
+    x: &Bound<'py, PyAny>,
+    u: &Bound<'py, PyAny>,
+    #[pyo3(from_py_with = args::samples)] samples: usize,
+    #[pyo3(from_py_with = args::step)] step: f64,
+    #[pyo3(from_py_with = args::seed)] seed: u64,
 ) -> PyResult<(f64, f64)> {
-    let model = borrow(model, "the model")?;
+    let model = borrow(&model, "the model")?;
     let b = barrier.get();
     let x = vector(x, "x", Some(model.model.state_dim()))?;
     let u = vector(u, "u", Some(model.model.control_dim()))?;
@@ -596,17 +569,17 @@ impl PySafetyFilter {
     #[pyo3(signature = (model, barriers, clf=None, probability=0.99, zeta=0.0, u_min=None, u_max=None, R=None, fallback="max_margin", clf_weight=1.0, predictive=false))]
     #[allow(non_snake_case, clippy::too_many_arguments)]
     fn new(
-        model: Bound<'_, PyMvgp>,
-        barriers: Vec<Bound<'_, PyBarrier>>,
-        clf: Option<Bound<'_, PyClf>>,
-        probability: f64,
-        zeta: f64,
+        #[pyo3(from_py_with = args::model)] model: Bound<'_, PyMvgp>,
+        #[pyo3(from_py_with = args::barriers)] barriers: Vec<Bound<'_, PyBarrier>>,
+        #[pyo3(from_py_with = args::clf)] clf: Option<Bound<'_, PyClf>>,
+        #[pyo3(from_py_with = args::probability)] probability: f64,
+        #[pyo3(from_py_with = args::zeta)] zeta: f64,
         u_min: Option<&Bound<'_, PyAny>>,
         u_max: Option<&Bound<'_, PyAny>>,
         R: Option<&Bound<'_, PyAny>>,
-        fallback: &str,
-        clf_weight: f64,
-        predictive: bool,
+        #[pyo3(from_py_with = args::fallback)] fallback: &str,
+        #[pyo3(from_py_with = args::clf_weight)] clf_weight: f64,
+        #[pyo3(from_py_with = args::predictive)] predictive: bool,
     ) -> PyResult<Self> {
         let (n, m) = {
             let mm = borrow(&model, "the model")?;
@@ -722,7 +695,7 @@ impl PySafetyFilter {
         &mut self,
         x: &Bound<'_, PyAny>,
         u_ref: &Bound<'_, PyAny>,
-        #[pyo3(from_py_with = count)] repeats: usize,
+        #[pyo3(from_py_with = args::repeats)] repeats: usize,
     ) -> PyResult<f64> {
         self.with_step((x, u_ref, None, None), |step| {
             let mut times = Vec::with_capacity(repeats.max(1));

@@ -1,6 +1,7 @@
 //! `run_scenario` and `list_scenarios`: the scenario crate's closed-loop
 //! runs, the same as `bayes-cbf run`.
 
+use crate::args;
 use crate::convert::{input_err, scenario_err, to_numpy};
 use bayes_cbf_scenario::scenario::{self, run_scenario as run, Column, Trajectory, BUILTIN};
 use pyo3::prelude::*;
@@ -10,14 +11,15 @@ use pyo3::types::{PyDict, PyList};
 /// summary as a dict (the keys of `summary.json`) plus `"trajectory"`: a
 /// dict of the columns of `trajectory.csv` (numpy arrays; NaN where the CSV
 /// is empty; `status` an array of strings). `overrides` maps dotted keys to
-/// values, as `--set key=value`.
+/// values, as `--set key=value`. `seed` is from 0 to 2^63 − 1 (a scenario
+/// file's integer).
 #[pyfunction]
 #[pyo3(signature = (name, seed=None, overrides=None))]
 pub fn run_scenario<'py>(
     py: Python<'py>,
-    name: &str,
-    #[pyo3(from_py_with = crate::convert::count_opt)] seed: Option<u64>,
-    overrides: Option<&Bound<'py, PyDict>>,
+    #[pyo3(from_py_with = args::name)] name: &str,
+    #[pyo3(from_py_with = args::seed)] seed: Option<i64>,
+    #[pyo3(from_py_with = args::overrides)] overrides: Option<Bound<'py, PyDict>>,
 ) -> PyResult<Bound<'py, PyDict>> {
     let mut sets = Vec::new();
     if let Some(o) = overrides {
