@@ -121,3 +121,18 @@ def test_scenario_seeds_above_2_63_are_refused_naming_seed():
                   "seed = 9223372036854775808", "2^63 − 1")
     out = bc.run_scenario("double-integrator", seed=2**63 - 1, overrides={"steps": 2})
     assert len(out["trajectory"]["status"]) == 2
+
+
+COMPLEX = [
+    ("A", lambda: mvgp(A=I2.astype(complex) + 1j)),
+    ("B", lambda: mvgp(B=I2.astype(np.complex64))),
+    ("lengthscales", lambda: mvgp(lengthscales=[0.7, 1j])),
+    ("x", lambda: half_space().value(np.array([1.0, 0.0], dtype=complex))),
+    ("grad", lambda: bc.Barrier.callback(
+        lambda x: 1.0, lambda x: x.astype(complex)).gradient([1.0, 0.0])),
+]
+
+
+@pytest.mark.parametrize("field,thunk", COMPLEX, ids=[c[0] for c in COMPLEX])
+def test_complex_arrays_are_refused(field, thunk):
+    raises_naming(field, thunk, "complex values are not accepted")

@@ -100,8 +100,9 @@ pub fn core_err(e: impl Into<bayes_cbf::Error>) -> PyErr {
 }
 
 /// A float64 array of `obj` (numpy arrays of float64 as they are; lists and
-/// other numeric dtypes converted by `numpy.asarray`), with `ndim`
-/// dimensions. Errors name `field`.
+/// other real dtypes converted by `numpy.asarray`), with `ndim`
+/// dimensions. Errors name `field`; complex values are one (numpy would
+/// drop their imaginary parts).
 pub fn array<'py>(
     obj: &Bound<'py, PyAny>,
     field: &str,
@@ -112,14 +113,24 @@ pub fn array<'py>(
         Err(_) => {
             let py = obj.py();
             let np = py.import("numpy")?;
-            let kw = PyDict::new(py);
-            kw.set_item("dtype", "float64")?;
-            let conv = np.call_method("asarray", (obj,), Some(&kw)).map_err(|e| {
+            let not_numbers = |e: PyErr| {
                 input_err(format!(
                     "{field}: expected an array of numbers (float64), got {} ({e})",
                     type_name(obj)
                 ))
-            })?;
+            };
+            let any = np.call_method1("asarray", (obj,)).map_err(not_numbers)?;
+            if any.getattr("dtype")?.getattr("kind")?.extract::<String>()? == "c" {
+                return Err(input_err(format!(
+                    "{field}: complex values are not accepted (got dtype {})",
+                    any.getattr("dtype")?
+                )));
+            }
+            let kw = PyDict::new(py);
+            kw.set_item("dtype", "float64")?;
+            let conv = np
+                .call_method("asarray", (&any,), Some(&kw))
+                .map_err(not_numbers)?;
             conv.extract().map_err(|_| {
                 input_err(format!(
                     "{field}: expected an array of numbers (float64), got {}",
