@@ -76,18 +76,7 @@ def _calibration_task(
 
 
 def _sets(overrides: Optional[dict]) -> list[str]:
-    if overrides is None:
-        return []
-    if not isinstance(overrides, dict):
-        raise InputError("overrides: expected a dict such as {'controller.probability': 0.9}")
-    out = []
-    for k, v in overrides.items():
-        if not isinstance(k, str):
-            raise InputError(f"overrides: key {k!r} is not a string")
-        if v is None:
-            raise InputError(f"overrides['{k}']: None is not a value")
-        out.append(f"{k}={json.dumps(v)}")
-    return out
+    return _core.override_sets(overrides)
 
 
 def _seed_range(seeds: Iterable[int]) -> tuple[int, int]:

@@ -116,6 +116,22 @@ def test_numpy_scalars_and_ints_are_accepted():
     assert bc.Barrier.disc(np.int64(2), np.array([0, 1]), np.zeros(2), 1.0).state_dim == 2
 
 
+@pytest.mark.parametrize("key,value", [("controller.probability", float("nan")),
+                                       ("dt", float("inf")), ("dt", np.float32("-inf"))])
+def test_non_finite_overrides_name_the_key(key, value):
+    msg = raises_naming(f"overrides['{key}']", lambda: bc.run_scenario(
+        "double-integrator", overrides={key: value}), "must be a finite number")
+    assert "string" not in msg, msg
+
+
+def test_sweep_overrides_are_converted_as_run_scenarios():
+    from bayes_cbf import sweep
+
+    assert sweep._sets({"steps": 5, "gp.prior_mean": {"type": "zero"}}) == [
+        "steps=5", 'gp.prior_mean={"type": "zero"}']
+    raises_naming("overrides['dt']", lambda: sweep._sets({"dt": float("nan")}), "finite")
+
+
 def test_scenario_seeds_above_2_63_are_refused_naming_seed():
     raises_naming("seed", lambda: bc.run_scenario("double-integrator", seed=2**63),
                   "seed = 9223372036854775808", "2^63 − 1")

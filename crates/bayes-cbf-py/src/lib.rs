@@ -34,6 +34,7 @@ fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(scenarios::list_scenarios, m)?)?;
     for f in [
         wrap_pyfunction!(sweeps::check_scenario, m)?,
+        wrap_pyfunction!(scenarios::override_sets, m)?,
         wrap_pyfunction!(sweeps::sweep_meta, m)?,
         wrap_pyfunction!(sweeps::sweep_shard, m)?,
         wrap_pyfunction!(sweeps::sweep_merge, m)?,

@@ -2,10 +2,43 @@
 //! runs, the same as `bayes-cbf run`.
 
 use crate::args;
-use crate::convert::{input_err, scenario_err, to_numpy};
+use crate::convert::{input_err, json_of, scenario_err, to_numpy};
 use bayes_cbf_scenario::scenario::{self, run_scenario as run, Column, Trajectory, BUILTIN};
 use pyo3::prelude::*;
 use pyo3::types::{PyDict, PyList};
+
+/// The `--set key=value` texts of the overrides dict `overrides` (dotted
+/// keys to values; values finite numbers, strings, lists and dicts).
+fn override_texts(overrides: Option<&Bound<'_, PyDict>>) -> PyResult<Vec<String>> {
+    let Some(o) = overrides else {
+        return Ok(Vec::new());
+    };
+    o.iter()
+        .map(|(k, v)| {
+            let key: String = k.extract().map_err(|_| {
+                input_err("overrides: keys must be strings such as 'controller.probability'")
+            })?;
+            let field = format!("overrides['{key}']");
+            if v.is_none() {
+                return Err(input_err(format!("{field}: None is not a value")));
+            }
+            if v.extract::<f64>().is_ok_and(|x| !x.is_finite()) {
+                return Err(input_err(format!("{field} = {v}: must be a finite number")));
+            }
+            Ok(format!("{key}={}", json_of(&v, &field)?))
+        })
+        .collect()
+}
+
+/// The overrides dict `overrides` as `key=value` texts (`--set`), for
+/// `bayes_cbf.sweep`.
+#[pyfunction]
+#[pyo3(signature = (overrides))]
+pub fn override_sets(
+    #[pyo3(from_py_with = args::overrides)] overrides: Option<Bound<'_, PyDict>>,
+) -> PyResult<Vec<String>> {
+    override_texts(overrides.as_ref())
+}
 
 /// Runs a scenario (a built-in name or a TOML file) and returns its
 /// summary as a dict (the keys of `summary.json`) plus `"trajectory"`: a
@@ -21,25 +54,7 @@ pub fn run_scenario<'py>(
     #[pyo3(from_py_with = args::seed)] seed: Option<i64>,
     #[pyo3(from_py_with = args::overrides)] overrides: Option<Bound<'py, PyDict>>,
 ) -> PyResult<Bound<'py, PyDict>> {
-    let mut sets = Vec::new();
-    if let Some(o) = overrides {
-        let json = py.import("json")?;
-        for (k, v) in o.iter() {
-            let key: String = k.extract().map_err(|_| {
-                input_err("overrides: keys must be strings such as 'controller.probability'")
-            })?;
-            if v.is_none() {
-                return Err(input_err(format!(
-                    "overrides['{key}']: None is not a value"
-                )));
-            }
-            let value: String = json
-                .call_method1("dumps", (v,))
-                .and_then(|s| s.extract())
-                .map_err(|e| input_err(format!("overrides['{key}']: {e}")))?;
-            sets.push(format!("{key}={value}"));
-        }
-    }
+    let mut sets = override_texts(overrides.as_ref())?;
     if let Some(s) = seed {
         sets.push(format!("seed={s}"));
     }
