@@ -317,3 +317,17 @@ def test_overflows_are_errors_not_non_finite_results():
     tiny.add_observation([0.0], [1.0], [1.0])
     with pytest.raises(bc.NumericalError):
         tiny.log_marginal_likelihood()
+
+
+def test_an_unresolvable_covariance_is_a_numerical_error():
+    """A kernel variance of 1e16 leaves the condition's standard deviation
+    below the rounding of its covariance: the filter raises NumericalError
+    rather than report an optimum that misses the condition."""
+    A = np.array([[1.0, 0.1], [0.1, 0.8]])
+    B = np.array([[1.0, 0.2], [0.2, 0.5]])
+    m = bc.MVGP(2, 1, [0.7, 1.3], A, B, 0.1, variance=1e16)
+    m.add_observation([0.1, 0.2], [0.5], [0.2, -0.4])
+    sector = bc.Barrier.pendulum_sector(0.7854, 0.3927, relative_degree=1, alpha=1.0)
+    f = bc.SafetyFilter(m, [sector], probability=0.9, u_min=[-5.0], u_max=[5.0])
+    with pytest.raises(bc.NumericalError, match="double precision"):
+        f.filter([0.1, 0.2], [0.0])

@@ -82,7 +82,8 @@ pub fn scenario_err(e: bayes_cbf_scenario::Error) -> PyErr {
     let msg = e.to_string();
     let new = match e.root() {
         E::Io(_) => PyOSError::new_err(msg.clone()),
-        E::Core(bayes_cbf::Error::Gp(_)) => NumericalError::new_err(msg.clone()),
+        E::Core(bayes_cbf::Error::Input(_)) => InputError::new_err(msg.clone()),
+        E::Core(_) => NumericalError::new_err(msg.clone()),
         _ => InputError::new_err(msg.clone()),
     };
     with_callback_cause(new, &msg)
