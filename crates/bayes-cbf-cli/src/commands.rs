@@ -23,14 +23,16 @@ pub struct FitArgs {
     #[arg(long, value_name = "DATA.csv")]
     pub data: PathBuf,
     /// State dimension n.
-    #[arg(long, value_name = "N")]
+    #[arg(long, allow_negative_numbers = true, value_name = "N")]
     pub state_dim: usize,
     /// Control dimension m.
-    #[arg(long, value_name = "M")]
+    #[arg(long, allow_negative_numbers = true, value_name = "M")]
     pub control_dim: usize,
     /// Prior mean: "zero", a JSON object such as
     /// '{"type":"pendulum","mass":1,"length":1,"gravity":10}' or
     /// '{"type":"ackermann","wheelbase":1}', or a file holding that JSON.
+    /// Keys left out take the values shown (also for the bare names
+    /// pendulum and ackermann).
     #[arg(long, value_name = "JSON", default_value = "zero")]
     pub prior_mean: String,
     /// Output model file (written completely or not at all).
@@ -51,13 +53,13 @@ pub struct FitArgs {
     #[arg(long, value_name = "RANK", default_value = "full")]
     pub rank_b: String,
     /// Random restarts of the optimiser besides the data-driven start.
-    #[arg(long, default_value_t = 0)]
+    #[arg(long, allow_negative_numbers = true, default_value_t = 0)]
     pub restarts: usize,
     /// Seed of the random initialisation.
-    #[arg(long, default_value_t = 0)]
+    #[arg(long, allow_negative_numbers = true, default_value_t = 0)]
     pub seed: u64,
     /// L-BFGS iterations per start.
-    #[arg(long, default_value_t = 100)]
+    #[arg(long, allow_negative_numbers = true, default_value_t = 100)]
     pub max_iters: u64,
     /// Floor of the noise standard deviation of state component 0, σ·√A₀₀
     /// (keeps the Gram matrix well conditioned on nearly noise-free data).

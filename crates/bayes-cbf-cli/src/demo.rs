@@ -28,22 +28,22 @@ pub struct DemoArgs {
     #[arg(long, default_value = "runs/learning-demo")]
     pub out: PathBuf,
     /// Seed of every random choice (initial states, torques, fit).
-    #[arg(long, default_value_t = Settings::default().seed)]
+    #[arg(long, allow_negative_numbers = true, default_value_t = Settings::default().seed)]
     pub seed: u64,
     /// Number of training samples k.
-    #[arg(long, default_value_t = Settings::default().steps)]
+    #[arg(long, allow_negative_numbers = true, default_value_t = Settings::default().steps)]
     pub steps: usize,
     /// Number of held-out samples for the error of F(x)u̲.
-    #[arg(long, default_value_t = Settings::default().heldout)]
+    #[arg(long, allow_negative_numbers = true, default_value_t = Settings::default().heldout)]
     pub heldout: usize,
     /// Evaluation grid size per axis (θ and ω).
-    #[arg(long, default_value_t = Settings::default().grid)]
+    #[arg(long, allow_negative_numbers = true, default_value_t = Settings::default().grid)]
     pub grid: usize,
     /// Random restarts of the hyperparameter optimiser.
-    #[arg(long, default_value_t = Settings::default().restarts)]
+    #[arg(long, allow_negative_numbers = true, default_value_t = Settings::default().restarts)]
     pub restarts: usize,
     /// Floor of the learned noise standard deviation of state component 0, σ·√A₀₀.
-    #[arg(long, default_value_t = Settings::default().sigma_min)]
+    #[arg(long, allow_negative_numbers = true, default_value_t = Settings::default().sigma_min)]
     pub sigma_min: f64,
     /// Kernel sees θ through (cos θ, sin θ), continuous across ±π.
     #[arg(long)]

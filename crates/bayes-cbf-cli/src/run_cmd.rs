@@ -21,8 +21,9 @@ pub struct RunArgs {
     /// Output directory (default `runs/<scenario>`).
     #[arg(long)]
     pub out: Option<PathBuf>,
-    /// Seed (overrides the scenario's).
-    #[arg(long)]
+    /// Seed (overrides the scenario's), 0 to 2^63 − 1.
+    #[arg(long, allow_negative_numbers = true,
+          value_parser = clap::value_parser!(u64).range(..=i64::MAX as u64))]
     pub seed: Option<u64>,
     /// Override a field: `--set controller.probability=0.9` (repeatable).
     #[arg(long = "set", value_name = "KEY=VALUE")]
@@ -50,11 +51,11 @@ pub struct RunArgs {
     /// Run the scenario once per seed, A..B (B excluded) or A..=B, in
     /// parallel: writes sweep.csv (one row per seed) and
     /// sweep_summary.json (outcome counts with Wilson intervals).
-    #[arg(long, value_name = "A..B")]
+    #[arg(long, value_name = "A..B", allow_hyphen_values = true)]
     pub seeds: Option<String>,
     /// Run only shard I of N (from 0) of a seed sweep or of calibration;
     /// combine the shards' directories with `bayes-cbf merge`.
-    #[arg(long, value_name = "I/N")]
+    #[arg(long, value_name = "I/N", allow_hyphen_values = true)]
     pub shard: Option<String>,
 }
 

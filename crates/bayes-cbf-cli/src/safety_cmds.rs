@@ -27,13 +27,13 @@ pub struct MomentsArgs {
     #[arg(long, allow_hyphen_values = true)]
     pub u: String,
     /// Monte Carlo draws for relative degree > 2 (no closed form exists).
-    #[arg(long, default_value_t = 20_000)]
+    #[arg(long, allow_negative_numbers = true, default_value_t = 20_000)]
     pub samples: usize,
     /// Finite-difference step of the Monte Carlo Lie derivatives.
     #[arg(long, default_value_t = 1e-2, allow_hyphen_values = true)]
     pub step: f64,
     /// Seed of the Monte Carlo draws.
-    #[arg(long, default_value_t = 0)]
+    #[arg(long, allow_negative_numbers = true, default_value_t = 0)]
     pub seed: u64,
     /// Write the JSON here instead of stdout.
     #[arg(long)]

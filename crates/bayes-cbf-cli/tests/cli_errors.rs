@@ -93,7 +93,7 @@ const MODEL_EDITS: &[(&str, &str, &[&str])] = &[
     (
         PRIOR,
         "\"prior_mean\": {\"type\": \"pendulum\", \"mass\": -1}",
-        &["prior_mean.mass"],
+        &["field prior_mean", "invalid mass = -1"],
     ),
     (
         PRIOR,
@@ -328,6 +328,12 @@ fn bad_fit_options_are_rejected() {
         (&data, "--state-dim 0 --control-dim 1", &["--state-dim"]),
         (
             &data,
+            "--state-dim -1 --control-dim 1",
+            &["'-1' for '--state-dim"],
+        ),
+        (&data, "--max-iters -5", &["'-5' for '--max-iters"]),
+        (
+            &data,
             "--state-dim two --control-dim 1",
             &["--state-dim", "two"],
         ),
@@ -463,7 +469,7 @@ fn extreme_values_are_errors_not_crashes() {
         ),
         (
             owned(words("run double-integrator --seed 9223372036854775808")),
-            &["seed", "outside the range"],
+            &["--seed", "not in 0..=9223372036854775807"],
         ),
         (
             moments(&known, &sector, "1e308,0.1", "0.7"),
@@ -503,6 +509,25 @@ fn extreme_values_are_errors_not_crashes() {
 
 /// An override may set a field the file leaves out (the seed, the goal);
 /// an unknown one is refused with the list of the known ones.
+/// Negative or out-of-range numbers given after a space name their option.
+#[test]
+fn run_numbers_name_their_option() {
+    for (args, expect) in [
+        ("run double-integrator --seed -3", &["'-3' for '--seed"][..]),
+        ("run double-integrator --seeds -1..2", &["--seeds '-1..2'"]),
+        (
+            "run double-integrator --seeds 0..2 --shard -1/2",
+            &["--shard '-1/2'"],
+        ),
+        (
+            "run calibration --episodes 18446744073709551615",
+            &["--episodes", "too large"],
+        ),
+    ] {
+        check(&words(args), expect, args);
+    }
+}
+
 #[test]
 fn overrides_reach_fields_the_file_leaves_out() {
     let dir = scratch_dir("overrides");

@@ -209,6 +209,10 @@ fn bad_safety_input_names_the_field() {
                 r#"{"type": "pendulum_sector", "theta_c": 0.7854, "delta": 0.3927, "relative_degree": 1, "alpha": 1, "gamma": 2}"#,
             ),
             ("empty.json", ""),
+            (
+                "sqrt.json",
+                r#"{"type": "expression", "state": ["t", "w"], "h": "sqrt(t - 0.3)", "relative_degree": 1, "alpha": 1}"#,
+            ),
         ],
     );
     let fails = |args: &str, field: &str| {
@@ -237,6 +241,11 @@ fn bad_safety_input_names_the_field() {
     }
     let moments = "moments --model model.json --barrier b.json";
     fails(&format!("{moments} --x 1,nan --u 0"), "--x");
+    // ∇h infinite where h is not: the state is named
+    fails(
+        "moments --model model.json --barrier sqrt.json --x 0.3,0 --u 0",
+        "∇h of barrier 'expression' is NaN at x = [0.3, 0.0]",
+    );
     fails(&format!("{moments} --x 1,0 --u 0,1"), "--u");
 }
 

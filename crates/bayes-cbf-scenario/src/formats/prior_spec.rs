@@ -3,7 +3,11 @@
 //! `{"type": "pendulum", "mass": .., "length": .., "gravity": ..}`,
 //! `{"type": "ackermann", "wheelbase": ..}` or
 //! `{"type": "expression", "state": [..], "control": [..], "params": {..},
-//! "f": [..], "g": [[..], ..], "angles": [..]}` (see `interfaces.md`).
+//! "f": [..], "g": [[..], ..], "angles": [..]}` (see `interfaces.md`). A
+//! pendulum's keys left out take `mass` 1, `length` 1 and `gravity` 10, an
+//! Ackermann vehicle's `wheelbase` 1, as the bare names `"pendulum"` and
+//! `"ackermann"` do. Errors name the key, not the field holding the
+//! description (the caller adds that: `gp.prior_mean`, `[system]`, ...).
 
 use super::params::Params;
 use crate::bail;
@@ -148,9 +152,7 @@ fn positive(field: &str, v: f64) -> Result<(), String> {
     if v.is_finite() && v > 0.0 {
         Ok(())
     } else {
-        Err(format!(
-            "invalid prior_mean.{field} = {v}: must be finite and > 0"
-        ))
+        Err(format!("invalid {field} = {v}: must be finite and > 0"))
     }
 }
 
@@ -158,43 +160,42 @@ impl TryFrom<Value> for PriorSpec {
     type Error = String;
 
     fn try_from(v: Value) -> Result<Self, String> {
-        let ty = match &v {
-            Value::String(s) => s.clone(),
-            Value::Object(o) => match o.get("type") {
-                Some(Value::String(s)) => s.clone(),
-                Some(other) => {
-                    return Err(format!("prior_mean.type must be a string, got {other}"))
+        let ty =
+            match &v {
+                Value::String(s) => s.clone(),
+                Value::Object(o) => match o.get("type") {
+                    Some(Value::String(s)) => s.clone(),
+                    Some(other) => return Err(format!("type must be a string, got {other}")),
+                    None => return Err(
+                        "an object needs a \"type\" key (zero, pendulum, ackermann or expression)"
+                            .into(),
+                    ),
+                },
+                other => {
+                    return Err(format!(
+                        "expected \"zero\" or an object with a \"type\", got {other}"
+                    ))
                 }
-                None => return Err(
-                    "prior_mean object needs a \"type\" key (pendulum, ackermann or expression)"
-                        .into(),
-                ),
-            },
-            other => {
-                return Err(format!(
-                    "prior_mean must be \"zero\" or an object with a \"type\", got {other}"
-                ))
-            }
-        };
+            };
         let is_obj = v.is_object();
         let spec = match ty.as_str() {
             "zero" => {
                 if is_obj {
-                    ZeroFields::deserialize(&v).map_err(|e| format!("prior_mean: {e}"))?;
+                    ZeroFields::deserialize(&v).map_err(|e| e.to_string())?;
                 }
                 PriorSpec::Zero
             }
             "pendulum" if is_obj => {
-                let p = PendulumFields::deserialize(&v).map_err(|e| format!("prior_mean: {e}"))?;
+                let p = PendulumFields::deserialize(&v).map_err(|e| format!("pendulum: {e}"))?;
                 positive("mass", p.mass)?;
                 positive("length", p.length)?;
                 if !p.gravity.is_finite() {
-                    return Err(format!("invalid prior_mean.gravity = {}: must be finite", p.gravity));
+                    return Err(format!("invalid gravity = {}: must be finite", p.gravity));
                 }
                 PriorSpec::Pendulum { mass: p.mass, length: p.length, gravity: p.gravity }
             }
             "ackermann" if is_obj => {
-                let a = AckermannFields::deserialize(&v).map_err(|e| format!("prior_mean: {e}"))?;
+                let a = AckermannFields::deserialize(&v).map_err(|e| format!("ackermann: {e}"))?;
                 positive("wheelbase", a.wheelbase)?;
                 PriorSpec::Ackermann { wheelbase: a.wheelbase }
             }
@@ -209,7 +210,7 @@ impl TryFrom<Value> for PriorSpec {
             "ackermann" => PriorSpec::Ackermann { wheelbase: 1.0 },
             other => {
                 return Err(format!(
-                    "unknown prior_mean type \"{other}\": expected \"zero\", \"pendulum\", \"ackermann\" or \"expression\" (an object with f and g)"
+                    "unknown type \"{other}\": expected \"zero\", \"pendulum\", \"ackermann\" or \"expression\" (an object with f and g)"
                 ))
             }
         };
@@ -401,14 +402,21 @@ mod tests {
             assert_eq!(serde_json::from_str::<PriorSpec>(&s).unwrap(), p);
         }
         let e = serde_json::from_str::<PriorSpec>(r#"{"type": "cartpole"}"#).unwrap_err();
-        assert!(e
-            .to_string()
-            .contains("unknown prior_mean type \"cartpole\""));
+        assert!(e.to_string().contains("unknown type \"cartpole\""));
         let e = serde_json::from_str::<PriorSpec>(r#"{"type": "pendulum", "mas": 1}"#).unwrap_err();
         assert!(e.to_string().contains("unknown field `mas`"), "{e}");
         let e = serde_json::from_str::<PriorSpec>(r#"{"type": "ackermann", "wheelbase": -1}"#)
             .unwrap_err();
-        assert!(e.to_string().contains("prior_mean.wheelbase"));
+        assert!(e.to_string().contains("invalid wheelbase = -1"), "{e}");
+        // keys left out take the documented values
+        assert_eq!(
+            serde_json::from_str::<PriorSpec>(r#"{"type": "pendulum", "mass": 2}"#).unwrap(),
+            PriorSpec::Pendulum {
+                mass: 2.0,
+                length: 1.0,
+                gravity: 10.0
+            }
+        );
         assert_eq!(PriorSpec::from_arg("zero").unwrap(), PriorSpec::Zero);
         assert_eq!(
             PriorSpec::from_arg(r#"{"type":"ackermann","wheelbase":8}"#).unwrap(),

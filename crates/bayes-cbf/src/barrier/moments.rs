@@ -350,6 +350,7 @@ fn warn_unmodelled_lgh(ws: &MomentWorkspace, barrier: &dyn DynBarrier, out: &Con
 /// the barrier (a callback's own message first).
 fn check_evaluation(
     barrier: &dyn DynBarrier,
+    x: &[f64],
     h: f64,
     grad: &[f64],
     hess: &[f64],
@@ -360,7 +361,7 @@ fn check_evaluation(
     for (what, v) in [("h", std::slice::from_ref(&h)), ("∇h", grad), ("∇²h", hess)] {
         if let Some(bad) = v.iter().find(|v| !v.is_finite()) {
             return Err(InputError::Evaluation(format!(
-                "{what} of barrier '{}' is {bad} at x",
+                "{what} of barrier '{}' is {bad} at x = {x:?}",
                 barrier.name()
             ))
             .into());
@@ -383,7 +384,7 @@ pub fn cbc_moments(
         1 => {
             check_dims(ws, barrier.state_dim(), 1)?;
             let h = barrier.gradient(&ws.x, &mut ws.grad, &mut ws.sd);
-            check_evaluation(barrier, h, &ws.grad, &[])?;
+            check_evaluation(barrier, &ws.x, h, &ws.grad, &[])?;
             rd1(ws, h, gains[0], out);
             out.value = h;
             out.relative_degree = 1;
@@ -391,7 +392,7 @@ pub fn cbc_moments(
         2 => {
             check_dims(ws, barrier.state_dim(), 2)?;
             let h = barrier.hessian(&ws.x, &mut ws.grad, &mut ws.hess, &mut ws.sh);
-            check_evaluation(barrier, h, &ws.grad, &ws.hess)?;
+            check_evaluation(barrier, &ws.x, h, &ws.grad, &ws.hess)?;
             rd2(ws, h, gains[0], gains[1], out);
             warn_unmodelled_lgh(ws, barrier, out);
             out.value = h;
