@@ -192,17 +192,31 @@ pub fn parse_rows_csv(text: &str, name: &str) -> Result<Vec<SweepRow>> {
             bail!("{}: expected 8 fields, got {}", at(), f.len());
         }
         let num = |j: usize| -> Result<f64> {
-            f[j].parse::<f64>()
-                .map_err(|_| err!("{}: field {} = '{}' is not a number", at(), j + 1, f[j]))
+            match f[j].parse::<f64>() {
+                Ok(v) if !v.is_nan() => Ok(v),
+                _ => Err(err!(
+                    "{}: field {} = '{}' is not a number",
+                    at(),
+                    j + 1,
+                    f[j]
+                )),
+            }
         };
         let int = |j: usize| -> Result<u64> {
             f[j].parse::<u64>()
                 .map_err(|_| err!("{}: field {} = '{}' is not an integer", at(), j + 1, f[j]))
         };
+        let flag = |j: usize| -> Result<bool> {
+            match f[j] {
+                "0" => Ok(false),
+                "1" => Ok(true),
+                _ => Err(err!("{}: field {} = '{}' is not 0 or 1", at(), j + 1, f[j])),
+            }
+        };
         rows.push(SweepRow {
             seed: int(0)?,
-            safe: int(1)? == 1,
-            collided: int(2)? == 1,
+            safe: flag(1)?,
+            collided: flag(2)?,
             min_barrier: num(3)?,
             infeasible_steps: int(4)? as usize,
             goal_distance: if f[5].is_empty() { f64::NAN } else { num(5)? },
@@ -546,5 +560,16 @@ mod tests {
             assert_eq!((a.seed, a.safe, a.collided), (b.seed, b.safe, b.collided));
         }
         assert!(parse_rows_csv("seed\n", "x").is_err());
+        // a tampered row: NaN is no number, 2 no flag
+        let line1 = text.lines().nth(1).unwrap();
+        let mut f: Vec<&str> = line1.split(',').collect();
+        for (j, bad, msg) in [(3, "NaN", "field 4 = 'NaN'"), (1, "2", "not 0 or 1")] {
+            let keep = f[j];
+            f[j] = bad;
+            let tampered = format!("{HEADER}\n{}\n", f.join(","));
+            let e = parse_rows_csv(&tampered, "x").unwrap_err().to_string();
+            assert!(e.contains("x line 2") && e.contains(msg), "{e}");
+            f[j] = keep;
+        }
     }
 }

@@ -374,7 +374,8 @@ impl BarrierSpec {
         if text.trim().is_empty() {
             bail!("barrier file '{name}' is empty");
         }
-        serde_json::from_str(text).with_context(|| format!("barrier file '{name}'"))
+        serde_json::from_str(crate::parse::strip_bom(text))
+            .with_context(|| format!("barrier file '{name}'"))
     }
 
     /// Loads and validates a barrier file.

@@ -49,7 +49,7 @@ fn show_header(h: &[String]) -> String {
 /// Parses CSV text into rows of numbers after checking the header; `name`
 /// labels errors. Blank lines are skipped; line numbers are 1-based.
 pub fn parse_table(text: &str, name: &str, header: &[String]) -> Result<Vec<Vec<f64>>> {
-    let text = text.strip_prefix('\u{feff}').unwrap_or(text);
+    let text = crate::parse::strip_bom(text);
     let mut lines = text
         .lines()
         .enumerate()

@@ -103,9 +103,17 @@ mod tests {
     }
 }
 
-/// JSON text as a value, refusing an object that gives a key twice
-/// (`serde_json` would keep the last one silently).
+/// `text` without a leading UTF-8 byte-order mark, which some editors
+/// write and JSON and TOML parsers refuse.
+pub fn strip_bom(text: &str) -> &str {
+    text.strip_prefix('\u{feff}').unwrap_or(text)
+}
+
+/// JSON text as a value (after a byte-order mark, if any), refusing an
+/// object that gives a key twice (`serde_json` would keep the last one
+/// silently).
 pub fn json_value(text: &str) -> serde_json::Result<serde_json::Value> {
+    let text = strip_bom(text);
     use serde::de::{Deserialize, Deserializer, Error, MapAccess, SeqAccess, Visitor};
     use serde_json::{Map, Value};
 
@@ -179,5 +187,21 @@ mod json_tests {
             let e = json_value(text).unwrap_err().to_string();
             assert!(e.contains("given twice"), "{text}: {e}");
         }
+    }
+
+    /// A byte-order mark, as some editors write it, is skipped by every
+    /// reader: JSON values, barrier files and scenario files.
+    #[test]
+    fn a_byte_order_mark_is_skipped() {
+        assert_eq!(json_value("\u{feff}{\"a\": 1}").unwrap()["a"], 1);
+        let barrier = "\u{feff}{\"type\": \"half_space\", \"normal\": [1], \"offset\": 0, \"relative_degree\": 1, \"alpha\": 1}";
+        assert!(crate::barrier_file::BarrierSpec::parse(barrier, "b.json").is_ok());
+        let dir = std::env::temp_dir().join(format!("bayes-cbf-bom-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let path = dir.join("s.toml");
+        let (_, text) = crate::scenario::scenario_text("double-integrator").unwrap();
+        std::fs::write(&path, format!("\u{feff}{text}")).unwrap();
+        assert!(crate::scenario::load(path.to_str().unwrap(), &[]).is_ok());
+        std::fs::remove_dir_all(&dir).unwrap();
     }
 }

@@ -602,7 +602,7 @@ pub fn scenario_text(name: &str) -> Result<(String, String)> {
     if path.is_file() {
         let text = std::fs::read_to_string(path)
             .with_context(|| format!("cannot read scenario file '{name}'"))?;
-        return Ok((name.to_string(), text));
+        return Ok((name.to_string(), crate::parse::strip_bom(&text).to_string()));
     }
     let names: Vec<&str> = BUILTIN.iter().map(|(n, _)| *n).collect();
     bail!(

@@ -228,6 +228,13 @@ impl Disc {
         for (j, &i) in indices.iter().enumerate() {
             check_index(&format!("indices[{j}]"), i, n)?;
         }
+        if indices[0] == indices[1] {
+            return Err(InputError::invalid_shown(
+                "indices[1]",
+                indices[1],
+                "must differ from indices[0] (the disc lies in the plane of two state coordinates)",
+            ));
+        }
         check_finite("center", &center)?;
         check_radius(radius)?;
         validate_gains(relative_degree, &gains)?;
@@ -328,6 +335,10 @@ mod tests {
             "{e}"
         );
         assert!(Disc::new(3, [0, 2], [0.0, 0.0], 1.0, 1, vec![1.0]).is_ok());
+        let e = Disc::new(3, [1, 1], [0.0, 0.0], 1.0, 1, vec![1.0])
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("indices[1]") && e.contains("must differ"), "{e}");
     }
 
     #[test]
