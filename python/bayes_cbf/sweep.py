@@ -110,6 +110,8 @@ def seeds(
     """
     start, end = _seed_range(seeds)
     sets = _sets(overrides)
+    # fail fast on a bad seed range, before Ray starts
+    _core.sweep_meta(scenario, start, end, sets)
     ray = _init(address, num_cpus)
     n = _shard_count(ray, shards, end - start)
     metas = [_core.sweep_meta(scenario, start, end, sets, i, n) for i in range(n)]
@@ -141,8 +143,8 @@ def calibration(
     the default, ``"max_margin"``, ``"brake"`` or ``"hold"``); ``shards``,
     ``address`` and ``num_cpus`` as in :func:`seeds`.
     """
-    if episodes is not None and (not isinstance(episodes, int) or episodes < 1):
-        raise InputError(f"episodes: {episodes!r}, must be an integer >= 1")
+    # fail fast on bad arguments, before Ray starts
+    _core.calibration_check(seed, quick, episodes, fallback)
     ray = _init(address, num_cpus)
     n = _shard_count(ray, shards, 10**9)
     task = ray.remote(num_cpus=1)(_calibration_task).options(runtime_env=_ENV)

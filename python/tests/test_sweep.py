@@ -60,3 +60,15 @@ def test_bad_sweeps_are_input_errors():
         sweep.calibration(episodes=0)
     with pytest.raises(bc.InputError, match="max_margin, brake, hold or relax"):
         bc._core.calibration_shard(0, True, 1, 0, 1, "slow")
+    # every argument is checked, naming it, before Ray starts
+    for call, field in [
+        (lambda: sweep.calibration(seed=-1), "seed = -1"),
+        (lambda: sweep.calibration(seed=2**64), "seed"),
+        (lambda: sweep.calibration(episodes=1.5), "episodes"),
+        (lambda: sweep.calibration(episodes=10**7), "too large"),
+        (lambda: sweep.calibration(quick="yes"), "quick"),
+        (lambda: sweep.calibration(fallback="slow"), "max_margin, brake, hold or relax"),
+        (lambda: sweep.seeds("pendulum-safe", range(-3, 2)), "start = -3"),
+    ]:
+        with pytest.raises(bc.InputError, match=field):
+            call()

@@ -287,7 +287,8 @@ macro_rules! named {
 }
 
 named! {
-    alpha barrier barriers budget center clf clf_weight control_dim delta edge fallback gamma h
+    alpha barrier barriers budget center clf clf_weight control_dim delta edge end episodes
+    fallback gamma h quick scenario start
     indices k_alpha known_rows max_iters model name noise_sigma normal offset overrides params
     path predictive probability q1 q2 radius rank_a rank_b rank_s rank_sigma relative_degree
     repeats restarts samples seed sigma_min state state_dim step text theta_c variance w1 w2 zeta

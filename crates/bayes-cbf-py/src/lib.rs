@@ -39,6 +39,7 @@ fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
         wrap_pyfunction!(sweeps::sweep_shard, m)?,
         wrap_pyfunction!(sweeps::sweep_merge, m)?,
         wrap_pyfunction!(sweeps::calibration_shard, m)?,
+        wrap_pyfunction!(sweeps::calibration_check, m)?,
         wrap_pyfunction!(sweeps::calibration_merge, m)?,
     ] {
         m.add_function(f)?;

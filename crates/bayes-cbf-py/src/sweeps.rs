@@ -2,6 +2,7 @@
 //! scenario crate's functions, for `bayes_cbf.sweep` to run as Ray tasks.
 //! Shards travel as text (JSON and CSV) so that any executor can move them.
 
+use crate::args;
 use crate::convert::{core_err, input_err, scenario_err};
 use bayes_cbf::control::Fallback;
 use bayes_cbf_scenario::experiments::calibration::{self, CalibrationPart};
@@ -20,9 +21,9 @@ fn shard(index: usize, count: usize) -> PyResult<Shard> {
 #[pyfunction]
 #[pyo3(signature = (scenario, start, end, sets, index=0, count=1, goal_tolerance=1.0))]
 pub fn sweep_meta(
-    scenario: &str,
-    start: u64,
-    end: u64,
+    #[pyo3(from_py_with = args::scenario)] scenario: String,
+    #[pyo3(from_py_with = args::start)] start: u64,
+    #[pyo3(from_py_with = args::end)] end: u64,
     sets: Vec<String>,
     index: usize,
     count: usize,
@@ -30,7 +31,7 @@ pub fn sweep_meta(
 ) -> PyResult<String> {
     let seeds: SeedRange = format!("{start}..{end}").parse().map_err(scenario_err)?;
     let meta = SweepMeta {
-        scenario: scenario.to_string(),
+        scenario,
         sets,
         seeds,
         shard: shard(index, count)?,
@@ -77,6 +78,36 @@ pub fn sweep_merge(parts: Vec<(String, String)>) -> PyResult<(String, String)> {
     Ok((json, rows_csv(&rows)))
 }
 
+/// The experiment's arguments and options, checked (the fallback's name,
+/// the number of episodes).
+fn calibration_options(
+    seed: u64,
+    quick: bool,
+    episodes: Option<usize>,
+    fallback: Option<&str>,
+) -> PyResult<(ExperimentArgs, calibration::Options)> {
+    let fallback = fallback
+        .map(Fallback::parse)
+        .transpose()
+        .map_err(core_err)?;
+    let options = calibration::Options { episodes, fallback };
+    options.check(quick).map_err(scenario_err)?;
+    Ok((ExperimentArgs { seed, quick }, options))
+}
+
+/// Checks the arguments of `calibration` (raising `InputError`), so that
+/// `bayes_cbf.sweep.calibration` fails before any task runs.
+#[pyfunction]
+#[pyo3(signature = (seed=0, quick=false, episodes=None, fallback=None))]
+pub fn calibration_check(
+    #[pyo3(from_py_with = args::seed)] seed: u64,
+    #[pyo3(from_py_with = args::quick)] quick: bool,
+    #[pyo3(from_py_with = args::episodes)] episodes: Option<usize>,
+    #[pyo3(from_py_with = args::fallback)] fallback: Option<&str>,
+) -> PyResult<()> {
+    calibration_options(seed, quick, episodes, fallback).map(|_| ())
+}
+
 /// Runs shard `index/count` of `calibration` and returns it (`part.json`);
 /// `fallback` names every controller's fallback (default `relax`, the
 /// experiment's).
@@ -84,20 +115,15 @@ pub fn sweep_merge(parts: Vec<(String, String)>) -> PyResult<(String, String)> {
 #[pyo3(signature = (seed=0, quick=false, episodes=None, index=0, count=1, fallback=None))]
 pub fn calibration_shard(
     py: Python<'_>,
-    seed: u64,
-    quick: bool,
-    episodes: Option<usize>,
+    #[pyo3(from_py_with = args::seed)] seed: u64,
+    #[pyo3(from_py_with = args::quick)] quick: bool,
+    #[pyo3(from_py_with = args::episodes)] episodes: Option<usize>,
     index: usize,
     count: usize,
-    fallback: Option<&str>,
+    #[pyo3(from_py_with = args::fallback)] fallback: Option<&str>,
 ) -> PyResult<String> {
     let s = shard(index, count)?;
-    let args = ExperimentArgs { seed, quick };
-    let fallback = fallback
-        .map(Fallback::parse)
-        .transpose()
-        .map_err(core_err)?;
-    let options = calibration::Options { episodes, fallback };
+    let (args, options) = calibration_options(seed, quick, episodes, fallback)?;
     let part = py.detach(|| calibration::run_shard(&args, &options, s, &|_: usize, _: usize| {}));
     crate::warnings::emit(py)?;
     let part = part.map_err(scenario_err)?;

@@ -113,6 +113,14 @@ pub struct Options {
 /// Largest `--episodes`: its task list and episode table stay in memory.
 pub const MAX_EPISODES: usize = 1_000_000;
 
+impl Options {
+    /// Checks the options as a run would (`--episodes` ≥ 1 and bounded),
+    /// without running anything.
+    pub fn check(&self, quick: bool) -> Result<()> {
+        Plan::new(quick, self.episodes, self.fallback).map(|_| ())
+    }
+}
+
 /// Default number of episodes per (system, truth).
 pub(crate) const DEFAULT_EPISODES: usize = 200;
 /// The controllers' fallback unless `--fallback` says otherwise: `relax`,
