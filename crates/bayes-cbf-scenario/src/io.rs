@@ -127,10 +127,12 @@ pub fn write_json<T: serde::Serialize + ?Sized>(path: &Path, value: &T) -> Resul
 }
 
 /// An output directory filled all at once: files are written into a hidden
-/// sibling staging directory ([`path`](Self::path)), and
+/// staging directory ([`path`](Self::path)), and
 /// [`publish`](Self::publish) moves them into place. Dropped unpublished
 /// (an error on the way), the staging directory is removed and the output
-/// directory is left as it was.
+/// directory is left as it was. The staging directory lies inside an
+/// existing output directory, else next to it, so that every move is a
+/// rename within one file system (a mounted output directory too).
 #[derive(Debug)]
 pub struct StagedDir {
     stage: PathBuf,
@@ -139,25 +141,22 @@ pub struct StagedDir {
 
 impl StagedDir {
     /// Stages the files of the output directory `out`. Errors if `out`
-    /// exists and is not a directory, or its parent cannot be written.
+    /// exists and is not a directory, or cannot be written (or created).
     pub fn new(out: &Path) -> Result<Self> {
-        if out.exists() && !out.is_dir() {
+        let stage = if out.is_dir() {
+            temp_sibling(&out.join("staging"))?
+        } else if out.exists() {
             return Err(err!(
                 "output directory '{}' exists and is not a directory",
                 out.display()
             ));
-        }
-        // `--out .`: the staging directory goes next to the directory itself
-        let named = match out.file_name() {
-            Some(_) => out.to_path_buf(),
-            None => std::fs::canonicalize(out)
-                .with_context(|| format!("cannot resolve '{}'", out.display()))?,
+        } else {
+            temp_sibling(out)?
         };
-        let tmp = temp_sibling(&named)?;
-        std::fs::create_dir(&tmp)
-            .with_context(|| format!("cannot create a directory next to '{}'", out.display()))?;
+        std::fs::create_dir(&stage)
+            .with_context(|| format!("cannot write into '{}'", out.display()))?;
         Ok(Self {
-            stage: tmp,
+            stage,
             out: out.to_path_buf(),
         })
     }
@@ -172,10 +171,13 @@ impl StagedDir {
         &self.out
     }
 
-    /// Moves every staged file into the output directory (created if
-    /// missing; files of the same names replaced, others kept), each by a
-    /// rename.
+    /// Moves every staged file into the output directory (files of the
+    /// same names replaced, others kept), each by a rename; a new output
+    /// directory is the staging directory renamed.
     pub fn publish(self) -> Result<()> {
+        if !self.out.exists() && std::fs::rename(&self.stage, &self.out).is_ok() {
+            return Ok(());
+        }
         // a file in the way of a directory, or the reverse, fails before
         // anything moves
         check_tree(&self.stage, &self.out)?;
@@ -304,44 +306,38 @@ mod tests {
     fn a_staged_directory_is_published_whole_or_not_at_all() {
         let dir = scratch("staged");
         let out = dir.join("run");
-        // an earlier run's files: replaced by name, others kept
-        write_atomic(&out.join("summary.json"), b"old").unwrap();
-        write_atomic(&out.join("keep.txt"), b"keep").unwrap();
+        let read = |name: &str| std::fs::read_to_string(out.join(name)).unwrap();
+        let entries = |p: &Path| {
+            let mut v: Vec<String> = std::fs::read_dir(p)
+                .unwrap()
+                .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+                .collect();
+            v.sort();
+            v
+        };
+        // a new directory: the staging directory renamed
+        let st = StagedDir::new(&out).unwrap();
+        write_atomic(&st.path().join("summary.json"), b"old").unwrap();
+        write_atomic(&st.path().join("keep.txt"), b"keep").unwrap();
+        st.publish().unwrap();
+        assert_eq!(entries(&dir), ["run"]);
         {
             let st = StagedDir::new(&out).unwrap();
             write_atomic(&st.path().join("summary.json"), b"half").unwrap();
             // dropped without publishing: nothing moves, nothing is left
         }
-        assert_eq!(
-            std::fs::read_to_string(out.join("summary.json")).unwrap(),
-            "old"
-        );
-        assert_eq!(
-            std::fs::read_dir(&dir).unwrap().count(),
-            1,
-            "staging left behind"
-        );
+        assert_eq!(read("summary.json"), "old");
+        assert_eq!(entries(&out), ["keep.txt", "summary.json"]);
+        // an existing directory: files replaced by name, others kept
         let st = StagedDir::new(&out).unwrap();
         write_atomic(&st.path().join("summary.json"), b"new").unwrap();
         write_atomic(&st.path().join("sub").join("a.csv"), b"a").unwrap();
         st.publish().unwrap();
         assert_eq!(
-            std::fs::read_to_string(out.join("summary.json")).unwrap(),
-            "new"
+            (read("summary.json"), read("sub/a.csv"), read("keep.txt")),
+            ("new".into(), "a".into(), "keep".into())
         );
-        assert_eq!(
-            std::fs::read_to_string(out.join("sub").join("a.csv")).unwrap(),
-            "a"
-        );
-        assert_eq!(
-            std::fs::read_to_string(out.join("keep.txt")).unwrap(),
-            "keep"
-        );
-        assert_eq!(
-            std::fs::read_dir(&dir).unwrap().count(),
-            1,
-            "staging left behind"
-        );
+        assert_eq!(entries(&out), ["keep.txt", "sub", "summary.json"]);
         // a directory in the way of a file: nothing moves
         std::fs::create_dir_all(out.join("table.csv")).unwrap();
         let st = StagedDir::new(&out).unwrap();
@@ -349,7 +345,10 @@ mod tests {
         write_atomic(&st.path().join("table.csv"), b"t").unwrap();
         let e = st.publish().unwrap_err();
         assert!(e.to_string().contains("table.csv': a directory"), "{e}");
-        assert!(!out.join("a.txt").exists());
+        assert_eq!(
+            entries(&out),
+            ["keep.txt", "sub", "summary.json", "table.csv"]
+        );
         // an output path that is a file is refused before anything runs
         let e = StagedDir::new(&out.join("keep.txt")).unwrap_err();
         assert!(e.to_string().contains("not a directory"), "{e}");
