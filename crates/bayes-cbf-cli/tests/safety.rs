@@ -224,7 +224,7 @@ fn bad_safety_input_names_the_field() {
     // ∇h infinite where h is not: the state is named
     fails(
         "moments --model model.json --barrier sqrt.json --x 0.3,0 --u 0",
-        "∇h of barrier 'expression' is NaN at x = [0.3, 0.0]",
+        "∇h of barrier 'sqrt(t - 0.3)' is NaN at x = [0.3, 0.0]",
     );
     fails(&format!("{moments} --x 1,0 --u 0,1"), "--u");
 }

@@ -53,3 +53,33 @@ fn scenario_interface() {
         r.stderr
     );
 }
+
+/// A barrier of relative degree 3 runs (its moments by Monte Carlo) and
+/// says so, naming the barrier by its `h`; the first steps' few
+/// observations raise no known-row warning.
+#[test]
+fn a_barrier_beyond_relative_degree_two_is_announced() {
+    let dir = scratch_dir("scenarios_rd3");
+    let barrier = r#"barriers.0={ type = "expression", h = "1 - p", relative_degree = 3, k_alpha = [1.0, 3.0, 3.0] }"#;
+    let r = run_in(
+        &dir,
+        &[
+            "run",
+            "double-integrator",
+            "--set",
+            "steps=3",
+            "--set",
+            barrier,
+            "--out",
+            "o",
+        ],
+    );
+    assert!(r.status.success(), "{}", r.stderr);
+    for part in [
+        "barrier[0] '1 - p' has relative degree 3",
+        "joint posterior draws",
+    ] {
+        assert!(r.stderr.contains(part), "{part}: {}", r.stderr);
+    }
+    assert!(!r.stderr.contains("known_rows"), "{}", r.stderr);
+}

@@ -326,4 +326,10 @@ fn known_row_misfit_tells_a_wrong_prior_from_noise() {
     // no known rows: nothing to report
     let free = setup(8, &[]);
     assert_eq!(free.model.known_row_misfit(), None);
+    // too few observations to tell a trend: not judged
+    use bayes_cbf::gp::KNOWN_ROW_MIN_OBSERVATIONS as MIN;
+    let (few, _) = labelled(MIN - 1, |x, _, _| x[2]);
+    assert_eq!(few.known_row_misfit(), None);
+    let (enough, _) = labelled(MIN, |x, _, _| x[2]);
+    assert!(enough.known_row_misfit().is_some());
 }

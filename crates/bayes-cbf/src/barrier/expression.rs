@@ -63,6 +63,7 @@ impl ExpressionBarrier {
         gains: Vec<f64>,
     ) -> Result<Self, InputError> {
         let names = names(state, params)?;
+        let text = h.trim().to_string();
         let h = Expr::parse("h", h, &names)?;
         validate_gains(relative_degree, &gains)?;
         Ok(Self {
@@ -70,7 +71,8 @@ impl ExpressionBarrier {
             h,
             relative_degree,
             gains,
-            name: "expression".into(),
+            // reports and warnings tell expression barriers apart by their h
+            name: text,
             failure: Failure::default(),
         })
     }
@@ -100,12 +102,17 @@ impl Barrier for ExpressionBarrier {
         let v = self.h.eval(x);
         if !v.re().is_finite() {
             self.failure.record(|| {
+                let text = self.h.text();
+                let shown = if self.name == text.trim() {
+                    String::new()
+                } else {
+                    format!(" (h = \"{text}\")")
+                };
                 format!(
-                    "h of barrier '{}' = {} at state {:?} (h = \"{}\")",
+                    "h of barrier '{}' = {} at state {:?}{shown}",
                     self.name,
                     v.re(),
-                    real_parts(x),
-                    self.h.text()
+                    real_parts(x)
                 )
             });
         }

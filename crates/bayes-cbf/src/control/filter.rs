@@ -797,6 +797,10 @@ pub struct KktData {
     pub z: Vec<f64>,
 }
 
+/// Joint posterior draws per step for the moments of a barrier of relative
+/// degree > 2 in the closed loop.
+const MC_SAMPLES: usize = 2_000;
+
 /// A complete safety controller: posterior at `x`, moments of every barrier
 /// (and the CLF), and the SOCP.
 pub struct SafetyController {
@@ -858,6 +862,15 @@ impl SafetyController {
                 ));
             }
             super::super::barrier::validate_gains(b.relative_degree(), b.gains())?;
+            if b.relative_degree() > 2 {
+                log::warn!(
+                    "barrier[{i}] '{}' has relative degree {}: exact moments exist for relative \
+                     degree 1 and 2, so its condition's moments are estimated from {MC_SAMPLES} \
+                     joint posterior draws at every step (seconds per step)",
+                    b.name(),
+                    b.relative_degree()
+                );
+            }
         }
         if let Some(c) = &clf {
             if c.state_dim() != n {
@@ -887,7 +900,7 @@ impl SafetyController {
             clc: ConditionMoments::zeros(m),
             max_degree,
             mc: McSettings {
-                samples: 2_000,
+                samples: MC_SAMPLES,
                 ..McSettings::default()
             },
             steps: 0,

@@ -71,7 +71,10 @@ pub use lipschitz::{
 };
 pub use metrics::{held_out_errors, variance_weighted_error, HeldOutErrors};
 pub use model::{DynamicsModel, ModelFitSettings};
-pub use mvgp::{check_spd, KnownRowMisfit, Mvgp, MvgpHyper, Posterior, PosteriorWorkspace};
+pub use mvgp::{
+    check_spd, KnownRowMisfit, Mvgp, MvgpHyper, Posterior, PosteriorWorkspace,
+    KNOWN_ROW_MIN_OBSERVATIONS,
+};
 pub use prior::{check_dims, PriorMean, MAX_DIMENSION};
 pub use simd::set_linear_algebra_threads;
 pub use training::{fit, FitReport, FitSettings, MvgpLikelihood, Rank};

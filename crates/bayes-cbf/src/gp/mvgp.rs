@@ -38,6 +38,10 @@ pub struct KnownRowMisfit {
     pub smooth_share: f64,
 }
 
+/// Fewest observations on which [`Mvgp::known_row_misfit`] judges a known
+/// row.
+pub const KNOWN_ROW_MIN_OBSERVATIONS: usize = 10;
+
 impl KnownRowMisfit {
     /// Whether the prior mean, not noise or the labels' own error, is off
     /// on the row: the misfit varies smoothly with the inputs
@@ -302,14 +306,16 @@ impl<K: Kernel> Mvgp<K> {
     /// the misfits `e_j = ẋ_j[i] − (M0(x_j) u̲_j)[i]` over the observations
     /// `j`, summarised ([`KnownRowMisfit`]) for the row whose misfit is the
     /// largest share of its labels; `None` without known rows or with fewer
-    /// than two observations. The posterior replaces these labels by the
+    /// than [`KNOWN_ROW_MIN_OBSERVATIONS`] observations (the first steps of
+    /// a run, whose finite-difference labels near rest are all error, tell
+    /// no trend). The posterior replaces these labels by the
     /// prior's value, so a large misfit ([`KnownRowMisfit::is_large`]) says
     /// that the prior mean does not give the row (a kinematic row `θ̇ = ω`
     /// declared known under a zero prior mean, for one). O(k²) for the
     /// nearest neighbours, O(k) prior evaluations.
     pub fn known_row_misfit(&self) -> Option<KnownRowMisfit> {
         let (n, p, k) = (self.n, self.m + 1, self.len());
-        if self.known.is_empty() || k < 2 {
+        if self.known.is_empty() || k < KNOWN_ROW_MIN_OBSERVATIONS {
             return None;
         }
         let nearest = self.nearest_observations();
