@@ -16,7 +16,7 @@ use bayes_cbf::control::{
 use bayes_cbf::gp::{FitSettings, LipschitzSettings, Mvgp, MvgpHyper, PriorMean, Rbf};
 use bayes_cbf::sim::{
     ConstantReference, DataPolicy, EpsilonGreedy, LinearFeedback, LoopSettings, Reference,
-    SimSettings, StraightLinePlanner,
+    SimSettings, StepRecord, StepStatus, StraightLinePlanner,
 };
 use bayes_cbf::systems::DynSystem;
 use nalgebra::DMatrix;
@@ -386,6 +386,53 @@ pub(crate) fn warn_known_row_misfit(model: &Mvgp, seed: u64) {
         warn_once(
             &KNOWN_ROW_MISFIT,
             format!("gp.known_rows (seed {seed}): {}", m.describe()),
+        );
+    }
+}
+
+static LEFT_INVARIANT: AtomicBool = AtomicBool::new(false);
+
+/// Where a relative-degree-2 barrier's `h` first crossed zero in a step that
+/// met its condition, from a state outside the set its gains keep safe
+/// (`ψ₁ < 0`, [`start_margin`] with the true dynamics): the barrier's
+/// index, the step's time, `ψ₁` there and the infeasible steps before it.
+/// An infeasible stretch left that set, and the condition alone does not
+/// bring the state back before `h` crosses.
+pub(crate) fn crossing_outside(
+    barriers: &[Arc<dyn DynBarrier>],
+    truth: &dyn DynSystem,
+    records: &[StepRecord],
+) -> Option<(usize, f64, f64, usize)> {
+    barriers.iter().enumerate().find_map(|(i, b)| {
+        let k = records.iter().position(|r| {
+            r.status != StepStatus::Infeasible && r.h[i] >= 0.0 && r.h_fine_min[i] < 0.0
+        })?;
+        let r = &records[k];
+        let psi = start_margin(truth, b.as_ref(), &r.x).ok()??;
+        let infeasible = records[..k]
+            .iter()
+            .filter(|r| r.status == StepStatus::Infeasible)
+            .count();
+        (psi < 0.0).then_some((i, r.t, psi, infeasible))
+    })
+}
+
+/// Warns, once per process, of a [`crossing_outside`].
+pub(crate) fn warn_crossing_outside(
+    barriers: &[Arc<dyn DynBarrier>],
+    truth: &dyn DynSystem,
+    records: &[StepRecord],
+    seed: u64,
+) {
+    if let Some((i, t, psi, infeasible)) = crossing_outside(barriers, truth, records) {
+        warn_once(
+            &LEFT_INVARIANT,
+            format!(
+                "barriers[{i}] (seed {seed}): h crossed zero at t = {t:.3} in a step that met \
+                 its condition, from a state outside the set its gains keep safe \
+                 (ψ₁ = ḣ + λh = {psi:.3} < 0) after {infeasible} infeasible step(s) \
+                 (docs/robots.md, \"Infeasible stretches\")"
+            ),
         );
     }
 }

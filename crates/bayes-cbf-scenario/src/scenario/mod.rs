@@ -738,6 +738,53 @@ mod tests {
         }
     }
 
+    /// A crossing in a feasible step is reported when its state lies
+    /// outside the set the gains keep (`ψ₁ < 0`), with the infeasible steps
+    /// before it, and not when the state was inside it (a crossing by
+    /// chance, or by noise).
+    #[test]
+    fn a_feasible_crossing_from_outside_the_kept_set_is_found() {
+        use bayes_cbf::sim::{StepRecord, StepStatus};
+        let (sc, _) = load("double-integrator", &[]).unwrap();
+        let built = build::build(&sc).unwrap();
+        // h = 1 − p, gains [1, 2]: λ = 1, ψ₁ = −v + (1 − p) for the true drift
+        let step = |t: f64, x: [f64; 2], h_fine_min: f64, status: StepStatus| StepRecord {
+            t,
+            x: x.to_vec(),
+            u: vec![0.0],
+            u_ref: vec![0.0],
+            h: vec![1.0 - x[0]],
+            h_fine_min: vec![h_fine_min],
+            scbc: vec![0.0],
+            sclc: None,
+            trace_cov: 0.0,
+            status,
+            p_star: None,
+            control_us: 0.0,
+            data_size: 0,
+            refit: false,
+            monitors: vec![],
+            hold: 0.01,
+            trigger: None,
+            inflation: vec![],
+        };
+        let find = |records: &[StepRecord]| {
+            build::crossing_outside(&built.barriers, built.truth.as_ref(), records)
+        };
+        let infeasible = step(0.0, [0.0, 0.5], 0.9, StepStatus::Infeasible);
+        // fast towards the wall, 1 mm short of it: ψ₁ = −2 + 0.001 < 0
+        let fast = step(0.01, [0.999, 2.0], -0.01, StepStatus::Optimal);
+        let (i, t, psi, before) = find(&[infeasible.clone(), fast.clone()]).unwrap();
+        assert_eq!((i, t, before), (0, 0.01, 1));
+        assert!((psi - (-2.0 + 0.001)).abs() < 1e-12, "{psi}");
+        // at rest by the wall: ψ₁ > 0, a crossing the report leaves alone
+        let slow = step(0.01, [0.999, 0.0], -0.0001, StepStatus::Optimal);
+        assert_eq!(find(&[infeasible.clone(), slow]), None);
+        // the same fast crossing in an infeasible step is the fallback's
+        let fallback = step(0.01, [0.999, 2.0], -0.01, StepStatus::Infeasible);
+        assert_eq!(find(&[infeasible, fallback]), None);
+    }
+
     #[test]
     fn names_stay_inside_the_output_directory() {
         for bad in ["../escape", "/tmp/abs", "", "a/b", ".hidden", "a b"] {

@@ -188,6 +188,12 @@ pub fn run_scenario(
     .with_context(|| format!("scenario '{}'", scenario.name))?;
     let wall = started.elapsed().as_secs_f64();
     super::build::warn_known_row_misfit(&result.model, scenario.seed);
+    super::build::warn_crossing_outside(
+        &built.barriers,
+        built.truth.as_ref(),
+        &result.records,
+        scenario.seed,
+    );
     let summary = summarise(scenario, &built, &result, wall);
     Ok(RunOutput {
         scenario: scenario.clone(),
