@@ -11,14 +11,29 @@ use std::sync::atomic::{AtomicU64, Ordering};
 enum Destination {
     /// A regular file, or none yet: a temporary sibling renamed over it.
     Replace(PathBuf),
-    /// A FIFO, a terminal or another device (`/dev/stdout`): written in
-    /// place, as a rename would put a regular file in its stead.
+    /// A FIFO, a terminal, another device or a descriptor of this process
+    /// (`/dev/…`, `/proc/…`): appended to in place, as a rename would put a
+    /// regular file in its stead (and replace a file the shell redirected
+    /// a descriptor to).
     Stream(PathBuf),
+    /// This process's own standard output or error (`/dev/stdout`,
+    /// `/dev/fd/1`, `/proc/self/fd/2`, ...): written to the descriptor
+    /// itself, at its offset.
+    Own(u8),
 }
 
 /// Says how the file at `path` is written, through symbolic links (the
 /// link stays, its file is written).
 fn destination(path: &Path) -> Result<Destination> {
+    let text = path.to_string_lossy();
+    match text.as_ref() {
+        "/dev/stdout" | "/dev/fd/1" | "/proc/self/fd/1" => return Ok(Destination::Own(1)),
+        "/dev/stderr" | "/dev/fd/2" | "/proc/self/fd/2" => return Ok(Destination::Own(2)),
+        t if t.starts_with("/dev/") || t.starts_with("/proc/") => {
+            return Ok(Destination::Stream(path.to_path_buf()))
+        }
+        _ => {}
+    }
     match std::fs::metadata(path) {
         Ok(m) if m.is_dir() => Err(err!("output path '{}' is a directory", path.display())),
         Ok(m) if m.is_file() => Ok(Destination::Replace(
@@ -88,14 +103,27 @@ pub fn write_via_temp(path: &Path, write: impl FnOnce(&Path) -> Result<()>) -> R
             }
             result
         }
-        Destination::Stream(dest) => {
+        streamed => {
             let tmp =
                 temp_sibling(&std::env::temp_dir().join(path.file_name().unwrap_or_default()))?;
             let result = write(&tmp).and_then(|()| {
                 (|| -> std::io::Result<()> {
-                    let mut to = std::fs::OpenOptions::new().write(true).open(&dest)?;
-                    std::io::copy(&mut std::fs::File::open(&tmp)?, &mut to)?;
-                    to.flush()
+                    let mut from = std::fs::File::open(&tmp)?;
+                    match &streamed {
+                        Destination::Own(1) => {
+                            let mut to = std::io::stdout().lock();
+                            std::io::copy(&mut from, &mut to)?;
+                            to.flush()
+                        }
+                        Destination::Own(_) => {
+                            std::io::copy(&mut from, &mut std::io::stderr().lock()).map(|_| ())
+                        }
+                        Destination::Stream(dest) | Destination::Replace(dest) => {
+                            let mut to = std::fs::OpenOptions::new().append(true).open(dest)?;
+                            std::io::copy(&mut from, &mut to)?;
+                            to.flush()
+                        }
+                    }
                 })()
                 .with_context(fail)
             });
@@ -103,6 +131,16 @@ pub fn write_via_temp(path: &Path, write: impl FnOnce(&Path) -> Result<()>) -> R
             result
         }
     }
+}
+
+/// Copies the file `from` to `to` completely or not at all
+/// ([`write_via_temp`]).
+fn copy_to(from: &Path, to: &Path) -> Result<()> {
+    write_via_temp(to, |tmp| {
+        std::fs::copy(from, tmp)
+            .map(|_| ())
+            .with_context(|| format!("cannot write output file '{}'", to.display()))
+    })
 }
 
 /// Writes `contents` to `path` completely or not at all (see
@@ -131,26 +169,41 @@ pub fn write_json<T: serde::Serialize + ?Sized>(path: &Path, value: &T) -> Resul
 /// [`publish`](Self::publish) moves them into place. Dropped unpublished
 /// (an error on the way), the staging directory is removed and the output
 /// directory is left as it was. The staging directory lies inside an
-/// existing output directory, else next to it, so that every move is a
-/// rename within one file system (a mounted output directory too).
+/// existing output directory, else next to it, so that moves are renames
+/// within one file system; a file that cannot be renamed into place (a
+/// link, a FIFO, another file system below) is copied there.
 #[derive(Debug)]
 pub struct StagedDir {
     stage: PathBuf,
     out: PathBuf,
+    /// Keep the staging directory when dropped (a failed publish).
+    keep: bool,
 }
 
 impl StagedDir {
     /// Stages the files of the output directory `out`. Errors if `out`
-    /// exists and is not a directory, or cannot be written (or created).
+    /// exists and is not a directory, is a link to a missing directory, or
+    /// cannot be written (or created). Staging directories that earlier,
+    /// interrupted runs left there are removed.
     pub fn new(out: &Path) -> Result<Self> {
         let stage = if out.is_dir() {
+            remove_stale(out, ".staging.tmp-");
             temp_sibling(&out.join("staging"))?
         } else if out.exists() {
             return Err(err!(
                 "output directory '{}' exists and is not a directory",
                 out.display()
             ));
+        } else if std::fs::symlink_metadata(out).is_ok() {
+            return Err(err!(
+                "output directory '{}' is a symbolic link to a missing directory",
+                out.display()
+            ));
         } else {
+            let name = out.file_name().unwrap_or_default().to_string_lossy();
+            if let Some(parent) = out.parent().filter(|p| p.is_dir()) {
+                remove_stale(parent, &format!(".{name}.tmp-"));
+            }
             temp_sibling(out)?
         };
         std::fs::create_dir(&stage)
@@ -158,6 +211,7 @@ impl StagedDir {
         Ok(Self {
             stage,
             out: out.to_path_buf(),
+            keep: false,
         })
     }
 
@@ -172,23 +226,57 @@ impl StagedDir {
     }
 
     /// Moves every staged file into the output directory (files of the
-    /// same names replaced, others kept), each by a rename; a new output
-    /// directory is the staging directory renamed.
-    pub fn publish(self) -> Result<()> {
+    /// same names replaced, others kept; summaries last), a new output
+    /// directory by renaming the staging directory. If that fails part
+    /// way, the files not yet moved stay in the staging directory, which
+    /// the error names.
+    pub fn publish(mut self) -> Result<()> {
         if !self.out.exists() && std::fs::rename(&self.stage, &self.out).is_ok() {
             return Ok(());
         }
         // a file in the way of a directory, or the reverse, fails before
         // anything moves
         check_tree(&self.stage, &self.out)?;
-        move_tree(&self.stage, &self.out)
-            .with_context(|| format!("cannot move the outputs into '{}'", self.out.display()))
+        move_tree(&self.stage, &self.out).map_err(|e| {
+            self.keep = true;
+            err!(
+                "cannot move the outputs into '{}': {e}; the outputs not moved are in '{}'",
+                self.out.display(),
+                self.stage.display()
+            )
+        })
     }
 }
 
 impl Drop for StagedDir {
     fn drop(&mut self) {
-        let _ = std::fs::remove_dir_all(&self.stage);
+        if !self.keep {
+            let _ = std::fs::remove_dir_all(&self.stage);
+        }
+    }
+}
+
+/// Removes the staging directories `dir/{prefix}{pid}-{n}` of processes
+/// that no longer run (Linux: no `/proc/{pid}`; elsewhere none is removed).
+fn remove_stale(dir: &Path, prefix: &str) {
+    if !Path::new("/proc/self").exists() {
+        return;
+    }
+    let Ok(entries) = std::fs::read_dir(dir) else {
+        return;
+    };
+    for e in entries.flatten() {
+        let name = e.file_name().to_string_lossy().into_owned();
+        let pid = name
+            .strip_prefix(prefix)
+            .and_then(|rest| rest.split('-').next())
+            .and_then(|p| p.parse::<u32>().ok());
+        if let Some(pid) = pid {
+            let gone = !Path::new("/proc").join(pid.to_string()).exists();
+            if gone && e.path().is_dir() {
+                let _ = std::fs::remove_dir_all(e.path());
+            }
+        }
     }
 }
 
@@ -221,18 +309,35 @@ fn check_tree(from: &Path, to: &Path) -> Result<()> {
     Ok(())
 }
 
-/// Renames every file below `from` to the same place below `to`.
-fn move_tree(from: &Path, to: &Path) -> std::io::Result<()> {
-    std::fs::create_dir_all(to)?;
-    let mut entries: Vec<_> = std::fs::read_dir(from)?.collect::<std::io::Result<_>>()?;
-    // files before subdirectories, and in a fixed order
-    entries.sort_by_key(|e| (e.path().is_dir(), e.file_name()));
+/// Moves every file below `from` to the same place below `to`:
+/// subdirectories first, then files, summaries (`*summary.json`) last, so
+/// that a directory with its summary holds the rest. A regular file is
+/// renamed into place; one the rename cannot place (another file system)
+/// and a link, FIFO or device at the target are copied
+/// ([`write_via_temp`]).
+fn move_tree(from: &Path, to: &Path) -> Result<()> {
+    std::fs::create_dir_all(to)
+        .with_context(|| format!("cannot create output directory '{}'", to.display()))?;
+    let mut entries: Vec<_> = std::fs::read_dir(from)
+        .and_then(|d| d.collect::<std::io::Result<Vec<_>>>())
+        .with_context(|| format!("cannot read '{}'", from.display()))?;
+    entries.sort_by_key(|e| {
+        let name = e.file_name().to_string_lossy().into_owned();
+        (!e.path().is_dir(), name.ends_with("summary.json"), name)
+    });
     for e in entries {
-        let target = to.join(e.file_name());
-        if e.file_type()?.is_dir() {
-            move_tree(&e.path(), &target)?;
-        } else {
-            std::fs::rename(e.path(), &target)?;
+        let (source, target) = (e.path(), to.join(e.file_name()));
+        if source.is_dir() {
+            move_tree(&source, &target)?;
+            continue;
+        }
+        let plain = match std::fs::symlink_metadata(&target) {
+            Ok(m) => m.is_file(),
+            Err(_) => true,
+        };
+        if !(plain && std::fs::rename(&source, &target).is_ok()) {
+            copy_to(&source, &target)?;
+            let _ = std::fs::remove_file(&source);
         }
     }
     Ok(())
@@ -353,5 +458,47 @@ mod tests {
         let e = StagedDir::new(&out.join("keep.txt")).unwrap_err();
         assert!(e.to_string().contains("not a directory"), "{e}");
         std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    #[cfg(unix)]
+    #[test]
+    fn a_staged_directory_writes_through_links_and_clears_stale_stages() {
+        let dir = scratch("staged-links");
+        let out = dir.join("run");
+        std::fs::create_dir_all(dir.join("keep")).unwrap();
+        std::fs::create_dir_all(&out).unwrap();
+        std::fs::write(dir.join("keep").join("summary.json"), "old").unwrap();
+        std::os::unix::fs::symlink("../keep/summary.json", out.join("summary.json")).unwrap();
+        // an interrupted run's stage (a process that no longer runs)
+        let stale = out.join(".staging.tmp-4000000000-0");
+        std::fs::create_dir_all(&stale).unwrap();
+        let st = StagedDir::new(&out).unwrap();
+        assert!(!stale.exists() || !Path::new("/proc/self").exists());
+        write_atomic(&st.path().join("summary.json"), b"new").unwrap();
+        st.publish().unwrap();
+        let link = std::fs::symlink_metadata(out.join("summary.json")).unwrap();
+        assert!(link.file_type().is_symlink(), "the link was replaced");
+        let kept = std::fs::read_to_string(dir.join("keep").join("summary.json")).unwrap();
+        assert_eq!(kept, "new");
+        // a link to a missing directory as the output: refused before a run
+        std::os::unix::fs::symlink("nowhere", dir.join("dangling")).unwrap();
+        let e = StagedDir::new(&dir.join("dangling")).unwrap_err();
+        assert!(e.to_string().contains("link to a missing directory"), "{e}");
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    #[test]
+    fn own_descriptors_are_written_in_place() {
+        for (path, fd) in [("/dev/stdout", 1), ("/proc/self/fd/2", 2), ("/dev/fd/1", 1)] {
+            assert!(
+                matches!(destination(Path::new(path)), Ok(Destination::Own(f)) if f == fd),
+                "{path}"
+            );
+        }
+        assert!(matches!(
+            destination(Path::new("/dev/null")),
+            Ok(Destination::Stream(_))
+        ));
+        write_atomic(Path::new("/dev/null"), b"x").unwrap();
     }
 }
