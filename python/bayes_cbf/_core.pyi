@@ -175,6 +175,8 @@ class Barrier:
     gains: Final[list[float]]
     """Class-K gains: [alpha] or k_alpha."""
     name: Final[str]
+    """The barrier's name in reports: its type (``"disc"``, ...), its ``h`` for
+    an expression, the given name for a callback."""
     def to_json(self) -> Optional[str]: ...
 
 class CLF:

@@ -142,7 +142,7 @@ pub fn run(a: &RunArgs) -> Result<()> {
         let out = a
             .out
             .clone()
-            .unwrap_or_else(|| PathBuf::from("runs").join(format!("{}-seeds", sc.name)));
+            .map_or_else(|| scenario::default_out_dir(&sc.name, "-seeds"), Ok)?;
         return crate::sweep_cmd::run_sweep(&a.scenario, &a.sets, seeds, a.shard.as_deref(), &out);
     }
     if a.shard.is_some() {
@@ -159,7 +159,7 @@ pub fn run(a: &RunArgs) -> Result<()> {
     let out = a
         .out
         .clone()
-        .unwrap_or_else(|| PathBuf::from("runs").join(&sc.name));
+        .map_or_else(|| scenario::default_out_dir(&sc.name, ""), Ok)?;
     let staged = StagedDir::new(&out)?;
     let (output, figures) = run_and_plot(&sc, staged.path(), true)?;
     staged.publish()?;

@@ -178,7 +178,7 @@ pub enum GpError {
 #[non_exhaustive]
 pub enum ControlError {
     /// The SOCP reported a solution that misses a barrier's condition by
-    /// more than the solver's tolerance: the condition's covariance is too
+    /// well beyond the solver's tolerance: the condition's covariance is too
     /// large for double precision to resolve its standard deviation at the
     /// control (a kernel variance of ~10¹⁶ does this).
     #[error("barrier {barrier}: the solver's control misses the condition by {slack:.3e} (mean {mean:.3e}, std {std:.3e}); the condition's covariance (largest entry {scale:.1e}) is beyond what double precision resolves: check the model's kernel variance and noise")]

@@ -93,24 +93,8 @@ fn truth(spec: &PriorSpec) -> Result<(Arc<dyn DynSystem>, SystemNames)> {
     Ok((system, names))
 }
 
-/// Checks that `name` can name the default output directory `runs/<name>`
-/// and nothing else: letters, digits, `-`, `_` and `.`, not first.
-pub(crate) fn check_name(name: &str) -> Result<()> {
-    let ok = name
-        .chars()
-        .all(|c| c.is_ascii_alphanumeric() || matches!(c, '-' | '_' | '.'));
-    if name.is_empty() || name.starts_with('.') || !ok {
-        bail!(
-            "name = {name:?}: names the output directory runs/<name>, so it takes letters, \
-             digits, '-', '_' and '.' (not first)"
-        );
-    }
-    Ok(())
-}
-
 /// Builds and validates a scenario.
 pub fn build(s: &Scenario) -> Result<Built> {
-    check_name(&s.name)?;
     let (truth, names) = truth(&s.system)?;
     let (n, m) = (truth.state_dim(), truth.control_dim());
     check_vector("start", &s.start, n, "the state dimension")?;
@@ -404,16 +388,19 @@ pub(crate) fn crossing_outside(
     records: &[StepRecord],
 ) -> Option<(usize, f64, f64, usize)> {
     barriers.iter().enumerate().find_map(|(i, b)| {
-        let k = records.iter().position(|r| {
-            r.status != StepStatus::Infeasible && r.h[i] >= 0.0 && r.h_fine_min[i] < 0.0
-        })?;
-        let r = &records[k];
-        let psi = start_margin(truth, b.as_ref(), &r.x).ok()??;
-        let infeasible = records[..k]
-            .iter()
-            .filter(|r| r.status == StepStatus::Infeasible)
-            .count();
-        (psi < 0.0).then_some((i, r.t, psi, infeasible))
+        records.iter().enumerate().find_map(|(k, r)| {
+            let crossed =
+                r.status != StepStatus::Infeasible && r.h[i] >= 0.0 && r.h_fine_min[i] < 0.0;
+            if !crossed {
+                return None;
+            }
+            let psi = start_margin(truth, b.as_ref(), &r.x).ok()??;
+            let infeasible = records[..k]
+                .iter()
+                .filter(|r| r.status == StepStatus::Infeasible)
+                .count();
+            (psi < 0.0).then_some((i, r.t, psi, infeasible))
+        })
     })
 }
 

@@ -653,8 +653,24 @@ pub fn load(name: &str, sets: &[String]) -> Result<(Scenario, String)> {
         Err(e) if sets.is_empty() => return Err(toml_error(&source, &text, &e)),
         Err(e) => return Err(blame(&source, &text, sets, &e)),
     };
-    build::check_name(&scenario.name).with_context(|| format!("scenario '{source}'"))?;
     Ok((scenario, merged))
+}
+
+/// The default output directory of a scenario named `name`:
+/// `runs/<name><suffix>`. The name must be one plain path component (no
+/// `/`, not empty, `.` or `..`), so that the outputs stay below `runs/`.
+pub fn default_out_dir(name: &str, suffix: &str) -> Result<std::path::PathBuf> {
+    use std::path::Component;
+    let mut parts = Path::new(name).components();
+    match (parts.next(), parts.next()) {
+        (Some(Component::Normal(n)), None) if n == name => {
+            Ok(Path::new("runs").join(format!("{name}{suffix}")))
+        }
+        _ => bail!(
+            "name = {name:?} cannot name the output directory runs/<name> (it must be one \
+             path component, without '/'): give --out, or rename the scenario"
+        ),
+    }
 }
 
 /// The error of a scenario that its overrides make invalid, told against
@@ -779,7 +795,14 @@ mod tests {
         assert!((psi - (-2.0 + 0.001)).abs() < 1e-12, "{psi}");
         // at rest by the wall: ψ₁ > 0, a crossing the report leaves alone
         let slow = step(0.01, [0.999, 0.0], -0.0001, StepStatus::Optimal);
-        assert_eq!(find(&[infeasible.clone(), slow]), None);
+        assert_eq!(find(&[infeasible.clone(), slow.clone()]), None);
+        // ... but not one that comes after it
+        let later = StepRecord {
+            t: 0.02,
+            ..fast.clone()
+        };
+        let found = find(&[infeasible.clone(), slow, infeasible.clone(), later]);
+        assert_eq!(found.map(|f| (f.1, f.3)), Some((0.02, 2)));
         // the same fast crossing in an infeasible step is the fallback's
         let fallback = step(0.01, [0.999, 2.0], -0.01, StepStatus::Infeasible);
         assert_eq!(find(&[infeasible, fallback]), None);
@@ -787,14 +810,19 @@ mod tests {
 
     #[test]
     fn names_stay_inside_the_output_directory() {
-        for bad in ["../escape", "/tmp/abs", "", "a/b", ".hidden", "a b"] {
-            let e = load("double-integrator", &[format!("name=\"{bad}\"")])
-                .unwrap_err()
-                .to_string();
-            assert!(e.contains("names the output directory"), "{bad}: {e}");
+        for bad in ["../escape", "/tmp/abs", "", "a/b", ".", ".."] {
+            let e = default_out_dir(bad, "").unwrap_err().to_string();
+            assert!(e.contains("cannot name the output directory"), "{bad}: {e}");
         }
-        let (s, _) = load("double-integrator", &["name=my-cart_2.v1".into()]).unwrap();
-        assert_eq!(s.name, "my-cart_2.v1");
+        for good in ["my-cart_2.v1", "Pendel Test", "pendule-é", ".hidden"] {
+            assert_eq!(
+                default_out_dir(good, "-seeds").unwrap(),
+                Path::new("runs").join(format!("{good}-seeds"))
+            );
+        }
+        // any name loads: it matters only for the default directory
+        let (s, _) = load("double-integrator", &["name=\"a/b\"".into()]).unwrap();
+        assert_eq!(s.name, "a/b");
     }
 
     #[test]
