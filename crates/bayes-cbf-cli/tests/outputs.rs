@@ -14,6 +14,18 @@ fn short_run<'a>(extra: &[&'a str]) -> Vec<&'a str> {
     args
 }
 
+/// Three observations of a 2-state, 1-control system.
+const DATA: &str =
+    "x1,x2,u1,xdot1,xdot2\n0.1,0.2,0.5,0.2,-0.4\n0.3,-0.1,1.0,-0.1,-1.9\n0.5,0.4,-1.0,0.4,-3.0\n";
+
+/// A short fit of `d.csv` (`DATA`) written to `out`.
+fn fit_into(out: &str) -> Vec<&str> {
+    let args = "fit --data d.csv --state-dim 2 --control-dim 1 --max-iters 3 --out";
+    let mut v: Vec<&str> = args.split(' ').collect();
+    v.push(out);
+    v
+}
+
 #[test]
 fn a_run_that_cannot_write_one_file_writes_none() {
     let dir = scratch_dir("outputs-partial");
@@ -82,47 +94,16 @@ fn a_link_as_output_is_written_through() {
     let dir = scratch_dir("outputs-link");
     std::fs::write(dir.join("real.json"), "old").unwrap();
     std::os::unix::fs::symlink("real.json", dir.join("link.json")).unwrap();
-    let r = run_in(
-        &dir,
-        &[
-            "fit",
-            "--data",
-            "missing.csv",
-            "--state-dim",
-            "2",
-            "--control-dim",
-            "1",
-            "--out",
-            "link.json",
-        ],
-    );
+    // d.csv does not exist yet
+    let r = run_in(&dir, &fit_into("link.json"));
     // a failed command leaves both as they were
     assert!(!r.status.success());
     assert_eq!(
         std::fs::read_to_string(dir.join("real.json")).unwrap(),
         "old"
     );
-    std::fs::write(
-        dir.join("d.csv"),
-        "x1,x2,u1,xdot1,xdot2\n0.1,0.2,0.5,0.2,-0.4\n0.3,-0.1,1.0,-0.1,-1.9\n0.5,0.4,-1.0,0.4,-3.0\n",
-    )
-    .unwrap();
-    let r = run_in(
-        &dir,
-        &[
-            "fit",
-            "--data",
-            "d.csv",
-            "--state-dim",
-            "2",
-            "--control-dim",
-            "1",
-            "--max-iters",
-            "3",
-            "--out",
-            "link.json",
-        ],
-    );
+    std::fs::write(dir.join("d.csv"), DATA).unwrap();
+    let r = run_in(&dir, &fit_into("link.json"));
     assert!(r.status.success(), "{}", r.stderr);
     let link = std::fs::symlink_metadata(dir.join("link.json")).unwrap();
     assert!(link.file_type().is_symlink(), "the link was replaced");
@@ -166,27 +147,14 @@ fn a_full_stream_is_not_a_panic() {
 #[test]
 fn out_dev_stdout_appends_to_a_redirected_log() {
     let dir = scratch_dir("outputs-stdout");
-    std::fs::write(
-        dir.join("d.csv"),
-        "x1,x2,u1,xdot1,xdot2\n0.1,0.2,0.5,0.2,-0.4\n0.3,-0.1,1.0,-0.1,-1.9\n0.5,0.4,-1.0,0.4,-3.0\n",
-    )
-    .unwrap();
+    std::fs::write(dir.join("d.csv"), DATA).unwrap();
     std::fs::write(dir.join("log.txt"), "PREVIOUS\n").unwrap();
     let log = std::fs::OpenOptions::new()
         .append(true)
         .open(dir.join("log.txt"))
         .unwrap();
     let out = Command::new(env!("CARGO_BIN_EXE_bayes-cbf"))
-        .args([
-            "fit",
-            "--data",
-            "d.csv",
-            "--state-dim",
-            "2",
-            "--control-dim",
-            "1",
-        ])
-        .args(["--max-iters", "3", "--out", "/dev/stdout"])
+        .args(fit_into("/dev/stdout"))
         .current_dir(&*dir)
         .stdout(Stdio::from(log))
         .output()
