@@ -16,10 +16,11 @@ enum Destination {
     /// regular file in its stead (and replace a file the shell redirected
     /// a descriptor to).
     Stream(PathBuf),
-    /// This process's own standard output or error (`/dev/stdout`,
-    /// `/dev/fd/1`, `/proc/self/fd/2`, ...): written to the descriptor
-    /// itself, at its offset.
-    Own(u8),
+    /// This process's own standard output (`/dev/stdout`, `/dev/fd/1`,
+    /// `/proc/self/fd/1`): written to the descriptor itself, at its offset.
+    Stdout,
+    /// This process's own standard error, likewise.
+    Stderr,
 }
 
 /// Says how the file at `path` is written, through symbolic links (the
@@ -27,8 +28,8 @@ enum Destination {
 fn destination(path: &Path) -> Result<Destination> {
     let text = path.to_string_lossy();
     match text.as_ref() {
-        "/dev/stdout" | "/dev/fd/1" | "/proc/self/fd/1" => return Ok(Destination::Own(1)),
-        "/dev/stderr" | "/dev/fd/2" | "/proc/self/fd/2" => return Ok(Destination::Own(2)),
+        "/dev/stdout" | "/dev/fd/1" | "/proc/self/fd/1" => return Ok(Destination::Stdout),
+        "/dev/stderr" | "/dev/fd/2" | "/proc/self/fd/2" => return Ok(Destination::Stderr),
         t if t.starts_with("/dev/") || t.starts_with("/proc/") => {
             return Ok(Destination::Stream(path.to_path_buf()))
         }
@@ -89,47 +90,38 @@ fn temp_sibling(path: &Path) -> Result<PathBuf> {
 }
 
 /// Runs `write(tmp)`, which writes a temporary file, and moves its bytes to
-/// `path`: renamed over a regular file (or a new one), copied into a FIFO
-/// or device; through symbolic links to their file. The temporary file is
-/// removed on failure, so `path` is written completely or not at all.
+/// `path`: renamed over a regular file (or a new one),
+/// through symbolic links to their file; appended to a FIFO, a device or
+/// this process's stdout or stderr. A failed write leaves `path` as it
+/// was.
 pub fn write_via_temp(path: &Path, write: impl FnOnce(&Path) -> Result<()>) -> Result<()> {
-    let fail = || format!("cannot write output file '{}'", path.display());
-    match destination(path)? {
-        Destination::Replace(dest) => {
-            let tmp = temp_sibling(&dest)?;
-            let result = write(&tmp).and_then(|()| std::fs::rename(&tmp, &dest).with_context(fail));
-            if result.is_err() {
-                let _ = std::fs::remove_file(&tmp);
-            }
-            result
+    let dest = destination(path)?;
+    let tmp = match &dest {
+        Destination::Replace(file) => temp_sibling(file)?,
+        _ => temp_sibling(&std::env::temp_dir().join(path.file_name().unwrap_or_default()))?,
+    };
+    let result = write(&tmp).and_then(|()| {
+        deliver(&tmp, &dest)
+            .with_context(|| format!("cannot write output file '{}'", path.display()))
+    });
+    // gone after a rename; a temporary copy source otherwise
+    let _ = std::fs::remove_file(&tmp);
+    result
+}
+
+/// Moves the bytes of the temporary file `tmp` to `dest`.
+fn deliver(tmp: &Path, dest: &Destination) -> std::io::Result<()> {
+    let append = |to: &mut dyn Write| -> std::io::Result<()> {
+        std::io::copy(&mut std::fs::File::open(tmp)?, to)?;
+        to.flush()
+    };
+    match dest {
+        Destination::Replace(file) => std::fs::rename(tmp, file),
+        Destination::Stream(file) => {
+            append(&mut std::fs::OpenOptions::new().append(true).open(file)?)
         }
-        streamed => {
-            let tmp =
-                temp_sibling(&std::env::temp_dir().join(path.file_name().unwrap_or_default()))?;
-            let result = write(&tmp).and_then(|()| {
-                (|| -> std::io::Result<()> {
-                    let mut from = std::fs::File::open(&tmp)?;
-                    match &streamed {
-                        Destination::Own(1) => {
-                            let mut to = std::io::stdout().lock();
-                            std::io::copy(&mut from, &mut to)?;
-                            to.flush()
-                        }
-                        Destination::Own(_) => {
-                            std::io::copy(&mut from, &mut std::io::stderr().lock()).map(|_| ())
-                        }
-                        Destination::Stream(dest) | Destination::Replace(dest) => {
-                            let mut to = std::fs::OpenOptions::new().append(true).open(dest)?;
-                            std::io::copy(&mut from, &mut to)?;
-                            to.flush()
-                        }
-                    }
-                })()
-                .with_context(fail)
-            });
-            let _ = std::fs::remove_file(&tmp);
-            result
-        }
+        Destination::Stdout => append(&mut std::io::stdout().lock()),
+        Destination::Stderr => append(&mut std::io::stderr().lock()),
     }
 }
 
@@ -489,11 +481,17 @@ mod tests {
 
     #[test]
     fn own_descriptors_are_written_in_place() {
-        for (path, fd) in [("/dev/stdout", 1), ("/proc/self/fd/2", 2), ("/dev/fd/1", 1)] {
-            assert!(
-                matches!(destination(Path::new(path)), Ok(Destination::Own(f)) if f == fd),
-                "{path}"
-            );
+        for path in ["/dev/stdout", "/dev/fd/1", "/proc/self/fd/1"] {
+            assert!(matches!(
+                destination(Path::new(path)),
+                Ok(Destination::Stdout)
+            ));
+        }
+        for path in ["/dev/stderr", "/dev/fd/2", "/proc/self/fd/2"] {
+            assert!(matches!(
+                destination(Path::new(path)),
+                Ok(Destination::Stderr)
+            ));
         }
         assert!(matches!(
             destination(Path::new("/dev/null")),
