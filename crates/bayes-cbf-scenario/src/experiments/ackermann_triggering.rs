@@ -19,50 +19,10 @@
 
 use super::ExperimentArgs;
 use crate::error::Result;
-use crate::scenario::{self, RunOutput, TriggerSummary};
+use crate::scenario::{self, RunOutput, RunSummary};
 use crate::stats;
 use bayes_cbf::control::TriggerReport;
 use serde::Serialize;
-
-/// One closed-loop run's part of the summary.
-#[derive(Debug, Clone, PartialEq, Serialize)]
-pub struct RunOutcome {
-    /// Control computations.
-    pub triggers: usize,
-    /// Each control was held for `τ_k`.
-    pub self_triggered: bool,
-    /// Entered an obstacle.
-    pub collided: bool,
-    /// Every barrier stayed ≥ 0 on the fine grid.
-    pub safe: bool,
-    /// Minimum of each barrier.
-    pub min_barrier: Vec<f64>,
-    /// Closest signed distance to an obstacle.
-    pub min_obstacle_distance: Option<f64>,
-    /// Distance to the goal at the end.
-    pub final_goal_distance: Option<f64>,
-    /// Infeasible SOCPs.
-    pub infeasible_steps: usize,
-    /// `τ_k` and `L_f` statistics.
-    pub trigger: Option<TriggerSummary>,
-}
-
-impl RunOutcome {
-    fn of(o: &RunOutput) -> Self {
-        let s = &o.summary;
-        Self {
-            triggers: s.triggers,
-            self_triggered: s.self_triggered,
-            collided: s.collided,
-            safe: s.safe,
-            min_barrier: s.min_barrier.clone(),
-            min_obstacle_distance: s.min_obstacle_distance,
-            final_goal_distance: s.final_goal_distance,
-            infeasible_steps: s.infeasible_steps,
-            trigger: s.trigger.clone(),
-        }
-    }
-}
 
 /// A fixed-step run at one margin ζ, τ_k evaluated.
 #[derive(Debug, Clone, PartialEq, Serialize)]
@@ -103,12 +63,12 @@ pub struct Summary {
     pub quick: bool,
     /// Horizon of every run (s).
     pub horizon_s: f64,
-    /// Time-triggered at `dt`, `τ_k` evaluated.
-    pub fixed_step: RunOutcome,
+    /// Time-triggered at `dt`, `τ_k` evaluated: the run's summary.
+    pub fixed_step: RunSummary,
     /// Held for the analytic `τ_k`.
-    pub self_triggered: RunOutcome,
+    pub self_triggered: RunSummary,
     /// Held for the numerical `τ_k`.
-    pub self_triggered_numerical: RunOutcome,
+    pub self_triggered_numerical: RunSummary,
     /// Fixed-step runs at each ζ.
     pub zeta_sweep: Vec<ZetaRun>,
     /// `τ_k` against ζ on the self-triggered run's data.
@@ -262,9 +222,9 @@ pub fn run(args: &ExperimentArgs) -> Result<AckermannTriggering> {
         seed: args.seed,
         quick: args.quick,
         horizon_s: fixed.scenario.dt * fixed.scenario.steps as f64,
-        fixed_step: RunOutcome::of(&fixed),
-        self_triggered: RunOutcome::of(&selft),
-        self_triggered_numerical: RunOutcome::of(&selfn),
+        fixed_step: fixed.summary.clone(),
+        self_triggered: selft.summary.clone(),
+        self_triggered_numerical: selfn.summary.clone(),
         zeta_sweep: sweep,
         tau_vs_zeta_on_self_triggered_data: dense
             .iter()
