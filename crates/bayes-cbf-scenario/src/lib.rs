@@ -35,3 +35,8 @@ mod fuzz_tests;
 
 pub use error::{Context, Error, Result};
 pub use formats::{barrier_file, csv_data, input_map_spec, model_file, params, parse, prior_spec};
+
+/// The README's Rust examples, compiled and run as doctests.
+#[cfg(doctest)]
+#[doc = include_str!("../../../README.md")]
+pub struct ReadmeDoctests;
