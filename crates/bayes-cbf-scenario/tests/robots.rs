@@ -97,23 +97,17 @@ fn quadrotor_touches_neither_floor_nor_obstacle_on_any_seed() {
 
 /// The quadrotor's safety does not rest on its prior's particular error:
 /// given its true mass, a mass further off than the file's, or the true
-/// dynamics with next to no uncertainty (no learning), it stays safe. With
-/// the disc's former gains `[4, 4]`, no attitude barrier and the disc 0.4 m
-/// lower, the true mass kept 1 of 10 seeds safe and the true dynamics none
-/// (docs/robots.md): the barriers' conditions conflicted along the pass
-/// whatever the model knew.
+/// dynamics (`gp.oracle`), it stays safe. With the disc's former gains
+/// `[4, 4]`, no attitude barrier and the disc 0.4 m lower, the true mass
+/// kept 1 of 10 seeds safe and the true dynamics none (docs/robots.md):
+/// the barriers' conditions conflicted along the pass whatever the model
+/// knew (`tests/oracle.rs`).
 #[test]
 fn quadrotor_is_safe_whatever_its_prior_knows() {
-    let truth = [
-        "gp.prior_mean.params.m=1.3",
-        r#"gp.prior_mean.f=["vx","vz","omega","-0.3/m*vx","-g - 0.3/m*vz","0"]"#,
-        r#"gp.B={type="identity",scale=1e-8}"#,
-        "learning.update_every=0",
-    ];
     for sets in [
         &["gp.prior_mean.params.m=1.3"][..],
         &["gp.prior_mean.params.m=1.6"][..],
-        &truth[..],
+        &["gp.oracle=true"][..],
     ] {
         safe_on_every_seed(
             &sweep_with("quadrotor-floor", sets, 600, 610),

@@ -1,7 +1,7 @@
 //! From a parsed [`Scenario`] to the library's objects, validating every
 //! field with errors that name it.
 
-use super::{MatrixSpec, ReferenceSpec, Scenario};
+use super::{LearningSpec, MatrixSpec, ReferenceSpec, Scenario};
 use crate::bail;
 use crate::barrier_file::BarrierSpec;
 use crate::error::{check_vector, Context, Result};
@@ -134,7 +134,12 @@ pub fn build(s: &Scenario) -> Result<Built> {
     // model
     let mut rng = ChaCha8Rng::seed_from_u64(s.seed ^ 0x5EED_0FAB);
     let a = matrix("A", &s.gp.a, n, &mut rng)?;
-    let b = matrix("B", &s.gp.b, m + 1, &mut rng)?;
+    let mut b = matrix("B", &s.gp.b, m + 1, &mut rng)?;
+    if s.gp.oracle {
+        // drawn all the same, so that the rest of the run's random stream
+        // is the learning run's
+        b = DMatrix::identity(m + 1, m + 1) * super::ORACLE_VARIANCE;
+    }
     let input_map = to_input_map(s.gp.input_map.as_deref());
     let kernel = Rbf::new(s.gp.lengthscales.clone(), s.gp.kernel_variance)
         .map_err(|e| crate::err!("gp: {e}"))?;
@@ -144,7 +149,11 @@ pub fn build(s: &Scenario) -> Result<Built> {
         B: b,
         sigma: s.gp.noise_sigma,
     };
-    let prior = s.gp.prior_mean.to_prior_in(Some(&names)).context("gp")?;
+    let prior = if s.gp.oracle {
+        PriorMean::System(truth.clone())
+    } else {
+        s.gp.prior_mean.to_prior_in(Some(&names)).context("gp")?
+    };
     if let PriorMean::System(p) = &prior {
         if (p.state_dim(), p.control_dim()) != (n, m) {
             bail!(
@@ -306,7 +315,17 @@ pub fn build(s: &Scenario) -> Result<Built> {
         }
     };
     // loop
-    let l = &s.learning;
+    let oracle_learning = LearningSpec {
+        update_every: 0,
+        refit_every: 0,
+        refit_geometric: false,
+        ..s.learning.clone()
+    };
+    let l = if s.gp.oracle {
+        &oracle_learning
+    } else {
+        &s.learning
+    };
     let fit = FitSettings {
         rank_a: parse_rank("learning.rank_a", &l.rank_a)?,
         rank_b: parse_rank("learning.rank_b", &l.rank_b)?,

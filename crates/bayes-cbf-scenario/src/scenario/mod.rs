@@ -253,7 +253,19 @@ pub struct GpSpec {
     /// pendulum's `θ̇ = ω`); only the others are learned.
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub known_rows: Vec<usize>,
+    /// Replace the model by the true system, a check of the scenario's
+    /// design apart from learning: the prior mean is `[system]`, `B` is
+    /// [`ORACLE_VARIANCE`]` · I` (next to no uncertainty) and nothing is
+    /// learned (`learning` is ignored). Where such a run is unsafe or
+    /// infeasible, the barriers, gains, bounds and reference conflict for
+    /// the true system, and no model learns its way out of that.
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub oracle: bool,
 }
+
+/// `B` of the oracle model ([`GpSpec::oracle`]) as a multiple of the
+/// identity: the conditions' spread is ~1e-6 of their scale.
+pub const ORACLE_VARIANCE: f64 = 1e-12;
 
 fn one() -> f64 {
     1.0

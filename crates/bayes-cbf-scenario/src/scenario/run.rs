@@ -102,6 +102,10 @@ pub struct RunSummary {
     pub refits: usize,
     /// Observations in the final model.
     pub data_size: usize,
+    /// The model was the true system (`gp.oracle`): a check of the
+    /// scenario's design, not of learning.
+    #[serde(default)]
+    pub oracle: bool,
     /// Posterior uncertainty at the first and last step.
     pub trace_cov: TraceCov,
     /// Wall time of the run (s).
@@ -262,6 +266,7 @@ fn summarise(s: &Scenario, built: &Built, r: &LoopResult, wall: f64) -> RunSumma
         probability: s.controller.probability,
         refits: r.records.iter().filter(|x| x.refit).count(),
         data_size: r.model.len(),
+        oracle: s.gp.oracle,
         trace_cov: TraceCov {
             start: r.records.first().map(|x| x.trace_cov),
             end: r.records.last().map(|x| x.trace_cov),

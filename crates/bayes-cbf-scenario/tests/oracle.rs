@@ -1,0 +1,59 @@
+//! `gp.oracle = true` replaces the model by the true system: its
+//! posterior is the true `F` with next to no spread, nothing is learned,
+//! and the run keeps the learning run's start and noise. It tells a
+//! scenario whose barriers conflict for the true system (the quadrotor's
+//! first design) from one whose do not.
+
+use bayes_cbf_scenario::scenario::{self, RunOutput, ORACLE_VARIANCE};
+use nalgebra::DMatrix;
+
+fn run(name: &str, sets: &[&str]) -> RunOutput {
+    let sets: Vec<String> = sets.iter().map(|s| s.to_string()).collect();
+    let (sc, _) = scenario::load(name, &sets).unwrap();
+    scenario::run_scenario(&sc, |_, _| {}).unwrap()
+}
+
+#[test]
+fn the_oracle_model_is_the_true_system() {
+    let learning = run("double-integrator", &["steps=50"]);
+    let oracle = run("double-integrator", &["steps=50", "gp.oracle=true"]);
+    let s = &oracle.summary;
+    assert!(s.oracle && !learning.summary.oracle);
+    assert_eq!((s.data_size, s.refits), (0, 0), "nothing is learned");
+    assert!(learning.summary.data_size > 0);
+    // the same start, from the same seed
+    assert_eq!(oracle.result.records[0].x, learning.result.records[0].x);
+    let model = &oracle.result.model;
+    let truth = &oracle.built.truth;
+    let (n, m) = (truth.state_dim(), truth.control_dim());
+    for x in [[-0.5, 0.0], [0.7, -1.3], [3.0, 2.0]] {
+        let post = model.posterior(&x).unwrap();
+        let mut f = vec![0.0; n * (1 + m)];
+        truth.eval_f64(&x, &mut f);
+        let want = DMatrix::from_column_slice(n, 1 + m, &f);
+        assert!(
+            (&post.mean - &want).amax() < 1e-12,
+            "{} {}",
+            post.mean,
+            want
+        );
+        assert!(post.B.amax() <= ORACLE_VARIANCE * 1.000001, "{}", post.B);
+    }
+}
+
+#[test]
+fn the_oracle_tells_conflicting_barriers_from_compatible_ones() {
+    let first = concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/tests/data/quadrotor-first-design.toml"
+    );
+    for seed in [71000, 71001] {
+        let seed = format!("seed={seed}");
+        let sets = [seed.as_str(), "gp.oracle=true", "outputs.plots=false"];
+        let conflict = run(first, &sets).summary;
+        assert!(!conflict.safe, "{conflict:?}");
+        assert!(conflict.infeasible_steps > 50, "{conflict:?}");
+        let fixed = run("quadrotor-floor", &sets).summary;
+        assert!(fixed.safe, "{fixed:?}");
+    }
+}
