@@ -58,3 +58,15 @@ def test_the_librarys_warnings_reach_python():
     with pytest.warns(UserWarning, match="row 0 of F is declared known"):
         bc.run_scenario("pendulum-safe", seed=1,
                         overrides={"steps": 60, "gp.prior_mean": {"type": "zero"}})
+
+
+def test_an_oracle_run_learns_nothing_and_starts_where_the_learning_run_does():
+    """`gp.oracle`: the true dynamics in place of the model (docs/robots.md,
+    "Check the design with the true dynamics")."""
+    learning = bc.run_scenario("double-integrator", seed=4, overrides={"steps": 40})
+    oracle = bc.run_scenario("double-integrator", seed=4,
+                             overrides={"steps": 40, "gp.oracle": True})
+    assert oracle["oracle"] and not learning["oracle"]
+    assert oracle["data_size"] == 0 and learning["data_size"] > 0
+    np.testing.assert_array_equal(oracle["trajectory"]["x1"][:1], learning["trajectory"]["x1"][:1])
+    assert oracle["trajectory"]["trace_cov"][0] < 1e-9 < learning["trajectory"]["trace_cov"][0]
