@@ -166,8 +166,8 @@ pub fn run(a: &RunArgs) -> Result<()> {
     let s = &output.summary;
     let opt = |v: Option<f64>| v.map_or("null".to_string(), |d| d.to_string());
     note!(
-        "{}: collided {}, min barrier {:?}, min obstacle distance {}, final goal distance {}, infeasible steps {}, control step p50 {:.0} µs",
-        sc.name, s.collided, s.min_barrier, opt(s.min_obstacle_distance), opt(s.final_goal_distance), s.infeasible_steps, s.control_step_us.p50
+        "{}{}: collided {}, min barrier {:?}, min obstacle distance {}, final goal distance {}, infeasible steps {}, control step p50 {:.0} µs",
+        sc.name, if s.oracle { " (oracle: the true dynamics as the model)" } else { "" }, s.collided, s.min_barrier, opt(s.min_obstacle_distance), opt(s.final_goal_distance), s.infeasible_steps, s.control_step_us.p50
     );
     note!(
         "wrote {}: summary.json, trajectory.csv{}",

@@ -57,3 +57,17 @@ fn the_oracle_tells_conflicting_barriers_from_compatible_ones() {
         assert!(fixed.safe, "{fixed:?}");
     }
 }
+
+/// The scenario's own prior mean is checked with the oracle on too, so a
+/// file that fails without it fails with it.
+#[test]
+fn the_oracle_still_checks_the_scenarios_prior_mean() {
+    let bad = [
+        r#"gp.prior_mean.f=["v","bogus"]"#.to_string(),
+        "gp.oracle=true".into(),
+    ];
+    let err = scenario::load("double-integrator", &bad)
+        .and_then(|(sc, _)| scenario::build(&sc).map(|_| ()))
+        .unwrap_err();
+    assert!(err.to_string().contains("bogus"), "{err}");
+}

@@ -120,9 +120,27 @@ pub fn run(args: &ExperimentArgs) -> Result<AckermannTriggering> {
         "trigger.self_triggered=false".to_string(),
         "learning.refit_every=40".into(),
     ];
-    let fixed = run_one(args, &fixed_sets)?;
+    // each run's summary says which variant of the scenario it is
+    let fixed = run_one(
+        args,
+        &[
+            fixed_sets[0].clone(),
+            fixed_sets[1].clone(),
+            "description=\"ackermann-self-triggered at fixed 10 ms steps, refitting every \
+             40 steps: the τ_k of Prop. 3 evaluated, not applied\""
+                .into(),
+        ],
+    )?;
     let selft = run_one(args, &[])?;
-    let selfn = run_one(args, &["trigger.tau_from=\"numerical\"".into()])?;
+    let selfn = run_one(
+        args,
+        &[
+            "trigger.tau_from=\"numerical\"".into(),
+            "description=\"ackermann-self-triggered, each control held for the numerical \
+             estimate of τ_k\""
+                .into(),
+        ],
+    )?;
     let zetas: &[f64] = if args.quick { &ZETAS[1..3] } else { ZETAS };
     let mut sweep = Vec::new();
     let mut zeta_runs = Vec::new();

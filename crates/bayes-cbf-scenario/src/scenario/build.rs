@@ -136,8 +136,7 @@ pub fn build(s: &Scenario) -> Result<Built> {
     let a = matrix("A", &s.gp.a, n, &mut rng)?;
     let mut b = matrix("B", &s.gp.b, m + 1, &mut rng)?;
     if s.gp.oracle {
-        // drawn all the same, so that the rest of the run's random stream
-        // is the learning run's
+        // the scenario's B is checked all the same
         b = DMatrix::identity(m + 1, m + 1) * super::ORACLE_VARIANCE;
     }
     let input_map = to_input_map(s.gp.input_map.as_deref());
@@ -149,11 +148,8 @@ pub fn build(s: &Scenario) -> Result<Built> {
         B: b,
         sigma: s.gp.noise_sigma,
     };
-    let prior = if s.gp.oracle {
-        PriorMean::System(truth.clone())
-    } else {
-        s.gp.prior_mean.to_prior_in(Some(&names)).context("gp")?
-    };
+    // the scenario's prior mean is checked all the same
+    let mut prior = s.gp.prior_mean.to_prior_in(Some(&names)).context("gp")?;
     if let PriorMean::System(p) = &prior {
         if (p.state_dim(), p.control_dim()) != (n, m) {
             bail!(
@@ -162,6 +158,9 @@ pub fn build(s: &Scenario) -> Result<Built> {
                 p.control_dim()
             );
         }
+    }
+    if s.gp.oracle {
+        prior = PriorMean::System(truth.clone());
     }
     let mut model = Mvgp::new(n, m, hyper, prior, input_map).map_err(|e| crate::err!("gp: {e}"))?;
     if !s.gp.known_rows.is_empty() {

@@ -256,9 +256,12 @@ pub struct GpSpec {
     /// Replace the model by the true system, a check of the scenario's
     /// design apart from learning: the prior mean is `[system]`, `B` is
     /// [`ORACLE_VARIANCE`]` · I` (next to no uncertainty) and nothing is
-    /// learned (`learning` is ignored). Where such a run is unsafe or
-    /// infeasible, the barriers, gains, bounds and reference conflict for
-    /// the true system, and no model learns its way out of that.
+    /// learned (the `learning` schedule is ignored; the scenario's own
+    /// prior mean, `B` and learning settings are still checked). An
+    /// infeasible step of such a run is one where the barriers, gains and
+    /// bounds conflict for the true system, and the fallback decides it;
+    /// an unsafe run is a design that fails given the true dynamics, which
+    /// a learning run survives only by the margin its model's spread adds.
     #[serde(default, skip_serializing_if = "std::ops::Not::not")]
     pub oracle: bool,
 }
