@@ -71,3 +71,27 @@ fn the_oracle_still_checks_the_scenarios_prior_mean() {
         .unwrap_err();
     assert!(err.to_string().contains("bogus"), "{err}");
 }
+
+/// Every built-in scenario's design holds given the true dynamics: no
+/// barrier goes negative, and only the quadrotor, whose approach is
+/// faster than its disc's gains admit, has infeasible steps. The
+/// cart-pole rides its track's end with no margin at the samples and
+/// needs `ζ = 0.01` for the hold between them (docs/robots.md, "Check
+/// the design with the true dynamics").
+#[test]
+fn every_builtin_design_holds_given_the_true_dynamics() {
+    for (name, _) in scenario::BUILTIN {
+        for seed in [72000, 72001] {
+            let seed = format!("seed={seed}");
+            let mut sets = vec![seed.as_str(), "gp.oracle=true", "outputs.plots=false"];
+            if *name == "cartpole-track" {
+                sets.push("controller.zeta=0.01");
+            }
+            let s = run(name, &sets).summary;
+            assert!(s.safe && s.oracle, "{name} {seed}: {s:?}");
+            if *name != "quadrotor-floor" {
+                assert_eq!(s.infeasible_steps, 0, "{name} {seed}: {s:?}");
+            }
+        }
+    }
+}
