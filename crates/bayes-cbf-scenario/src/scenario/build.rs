@@ -314,13 +314,14 @@ pub fn build(s: &Scenario) -> Result<Built> {
         }
     };
     // loop
-    let oracle_learning = LearningSpec {
-        update_every: 0,
-        refit_every: 0,
-        refit_geometric: false,
-        ..s.learning.clone()
-    };
+    let oracle_learning;
     let l = if s.gp.oracle {
+        oracle_learning = LearningSpec {
+            update_every: 0,
+            refit_every: 0,
+            refit_geometric: false,
+            ..s.learning.clone()
+        };
         &oracle_learning
     } else {
         &s.learning
