@@ -101,7 +101,9 @@ def seeds(
 ) -> dict:
     """Runs ``scenario`` once per seed as Ray tasks and returns the summary
     of ``bayes-cbf run SCENARIO --seeds A..B`` (``sweep_summary.json``): the
-    count of each outcome with its Wilson interval.
+    count of each outcome with its Wilson interval. A seed whose run stops
+    with an error is counted in ``"stopped"`` and listed, with its error, in
+    ``"stopped_seeds"``; if every seed stops, ``InputError`` names the first.
 
     ``shards`` tasks (default: the cluster's CPUs) each run every
     ``shards``-th seed. ``address`` selects a Ray cluster (default: start or

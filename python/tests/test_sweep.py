@@ -36,6 +36,26 @@ def test_seed_sweep_on_ray_equals_the_cli(cli, tmp_path):
     assert csv_ours == csv_theirs
 
 
+def test_seeds_that_stop_are_rows_on_ray_as_in_the_cli(cli, tmp_path):
+    # a kernel variance of 1e11 stops some of the double integrator's runs
+    # (the condition is beyond double precision), not others
+    overrides = {"gp.kernel_variance": 1e11, "steps": 60}
+    sets = [a for k, v in overrides.items() for a in ("--set", f"{k}={v}")]
+    run_cli(cli, "run", "double-integrator", "--seeds", "73000..73010", *sets,
+            "--out", str(tmp_path))
+    theirs = json.loads((tmp_path / "sweep_summary.json").read_text())
+    ours = sweep.seeds("double-integrator", range(73000, 73010), overrides=overrides, shards=2)
+    assert drop(ours, "timing") == drop(theirs, "timing")
+    assert 0 < ours["stopped"]["count"] < 10
+    assert ours["safe"]["count"] + len(ours["unsafe_seeds"]) + ours["stopped"]["count"] == 10
+    for s in ours["stopped_seeds"]:
+        assert s["error"].startswith("stopped at step") and "misses the condition" in s["error"]
+    # every seed stopped: the scenario is at fault
+    with pytest.raises(bc.InputError, match="every one of the 4 seeds stopped"):
+        sweep.seeds("double-integrator", range(73000, 73004),
+                    overrides={"gp.kernel_variance": 1e13, "steps": 60}, shards=2)
+
+
 def test_calibration_on_ray_equals_the_cli(cli, tmp_path):
     run_cli(cli, "run", "calibration", "--quick", "--episodes", "1", "--seed", "3",
             "--fallback", "max_margin", "--out", str(tmp_path))

@@ -8,6 +8,7 @@ use bayes_cbf_scenario::experiments::{ExperimentArgs, ExperimentResult};
 use bayes_cbf_scenario::io::{write_atomic, write_json, StagedDir};
 use bayes_cbf_scenario::sweep::{
     merge_sweeps, parse_rows_csv, rows_csv, run_seeds, summarise, SeedRange, Shard, SweepMeta,
+    SweepRow,
 };
 use clap::Args;
 use std::path::{Path, PathBuf};
@@ -77,8 +78,23 @@ pub fn run_sweep(
                 .unwrap_or_default()
         );
     }
+    note_stopped(&rows);
     note!("wrote {}: {files}", out.display());
     Ok(())
+}
+
+/// Warns of the seeds whose runs stopped with an error, naming the first.
+fn note_stopped(rows: &[SweepRow]) {
+    let mut stopped = rows.iter().filter(|r| !r.completed());
+    if let Some(first) = stopped.next() {
+        note!(
+            "warning: {} of {} seeds stopped with an error (counted as failing every outcome; each in sweep.csv): seed {}: {}",
+            stopped.count() + 1,
+            rows.len(),
+            first.seed,
+            first.error.as_deref().unwrap_or_default()
+        );
+    }
 }
 
 /// Runs shard `shard` of `calibration` into `out` (`part.json`).
@@ -178,6 +194,7 @@ pub fn run_merge(a: &MergeArgs) -> Result<()> {
             rows.len(),
             out.display()
         );
+        note_stopped(&rows);
         Ok(())
     } else {
         bail!(

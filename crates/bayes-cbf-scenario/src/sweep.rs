@@ -11,6 +11,12 @@
 //! and unsharded sweeps give the same counts and statistics to the bit
 //! (timings aside).
 //!
+//! A seed whose run stops with an error (a numerical failure such as
+//! `ControlError::Unresolved`, or a true system that leaves its domain) is
+//! an outcome of the sweep, not the end of it: its row keeps the error,
+//! the summary counts it as failing every outcome, and lists it. Only a
+//! sweep in which every seed stopped is an error.
+//!
 //! Rows travel as CSV (`sweep.csv`): Rust prints the shortest decimal that
 //! parses back to the same `f64`, and parses correctly rounded, so the
 //! round trip is exact.
@@ -23,6 +29,7 @@ use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 use std::str::FromStr;
 use std::sync::atomic::{AtomicUsize, Ordering};
+use std::time::Instant;
 
 /// A range of seeds: `A..B` (B excluded) or `A..=B` (B included).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
@@ -145,26 +152,88 @@ pub struct SweepRow {
     pub goal_distance: f64,
     /// Median control step (µs).
     pub control_step_us: f64,
-    /// Wall time of the run (s).
+    /// Wall time of the run (s), up to its error if it stopped.
     pub wall_time_s: f64,
+    /// Why the run stopped before its horizon, if it did, with the step it
+    /// stopped at. Such a row's flags are `false`, its counts 0 and its
+    /// other numbers NaN (empty cells in `sweep.csv`): the run has no
+    /// outcome, and the summary counts it as failing each one.
+    #[serde(default)]
+    pub error: Option<String>,
 }
 
-const HEADER: &str =
-    "seed,safe,collided,min_barrier,infeasible_steps,goal_distance,control_step_us,wall_time_s";
+impl SweepRow {
+    /// The row of a run that stopped with `error` after `wall_time_s`.
+    pub fn stopped(seed: u64, error: String, wall_time_s: f64) -> Self {
+        SweepRow {
+            seed,
+            safe: false,
+            collided: false,
+            min_barrier: f64::NAN,
+            infeasible_steps: 0,
+            goal_distance: f64::NAN,
+            control_step_us: f64::NAN,
+            wall_time_s,
+            error: Some(error),
+        }
+    }
+
+    /// The run reached its horizon.
+    pub fn completed(&self) -> bool {
+        self.error.is_none()
+    }
+}
+
+/// The columns before `error`, with which `sweep.csv` files written before
+/// it existed end.
+macro_rules! outcome_columns {
+    () => {
+        "seed,safe,collided,min_barrier,infeasible_steps,goal_distance,control_step_us,wall_time_s"
+    };
+}
+const HEADER_OUTCOMES: &str = outcome_columns!();
+const HEADER: &str = concat!(outcome_columns!(), ",error");
+
+/// An error message as one CSV cell: quoted, quotes doubled, line breaks
+/// as spaces.
+fn quote(message: &str) -> String {
+    let one_line: String = message
+        .chars()
+        .map(|c| if c == '\n' || c == '\r' { ' ' } else { c })
+        .collect();
+    format!("\"{}\"", one_line.replace('"', "\"\""))
+}
+
+/// The message of a cell written by [`quote`] (`None` for an empty cell).
+fn unquote(cell: &str) -> Option<Option<String>> {
+    if cell.is_empty() {
+        return Some(None);
+    }
+    let inner = cell.strip_prefix('"')?.strip_suffix('"')?;
+    if inner.replace("\"\"", "").contains('"') {
+        return None;
+    }
+    Some(Some(inner.replace("\"\"", "\"")))
+}
 
 /// `sweep.csv`: a header and one line per row; a scenario without a goal
 /// leaves `goal_distance` empty, as `trajectory.csv` leaves a missing value.
+/// A run that stopped has only its seed, wall time and quoted error.
 pub fn rows_csv(rows: &[SweepRow]) -> String {
     let mut s = String::from(HEADER);
     s.push('\n');
     for r in rows {
+        if let Some(e) = &r.error {
+            s += &format!("{},,,,,,,{},{}\n", r.seed, r.wall_time_s, quote(e));
+            continue;
+        }
         let goal = if r.goal_distance.is_nan() {
             String::new()
         } else {
             r.goal_distance.to_string()
         };
         s += &format!(
-            "{},{},{},{},{},{},{},{}\n",
+            "{},{},{},{},{},{},{},{},\n",
             r.seed,
             u8::from(r.safe),
             u8::from(r.collided),
@@ -178,19 +247,32 @@ pub fn rows_csv(rows: &[SweepRow]) -> String {
     s
 }
 
-/// Parses `sweep.csv` (`name` labels errors).
+/// Parses `sweep.csv` (`name` labels errors); also reads the files written
+/// before the `error` column existed.
 pub fn parse_rows_csv(text: &str, name: &str) -> Result<Vec<SweepRow>> {
     let mut lines = text.lines();
-    if lines.next().map(str::trim) != Some(HEADER) {
-        bail!("{name}: expected the header '{HEADER}'");
-    }
+    let fields = match lines.next().map(str::trim) {
+        Some(HEADER) => 9,
+        Some(HEADER_OUTCOMES) => 8,
+        _ => bail!("{name}: expected the header '{HEADER}'"),
+    };
     let mut rows = Vec::new();
     for (i, line) in lines.enumerate() {
         let at = || format!("{name} line {}", i + 2);
-        let f: Vec<&str> = line.split(',').collect();
-        if f.len() != 8 {
-            bail!("{}: expected 8 fields, got {}", at(), f.len());
+        // the error, last, may hold commas
+        let f: Vec<&str> = line.splitn(fields, ',').collect();
+        if f.len() != fields || (fields == 8 && f[7].contains(',')) {
+            bail!(
+                "{}: expected {fields} fields, got {}",
+                at(),
+                line.split(',').count()
+            );
         }
+        let error = match f.get(8) {
+            None => None,
+            Some(cell) => unquote(cell)
+                .ok_or_else(|| err!("{}: field 9 (error) is not a quoted message: {cell}", at()))?,
+        };
         let num = |j: usize| -> Result<f64> {
             match f[j].parse::<f64>() {
                 Ok(v) if !v.is_nan() => Ok(v),
@@ -206,6 +288,18 @@ pub fn parse_rows_csv(text: &str, name: &str) -> Result<Vec<SweepRow>> {
             f[j].parse::<u64>()
                 .map_err(|_| err!("{}: field {} = '{}' is not an integer", at(), j + 1, f[j]))
         };
+        if let Some(error) = error {
+            if let Some(j) = (1..7).find(|&j| !f[j].is_empty()) {
+                bail!(
+                    "{}: field {} = '{}': a run that stopped with an error has only its seed, wall time and error",
+                    at(),
+                    j + 1,
+                    f[j]
+                );
+            }
+            rows.push(SweepRow::stopped(int(0)?, error, num(7)?));
+            continue;
+        }
         let flag = |j: usize| -> Result<bool> {
             match f[j] {
                 "0" => Ok(false),
@@ -222,6 +316,7 @@ pub fn parse_rows_csv(text: &str, name: &str) -> Result<Vec<SweepRow>> {
             goal_distance: if f[5].is_empty() { f64::NAN } else { num(5)? },
             control_step_us: num(6)?,
             wall_time_s: num(7)?,
+            error: None,
         });
     }
     Ok(rows)
@@ -245,7 +340,10 @@ pub struct SweepMeta {
 }
 
 /// Runs the seeds of `meta.shard` (in parallel) and returns their rows in
-/// seed order; `progress(done, total)` after each run.
+/// seed order; `progress(done, total)` after each run. A run that stops
+/// with an error gives a row with that error ([`SweepRow::stopped`]); the
+/// whole sweep (not a shard, which [`merge_sweeps`] checks) is an error if
+/// every run stopped ([`check_ran`]).
 pub fn run_seeds(
     meta: &SweepMeta,
     progress: &(dyn Fn(usize, usize) + Sync),
@@ -275,22 +373,56 @@ pub fn run_seeds(
         .map(|&seed| {
             let mut sets = meta.sets.clone();
             sets.push(format!("seed={seed}"));
-            let (sc, _) = scenario::load(&meta.scenario, &sets)?;
-            let out = run_scenario(&sc, |_, _| {}).with_context(|| format!("seed {seed}"))?;
-            let s = &out.summary;
+            let (sc, _) =
+                scenario::load(&meta.scenario, &sets).with_context(|| format!("seed {seed}"))?;
+            let started = Instant::now();
+            // steps completed: the observer sees step k once it is done
+            let mut completed = 0;
+            let row = match run_scenario(&sc, |k, _| completed = k + 1) {
+                Ok(out) => {
+                    let s = &out.summary;
+                    SweepRow {
+                        seed,
+                        safe: s.safe,
+                        collided: s.collided,
+                        min_barrier: s.min_barrier.iter().cloned().fold(f64::INFINITY, f64::min),
+                        infeasible_steps: s.infeasible_steps,
+                        goal_distance: s.final_goal_distance.unwrap_or(f64::NAN),
+                        control_step_us: s.control_step_us.p50,
+                        wall_time_s: s.wall_time_s,
+                        error: None,
+                    }
+                }
+                Err(e) => SweepRow::stopped(
+                    seed,
+                    format!("stopped at step {completed}: {e}"),
+                    started.elapsed().as_secs_f64(),
+                ),
+            };
             progress(done.fetch_add(1, Ordering::Relaxed) + 1, total);
-            Ok(SweepRow {
-                seed,
-                safe: s.safe,
-                collided: s.collided,
-                min_barrier: s.min_barrier.iter().cloned().fold(f64::INFINITY, f64::min),
-                infeasible_steps: s.infeasible_steps,
-                goal_distance: s.final_goal_distance.unwrap_or(f64::NAN),
-                control_step_us: s.control_step_us.p50,
-                wall_time_s: s.wall_time_s,
-            })
+            Ok(row)
         })
-        .collect()
+        .collect::<Result<Vec<SweepRow>>>()
+        .and_then(|rows| {
+            if meta.shard == Shard::WHOLE {
+                check_ran(&rows)?;
+            }
+            Ok(rows)
+        })
+}
+
+/// An error if every one of `rows` stopped with an error: then the
+/// scenario, not a seed, is at fault, and the first error says why.
+pub fn check_ran(rows: &[SweepRow]) -> Result<()> {
+    match rows.first() {
+        Some(first) if !rows.iter().any(SweepRow::completed) => bail!(
+            "every one of the {} seeds stopped with an error; seed {}: {}",
+            rows.len(),
+            first.seed,
+            first.error.as_deref().unwrap_or_default()
+        ),
+        _ => Ok(()),
+    }
 }
 
 /// A count of episodes with an outcome, its rate and the 95 % Wilson
@@ -331,25 +463,39 @@ pub struct SweepSummary {
     pub seeds: SeedRange,
     /// Episodes.
     pub episodes: usize,
-    /// Episodes whose barriers stayed ≥ 0.
+    /// Episodes that reached their horizon and whose barriers stayed ≥ 0.
     pub safe: Count,
-    /// Episodes that entered no obstacle.
+    /// Episodes that reached their horizon and entered no obstacle.
     pub collision_free: Count,
-    /// Episodes without an infeasible step.
+    /// Episodes that reached their horizon without an infeasible step.
     pub no_infeasible_step: Count,
     /// Episodes that ended within `goal_tolerance` of the goal (scenarios
     /// with a goal).
     pub goal_reached: Option<Count>,
     /// The tolerance of `goal_reached` (m).
     pub goal_tolerance: f64,
-    /// Smallest barrier value over all episodes.
+    /// Smallest barrier value over the episodes that reached their horizon.
     pub min_barrier: f64,
     /// Seeds whose barriers went negative.
     pub unsafe_seeds: Vec<u64>,
-    /// Infeasible steps over all episodes.
+    /// Infeasible steps over the episodes that reached their horizon.
     pub infeasible_steps: usize,
+    /// Episodes that stopped with an error before their horizon: each
+    /// fails every outcome above, and is not among `unsafe_seeds`.
+    pub stopped: Count,
+    /// Their seeds and errors.
+    pub stopped_seeds: Vec<StoppedSeed>,
     /// Timing (not part of the bit-for-bit comparison of merged shards).
     pub timing: SweepTiming,
+}
+
+/// A seed whose run stopped with an error.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct StoppedSeed {
+    /// The seed.
+    pub seed: u64,
+    /// The error, with the step the run stopped at.
+    pub error: String,
 }
 
 /// Timing of a sweep.
@@ -367,30 +513,51 @@ pub struct SweepTiming {
 pub fn summarise(meta: &SweepMeta, rows: &[SweepRow]) -> SweepSummary {
     let n = rows.len();
     let count = |f: &dyn Fn(&SweepRow) -> bool| Count::new(rows.iter().filter(|r| f(r)).count(), n);
+    // an outcome of a run that reached its horizon
+    let outcome = |f: &dyn Fn(&SweepRow) -> bool| count(&|r| r.completed() && f(r));
     let has_goal = rows.iter().any(|r| !r.goal_distance.is_nan());
     let secs: f64 = rows.iter().map(|r| r.wall_time_s).sum();
-    let mut steps: Vec<f64> = rows.iter().map(|r| r.control_step_us).collect();
+    let mut steps: Vec<f64> = rows
+        .iter()
+        .filter(|r| r.completed())
+        .map(|r| r.control_step_us)
+        .collect();
     steps.sort_by(f64::total_cmp);
     SweepSummary {
         scenario: meta.scenario.clone(),
         sets: meta.sets.clone(),
         seeds: meta.seeds,
         episodes: n,
-        safe: count(&|r| r.safe),
-        collision_free: count(&|r| !r.collided),
-        no_infeasible_step: count(&|r| r.infeasible_steps == 0),
-        goal_reached: has_goal.then(|| count(&|r| r.goal_distance <= meta.goal_tolerance)),
+        safe: outcome(&|r| r.safe),
+        collision_free: outcome(&|r| !r.collided),
+        no_infeasible_step: outcome(&|r| r.infeasible_steps == 0),
+        goal_reached: has_goal.then(|| outcome(&|r| r.goal_distance <= meta.goal_tolerance)),
         goal_tolerance: meta.goal_tolerance,
         min_barrier: rows
             .iter()
+            .filter(|r| r.completed())
             .map(|r| r.min_barrier)
             .fold(f64::INFINITY, f64::min),
-        unsafe_seeds: rows.iter().filter(|r| !r.safe).map(|r| r.seed).collect(),
+        unsafe_seeds: rows
+            .iter()
+            .filter(|r| r.completed() && !r.safe)
+            .map(|r| r.seed)
+            .collect(),
         infeasible_steps: rows.iter().map(|r| r.infeasible_steps).sum(),
+        stopped: count(&|r| !r.completed()),
+        stopped_seeds: rows
+            .iter()
+            .filter_map(|r| {
+                r.error.as_ref().map(|e| StoppedSeed {
+                    seed: r.seed,
+                    error: e.clone(),
+                })
+            })
+            .collect(),
         timing: SweepTiming {
             episode_seconds: secs,
             episodes_per_core_second: n as f64 / secs.max(f64::MIN_POSITIVE),
-            control_step_us_median: steps.get(n / 2).copied().unwrap_or(f64::NAN),
+            control_step_us_median: steps.get(steps.len() / 2).copied().unwrap_or(f64::NAN),
         },
     }
 }
@@ -427,8 +594,9 @@ pub fn check_shard_set(shards: impl IntoIterator<Item = Shard>) -> Result<usize>
 }
 
 /// Checks that shards `parts` (each: its meta and rows) are the shards of
-/// one sweep, each present once, and returns the whole sweep's meta and its
-/// rows sorted by seed.
+/// one sweep, each present once, and that some seed ran to its horizon
+/// ([`check_ran`]); returns the whole sweep's meta and its rows sorted by
+/// seed.
 pub fn merge_sweeps(parts: Vec<(SweepMeta, Vec<SweepRow>)>) -> Result<(SweepMeta, Vec<SweepRow>)> {
     let Some((first, _)) = parts.first() else {
         bail!("merge: no shards given");
@@ -481,6 +649,7 @@ pub fn merge_sweeps(parts: Vec<(SweepMeta, Vec<SweepRow>)>) -> Result<(SweepMeta
             whole.seeds.len()
         );
     }
+    check_ran(&rows)?;
     Ok((whole, rows))
 }
 
@@ -536,6 +705,7 @@ mod tests {
                 goal_distance: f64::NAN,
                 control_step_us: 1.0 / 3.0,
                 wall_time_s: 1e-300,
+                error: None,
             },
             SweepRow {
                 seed: 9,
@@ -546,20 +716,62 @@ mod tests {
                 goal_distance: 2.5e17,
                 control_step_us: 7.0,
                 wall_time_s: 0.0,
+                error: None,
             },
+            SweepRow::stopped(12, "stopped at step 3: barrier 0: \"x\", y\nz".into(), 0.25),
         ];
         let text = rows_csv(&rows);
         // no literal NaN: a missing goal distance is an empty cell
         assert!(!text.contains("NaN"), "{text}");
         assert_eq!(text.lines().nth(1).unwrap().split(',').nth(5), Some(""));
         let back = parse_rows_csv(&text, "x").unwrap();
+        assert_eq!(back.len(), 3);
         for (a, b) in rows.iter().zip(&back) {
             assert_eq!(a.min_barrier.to_bits(), b.min_barrier.to_bits());
             assert_eq!(a.goal_distance.is_nan(), b.goal_distance.is_nan());
             assert_eq!(a.control_step_us.to_bits(), b.control_step_us.to_bits());
+            assert_eq!(a.wall_time_s.to_bits(), b.wall_time_s.to_bits());
             assert_eq!((a.seed, a.safe, a.collided), (b.seed, b.safe, b.collided));
         }
+        // the error keeps its commas and quotes; its line break becomes a space
+        assert_eq!(
+            back[2].error.as_deref(),
+            Some("stopped at step 3: barrier 0: \"x\", y z")
+        );
+        assert_eq!(text.lines().count(), 4);
         assert!(parse_rows_csv("seed\n", "x").is_err());
+        // files written before the error column read as runs that completed
+        let legacy: String = text
+            .lines()
+            .take(3)
+            .map(|l| {
+                l.strip_suffix(",error")
+                    .or(l.strip_suffix(','))
+                    .unwrap()
+                    .to_string()
+                    + "\n"
+            })
+            .collect();
+        assert!(legacy.starts_with(HEADER_OUTCOMES));
+        let old = parse_rows_csv(&legacy, "x").unwrap();
+        assert_eq!(old.len(), 2);
+        assert!(old.iter().all(SweepRow::completed));
+        assert_eq!(old[0].min_barrier.to_bits(), rows[0].min_barrier.to_bits());
+        // a stopped row has no outcome; an error is a quoted message
+        let stopped = text.lines().nth(3).unwrap();
+        for (tampered, msg) in [
+            (stopped.replacen(",,", ",1,", 1), "field 2 = '1'"),
+            (
+                stopped.replace("\"stopped", "stopped"),
+                "not a quoted message",
+            ),
+            (format!("{},,,,,,,1.0,\"a\"b\"", 3), "not a quoted message"),
+        ] {
+            let e = parse_rows_csv(&format!("{HEADER}\n{tampered}\n"), "x")
+                .unwrap_err()
+                .to_string();
+            assert!(e.contains("x line 2") && e.contains(msg), "{e}");
+        }
         // a tampered row: NaN is no number, 2 no flag
         let line1 = text.lines().nth(1).unwrap();
         let mut f: Vec<&str> = line1.split(',').collect();

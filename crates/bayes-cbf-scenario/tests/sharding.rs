@@ -199,3 +199,96 @@ fn sweep_rows_do_not_depend_on_the_thread_count() {
         .install(|| run_seeds(&m, &|_, _| {}).unwrap());
     assert_eq!(strip(&one), strip(&two));
 }
+
+/// The double integrator with a kernel variance of `kernel_variance`, 60
+/// steps of seeds `seeds`.
+fn stopping_meta(kernel_variance: f64, seeds: &str, shard: Shard) -> SweepMeta {
+    SweepMeta {
+        scenario: "double-integrator".into(),
+        sets: vec![
+            format!("gp.kernel_variance={kernel_variance}"),
+            "steps=60".into(),
+        ],
+        seeds: seeds.parse().unwrap(),
+        shard,
+        goal_tolerance: 1.0,
+    }
+}
+
+/// A seed whose run stops with an error is a row of the sweep, not its
+/// end. A kernel variance of 1e11 puts the double integrator's condition
+/// beyond double precision (`ControlError::Unresolved`) within the first
+/// steps of some seeds and not of others; at 1e13 on every seed, which
+/// makes the sweep an error.
+#[test]
+fn a_seed_that_stops_is_a_row_and_every_seed_stopping_is_an_error() {
+    let whole_meta = stopping_meta(1e11, "73000..73010", Shard::WHOLE);
+    let whole = run_seeds(&whole_meta, &|_, _| {}).unwrap();
+    assert_eq!(whole.len(), 10);
+    let (stopped, completed): (Vec<&SweepRow>, Vec<&SweepRow>) =
+        whole.iter().partition(|r| r.error.is_some());
+    assert!(!stopped.is_empty() && !completed.is_empty(), "{whole:?}");
+    for r in &stopped {
+        let e = r.error.as_deref().unwrap();
+        assert!(
+            e.starts_with("stopped at step ") && e.contains("misses the condition"),
+            "{e}"
+        );
+        assert!(!r.safe && r.min_barrier.is_nan() && r.wall_time_s >= 0.0);
+    }
+    let s = summarise(&whole_meta, &whole);
+    assert_eq!(s.stopped.count, stopped.len());
+    assert_eq!(
+        s.stopped_seeds.iter().map(|x| x.seed).collect::<Vec<_>>(),
+        stopped.iter().map(|r| r.seed).collect::<Vec<_>>()
+    );
+    // a stopped run is neither safe nor among the unsafe seeds
+    let safe = completed.iter().filter(|r| r.safe).count();
+    assert_eq!(s.safe.count, safe);
+    assert_eq!(s.unsafe_seeds.len(), completed.len() - safe);
+    assert!(s.min_barrier.is_finite());
+    assert_eq!(
+        s.min_barrier,
+        completed
+            .iter()
+            .map(|r| r.min_barrier)
+            .fold(f64::INFINITY, f64::min)
+    );
+    assert!(s.no_infeasible_step.count <= completed.len());
+
+    // through shards and sweep.csv, the same rows and summary
+    let parts: Vec<(SweepMeta, Vec<SweepRow>)> = (0..2)
+        .map(|i| {
+            let m = stopping_meta(1e11, "73000..73010", Shard { index: i, count: 2 });
+            let rows = run_seeds(&m, &|_, _| {}).unwrap();
+            (m, parse_rows_csv(&rows_csv(&rows), "shard").unwrap())
+        })
+        .collect();
+    let (m, rows) = merge_sweeps(parts).unwrap();
+    assert_eq!(strip(&rows), strip(&whole));
+    assert_eq!(
+        rows.iter().map(|r| r.error.clone()).collect::<Vec<_>>(),
+        whole.iter().map(|r| r.error.clone()).collect::<Vec<_>>()
+    );
+    assert_eq!(
+        without_timing(serde_json::to_value(summarise(&m, &rows)).unwrap()),
+        without_timing(serde_json::to_value(&s).unwrap())
+    );
+
+    // every seed stopped: the scenario is at fault, whole or merged
+    let all = stopping_meta(1e13, "73000..73004", Shard::WHOLE);
+    let e = run_seeds(&all, &|_, _| {}).unwrap_err().to_string();
+    assert!(
+        e.contains("every one of the 4 seeds stopped") && e.contains("seed 73000"),
+        "{e}"
+    );
+    let parts: Vec<(SweepMeta, Vec<SweepRow>)> = (0..2)
+        .map(|i| {
+            let m = stopping_meta(1e13, "73000..73004", Shard { index: i, count: 2 });
+            let rows = run_seeds(&m, &|_, _| {}).unwrap();
+            (m, rows)
+        })
+        .collect();
+    let e = merge_sweeps(parts).unwrap_err().to_string();
+    assert!(e.contains("every one of the 4 seeds stopped"), "{e}");
+}
