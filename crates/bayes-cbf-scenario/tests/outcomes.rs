@@ -100,3 +100,28 @@ fn learning_reduces_the_uncertainty() {
     let last = r.records.last().unwrap().trace_cov;
     assert!(last < first * 1e-3, "trace {first} → {last}");
 }
+
+/// Bounds far beyond the controls a run needs (a user's "no bound") change
+/// nothing: the double integrator has the infeasible steps of its own
+/// bounds (±4; 7 at this seed), where the solvers alone once made all 600
+/// steps infeasible at ±10⁸ and the fallback drove the cart away from its
+/// target.
+#[test]
+fn huge_bounds_behave_like_the_scenarios_own() {
+    let infeasible = |b: f64| {
+        let sets = [
+            format!("controller.u_min=[{:e}]", -b),
+            format!("controller.u_max=[{b:e}]"),
+            "seed=74000".to_string(),
+        ];
+        let (sc, _) = scenario::load("double-integrator", &sets).unwrap();
+        let s = scenario::run_scenario(&sc, |_, _| {}).unwrap().summary;
+        assert!(s.safe, "bounds ±{b}: {s:#?}");
+        s.infeasible_steps
+    };
+    let own = infeasible(4.0);
+    assert!(own < 20, "{own} infeasible steps at the file's bounds");
+    for b in [100.0, 1e8, 1e9, 1e300] {
+        assert_eq!(infeasible(b), own, "bounds ±{b}");
+    }
+}

@@ -87,6 +87,12 @@ fn safety_factor_matches_literal_constants() {
 
 /// Checks `s = b − Ax ∈ K`, `z ∈ K*`, `Px + q + Aᵀz = 0`, `sᵀz = 0`.
 fn check_kkt(filter: &SafetyFilter, tol: f64) {
+    check_kkt_to(filter, tol, tol);
+}
+
+/// [`check_kkt`] with tolerance `tol` and `gap` for `|sᵀz|` (of the size
+/// of the objective's value times the solver's relative gap).
+fn check_kkt_to(filter: &SafetyFilter, tol: f64, gap: f64) {
     let KktData {
         a,
         b,
@@ -110,7 +116,7 @@ fn check_kkt(filter: &SafetyFilter, tol: f64) {
     );
     let stat = &p * &xv + DVector::from_vec(q) + a.transpose() * &zv;
     assert!(stat.amax() < tol, "stationarity {}", stat.amax());
-    assert!(sv.dot(&zv).abs() < tol, "complementarity {}", sv.dot(&zv));
+    assert!(sv.dot(&zv).abs() < gap, "complementarity {}", sv.dot(&zv));
     let mut row = 0;
     for cone in cones {
         match cone {
@@ -626,6 +632,104 @@ fn bad_settings_are_rejected() {
 #[test]
 fn random_feasible_programs_are_solved_to_full_accuracy() {
     solve_feasible_programs(11, 600, |_, _, _| {});
+}
+
+/// References and box bounds far beyond the conditions' unit order (a
+/// reference of 10⁹, bounds of 10³⁰⁰ meaning "no bound") give the
+/// projection of `û` onto the feasible interval clamped into the box, as at
+/// unit order: the solvers alone misread such programs as unbounded
+/// (reference ≥ 10⁶, bounds ≥ 10⁹) and the fallback replaced the control.
+/// One control, one barrier, against the bisection of
+/// [`feasible_end`]; answers up to 10⁷ in magnitude.
+#[test]
+fn far_references_and_bounds_give_the_projection() {
+    let mut rng = ChaCha8Rng::seed_from_u64(21);
+    let mut checked = 0;
+    for trial in 0..12 {
+        let r = 1 + trial % 2;
+        let mut mom = random_moments(1, &mut rng, r, 0.5);
+        let p = rng.random_range(0.6..0.99);
+        let c = c_reference(p, r);
+        mom.e[0] = c * mom.cov[(0, 0)].sqrt() + 0.3; // u = 0 feasible
+        let scbc = |u: f64| mom.mean(&[u]) - c * mom.variance(&[u]).sqrt();
+        for u_ref in [-1e9, -1e7, -3e5, 3e5, 1e7, 1e9] {
+            for bound in [None, Some(20.0), Some(1e8), Some(1e12), Some(1e300)] {
+                let mut settings = SafetySettings::new(1);
+                settings.probability = p;
+                settings.u_min = bound.map(|b| vec![-b]);
+                settings.u_max = bound.map(|b| vec![b]);
+                let mut filter = SafetyFilter::new(1, 1, false, settings).unwrap();
+                let mut out = ControlOutput::new(1, 1);
+                filter
+                    .solve(std::slice::from_ref(&mom), None, &[u_ref], &mut out)
+                    .unwrap();
+                let b = bound.unwrap_or(f64::INFINITY);
+                let end = feasible_end(scbc, 0.0, u_ref.clamp(-b, b));
+                if end.abs() > 1e7 {
+                    continue; // beyond the solvers' range
+                }
+                checked += 1;
+                assert!(
+                    matches!(
+                        out.status,
+                        ControlStatus::Optimal | ControlStatus::AlmostOptimal
+                    ) && (out.u[0] - end).abs() <= 1e-6 * (1.0 + end.abs()),
+                    "trial {trial}, û = {u_ref:e}, bound {bound:?}: {:?} u = {} against {end}",
+                    out.status,
+                    out.u[0]
+                );
+            }
+        }
+    }
+    assert!(checked >= 200, "{checked} programs checked");
+}
+
+/// Two controls, two barriers, a reference of up to 10⁹ and no bounds or
+/// bounds of ±20: the rescaled program's solution meets the KKT conditions
+/// of the program as set, to 10⁻⁷ relative to the objective's gradient
+/// (and its value, for the complementarity), with
+/// the duals scaled back; a reference the barriers admit is returned as
+/// it is.
+#[test]
+fn far_references_meet_the_kkt_conditions_of_the_program_as_set() {
+    let mut rng = ChaCha8Rng::seed_from_u64(22);
+    let m = 2;
+    for trial in 0..20 {
+        let cbcs: Vec<ConditionMoments> = (0..2)
+            .map(|i| {
+                let mut c = random_moments(m, &mut rng, 1 + i, 0.3);
+                c.e[0] = 0.5 + 3.0 * c.cov[(0, 0)].sqrt();
+                c
+            })
+            .collect();
+        let scale = [1e5, 1e7, 1e9][trial % 3];
+        let dir: f64 = rng.random_range(0.0..std::f64::consts::TAU);
+        let u_ref = [scale * dir.cos(), scale * dir.sin()];
+        for bound in [None, Some(20.0)] {
+            let mut settings = SafetySettings::new(m);
+            settings.probability = 0.9;
+            settings.u_min = bound.map(|b| vec![-b; m]);
+            settings.u_max = bound.map(|b| vec![b; m]);
+            let mut filter = SafetyFilter::new(m, 2, false, settings).unwrap();
+            let mut out = ControlOutput::new(m, 2);
+            filter.solve(&cbcs, None, &u_ref, &mut out).unwrap();
+            if out.u.iter().any(|v| v.abs() > 1e7) {
+                continue; // beyond the solvers' range
+            }
+            assert!(
+                !out.is_infeasible(),
+                "trial {trial}, û = {u_ref:?}, bound {bound:?}: {:?}",
+                out.status
+            );
+            if out.u == u_ref {
+                assert!(out.constraints.iter().all(|c| c.slack >= 0.0));
+                check_kkt(&filter, 1e-9);
+            } else {
+                // ‖q‖ = 2‖û‖; the objective's value ~‖û‖²
+                check_kkt_to(&filter, 1e-7 * 2.0 * scale, 1e-7 * scale * scale);
+            }
+        }
+    }
 }
 
 /// The filter solves each step's own data: the answer to a program does not

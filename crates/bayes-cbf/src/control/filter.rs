@@ -765,8 +765,8 @@ impl SafetyFilter {
             q,
             cones: self.program.cones().to_vec(),
             x: self.program.x().to_vec(),
-            s: s.to_vec(),
-            z: z.to_vec(),
+            s,
+            z,
         }
     }
 }

@@ -72,6 +72,8 @@ enum Answer {
     Dense,
     /// Clarabel without (0) or with (1) iterative refinement.
     Clarabel(usize),
+    /// The reference `û` itself, feasible ([`ConeProgram::reference_feasible`]).
+    Reference,
 }
 
 /// A conic program of fixed sparsity whose values are updated in place.
@@ -99,7 +101,31 @@ pub(crate) struct ConeProgram {
     cones: Vec<SupportedConeT<f64>>,
     /// Scratch for one row of `A` (capacity `m`, reused).
     g_buf: Vec<f64>,
+    /// `max(1, ‖û‖∞)` of the objective ([`set_objective`](Self::set_objective)).
+    u_ref_scale: f64,
+    /// The reference `û` (length `m`).
+    u_ref: Vec<f64>,
+    /// Scratch for `b − Ax` (one entry per row).
+    s_buf: Vec<f64>,
+    /// The data as set, kept while [`rescue`](Self::rescue) rescales them
+    /// (`b`, `q`, `P`; allocated at construction).
+    saved: (Vec<f64>, Vec<f64>, Vec<f64>),
+    /// How the last answer's program differs from the one set:
+    /// the factor its objective was divided by and whether a bound was
+    /// capped (see [`rescue`](Self::rescue)); `(1, false)` if not rescued.
+    rescued: (f64, bool),
 }
+
+/// The rescue's first cap on the box bounds ([`ConeProgram::rescue`]);
+/// a bound beyond it times `max(1, ‖û‖∞)` sends a program to the rescue.
+const RESCUE_CAP: f64 = 1e3;
+/// The factor between successive caps.
+const RESCUE_CAP_STEP: f64 = 1e3;
+/// Caps tried before the bounds as set: 10³, 10⁶, 10⁹, 10¹².
+const RESCUE_CAPS: usize = 4;
+/// Objective entries above this go to the rescue (see
+/// [`ConeProgram::badly_scaled`]).
+const RESCALE_ABOVE: f64 = 1e4;
 
 impl ConeProgram {
     pub(crate) fn new(shape: SocpShape, max_margin: bool) -> Self {
@@ -155,6 +181,7 @@ impl ConeProgram {
         if shape.bounds {
             cones.push(SupportedConeT::NonnegativeConeT(2 * m));
         }
+        let p_len = prow.len();
         let mut prog = Self {
             shape,
             extra,
@@ -171,6 +198,11 @@ impl ConeProgram {
             p_pattern: (pcol, prow),
             cones,
             g_buf: Vec::with_capacity(m),
+            u_ref_scale: 1.0,
+            u_ref: vec![0.0; m],
+            s_buf: vec![0.0; rows],
+            saved: (vec![0.0; rows], vec![0.0; nv], vec![0.0; p_len]),
+            rescued: (1.0, false),
         };
         // constant entries
         if shape.bounds {
@@ -261,6 +293,8 @@ impl ConeProgram {
             }
             self.q[i] = -2.0 * s;
         }
+        self.u_ref_scale = u_ref.iter().fold(1.0, |a, v| a.max(v.abs()));
+        self.u_ref.copy_from_slice(u_ref);
     }
 
     /// Clarabel settings of the safety SOCPs: the defaults (gap and
@@ -344,7 +378,37 @@ impl ConeProgram {
     /// Clarabel's fast solver, then its refined one if the fast one does not
     /// report `Solved` (see [`settings`](Self::settings)). The first call
     /// builds the solvers, later calls update them in place.
+    ///
+    /// A program whose objective is positive definite cannot be unbounded:
+    /// an `Unbounded` or `Failed` answer is the solvers' trouble with the
+    /// data's scale (a reference or bounds far beyond the conditions' unit
+    /// order), and [`rescue`](Self::rescue) solves an equivalent program.
     pub(crate) fn solve(&mut self) -> SolveStatus {
+        self.rescued = (1.0, false);
+        if self.badly_scaled() {
+            return self.rescue(None);
+        }
+        match self.solve_once() {
+            first @ (SolveStatus::Unbounded | SolveStatus::Failed) => self.rescue(Some(first)),
+            status => status,
+        }
+    }
+
+    /// Data beyond the solvers' unit order: an objective entry above
+    /// [`RESCALE_ABOVE`] (a reference of ~10⁴), or a box bound beyond the
+    /// rescue's first cap. Such programs go to [`rescue`](Self::rescue)
+    /// directly: the solvers misread them as unbounded or infeasible.
+    fn badly_scaled(&self) -> bool {
+        let cap = RESCUE_CAP * self.u_ref_scale;
+        self.q
+            .iter()
+            .chain(&self.p_nz)
+            .any(|v| v.abs() > RESCALE_ABOVE)
+            || self.box_rows().any(|r| self.b[r] > cap)
+    }
+
+    /// One attempt: dense, then Clarabel.
+    fn solve_once(&mut self) -> SolveStatus {
         match self.solve_dense() {
             DenseStatus::Solved => {
                 self.last = Answer::Dense;
@@ -357,6 +421,140 @@ impl ConeProgram {
             DenseStatus::DualInfeasible | DenseStatus::Failed => {}
         }
         self.solve_clarabel()
+    }
+
+    /// Solves programs with the minimiser of the one set, scaled to the
+    /// solvers' unit order, after [`solve`](Self::solve) failed on it:
+    ///
+    /// - the objective divided by `s = max(1, ‖q‖∞, ‖P‖∞)`, which leaves
+    ///   the minimiser unchanged (a reference `û` of 10⁶ makes `q` 10⁶);
+    /// - each box bound beyond a cap `M` lowered to `M`, for `M = 10³, 10⁶,
+    ///   10⁹, 10¹²`, then the bounds as set. A minimiser with every
+    ///   lowered bound inactive is the minimiser of the program as set (the
+    ///   programs agree near it, and both are convex); one that meets a
+    ///   lowered bound, or a program infeasible within the caps, goes on to
+    ///   the next cap;
+    /// - before these, a reference that meets every constraint is the
+    ///   minimiser ([`reference_feasible`](Self::reference_feasible)).
+    ///
+    /// The data as set are restored afterwards; `rescued` records the
+    /// difference, for [`duals`](Self::duals). The failed first answer
+    /// stands if no program differs from it.
+    fn rescue(&mut self, first: Option<SolveStatus>) -> SolveStatus {
+        if self.reference_feasible() {
+            return SolveStatus::Optimal;
+        }
+        let scale = self
+            .q
+            .iter()
+            .chain(&self.p_nz)
+            .fold(1.0_f64, |a, v| a.max(v.abs()));
+        self.saved.0.copy_from_slice(&self.b);
+        self.saved.1.copy_from_slice(&self.q);
+        self.saved.2.copy_from_slice(&self.p_nz);
+        for v in self.q.iter_mut().chain(self.p_nz.iter_mut()) {
+            *v /= scale;
+        }
+        let rows = self.box_rows();
+        let mut result = first.unwrap_or(SolveStatus::Failed);
+        let mut cap = RESCUE_CAP;
+        for tier in 0..=RESCUE_CAPS {
+            let capping = tier < RESCUE_CAPS;
+            let mut capped = false;
+            for r in rows.clone() {
+                let set = self.saved.0[r];
+                capped |= capping && set > cap;
+                self.b[r] = if capping { set.min(cap) } else { set };
+            }
+            if capping && !capped {
+                continue; // no bound beyond this cap, nor beyond the larger ones
+            }
+            if let Some(first) = first.filter(|_| !capped && scale == 1.0) {
+                // the program as set, which failed
+                self.rescued = (1.0, false);
+                result = first;
+                break;
+            }
+            result = self.solve_once();
+            self.rescued = (scale, capped);
+            let failed = matches!(result, SolveStatus::Unbounded | SolveStatus::Failed);
+            let cap_met = capped && result.is_solved() && {
+                let x = self.x();
+                rows.clone().any(|r| {
+                    // row start + 2j: u_j ≤ b; start + 2j + 1: −u_j ≤ b
+                    let j = (r - rows.start) / 2;
+                    let a = if (r - rows.start).is_multiple_of(2) {
+                        x[j]
+                    } else {
+                        -x[j]
+                    };
+                    self.b[r] < self.saved.0[r] && a >= self.b[r] - 1e-6 * self.b[r].abs()
+                })
+            };
+            let infeasible_within_caps = capped && result == SolveStatus::Infeasible;
+            if !(failed || cap_met || infeasible_within_caps) {
+                break;
+            }
+            if !capping {
+                break;
+            }
+            cap *= RESCUE_CAP_STEP;
+        }
+        self.b.copy_from_slice(&self.saved.0);
+        self.q.copy_from_slice(&self.saved.1);
+        self.p_nz.copy_from_slice(&self.saved.2);
+        result
+    }
+
+    /// Whether the reference `û` meets every constraint, in a program
+    /// whose only variable is `u` (no CLF): then it is the minimiser (the
+    /// objective `‖R(u − û)‖²` is 0 there), and [`x`](Self::x) returns it.
+    fn reference_feasible(&mut self) -> bool {
+        if self.extra {
+            return false;
+        }
+        self.slack_at_reference();
+        let s = &self.s_buf;
+        let mut row = 0;
+        for cone in &self.cones {
+            let (ok, d) = match *cone {
+                SupportedConeT::SecondOrderConeT(d) => {
+                    let tail: f64 = s[row + 1..row + d].iter().map(|v| v * v).sum();
+                    (s[row] >= 0.0 && s[row] * s[row] >= tail, d)
+                }
+                SupportedConeT::NonnegativeConeT(d) => {
+                    (s[row..row + d].iter().all(|&v| v >= 0.0), d)
+                }
+                _ => (false, 0),
+            };
+            if !ok {
+                return false;
+            }
+            row += d;
+        }
+        self.last = Answer::Reference;
+        true
+    }
+
+    /// `s_buf = b − A û`.
+    fn slack_at_reference(&mut self) {
+        self.s_buf.copy_from_slice(&self.b);
+        for (j, &u) in self.u_ref.iter().enumerate() {
+            for t in self.a_pattern.0[j]..self.a_pattern.0[j + 1] {
+                self.s_buf[self.a_pattern.1[t]] -= self.a_nz[t] * u;
+            }
+        }
+    }
+
+    /// The rows of the box bounds: `u_j ≤ u_max,j` at `start + 2j`,
+    /// `−u_j ≤ −u_min,j` at `start + 2j + 1` (empty without bounds).
+    fn box_rows(&self) -> std::ops::Range<usize> {
+        let rows = self.b.len();
+        if self.shape.bounds {
+            rows - 2 * self.shape.m..rows
+        } else {
+            rows..rows
+        }
     }
 
     /// Copies the data into the dense solver (built on first use) and
@@ -425,6 +623,7 @@ impl ConeProgram {
 
     pub(crate) fn x(&self) -> &[f64] {
         match self.last {
+            Answer::Reference => &self.u_ref,
             Answer::Dense => self.dense.as_ref().map(|d| d.x()).unwrap_or(&[]),
             Answer::Clarabel(i) => self.solvers[i]
                 .as_ref()
@@ -433,9 +632,12 @@ impl ConeProgram {
         }
     }
 
-    /// Primal slack `s` and dual `z` of the last solve (for KKT checks).
-    pub(crate) fn duals(&self) -> (&[f64], &[f64]) {
-        match self.last {
+    /// Primal slack `s` and dual `z` of the last solve (for KKT checks),
+    /// of the program as set: after a [`rescue`](Self::rescue), `z` times
+    /// the objective's scale, and `s = b − Ax` where a bound was capped;
+    /// for the feasible reference, `s = b − Aû` and `z = 0`.
+    pub(crate) fn duals(&self) -> (Vec<f64>, Vec<f64>) {
+        let (s, z): (&[f64], &[f64]) = match self.last {
             Answer::Dense => match self.dense.as_ref() {
                 Some(d) => (d.s(), d.z()),
                 None => (&[], &[]),
@@ -444,7 +646,21 @@ impl ConeProgram {
                 Some(s) => (s.solution.s.as_slice(), s.solution.z.as_slice()),
                 None => (&[], &[]),
             },
+            Answer::Reference => (&self.s_buf, &[]),
+        };
+        let (scale, capped) = self.rescued;
+        let mut s = s.to_vec();
+        let mut z: Vec<f64> = z.iter().map(|v| v * scale).collect();
+        if self.last == Answer::Reference {
+            z = vec![0.0; s.len()];
+        } else if capped {
+            let (a, b, _, _) = self.dense();
+            let ax = &a * nalgebra::DVector::from_column_slice(self.x());
+            for (i, si) in s.iter_mut().enumerate() {
+                *si = b[i] - ax[i];
+            }
         }
+        (s, z)
     }
 
     /// `(A, b, P, q)` in dense form (tests and diagnostics).
