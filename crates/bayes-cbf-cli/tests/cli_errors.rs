@@ -182,6 +182,15 @@ const MODEL_TEXTS: &[(&str, &[&str])] = &[
     ),
     ("{\"state_dim\": 2,, }", &["not valid JSON"]),
     ("[1, 2]", &["JSON object"]),
+    // as Python's json.dump writes them: the field is named
+    (
+        "{\"state_dim\": 2, \"noise_sigma\": NaN}",
+        &["field 'noise_sigma' holds NaN", "not a JSON number"],
+    ),
+    (
+        "{\"state_dim\": 2, \"A\": [[1.0, 0.0], [0.0, -Infinity]]}",
+        &["field 'A' holds -Infinity", "line 1 column"],
+    ),
 ];
 
 /// Asserts a failed run with one `error:` line containing every `expect`.

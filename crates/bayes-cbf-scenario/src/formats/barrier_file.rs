@@ -374,8 +374,12 @@ impl BarrierSpec {
         if text.trim().is_empty() {
             bail!("barrier file '{name}' is empty");
         }
-        serde_json::from_str(crate::parse::strip_bom(text))
-            .with_context(|| format!("barrier file '{name}'"))
+        serde_json::from_str(crate::parse::strip_bom(text)).map_err(|e| {
+            crate::err!(
+                "barrier file '{name}': {}",
+                crate::parse::json_error_message(text, &e)
+            )
+        })
     }
 
     /// Loads and validates a barrier file.

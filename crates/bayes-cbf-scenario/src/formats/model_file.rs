@@ -135,7 +135,10 @@ impl ModelFile {
             if e.is_eof() {
                 err!("model file '{name}' is truncated or incomplete JSON: {e}")
             } else {
-                err!("model file '{name}' is not valid JSON: {e}")
+                err!(
+                    "model file '{name}' is not valid JSON: {}",
+                    crate::parse::json_error_message(text, &e)
+                )
             }
         })?;
         let obj = value.as_object().ok_or_else(|| {

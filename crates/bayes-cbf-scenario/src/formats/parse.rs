@@ -109,6 +109,46 @@ pub fn strip_bom(text: &str) -> &str {
     text.strip_prefix('\u{feff}').unwrap_or(text)
 }
 
+/// The message of a JSON error in `text`, naming a `NaN` or `Infinity`
+/// where the parser stopped and the field it stands in: JSON has neither
+/// (Python's `json.dump` writes them unless `allow_nan=False`), and the
+/// parser's own message gives only a column.
+pub fn json_error_message(text: &str, e: &serde_json::Error) -> String {
+    let text = strip_bom(text);
+    let at = text
+        .split_inclusive('\n')
+        .take(e.line().saturating_sub(1))
+        .map(str::len)
+        .sum::<usize>()
+        + e.column().saturating_sub(1);
+    // the parser stops at the word, or one past its sign
+    let found = [at.saturating_sub(1), at].into_iter().find_map(|start| {
+        let here = text.get(start..)?;
+        ["-Infinity", "Infinity", "-NaN", "NaN", "-inf", "inf", "nan"]
+            .into_iter()
+            .find(|w| here.starts_with(w))
+            .map(|w| (start, w))
+    });
+    let Some((start, word)) = found else {
+        return e.to_string();
+    };
+    // the nearest key before it: `"key":`
+    let before = &text[..start];
+    let field = before.rfind("\":").and_then(|end| {
+        let start = before[..end].rfind('"')?;
+        Some(&before[start + 1..end])
+    });
+    let place = format!("line {} column {}", e.line(), e.column() - (at - start));
+    match field {
+        Some(f) => format!(
+            "field '{f}' holds {word} ({place}), which is not a JSON number: give finite numbers (Python: json.dump(..., allow_nan=False) finds them)"
+        ),
+        None => format!(
+            "{word} ({place}) is not a JSON number: give finite numbers (Python: json.dump(..., allow_nan=False) finds them)"
+        ),
+    }
+}
+
 /// JSON text as a value (after a byte-order mark, if any), refusing an
 /// object that gives a key twice (`serde_json` would keep the last one
 /// silently).
@@ -171,7 +211,7 @@ pub fn json_value(text: &str) -> serde_json::Result<serde_json::Value> {
 
 #[cfg(test)]
 mod json_tests {
-    use super::json_value;
+    use super::{json_error_message, json_value};
 
     #[test]
     fn json_values_refuse_a_key_given_twice_at_any_depth() {
@@ -187,6 +227,34 @@ mod json_tests {
             let e = json_value(text).unwrap_err().to_string();
             assert!(e.contains("given twice"), "{text}: {e}");
         }
+    }
+
+    /// NaN and Infinity, which JSON does not have and Python writes, are
+    /// named with the field they stand in; other errors keep the parser's
+    /// message.
+    #[test]
+    fn json_errors_name_a_nan_and_its_field() {
+        for (text, want) in [
+            (
+                r#"{"a": 1, "noise_sigma": NaN}"#,
+                "field 'noise_sigma' holds NaN",
+            ),
+            (
+                "{\n  \"data\": {\"xdot\": [[0.5, 1.0],\n [Infinity, 2]]}\n}",
+                "field 'xdot' holds Infinity (line 3 column 3)",
+            ),
+            (
+                r#"[1, -Infinity]"#,
+                "-Infinity (line 1 column 5) is not a JSON number",
+            ),
+        ] {
+            let e = json_value(text).unwrap_err();
+            let m = json_error_message(text, &e);
+            assert!(m.contains(want), "{text}: {m}");
+        }
+        let text = r#"{"a": 1,, }"#;
+        let e = json_value(text).unwrap_err();
+        assert_eq!(json_error_message(text, &e), e.to_string());
     }
 
     /// A byte-order mark, as some editors write it, is skipped by every

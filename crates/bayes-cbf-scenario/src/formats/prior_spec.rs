@@ -377,8 +377,12 @@ impl PriorSpec {
     }
 
     fn from_json_text(text: &str) -> Result<Self> {
-        let v: Value =
-            crate::parse::json_value(text).map_err(|e| crate::err!("not valid JSON: {e}"))?;
+        let v: Value = crate::parse::json_value(text).map_err(|e| {
+            crate::err!(
+                "not valid JSON: {}",
+                crate::parse::json_error_message(text, &e)
+            )
+        })?;
         Self::try_from(v).map_err(crate::error::Error::Input)
     }
 }

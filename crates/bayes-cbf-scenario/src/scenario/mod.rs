@@ -226,6 +226,35 @@ pub enum MatrixSpec {
     },
 }
 
+/// A [`MatrixSpec`] given as a table (`{ type = "identity", scale = 1.0 }`,
+/// …) or, for [`MatrixSpec::Rows`], as the matrix itself (`[[1.0, 0.0],
+/// [0.0, 2.0]]`).
+fn matrix_spec<'de, D: serde::Deserializer<'de>>(
+    d: D,
+) -> std::result::Result<MatrixSpec, D::Error> {
+    use serde::de::value::{MapAccessDeserializer, SeqAccessDeserializer};
+    use serde::de::{MapAccess, SeqAccess, Visitor};
+    struct Form;
+    impl<'de> Visitor<'de> for Form {
+        type Value = MatrixSpec;
+        fn expecting(&self, f: &mut std::fmt::Formatter) -> std::fmt::Result {
+            f.write_str(
+                "a matrix (an array of rows, e.g. [[1.0, 0.0], [0.0, 1.0]]) or a table \
+                 { type = \"identity\", scale = … }, { type = \"random\", scale = … } or \
+                 { type = \"rows\", rows = [[…], …] }",
+            )
+        }
+        fn visit_seq<A: SeqAccess<'de>>(self, seq: A) -> std::result::Result<MatrixSpec, A::Error> {
+            let rows = Vec::<Vec<f64>>::deserialize(SeqAccessDeserializer::new(seq))?;
+            Ok(MatrixSpec::Rows { rows })
+        }
+        fn visit_map<A: MapAccess<'de>>(self, map: A) -> std::result::Result<MatrixSpec, A::Error> {
+            MatrixSpec::deserialize(MapAccessDeserializer::new(map))
+        }
+    }
+    d.deserialize_any(Form)
+}
+
 /// The GP model.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -241,11 +270,11 @@ pub struct GpSpec {
     /// RBF variance.
     #[serde(default = "one")]
     pub kernel_variance: f64,
-    /// Row covariance `A` (n × n).
-    #[serde(rename = "A")]
+    /// Row covariance `A` (n × n): a table, or the matrix itself.
+    #[serde(rename = "A", deserialize_with = "matrix_spec")]
     pub a: MatrixSpec,
-    /// Column covariance `B` ((1+m) × (1+m)).
-    #[serde(rename = "B")]
+    /// Column covariance `B` ((1+m) × (1+m)): a table, or the matrix itself.
+    #[serde(rename = "B", deserialize_with = "matrix_spec")]
     pub b: MatrixSpec,
     /// Noise scale σ (noise covariance σ²A).
     pub noise_sigma: f64,
@@ -630,6 +659,10 @@ pub fn scenario_text(name: &str) -> Result<(String, String)> {
 fn toml_error(source: &str, text: &str, e: &toml::de::Error) -> crate::error::Error {
     let msg = e.message().replace('\n', " ");
     match e.span() {
+        // a field missing at the top level: the span is the whole file
+        Some(span) if span.start == 0 && msg.starts_with("missing field") => {
+            err!("scenario '{source}': {msg} at the top level")
+        }
         Some(span) => {
             let line_no = text[..span.start.min(text.len())].matches('\n').count() + 1;
             let line = text.lines().nth(line_no - 1).unwrap_or("").trim();
@@ -838,6 +871,57 @@ mod tests {
         // any name loads: it matters only for the default directory
         let (s, _) = load("double-integrator", &["name=\"a/b\"".into()]).unwrap();
         assert_eq!(s.name, "a/b");
+    }
+
+    #[test]
+    fn covariances_are_tables_or_matrices() {
+        let rows = load(
+            "double-integrator",
+            &["gp.B=[[2.0, 0.0], [0.0, 3.0]]".into()],
+        )
+        .unwrap()
+        .0;
+        assert_eq!(
+            rows.gp.b,
+            MatrixSpec::Rows {
+                rows: vec![vec![2.0, 0.0], vec![0.0, 3.0]]
+            }
+        );
+        let table = load(
+            "double-integrator",
+            &["gp.B={type = \"rows\", rows = [[2.0, 0.0], [0.0, 3.0]]}".into()],
+        )
+        .unwrap()
+        .0;
+        assert_eq!(rows.gp.b, table.gp.b);
+        for (set, want) in [
+            ("gp.A=\"eye\"", "expected a matrix (an array of rows"),
+            (
+                "gp.A={type = \"wishart\"}",
+                "expected one of `identity`, `random`, `rows`",
+            ),
+            ("gp.A=[[1.0, \"a\"]]", "expected f64"),
+        ] {
+            let err = format!(
+                "{:#}",
+                load("double-integrator", &[set.into()]).unwrap_err()
+            );
+            assert!(err.contains(want), "{set}: {err}");
+        }
+    }
+
+    #[test]
+    fn a_field_missing_at_the_top_level_is_not_put_on_a_line() {
+        let dir = std::env::temp_dir().join(format!("bayes-cbf-noname-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let path = dir.join("noname.toml");
+        std::fs::write(&path, "# a comment\n\nsteps = 10\n").unwrap();
+        let err = format!("{:#}", load(path.to_str().unwrap(), &[]).unwrap_err());
+        assert!(
+            err.contains("missing field `name` at the top level") && !err.contains("line"),
+            "{err}"
+        );
+        std::fs::remove_dir_all(&dir).unwrap();
     }
 
     #[test]

@@ -155,6 +155,14 @@ impl<K: Kernel> MvgpHyper<K> {
         check_spd("A", &self.A, n)?;
         check_spd("B", &self.B, m + 1)?;
         check_positive("noise_sigma", self.sigma)?;
+        // the noise covariance σ²A must be finite
+        if !(self.sigma * self.sigma * self.A.amax()).is_finite() {
+            return Err(InputError::invalid(
+                "noise_sigma",
+                self.sigma,
+                "too large: the noise covariance σ²A overflows",
+            ));
+        }
         Ok(())
     }
 }
@@ -991,14 +999,18 @@ mod tests {
         assert!(check_spd("A", &m(1.0, f64::NAN, f64::NAN, 1.0), 2).is_err());
     }
 
-    /// The noise scale must be finite and positive.
+    /// The noise scale must be finite and positive, and small enough that
+    /// `σ²A` is finite.
     #[test]
     fn noise_scale_must_be_finite_and_positive() {
         assert!(hyper(0.1).validate(1, 1, 1).is_ok());
-        for sigma in [0.0, -0.1, f64::INFINITY, f64::NAN] {
+        assert!(hyper(1e150).validate(1, 1, 1).is_ok());
+        for sigma in [0.0, -0.1, f64::INFINITY, f64::NAN, 1e155, 1e308] {
             let e = hyper(sigma).validate(1, 1, 1).unwrap_err().to_string();
             assert!(e.contains("noise_sigma"), "σ = {sigma}: {e}");
         }
+        let e = hyper(1e308).validate(1, 1, 1).unwrap_err().to_string();
+        assert!(e.contains("too large"), "{e}");
     }
 
     /// A workspace sized for the model is used as it is (no reallocation),
