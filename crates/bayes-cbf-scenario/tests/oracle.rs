@@ -76,16 +76,20 @@ fn the_oracle_still_checks_the_scenarios_prior_mean() {
 /// barrier goes negative, and only the quadrotor, whose approach is
 /// faster than its disc's gains admit, has infeasible steps. The
 /// cart-pole rides its track's end with no margin at the samples and
-/// needs `ζ = 0.01` for the hold between them (docs/robots.md, "Check
-/// the design with the true dynamics").
+/// needs `ζ = 0.01` for the hold between them; the double integrator
+/// needs `ζ = 0.02` for its process noise, which the oracle's model leaves
+/// out (it crossed on 14 of 800 seeds without; docs/robots.md, "Check the
+/// design with the true dynamics").
 #[test]
 fn every_builtin_design_holds_given_the_true_dynamics() {
     for (name, _) in scenario::BUILTIN {
         for seed in [72000, 72001] {
             let seed = format!("seed={seed}");
             let mut sets = vec![seed.as_str(), "gp.oracle=true", "outputs.plots=false"];
-            if *name == "cartpole-track" {
-                sets.push("controller.zeta=0.01");
+            match *name {
+                "cartpole-track" => sets.push("controller.zeta=0.01"),
+                "double-integrator" => sets.push("controller.zeta=0.02"),
+                _ => {}
             }
             let s = run(name, &sets).summary;
             assert!(s.safe && s.oracle, "{name} {seed}: {s:?}");
