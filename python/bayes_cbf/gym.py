@@ -17,6 +17,7 @@ at the start (``label_at="start"``) is exact.
 
 from __future__ import annotations
 
+import numbers
 from typing import Any, Callable, Optional, Sequence
 
 import numpy as np
@@ -126,9 +127,14 @@ class SafetyFilterWrapper(gym.Wrapper, gym.utils.RecordConstructorArgs):
             )
         self.state_from_obs = state_from_obs
         self.learn = learn
-        dt = dt if dt is not None else getattr(env.unwrapped, "dt", None)
-        if dt is None or not np.isfinite(dt) or dt <= 0:
-            raise InputError("dt: give the control period (the environment has no positive dt)")
+        if dt is not None:
+            real = isinstance(dt, numbers.Real) and not isinstance(dt, bool)
+            if not real or not np.isfinite(dt) or dt <= 0:
+                raise InputError(f"dt = {dt!r}: the control period must be a finite number > 0")
+        else:
+            dt = getattr(env.unwrapped, "dt", None)
+            if dt is None or not np.isfinite(dt) or dt <= 0:
+                raise InputError("dt: give the control period (the environment has no positive dt)")
         self.dt = float(dt)
         n = self.model.state_dim
         for i in angle_indices:

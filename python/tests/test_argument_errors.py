@@ -37,7 +37,11 @@ def raises_naming(field, thunk, *also):
 
 
 OUT_OF_RANGE = [
-    ("state_dim", lambda: mvgp(state_dim=-1), "state_dim = -1: must be ≥ 0"),
+    ("state_dim", lambda: mvgp(state_dim=-1), "state_dim = -1: must be ≥ 1"),
+    # zero is named as the dimension at fault, not as A's or B's shape
+    ("state_dim", lambda: mvgp(state_dim=0), "state_dim = 0: must be ≥ 1"),
+    ("control_dim", lambda: mvgp(control_dim=0), "control_dim = 0: must be ≥ 1"),
+    ("max_iters", lambda: mvgp().fit(X, U, XD, max_iters=0), "max_iters = 0: must be ≥ 1"),
     ("max_iters", lambda: mvgp().fit(X, U, XD, max_iters=-1), "max_iters = -1"),
     ("seed", lambda: mvgp().fit(X, U, XD, seed=-1), "seed = -1"),
     ("relative_degree", lambda: bc.Barrier.pendulum_sector(0.7, 0.3, relative_degree=-1), "= -1"),

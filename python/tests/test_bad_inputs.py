@@ -51,6 +51,8 @@ CONSTRUCTOR_CASES = [
     ("noise_sigma zero", lambda: mvgp(noise_sigma=0.0), "noise_sigma"),
     ("noise_sigma NaN", lambda: mvgp(noise_sigma=float("nan")), "noise_sigma"),
     ("state_dim zero", lambda: mvgp(state_dim=0, A=np.zeros((0, 0)), lengthscales=[]), "state_dim"),
+    ("theta_c NaN", lambda: bc.Barrier.pendulum_sector(float("nan"), 0.3, k_alpha=[1, 3]),
+     "theta_c = NaN"),
     ("prior unknown type", lambda: mvgp(prior_mean={"type": "rocket"}), "prior_mean"),
     ("prior unknown key", lambda: mvgp(prior_mean={"type": "pendulum", "mass": 1, "length": 1,
                                                     "gravity": 10, "colour": 3}), "colour"),
@@ -287,7 +289,9 @@ def test_results_read_as_python():
 def test_negative_integers_are_input_errors_naming_the_argument(name, thunk):
     with pytest.raises(bc.InputError) as e:
         thunk()
-    assert name in str(e.value) and "must be ≥ 0" in str(e.value), str(e.value)
+    # the dimensions and max_iters are at least 1, the other counts at least 0
+    least = 1 if name in ("state_dim", "max_iters") else 0
+    assert name in str(e.value) and f"must be ≥ {least}" in str(e.value), str(e.value)
 
 
 def test_prior_mean_dicts_take_numpy_numbers_and_refuse_nan():
@@ -331,3 +335,8 @@ def test_an_unresolvable_covariance_is_a_numerical_error():
     f = bc.SafetyFilter(m, [sector], probability=0.9, u_min=[-5.0], u_max=[5.0])
     with pytest.raises(bc.NumericalError, match="double precision"):
         f.filter([0.1, 0.2], [0.0])
+
+
+def test_a_missing_model_file_is_file_not_found(tmp_path):
+    with pytest.raises(FileNotFoundError, match="nowhere.json"):
+        bc.MVGP.load(str(tmp_path / "nowhere.json"))

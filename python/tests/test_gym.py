@@ -75,6 +75,12 @@ def test_wrapper_rejects_bad_setups():
         filt = bc.SafetyFilter(model, [bc.Barrier.half_space([1.0, 0.0], 0.0, alpha=1.0)])
         with pytest.raises(bc.InputError, match=field):
             SafetyFilterWrapper(gym.make("Pendulum-v1"), filt, lambda o: o[:2], **{field: value})
+    # a period given and wrong is named as given
+    for dt in [0.0, -1.0, float("nan"), "0.1"]:
+        model = bc.MVGP(2, 1, [1.0, 1.0], np.eye(2), np.eye(2), 0.1)
+        filt = bc.SafetyFilter(model, [bc.Barrier.half_space([1.0, 0.0], 0.0, alpha=1.0)])
+        with pytest.raises(bc.InputError, match="must be a finite number > 0"):
+            SafetyFilterWrapper(gym.make("Pendulum-v1"), filt, lambda o: o[:2], dt=dt)
     w, _ = make()
     with pytest.raises(bc.InputError, match="reset"):
         w.step(np.zeros(1))

@@ -197,15 +197,20 @@ pub fn run_merge(a: &MergeArgs) -> Result<()> {
         note_stopped(&rows);
         Ok(())
     } else {
+        let neither: Vec<String> = a
+            .dirs
+            .iter()
+            .filter(|d| !d.join("part.json").is_file() && !d.join("shard.json").is_file())
+            .map(|d| format!("'{}'", d.display()))
+            .collect();
+        let neither = if neither.is_empty() {
+            String::new()
+        } else {
+            format!("; neither: {}", neither.join(", "))
+        };
         bail!(
-            "merge: every directory must hold a calibration shard (part.json) or every one a sweep shard (shard.json and sweep.csv); got {calib} and {sweeps} of {} (neither: {})",
+            "merge: every directory must hold a calibration shard (part.json) or every one a sweep shard (shard.json and sweep.csv); got {calib} and {sweeps} of {}{neither}",
             a.dirs.len(),
-            a.dirs
-                .iter()
-                .filter(|d| !d.join("part.json").is_file() && !d.join("shard.json").is_file())
-                .map(|d| format!("'{}'", d.display()))
-                .collect::<Vec<_>>()
-                .join(", ")
         )
     }
 }

@@ -266,6 +266,44 @@ fn bad_query_vectors_are_rejected() {
     }
 }
 
+/// A barrier whose `h` is not a number at the queried state is named by
+/// its file, among several.
+#[test]
+fn control_names_the_barrier_file_that_fails() {
+    let dir = scratch_dir("bad_control_barrier");
+    let model = path_str(&dir, "model.json");
+    std::fs::write(&model, GOOD_MODEL).unwrap();
+    let fine = path_str(&dir, "fine.json");
+    std::fs::write(
+        &fine,
+        r#"{"type": "expression", "state": ["t", "w"], "h": "1 - t", "relative_degree": 1, "alpha": 1.0}"#,
+    )
+    .unwrap();
+    let root = path_str(&dir, "root.json");
+    std::fs::write(
+        &root,
+        r#"{"type": "expression", "state": ["t", "w"], "h": "t^0.5", "relative_degree": 1, "alpha": 1.0}"#,
+    )
+    .unwrap();
+    let args = [
+        "control",
+        "--model",
+        &model,
+        "--barrier",
+        &fine,
+        "--barrier",
+        &root,
+        "--x=-1.2,-0.4",
+        "--probability",
+        "0.9",
+    ];
+    check(
+        &args,
+        &[&format!("barrier '{root}'"), "NaN"],
+        "t^0.5 at t < 0",
+    );
+}
+
 #[test]
 fn bad_data_files_are_rejected_with_line_and_column() {
     let dir = scratch_dir("bad_csv");

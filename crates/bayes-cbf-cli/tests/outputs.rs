@@ -168,3 +168,59 @@ fn out_dev_stdout_appends_to_a_redirected_log() {
     assert!(text.starts_with("PREVIOUS\n{"), "{text}");
     assert!(text.contains("\"state_dim\": 2"), "{text}");
 }
+
+/// A run interrupted before its first output directory existed leaves its
+/// stage beside it (`.NAME.tmp-PID-N`); the next run to the same `--out`,
+/// given as a bare name relative to the working directory, removes it.
+#[cfg(target_os = "linux")]
+#[test]
+fn the_stage_of_an_interrupted_run_is_removed_by_the_next() {
+    let dir = scratch_dir("outputs-stale-stage");
+    // a process id above the kernel's limit: no such process runs
+    let stale = dir.join(".run1.tmp-4000000000-0");
+    std::fs::create_dir_all(&stale).unwrap();
+    std::fs::write(stale.join("trajectory.csv"), "partial").unwrap();
+    let out = Command::new(env!("CARGO_BIN_EXE_bayes-cbf"))
+        .args([
+            "run",
+            "double-integrator",
+            "--set",
+            "steps=5",
+            "--out",
+            "run1",
+        ])
+        .current_dir(&*dir)
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert!(dir.join("run1").join("summary.json").is_file());
+    assert!(!stale.exists(), "the stale stage is still there");
+}
+
+/// A start far outside what the model can absorb: each step's observation
+/// is skipped, and said so three times, not once a step; ψ₁ of 10²⁰⁰ is
+/// printed in scientific notation, not in 200 digits.
+#[test]
+fn warnings_of_a_wild_start_are_few_and_short() {
+    let dir = scratch_dir("outputs-wild-start");
+    let r = run_in(
+        &dir,
+        &short_run(&["--set", "start.0=1e200", "--out", "out"]),
+    );
+    assert!(r.status.success(), "{}", r.stderr);
+    let skipped = r.stderr.matches("observation skipped").count();
+    assert_eq!(skipped, 3, "{}", r.stderr);
+    assert!(r
+        .stderr
+        .contains("later skipped observations of this run are not shown"));
+    assert!(
+        r.stderr.contains("ψ₁ = ḣ + λh = -1.000e200"),
+        "{}",
+        r.stderr
+    );
+    assert!(r.stderr.lines().count() < 12, "{}", r.stderr);
+}

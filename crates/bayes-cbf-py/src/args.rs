@@ -109,11 +109,16 @@ macro_rules! counts {
 }
 counts!(u64, usize, i64);
 
-/// A non-negative integer (a count, an index, a seed) that fits `T`.
+/// Counts that must be at least 1 (the library's own checks say so too).
+const AT_LEAST_ONE: [&str; 3] = ["state_dim", "control_dim", "max_iters"];
+
+/// A non-negative integer (a count, an index, a seed) that fits `T`; at
+/// least 1 for the fields of [`AT_LEAST_ONE`].
 fn count<T: Count>(obj: &Bound<'_, PyAny>, field: &str) -> PyResult<T> {
     let v = integer(obj)?.ok_or_else(|| expected(obj, field, "an integer"))?;
-    if v < 0 {
-        return Err(input_err(format!("{field} = {obj}: must be ≥ 0")));
+    let least = i128::from(AT_LEAST_ONE.contains(&field));
+    if v < least {
+        return Err(input_err(format!("{field} = {obj}: must be ≥ {least}")));
     }
     T::try_from(v).map_err(|_| {
         let max = match T::MAX.checked_add(1) {

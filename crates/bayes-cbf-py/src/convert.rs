@@ -4,7 +4,7 @@
 use nalgebra::DMatrix;
 use numpy::ndarray::{ArrayD, IxDyn};
 use numpy::{IntoPyArray, PyArrayDyn, PyReadonlyArrayDyn, PyUntypedArrayMethods};
-use pyo3::exceptions::{PyOSError, PyValueError};
+use pyo3::exceptions::{PyFileNotFoundError, PyOSError, PyPermissionError, PyValueError};
 use pyo3::prelude::*;
 use pyo3::types::PyDict;
 
@@ -76,12 +76,17 @@ fn with_callback_cause(new: PyErr, msg: &str) -> PyErr {
 }
 
 /// The Python exception of a scenario-layer error: bad input of any kind is
-/// [`InputError`], I/O is `OSError`, numerical failures [`NumericalError`].
+/// [`InputError`], I/O is `OSError` (`FileNotFoundError`, `PermissionError`
+/// where it is one of these), numerical failures [`NumericalError`].
 pub fn scenario_err(e: bayes_cbf_scenario::Error) -> PyErr {
     use bayes_cbf_scenario::Error as E;
     let msg = e.to_string();
     let new = match e.root() {
-        E::Io(_) => PyOSError::new_err(msg.clone()),
+        E::Io(io) => match io.kind() {
+            std::io::ErrorKind::NotFound => PyFileNotFoundError::new_err(msg.clone()),
+            std::io::ErrorKind::PermissionDenied => PyPermissionError::new_err(msg.clone()),
+            _ => PyOSError::new_err(msg.clone()),
+        },
         E::Core(bayes_cbf::Error::Input(_)) => InputError::new_err(msg.clone()),
         E::Core(_) => NumericalError::new_err(msg.clone()),
         _ => InputError::new_err(msg.clone()),

@@ -1,8 +1,8 @@
 //! All-or-nothing file output: a file is written completely or not at all,
 //! and a run's directory receives all of its files or none.
 
-use crate::err;
 use crate::error::{Context, Result};
+use crate::{bail, err};
 use std::io::Write;
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicU64, Ordering};
@@ -75,6 +75,13 @@ fn temp_sibling(path: &Path) -> Result<PathBuf> {
         Some(d) if !d.as_os_str().is_empty() => d.to_path_buf(),
         _ => PathBuf::from("."),
     };
+    if let Some(file) = dir.ancestors().find(|a| a.is_file()) {
+        bail!(
+            "cannot create output directory '{}': '{}' is a file, not a directory",
+            dir.display(),
+            file.display()
+        );
+    }
     std::fs::create_dir_all(&dir)
         .with_context(|| format!("cannot create output directory '{}'", dir.display()))?;
     let ext = path
@@ -178,6 +185,15 @@ impl StagedDir {
     /// cannot be written (or created). Staging directories that earlier,
     /// interrupted runs left there are removed.
     pub fn new(out: &Path) -> Result<Self> {
+        // a first run to `out` stages beside it, later ones inside it
+        let name = out.file_name().unwrap_or_default().to_string_lossy();
+        let parent = match out.parent() {
+            Some(d) if !d.as_os_str().is_empty() => d,
+            _ => Path::new("."),
+        };
+        if parent.is_dir() {
+            remove_stale(parent, &format!(".{name}.tmp-"));
+        }
         let stage = if out.is_dir() {
             remove_stale(out, ".staging.tmp-");
             temp_sibling(&out.join("staging"))?
@@ -192,10 +208,6 @@ impl StagedDir {
                 out.display()
             ));
         } else {
-            let name = out.file_name().unwrap_or_default().to_string_lossy();
-            if let Some(parent) = out.parent().filter(|p| p.is_dir()) {
-                remove_stale(parent, &format!(".{name}.tmp-"));
-            }
             temp_sibling(out)?
         };
         std::fs::create_dir(&stage)
@@ -222,10 +234,23 @@ impl StagedDir {
     /// directory by renaming the staging directory. If that fails part
     /// way, the files not yet moved stay in the staging directory, which
     /// the error names.
+    ///
+    /// The files an earlier publish wrote into the directory that this one
+    /// did not write are then removed (they are listed in [`MANIFEST`]), so
+    /// that the directory holds one run's outputs, not an earlier run's
+    /// figures beside this one's summary; files of other origin are kept.
     pub fn publish(mut self) -> Result<()> {
+        let mut written = Vec::new();
+        list_files(&self.stage, Path::new(""), &mut written)?;
+        let listing: String = written
+            .iter()
+            .map(|p| format!("{}\n", p.display()))
+            .collect();
+        write_atomic(&self.stage.join(MANIFEST), listing.as_bytes())?;
         if !self.out.exists() && std::fs::rename(&self.stage, &self.out).is_ok() {
             return Ok(());
         }
+        let earlier = std::fs::read_to_string(self.out.join(MANIFEST)).unwrap_or_default();
         // a file in the way of a directory, or the reverse, fails before
         // anything moves
         check_tree(&self.stage, &self.out)?;
@@ -236,7 +261,16 @@ impl StagedDir {
                 self.out.display(),
                 self.stage.display()
             )
-        })
+        })?;
+        for old in earlier.lines().map(Path::new) {
+            let inside = old
+                .components()
+                .all(|c| matches!(c, std::path::Component::Normal(_)));
+            if inside && !written.iter().any(|w| w == old) {
+                let _ = std::fs::remove_file(self.out.join(old));
+            }
+        }
+        Ok(())
     }
 }
 
@@ -246,6 +280,27 @@ impl Drop for StagedDir {
             let _ = std::fs::remove_dir_all(&self.stage);
         }
     }
+}
+
+/// The list of the files the last [`StagedDir::publish`] wrote into an
+/// output directory (one relative path a line).
+pub const MANIFEST: &str = ".bayes-cbf-outputs";
+
+/// Appends the files below `dir` to `out`, as paths relative to it
+/// (`prefix` the path of `dir` so far).
+fn list_files(dir: &Path, prefix: &Path, out: &mut Vec<PathBuf>) -> Result<()> {
+    let entries =
+        std::fs::read_dir(dir).with_context(|| format!("cannot read '{}'", dir.display()))?;
+    for e in entries {
+        let e = e.with_context(|| format!("cannot read '{}'", dir.display()))?;
+        let rel = prefix.join(e.file_name());
+        if e.path().is_dir() {
+            list_files(&e.path(), &rel, out)?;
+        } else {
+            out.push(rel);
+        }
+    }
+    Ok(())
 }
 
 /// Removes the staging directories `dir/{prefix}{pid}-{n}` of processes
@@ -404,10 +459,12 @@ mod tests {
         let dir = scratch("staged");
         let out = dir.join("run");
         let read = |name: &str| std::fs::read_to_string(out.join(name)).unwrap();
+        // the entries but the list of the files published (MANIFEST)
         let entries = |p: &Path| {
             let mut v: Vec<String> = std::fs::read_dir(p)
                 .unwrap()
                 .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+                .filter(|n| n != MANIFEST)
                 .collect();
             v.sort();
             v
@@ -415,9 +472,10 @@ mod tests {
         // a new directory: the staging directory renamed
         let st = StagedDir::new(&out).unwrap();
         write_atomic(&st.path().join("summary.json"), b"old").unwrap();
-        write_atomic(&st.path().join("keep.txt"), b"keep").unwrap();
         st.publish().unwrap();
         assert_eq!(entries(&dir), ["run"]);
+        // a file of the user's
+        std::fs::write(out.join("keep.txt"), "keep").unwrap();
         {
             let st = StagedDir::new(&out).unwrap();
             write_atomic(&st.path().join("summary.json"), b"half").unwrap();
@@ -464,8 +522,13 @@ mod tests {
         // an interrupted run's stage (a process that no longer runs)
         let stale = out.join(".staging.tmp-4000000000-0");
         std::fs::create_dir_all(&stale).unwrap();
+        // and the stage of an interrupted first run, beside the output
+        let beside = dir.join(".run.tmp-4000000000-0");
+        std::fs::create_dir_all(&beside).unwrap();
         let st = StagedDir::new(&out).unwrap();
-        assert!(!stale.exists() || !Path::new("/proc/self").exists());
+        for s in [&stale, &beside] {
+            assert!(!s.exists() || !Path::new("/proc/self").exists(), "{s:?}");
+        }
         write_atomic(&st.path().join("summary.json"), b"new").unwrap();
         st.publish().unwrap();
         let link = std::fs::symlink_metadata(out.join("summary.json")).unwrap();
@@ -476,6 +539,41 @@ mod tests {
         std::os::unix::fs::symlink("nowhere", dir.join("dangling")).unwrap();
         let e = StagedDir::new(&dir.join("dangling")).unwrap_err();
         assert!(e.to_string().contains("link to a missing directory"), "{e}");
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    /// A directory used again holds the new run's files: an earlier
+    /// run's that this one did not write are removed, other files kept.
+    #[test]
+    fn an_earlier_runs_files_give_way_to_the_next_runs() {
+        let dir = scratch("manifest");
+        let out = dir.join("out");
+        let publish = |files: &[&str]| {
+            let st = StagedDir::new(&out).unwrap();
+            for f in files {
+                let p = st.path().join(f);
+                std::fs::create_dir_all(p.parent().unwrap()).unwrap();
+                write_atomic(&p, f.as_bytes()).unwrap();
+            }
+            st.publish().unwrap();
+        };
+        publish(&["summary.json", "animation.gif", "sub/a.png"]);
+        std::fs::write(out.join("notes.txt"), "mine").unwrap();
+        publish(&["summary.json", "sweep.csv"]);
+        let mut left: Vec<String> = std::fs::read_dir(&out)
+            .unwrap()
+            .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+            .filter(|n| !n.starts_with('.'))
+            .collect();
+        left.sort();
+        assert_eq!(left, ["notes.txt", "sub", "summary.json", "sweep.csv"]);
+        assert!(!out.join("sub").join("a.png").exists());
+        // a manifest naming a path outside the directory removes nothing
+        std::fs::write(dir.join("outside.txt"), "keep").unwrap();
+        std::fs::write(out.join(MANIFEST), "../outside.txt\n").unwrap();
+        publish(&["summary.json"]);
+        assert!(dir.join("outside.txt").is_file());
+        assert!(out.join("notes.txt").is_file());
         std::fs::remove_dir_all(&dir).unwrap();
     }
 

@@ -218,9 +218,24 @@ pub fn control_step(
     check_vector("u_ref", u_ref, m, "the model's control_dim")?;
     let labels: Vec<String> = barriers.iter().map(|(l, _)| l.clone()).collect();
     let degrees: Vec<usize> = barriers.iter().map(|(_, b)| b.relative_degree()).collect();
+    // the barrier an evaluation error is of: the only one, or one whose h
+    // is not finite at x
+    let culprit = match &barriers[..] {
+        [(label, _)] => Some(label.clone()),
+        bs => bs
+            .iter()
+            .find(|(_, b)| !b.value(x).is_finite())
+            .map(|(l, _)| l.clone()),
+    };
     let bs = barriers.into_iter().map(|(_, b)| b).collect();
     let mut ctrl = SafetyController::new(n, m, bs, None, settings)?;
     let mut out = ControlOutput::new(m, labels.len());
-    ctrl.step(model, x, u_ref, None, &mut out)?;
+    ctrl.step(model, x, u_ref, None, &mut out)
+        .map_err(|e| match (&e, culprit) {
+            (bayes_cbf::Error::Input(_), Some(label)) => {
+                crate::Error::from(e).context(format!("barrier '{label}'"))
+            }
+            _ => e.into(),
+        })?;
     Ok(ControlReport::from_output(&out, &labels, &degrees))
 }

@@ -61,6 +61,10 @@ impl FromStr for SeedRange {
         if end <= a {
             bail!("--seeds '{s}': the range is empty");
         }
+        // a seed is a scenario's `seed`, a TOML integer
+        if end - 1 > i64::MAX as u64 {
+            bail!("--seeds '{s}': seeds are at most {} (2^63 − 1)", i64::MAX);
+        }
         Ok(SeedRange { start: a, end })
     }
 }
@@ -664,7 +668,9 @@ mod tests {
             vec![3, 4, 5, 6]
         );
         assert_eq!("3..=7".parse::<SeedRange>().unwrap().len(), 5);
-        for bad in ["7..3", "3..3", "a..4", "5", ""] {
+        let last = "9223372036854775807..=9223372036854775807".parse::<SeedRange>();
+        assert_eq!(last.unwrap().len(), 1);
+        for bad in ["7..3", "3..3", "a..4", "5", "", "0..=9223372036854775808"] {
             let e = bad.parse::<SeedRange>().unwrap_err().to_string();
             assert!(e.contains("--seeds"), "{bad}: {e}");
         }

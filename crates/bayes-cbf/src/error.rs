@@ -115,6 +115,15 @@ pub fn check_finite(field: &str, v: &[f64]) -> Result<(), InputError> {
     }
 }
 
+/// Checks that the scalar `v` is finite, naming `field`.
+pub fn check_finite_scalar(field: &str, v: f64) -> Result<(), InputError> {
+    if v.is_finite() {
+        Ok(())
+    } else {
+        Err(InputError::invalid(field, v, "must be finite"))
+    }
+}
+
 /// Checks that the state index `i` is below the state dimension `n`,
 /// naming `field`.
 pub fn check_index(field: &str, i: usize, n: usize) -> Result<(), InputError> {

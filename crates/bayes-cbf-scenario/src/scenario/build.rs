@@ -436,10 +436,21 @@ pub(crate) fn warn_crossing_outside(
             format!(
                 "barriers[{i}] (seed {seed}): h crossed zero at t = {t:.3} in a step that met \
                  its condition, from a state outside the set its gains keep safe \
-                 (ψ₁ = ḣ + λh = {psi:.3} < 0) after {infeasible} infeasible step(s) \
-                 (docs/robots.md, \"Infeasible stretches\")"
+                 (ψ₁ = ḣ + λh = {} < 0) after {infeasible} infeasible step(s) \
+                 (docs/robots.md, \"Infeasible stretches\")",
+                short(psi)
             ),
         );
+    }
+}
+
+/// `v` in three decimals, or in scientific notation where those would be
+/// too many digits or none.
+fn short(v: f64) -> String {
+    if v != 0.0 && !(1e-3..1e6).contains(&v.abs()) {
+        format!("{v:.3e}")
+    } else {
+        format!("{v:.3}")
     }
 }
 
@@ -466,10 +477,11 @@ fn warn_start_margin(
                     &START_OUTSIDE,
                     format!(
                         "barriers[{i}]: the start {x:?} (seed {seed}) is outside the set its \
-                         gains keep safe: ψ₁ = ḣ + λh = {psi:.3} < 0 (λ the larger root of \
+                         gains keep safe: ψ₁ = ḣ + λh = {} < 0 (λ the larger root of \
                          s² + k₁s + k₀); h can cross zero although every step meets its \
                          condition: raise k_alpha or start slower (docs/robots.md, \
-                         \"Noise and starts\")"
+                         \"Noise and starts\")",
+                        short(psi)
                     ),
                 );
             }

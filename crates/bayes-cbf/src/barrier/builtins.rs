@@ -1,7 +1,7 @@
 //! Built-in barrier functions.
 
 use super::{validate_gains, Barrier};
-use crate::error::{check_finite, check_index, check_positive, InputError};
+use crate::error::{check_finite, check_finite_scalar, check_index, check_positive, InputError};
 use num_dual::DualNum;
 
 /// Checks an obstacle radius: finite and positive.
@@ -30,7 +30,7 @@ impl PendulumSector {
         relative_degree: usize,
         gains: Vec<f64>,
     ) -> Result<Self, InputError> {
-        check_finite("theta_c", &[theta_c])?;
+        check_finite_scalar("theta_c", theta_c)?;
         if !(delta.is_finite() && delta > 0.0 && delta < std::f64::consts::PI) {
             return Err(InputError::invalid("delta", delta, "must be in (0, π)"));
         }
@@ -290,7 +290,7 @@ impl HalfSpace {
         if normal.iter().all(|v| *v == 0.0) {
             return Err(InputError::invalid("normal", 0.0, "must not be zero"));
         }
-        check_finite("offset", &[offset])?;
+        check_finite_scalar("offset", offset)?;
         validate_gains(relative_degree, &gains)?;
         Ok(Self {
             normal,

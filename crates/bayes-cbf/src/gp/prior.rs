@@ -24,17 +24,20 @@ impl std::fmt::Debug for PriorMean {
     }
 }
 
-/// Checks the dimensions shared by every model of `F(x)`: `n, m ≥ 1`, the
-/// input map against `n`, and a system prior mean against `(n, m)`.
 /// Largest state dimension, `1 + control_dim`, and CoGP output count
 /// `n(1 + m)`: the models hold dense matrices of these sides (`A`, `B`,
 /// `Σ`), and a GP of a robot needs far fewer.
 pub const MAX_DIMENSION: usize = 10_000;
 
-/// Checks `n ≤ MAX_DIMENSION` and `1 + m ≤ MAX_DIMENSION` (so `n(1 + m)`
-/// cannot overflow), naming the field.
+/// Checks `n, m ≥ 1`, `n ≤ MAX_DIMENSION` and `1 + m ≤ MAX_DIMENSION`
+/// (so `n(1 + m)` cannot overflow), naming the field.
 pub fn check_dims(n: usize, m: usize) -> Result<(), crate::error::InputError> {
     use crate::error::InputError;
+    for (field, v) in [("state_dim", n), ("control_dim", m)] {
+        if v == 0 {
+            return Err(InputError::invalid(field, 0.0, "must be ≥ 1"));
+        }
+    }
     for (field, v) in [("state_dim", n), ("control_dim", m.saturating_add(1))] {
         if v > MAX_DIMENSION {
             return Err(InputError::invalid(
@@ -47,6 +50,9 @@ pub fn check_dims(n: usize, m: usize) -> Result<(), crate::error::InputError> {
     Ok(())
 }
 
+/// Checks the dimensions shared by every model of `F(x)`: `n, m ≥ 1`
+/// ([`check_dims`]), the input map against `n`, and a system prior mean
+/// against `(n, m)`.
 pub(crate) fn check_model_dims(
     n: usize,
     m: usize,
@@ -54,12 +60,6 @@ pub(crate) fn check_model_dims(
     prior: &PriorMean,
 ) -> Result<(), crate::error::InputError> {
     use crate::error::InputError;
-    if n == 0 {
-        return Err(InputError::invalid("state_dim", 0.0, "must be ≥ 1"));
-    }
-    if m == 0 {
-        return Err(InputError::invalid("control_dim", 0.0, "must be ≥ 1"));
-    }
     check_dims(n, m)?;
     input_map.validate(n)?;
     if let Some((pn, pm)) = prior.dims() {

@@ -293,6 +293,9 @@ impl<F: FnMut(usize, &StepRecord)> Observer for F {
     }
 }
 
+/// Skipped observations warned of, one by one, in a run.
+const SKIPS_SHOWN: usize = 3;
+
 /// The closed loop of a true system, a learned model and a safety
 /// controller, stepped one control period (or one self-triggered hold) at a
 /// time.
@@ -324,6 +327,9 @@ pub struct ClosedLoop<'a> {
     min_barrier: Vec<f64>,
     min_monitor: Vec<f64>,
     infeasible_steps: usize,
+    /// Observations the model could not absorb (warned of up to
+    /// [`SKIPS_SHOWN`]).
+    skipped: usize,
     last_refit_len: usize,
     background: Option<BackgroundRefit>,
     t_now: f64,
@@ -398,6 +404,7 @@ impl<'a> ClosedLoop<'a> {
             min_barrier: barriers.iter().map(|b| b.value(x0)).collect(),
             min_monitor: Vec::new(),
             infeasible_steps: 0,
+            skipped: 0,
             last_refit_len: 0,
             background: None,
             t_now: 0.0,
@@ -663,7 +670,14 @@ impl<'a> ClosedLoop<'a> {
             // an observation the factor cannot absorb even with bounded
             // jitter duplicates information already in the model
             if let Err(e) = self.model.add_observation(&xo, &uo, &xd) {
-                log::warn!("step {k}: observation skipped ({e})");
+                self.skipped += 1;
+                match self.skipped {
+                    ..SKIPS_SHOWN => log::warn!("step {k}: observation skipped ({e})"),
+                    SKIPS_SHOWN => log::warn!(
+                        "step {k}: observation skipped ({e}); later skipped observations of this run are not shown"
+                    ),
+                    _ => {}
+                }
                 continue;
             }
             // a refit running in the background replays these changes
