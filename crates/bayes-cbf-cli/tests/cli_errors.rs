@@ -198,6 +198,13 @@ fn check(args: &[&str], expect: &[&str], case: &str) {
     assert_fails(&run(args), expect, case);
 }
 
+/// Writes `text` to `dir/name` and returns the path.
+fn written(dir: &Path, name: &str, text: &str) -> String {
+    let path = path_str(dir, name);
+    std::fs::write(&path, text).unwrap();
+    path
+}
+
 fn path_str(dir: &Path, name: &str) -> String {
     dir.join(name).to_str().unwrap().to_string()
 }
@@ -271,20 +278,14 @@ fn bad_query_vectors_are_rejected() {
 #[test]
 fn control_names_the_barrier_file_that_fails() {
     let dir = scratch_dir("bad_control_barrier");
-    let model = path_str(&dir, "model.json");
-    std::fs::write(&model, GOOD_MODEL).unwrap();
-    let fine = path_str(&dir, "fine.json");
-    std::fs::write(
-        &fine,
-        r#"{"type": "expression", "state": ["t", "w"], "h": "1 - t", "relative_degree": 1, "alpha": 1.0}"#,
-    )
-    .unwrap();
-    let root = path_str(&dir, "root.json");
-    std::fs::write(
-        &root,
-        r#"{"type": "expression", "state": ["t", "w"], "h": "t^0.5", "relative_degree": 1, "alpha": 1.0}"#,
-    )
-    .unwrap();
+    let model = written(&dir, "model.json", GOOD_MODEL);
+    let barrier = |h: &str| {
+        format!(
+            r#"{{"type": "expression", "state": ["t", "w"], "h": "{h}", "relative_degree": 1, "alpha": 1.0}}"#
+        )
+    };
+    let fine = written(&dir, "fine.json", &barrier("1 - t"));
+    let root = written(&dir, "root.json", &barrier("t^0.5"));
     let args = [
         "control",
         "--model",
@@ -442,15 +443,13 @@ fn owned(args: Vec<&str>) -> Vec<String> {
 #[test]
 fn extreme_values_are_errors_not_crashes() {
     let dir = scratch_dir("extremes");
-    let model = path_str(&dir, "model.json");
-    std::fs::write(&model, GOOD_MODEL).unwrap();
-    let sector = path_str(&dir, "sector.json");
-    std::fs::write(
-        &sector,
+    let model = written(&dir, "model.json", GOOD_MODEL);
+    let sector = written(
+        &dir,
+        "sector.json",
         r#"{"type": "pendulum_sector", "theta_c": 0.7854, "delta": 0.3927,
             "relative_degree": 2, "k_alpha": [1.0, 3.0]}"#,
-    )
-    .unwrap();
+    );
     // θ' = ω known: the sector's L_g h is 0, and the run says nothing else
     let known = path_str(&dir, "known.json");
     std::fs::write(

@@ -180,23 +180,8 @@ fn the_stage_of_an_interrupted_run_is_removed_by_the_next() {
     let stale = dir.join(".run1.tmp-4000000000-0");
     std::fs::create_dir_all(&stale).unwrap();
     std::fs::write(stale.join("trajectory.csv"), "partial").unwrap();
-    let out = Command::new(env!("CARGO_BIN_EXE_bayes-cbf"))
-        .args([
-            "run",
-            "double-integrator",
-            "--set",
-            "steps=5",
-            "--out",
-            "run1",
-        ])
-        .current_dir(&*dir)
-        .output()
-        .unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
+    let r = run_in(&dir, &short_run(&["--out", "run1"]));
+    assert!(r.status.success(), "{}", r.stderr);
     assert!(dir.join("run1").join("summary.json").is_file());
     assert!(!stale.exists(), "the stale stage is still there");
 }

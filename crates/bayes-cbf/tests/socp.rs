@@ -226,6 +226,18 @@ fn solution_satisfies_constraints_and_kkt() {
     });
 }
 
+/// Random moments of one barrier condition on one control, of relative
+/// degree 1 or 2 by `trial`, with `p ∈ [0.6, 0.99)` and its factor `c`,
+/// that `u = 0` meets by 0.3.
+fn one_control_barrier(trial: usize, rng: &mut ChaCha8Rng) -> (ConditionMoments, f64, f64) {
+    let r = 1 + trial % 2;
+    let mut mom = random_moments(1, rng, r, 0.5);
+    let p = rng.random_range(0.6..0.99);
+    let c = c_reference(p, r);
+    mom.e[0] = c * mom.cov[(0, 0)].sqrt() + 0.3;
+    (mom, p, c)
+}
+
 /// One control, one barrier: the feasible set is an interval (the SCBC is
 /// concave in u); the solution is the projection of û onto it, found here by
 /// bisection on the scalar constraint function. Barriers of relative degree
@@ -234,11 +246,7 @@ fn solution_satisfies_constraints_and_kkt() {
 fn one_dimensional_problem_matches_independent_solution() {
     let mut rng = ChaCha8Rng::seed_from_u64(2);
     for trial in 0..30 {
-        let r = 1 + trial % 2;
-        let mut mom = random_moments(1, &mut rng, r, 0.5);
-        let p = rng.random_range(0.6..0.99);
-        let c = c_reference(p, r);
-        mom.e[0] = c * mom.cov[(0, 0)].sqrt() + 0.3; // u = 0 feasible
+        let (mom, p, c) = one_control_barrier(trial, &mut rng);
         let scbc = |u: f64| mom.mean(&[u]) - c * mom.variance(&[u]).sqrt();
         let u_ref = rng.random_range(-20.0..20.0);
         let mut settings = SafetySettings::new(1);
@@ -646,11 +654,7 @@ fn far_references_and_bounds_give_the_projection() {
     let mut rng = ChaCha8Rng::seed_from_u64(21);
     let mut checked = 0;
     for trial in 0..12 {
-        let r = 1 + trial % 2;
-        let mut mom = random_moments(1, &mut rng, r, 0.5);
-        let p = rng.random_range(0.6..0.99);
-        let c = c_reference(p, r);
-        mom.e[0] = c * mom.cov[(0, 0)].sqrt() + 0.3; // u = 0 feasible
+        let (mom, p, c) = one_control_barrier(trial, &mut rng);
         let scbc = |u: f64| mom.mean(&[u]) - c * mom.variance(&[u]).sqrt();
         for u_ref in [-1e9, -1e7, -3e5, 3e5, 1e7, 1e9] {
             for bound in [None, Some(20.0), Some(1e8), Some(1e12), Some(1e300)] {
