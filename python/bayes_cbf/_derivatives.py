@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import Callable, Optional
+from typing import Any, Callable, Optional
 
 import numpy as np
 
@@ -59,6 +59,19 @@ def check_derivatives(
     def worst(err: np.ndarray) -> float:
         return float("inf") if not np.all(np.isfinite(err)) else float(err.max())
 
+    def wrap(name: str, f: Callable[[np.ndarray], Any]) -> Callable[[np.ndarray], Any]:
+        # a callback's exception as the barrier's own calls raise it
+        def call(x: np.ndarray) -> Any:
+            try:
+                return f(x)
+            except Exception as e:
+                raise InputError(f"{name} failed at x = {x.tolist()}: {e!r}") from e
+
+        return call
+
+    h, grad = wrap("h", h), wrap("grad", grad)
+    if hess is not None:
+        hess = wrap("hess", hess)
     ok = True
     for x in points:
         g = np.asarray(grad(x), dtype=np.float64).reshape(-1)

@@ -130,3 +130,19 @@ def test_check_derivatives_reports_failures_and_refuses_bad_settings():
     ]:
         with pytest.raises(bc.InputError, match=field):
             bc.check_derivatives(h, g, **kw)
+
+
+def test_check_derivatives_wraps_a_callbacks_exception():
+    h = lambda x: float(x @ x)
+    g = lambda x: 2 * x
+    for args, name in [((lambda x: 1 / 0, g), "h"), ((h, lambda x: 1 / 0), "grad"),
+                       ((h, g, lambda x: 1 / 0), "hess")]:
+        with pytest.raises(bc.InputError, match=f"{name} failed at x = ") as e:
+            bc.check_derivatives(*args, state_dim=2)
+        assert isinstance(e.value.__cause__, ZeroDivisionError)
+
+    def interrupt(x):
+        raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        bc.check_derivatives(interrupt, g, state_dim=2)
