@@ -101,27 +101,29 @@ fn learning_reduces_the_uncertainty() {
     assert!(last < first * 1e-3, "trace {first} → {last}");
 }
 
-/// Bounds far beyond the controls a run needs (a user's "no bound") change
-/// nothing: the double integrator has the infeasible steps of its own
-/// bounds (±4; 7 at this seed), where the solvers alone once made all 600
-/// steps infeasible at ±10⁸ and the fallback drove the cart away from its
-/// target.
+/// Bounds far beyond the controls a run needs (a user's "no bound") keep
+/// the run safe and its conditions solved: the solvers alone once made all
+/// 600 steps of the double integrator infeasible at ±10⁸, and the
+/// fallback drove the cart away from its target. Its infeasible steps are
+/// not those of the file's bounds (±4): where the max-margin control that
+/// the fallback starts from lies on the far bounds, the fallback's
+/// controls differ (seeds 92000–92099: 493 at ±4, 622 at ±10³⁰⁰, at most
+/// 84 in a run of 600).
 #[test]
-fn huge_bounds_behave_like_the_scenarios_own() {
-    let infeasible = |b: f64| {
-        let sets = [
-            format!("controller.u_min=[{:e}]", -b),
-            format!("controller.u_max=[{b:e}]"),
-            "seed=74000".to_string(),
-        ];
-        let (sc, _) = scenario::load("double-integrator", &sets).unwrap();
-        let s = scenario::run_scenario(&sc, |_, _| {}).unwrap().summary;
-        assert!(s.safe, "bounds ±{b}: {s:#?}");
-        s.infeasible_steps
-    };
-    let own = infeasible(4.0);
-    assert!(own < 20, "{own} infeasible steps at the file's bounds");
-    for b in [100.0, 1e8, 1e9, 1e300] {
-        assert_eq!(infeasible(b), own, "bounds ±{b}");
+fn huge_bounds_keep_the_runs_safe_and_solved() {
+    for seed in [74000, 74001, 74002] {
+        for b in [4.0, 1e8, 1e9, 1e300] {
+            let sets = [
+                format!("controller.u_min=[{:e}]", -b),
+                format!("controller.u_max=[{b:e}]"),
+                format!("seed={seed}"),
+            ];
+            let (sc, _) = scenario::load("double-integrator", &sets).unwrap();
+            let s = scenario::run_scenario(&sc, |_, _| {}).unwrap().summary;
+            assert!(
+                s.safe && s.infeasible_steps < s.steps / 5,
+                "seed {seed}, bounds ±{b}: {s:#?}"
+            );
+        }
     }
 }

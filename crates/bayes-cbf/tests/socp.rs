@@ -689,7 +689,8 @@ fn far_references_and_bounds_give_the_projection() {
 }
 
 /// Two controls, two barriers, a reference of up to 10⁹ and no bounds or
-/// bounds of ±20: the rescaled program's solution meets the KKT conditions
+/// bounds of ±20, ±10⁸ (lowered while solving) or ±10³⁰⁰: the rescaled
+/// program's solution meets the KKT conditions
 /// of the program as set, to 10⁻⁷ relative to the objective's gradient
 /// (and its value, for the complementarity), with
 /// the duals scaled back; a reference the barriers admit is returned as
@@ -698,6 +699,7 @@ fn far_references_and_bounds_give_the_projection() {
 fn far_references_meet_the_kkt_conditions_of_the_program_as_set() {
     let mut rng = ChaCha8Rng::seed_from_u64(22);
     let m = 2;
+    let (mut checked, mut checked_far) = (0, 0);
     for trial in 0..20 {
         let cbcs: Vec<ConditionMoments> = (0..2)
             .map(|i| {
@@ -709,7 +711,7 @@ fn far_references_meet_the_kkt_conditions_of_the_program_as_set() {
         let scale = [1e5, 1e7, 1e9][trial % 3];
         let dir: f64 = rng.random_range(0.0..std::f64::consts::TAU);
         let u_ref = [scale * dir.cos(), scale * dir.sin()];
-        for bound in [None, Some(20.0)] {
+        for bound in [None, Some(20.0), Some(1e8), Some(1e300)] {
             let mut settings = SafetySettings::new(m);
             settings.probability = 0.9;
             settings.u_min = bound.map(|b| vec![-b; m]);
@@ -717,9 +719,13 @@ fn far_references_meet_the_kkt_conditions_of_the_program_as_set() {
             let mut filter = SafetyFilter::new(m, 2, false, settings).unwrap();
             let mut out = ControlOutput::new(m, 2);
             filter.solve(&cbcs, None, &u_ref, &mut out).unwrap();
-            if out.u.iter().any(|v| v.abs() > 1e7) {
-                continue; // beyond the solvers' range
+            if bound.is_none() && out.u.iter().any(|v| v.abs() > 1e7) {
+                // a minimiser beyond the solvers' range, with bounds of
+                // 10⁸ or more too
+                checked_far += 1;
+                break;
             }
+            checked += 1;
             assert!(
                 !out.is_infeasible(),
                 "trial {trial}, û = {u_ref:?}, bound {bound:?}: {:?}",
@@ -732,6 +738,63 @@ fn far_references_meet_the_kkt_conditions_of_the_program_as_set() {
                 // ‖q‖ = 2‖û‖; the objective's value ~‖û‖²
                 check_kkt_to(&filter, 1e-7 * 2.0 * scale, 1e-7 * scale * scale);
             }
+        }
+    }
+    assert!(
+        checked >= 50 && checked_far <= 8,
+        "{checked} checked, {checked_far} beyond range"
+    );
+}
+
+/// Far-out programs the solvers cannot resolve are not reported solved,
+/// nor infeasible ones misread: a reference of 10¹⁶⁰ (whose squares
+/// overflow) that the condition rejects far out is not returned as the
+/// control, and a program infeasible within any bounds is `Infeasible`
+/// at bounds of 10³⁰⁰ as at 10, so that the fallback's `p*` is computed.
+#[test]
+fn far_out_programs_are_neither_solved_wrongly_nor_misread() {
+    // mean 1 − u, variance 0.1 + u²: feasible near u = −0.6, not far out
+    // (mean/std → 1 < c(0.99) = 2.33)
+    let mom = ConditionMoments::from_parts(
+        vec![1.0, -1.0],
+        DMatrix::from_row_slice(2, 2, &[0.1, 0.0, 0.0, 1.0]),
+        1,
+    )
+    .unwrap();
+    for u_ref in [-1e100, -1e160, -1e300] {
+        let mut settings = SafetySettings::new(1);
+        settings.probability = 0.99;
+        let mut filter = SafetyFilter::new(1, 1, false, settings).unwrap();
+        let mut out = ControlOutput::new(1, 1);
+        let r = filter.solve(std::slice::from_ref(&mom), None, &[u_ref], &mut out);
+        if r.is_ok() && !out.is_infeasible() {
+            assert!(
+                out.u[0].abs() < 10.0 && out.constraints[0].slack >= -1e-6,
+                "û = {u_ref:e}: {:?} u = {}",
+                out.status,
+                out.u[0]
+            );
+        }
+    }
+    // u ≥ 5 is needed (mean u − 5, no spread) and u ≤ 1 is allowed: no
+    // control within the box, however far its other side
+    let need = ConditionMoments::from_parts(vec![-5.0, 1.0], DMatrix::zeros(2, 2), 1).unwrap();
+    for lower in [-10.0, -1e8, -1e300] {
+        let mut settings = SafetySettings::new(1);
+        settings.u_min = Some(vec![lower]);
+        settings.u_max = Some(vec![1.0]);
+        let mut filter = SafetyFilter::new(1, 1, false, settings).unwrap();
+        let mut out = ControlOutput::new(1, 1);
+        filter
+            .solve(std::slice::from_ref(&need), None, &[0.0], &mut out)
+            .unwrap();
+        match &out.status {
+            ControlStatus::Infeasible(info) => assert_eq!(
+                info.solver,
+                bayes_cbf::control::SolveStatus::Infeasible,
+                "u_min = {lower:e}"
+            ),
+            s => panic!("u_min = {lower:e}: {s:?}"),
         }
     }
 }

@@ -301,7 +301,9 @@ fn check_solution(
     };
     for (k, (mom, r)) in cbcs.iter().zip(reports).enumerate() {
         let tol = rel * (1.0 + r.mean.abs() + r.c.abs() * r.std);
-        if r.slack < -tol {
+        // a non-finite slack (a control too far out for its covariance) is
+        // no solution either
+        if !r.slack.is_finite() || r.slack < -tol {
             return Err(ControlError::Unresolved {
                 barrier: k,
                 slack: r.slack,

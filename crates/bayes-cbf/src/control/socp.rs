@@ -112,17 +112,19 @@ pub(crate) struct ConeProgram {
     saved: (Vec<f64>, Vec<f64>, Vec<f64>),
     /// How the last answer's program differs from the one set:
     /// the factor its objective was divided by and whether a bound was
-    /// capped (see [`rescue`](Self::rescue)); `(1, false)` if not rescued.
-    rescued: (f64, bool),
+    /// capped, and the cap (see [`rescue`](Self::rescue)); `(1, None)` if
+    /// not rescued.
+    rescued: (f64, Option<f64>),
 }
 
 /// The rescue's first cap on the box bounds ([`ConeProgram::rescue`]);
 /// a bound beyond it times `max(1, ‖û‖∞)` sends a program to the rescue.
 const RESCUE_CAP: f64 = 1e3;
-/// The factor between successive caps.
-const RESCUE_CAP_STEP: f64 = 1e3;
-/// Caps tried before the bounds as set: 10³, 10⁶, 10⁹, 10¹².
-const RESCUE_CAPS: usize = 4;
+/// The factor between successive caps: a cap far above the minimiser
+/// (10⁹ for one at 10⁷) is already beyond the solvers' range.
+const RESCUE_CAP_STEP: f64 = 10.0;
+/// Caps tried before the bounds as set: 10³, 10⁴, …, 10¹².
+const RESCUE_CAPS: usize = 10;
 /// Objective entries above this go to the rescue (see
 /// [`ConeProgram::badly_scaled`]).
 const RESCALE_ABOVE: f64 = 1e4;
@@ -202,7 +204,7 @@ impl ConeProgram {
             u_ref: vec![0.0; m],
             s_buf: vec![0.0; rows],
             saved: (vec![0.0; rows], vec![0.0; nv], vec![0.0; p_len]),
-            rescued: (1.0, false),
+            rescued: (1.0, None),
         };
         // constant entries
         if shape.bounds {
@@ -384,7 +386,7 @@ impl ConeProgram {
     /// data's scale (a reference or bounds far beyond the conditions' unit
     /// order), and [`rescue`](Self::rescue) solves an equivalent program.
     pub(crate) fn solve(&mut self) -> SolveStatus {
-        self.rescued = (1.0, false);
+        self.rescued = (1.0, None);
         if self.badly_scaled() {
             return self.rescue(None);
         }
@@ -428,8 +430,8 @@ impl ConeProgram {
     ///
     /// - the objective divided by `s = max(1, ‖q‖∞, ‖P‖∞)`, which leaves
     ///   the minimiser unchanged (a reference `û` of 10⁶ makes `q` 10⁶);
-    /// - each box bound beyond a cap `M` lowered to `M`, for `M = 10³, 10⁶,
-    ///   10⁹, 10¹²`, then the bounds as set. A minimiser with every
+    /// - each box bound beyond a cap `M` lowered to `M`, for `M = 10³, 10⁴,
+    ///   …, 10¹²`, then the bounds as set. A minimiser with every
     ///   lowered bound inactive is the minimiser of the program as set (the
     ///   programs agree near it, and both are convex); one that meets a
     ///   lowered bound, or a program infeasible within the caps, goes on to
@@ -457,6 +459,8 @@ impl ConeProgram {
         }
         let rows = self.box_rows();
         let mut result = first.unwrap_or(SolveStatus::Failed);
+        // the last capped program was infeasible
+        let mut capped_infeasible = false;
         let mut cap = RESCUE_CAP;
         for tier in 0..=RESCUE_CAPS {
             let capping = tier < RESCUE_CAPS;
@@ -470,13 +474,29 @@ impl ConeProgram {
                 continue; // no bound beyond this cap, nor beyond the larger ones
             }
             if let Some(first) = first.filter(|_| !capped && scale == 1.0) {
-                // the program as set, which failed
-                self.rescued = (1.0, false);
-                result = first;
+                // the program as set, which failed (infeasible if every
+                // capped program was)
+                self.rescued = (1.0, None);
+                result = if capped_infeasible {
+                    SolveStatus::Infeasible
+                } else {
+                    first
+                };
                 break;
             }
             result = self.solve_once();
-            self.rescued = (scale, capped);
+            self.rescued = (scale, capped.then_some(cap));
+            if result.is_solved() && !self.within_box(rows.clone()) {
+                // beyond the solvers' range: a bound missed by more than
+                // their tolerance
+                result = SolveStatus::Failed;
+            }
+            if !capping && capped_infeasible && !result.is_solved() {
+                // infeasible within every cap: any feasible control lies
+                // beyond the largest, past the solvers' range
+                result = SolveStatus::Infeasible;
+                break;
+            }
             let failed = matches!(result, SolveStatus::Unbounded | SolveStatus::Failed);
             let cap_met = capped && result.is_solved() && {
                 let x = self.x();
@@ -492,6 +512,7 @@ impl ConeProgram {
                 })
             };
             let infeasible_within_caps = capped && result == SolveStatus::Infeasible;
+            capped_infeasible = infeasible_within_caps;
             if !(failed || cap_met || infeasible_within_caps) {
                 break;
             }
@@ -516,11 +537,15 @@ impl ConeProgram {
         self.slack_at_reference();
         let s = &self.s_buf;
         let mut row = 0;
+        if s.iter().any(|v| !v.is_finite()) {
+            return false;
+        }
         for cone in &self.cones {
             let (ok, d) = match *cone {
                 SupportedConeT::SecondOrderConeT(d) => {
-                    let tail: f64 = s[row + 1..row + d].iter().map(|v| v * v).sum();
-                    (s[row] >= 0.0 && s[row] * s[row] >= tail, d)
+                    // ‖tail‖ by hypot: squares of a far reference overflow
+                    let tail = s[row + 1..row + d].iter().fold(0.0_f64, |a, v| a.hypot(*v));
+                    (tail.is_finite() && s[row] >= tail, d)
                 }
                 SupportedConeT::NonnegativeConeT(d) => {
                     (s[row..row + d].iter().all(|&v| v >= 0.0), d)
@@ -544,6 +569,21 @@ impl ConeProgram {
                 self.s_buf[self.a_pattern.1[t]] -= self.a_nz[t] * u;
             }
         }
+    }
+
+    /// Whether the last solution meets the box rows `rows` (as now set) up
+    /// to the solvers' tolerance, relative to the bound.
+    fn within_box(&self, rows: std::ops::Range<usize>) -> bool {
+        let x = self.x();
+        rows.clone().all(|r| {
+            let j = (r - rows.start) / 2;
+            let a = if (r - rows.start).is_multiple_of(2) {
+                x[j]
+            } else {
+                -x[j]
+            };
+            a <= self.b[r] + 1e-6 * (1.0 + self.b[r].abs())
+        })
     }
 
     /// The rows of the box bounds: `u_j ≤ u_max,j` at `start + 2j`,
@@ -648,16 +688,23 @@ impl ConeProgram {
             },
             Answer::Reference => (&self.s_buf, &[]),
         };
-        let (scale, capped) = self.rescued;
+        let (scale, cap) = self.rescued;
         let mut s = s.to_vec();
         let mut z: Vec<f64> = z.iter().map(|v| v * scale).collect();
         if self.last == Answer::Reference {
             z = vec![0.0; s.len()];
-        } else if capped {
+        } else if let Some(cap) = cap {
             let (a, b, _, _) = self.dense();
             let ax = &a * nalgebra::DVector::from_column_slice(self.x());
             for (i, si) in s.iter_mut().enumerate() {
                 *si = b[i] - ax[i];
+            }
+            // a lowered bound is inactive at an accepted answer: its
+            // multiplier in the program as set is 0
+            for r in self.box_rows() {
+                if b[r] > cap {
+                    z[r] = 0.0;
+                }
             }
         }
         (s, z)
