@@ -246,9 +246,13 @@ impl StagedDir {
             .iter()
             .map(|p| format!("{}\n", p.display()))
             .collect();
-        write_atomic(&self.stage.join(MANIFEST), listing.as_bytes())?;
-        if !self.out.exists() && std::fs::rename(&self.stage, &self.out).is_ok() {
-            return Ok(());
+        if !self.out.exists() {
+            write_atomic(&self.stage.join(MANIFEST), listing.as_bytes())?;
+            if std::fs::rename(&self.stage, &self.out).is_ok() {
+                return Ok(());
+            }
+            // moved file by file below; the list goes last
+            let _ = std::fs::remove_file(self.stage.join(MANIFEST));
         }
         let earlier = std::fs::read_to_string(self.out.join(MANIFEST)).unwrap_or_default();
         // a file in the way of a directory, or the reverse, fails before
@@ -263,14 +267,47 @@ impl StagedDir {
             )
         })?;
         for old in earlier.lines().map(Path::new) {
-            let inside = old
-                .components()
-                .all(|c| matches!(c, std::path::Component::Normal(_)));
-            if inside && !written.iter().any(|w| w == old) {
-                let _ = std::fs::remove_file(self.out.join(old));
+            if !written.iter().any(|w| w == old) {
+                remove_output(&self.out, old);
             }
         }
-        Ok(())
+        write_atomic(&self.out.join(MANIFEST), listing.as_bytes())
+    }
+}
+
+/// Removes the file `rel` below `out` that an earlier publish wrote, and
+/// the directories it leaves empty; nothing outside `out`, and nothing
+/// reached through a symbolic link (a directory of the run's replaced by a
+/// link to elsewhere).
+fn remove_output(out: &Path, rel: &Path) {
+    let inside = rel.components().count() > 0
+        && rel
+            .components()
+            .all(|c| matches!(c, std::path::Component::Normal(_)));
+    if !inside {
+        return;
+    }
+    let mut dir = out.to_path_buf();
+    let parents: Vec<_> = rel
+        .parent()
+        .map(|p| p.components().collect())
+        .unwrap_or_default();
+    for c in &parents {
+        dir.push(c);
+        match std::fs::symlink_metadata(&dir) {
+            Ok(m) if m.is_dir() => {}
+            _ => return,
+        }
+    }
+    let _ = std::fs::remove_file(out.join(rel));
+    // the directories it leaves empty, deepest first (remove_dir fails on
+    // a directory that holds anything)
+    let mut d = out.join(rel);
+    for _ in 0..parents.len() {
+        d.pop();
+        if std::fs::remove_dir(&d).is_err() {
+            break;
+        }
     }
 }
 
@@ -566,14 +603,27 @@ mod tests {
             .filter(|n| !n.starts_with('.'))
             .collect();
         left.sort();
-        assert_eq!(left, ["notes.txt", "sub", "summary.json", "sweep.csv"]);
-        assert!(!out.join("sub").join("a.png").exists());
+        // sub/a.png removed, and sub with it
+        assert_eq!(left, ["notes.txt", "summary.json", "sweep.csv"]);
         // a manifest naming a path outside the directory removes nothing
         std::fs::write(dir.join("outside.txt"), "keep").unwrap();
         std::fs::write(out.join(MANIFEST), "../outside.txt\n").unwrap();
         publish(&["summary.json"]);
         assert!(dir.join("outside.txt").is_file());
         assert!(out.join("notes.txt").is_file());
+        // a directory of the run replaced by a link to elsewhere: what the
+        // run wrote there is not removed through the link
+        #[cfg(unix)]
+        {
+            publish(&["summary.json", "sub/a.png"]);
+            let archive = dir.join("archive");
+            std::fs::create_dir_all(&archive).unwrap();
+            std::fs::write(archive.join("a.png"), "kept").unwrap();
+            std::fs::remove_dir_all(out.join("sub")).unwrap();
+            std::os::unix::fs::symlink(&archive, out.join("sub")).unwrap();
+            publish(&["summary.json"]);
+            assert!(archive.join("a.png").is_file());
+        }
         std::fs::remove_dir_all(&dir).unwrap();
     }
 

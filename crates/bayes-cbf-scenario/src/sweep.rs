@@ -167,8 +167,11 @@ pub struct SweepRow {
 }
 
 impl SweepRow {
-    /// The row of a run that stopped with `error` after `wall_time_s`.
+    /// The row of a run that stopped with `error` after `wall_time_s`;
+    /// line breaks in the error become spaces, as in `sweep.csv`, so that
+    /// sharded and unsharded sweeps summarise it alike.
     pub fn stopped(seed: u64, error: String, wall_time_s: f64) -> Self {
+        let error = error.replace(['\n', '\r'], " ");
         SweepRow {
             seed,
             safe: false,
@@ -201,11 +204,10 @@ const HEADER: &str = concat!(outcome_columns!(), ",error");
 /// An error message as one CSV cell: quoted, quotes doubled, line breaks
 /// as spaces.
 fn quote(message: &str) -> String {
-    let one_line: String = message
-        .chars()
-        .map(|c| if c == '\n' || c == '\r' { ' ' } else { c })
-        .collect();
-    format!("\"{}\"", one_line.replace('"', "\"\""))
+    format!(
+        "\"{}\"",
+        message.replace(['\n', '\r'], " ").replace('"', "\"\"")
+    )
 }
 
 /// The message of a cell written by [`quote`] (`None` for an empty cell).
@@ -739,11 +741,13 @@ mod tests {
             assert_eq!(a.wall_time_s.to_bits(), b.wall_time_s.to_bits());
             assert_eq!((a.seed, a.safe, a.collided), (b.seed, b.safe, b.collided));
         }
-        // the error keeps its commas and quotes; its line break becomes a space
+        // the error keeps its commas and quotes; its line break became a
+        // space in the row already, so the rows are equal through the file
         assert_eq!(
             back[2].error.as_deref(),
             Some("stopped at step 3: barrier 0: \"x\", y z")
         );
+        assert_eq!(back[2].error, rows[2].error);
         assert_eq!(text.lines().count(), 4);
         assert!(parse_rows_csv("seed\n", "x").is_err());
         // files written before the error column read as runs that completed

@@ -78,7 +78,7 @@ fn the_oracle_still_checks_the_scenarios_prior_mean() {
 /// cart-pole rides its track's end with no margin at the samples and
 /// needs `ζ = 0.01` for the hold between them; the double integrator
 /// needs `ζ = 0.02` for its process noise, which the oracle's model leaves
-/// out (it crossed on 14 of 800 seeds without; docs/robots.md, "Check the
+/// out (it crossed on 43 of 1600 seeds without; docs/robots.md, "Check the
 /// design with the true dynamics").
 #[test]
 fn every_builtin_design_holds_given_the_true_dynamics() {

@@ -160,7 +160,7 @@ impl<K: Kernel> MvgpHyper<K> {
             return Err(InputError::invalid(
                 "noise_sigma",
                 self.sigma,
-                "too large: the noise covariance σ²A overflows",
+                "too large: σ² or the noise covariance σ²A overflows",
             ));
         }
         Ok(())
