@@ -498,19 +498,12 @@ impl ConeProgram {
                 break;
             }
             let failed = matches!(result, SolveStatus::Unbounded | SolveStatus::Failed);
-            let cap_met = capped && result.is_solved() && {
-                let x = self.x();
-                rows.clone().any(|r| {
-                    // row start + 2j: u_j ≤ b; start + 2j + 1: −u_j ≤ b
-                    let j = (r - rows.start) / 2;
-                    let a = if (r - rows.start).is_multiple_of(2) {
-                        x[j]
-                    } else {
-                        -x[j]
-                    };
-                    self.b[r] < self.saved.0[r] && a >= self.b[r] - 1e-6 * self.b[r].abs()
-                })
-            };
+            let cap_met = capped
+                && result.is_solved()
+                && rows.clone().any(|r| {
+                    self.b[r] < self.saved.0[r]
+                        && self.box_row_value(r) >= self.b[r] - 1e-6 * self.b[r].abs()
+                });
             let infeasible_within_caps = capped && result == SolveStatus::Infeasible;
             capped_infeasible = infeasible_within_caps;
             if !(failed || cap_met || infeasible_within_caps) {
@@ -573,17 +566,20 @@ impl ConeProgram {
 
     /// Whether the last solution meets the box rows `rows` (as now set) up
     /// to the solvers' tolerance, relative to the bound.
-    fn within_box(&self, rows: std::ops::Range<usize>) -> bool {
-        let x = self.x();
-        rows.clone().all(|r| {
-            let j = (r - rows.start) / 2;
-            let a = if (r - rows.start).is_multiple_of(2) {
-                x[j]
-            } else {
-                -x[j]
-            };
-            a <= self.b[r] + 1e-6 * (1.0 + self.b[r].abs())
-        })
+    fn within_box(&self, mut rows: std::ops::Range<usize>) -> bool {
+        rows.all(|r| self.box_row_value(r) <= self.b[r] + 1e-6 * (1.0 + self.b[r].abs()))
+    }
+
+    /// `(Ax)_r` of box row `r` at the last solution: `u_j` for the row
+    /// `start + 2j` (`u_j ≤ b`), `−u_j` for `start + 2j + 1` (`−u_j ≤ b`).
+    fn box_row_value(&self, r: usize) -> f64 {
+        let k = r - self.box_rows().start;
+        let u = self.x()[k / 2];
+        if k.is_multiple_of(2) {
+            u
+        } else {
+            -u
+        }
     }
 
     /// The rows of the box bounds: `u_j ≤ u_max,j` at `start + 2j`,
