@@ -70,7 +70,11 @@ fn matrix(
         }
         MatrixSpec::Rows { rows } => {
             if rows.len() != dim || rows.iter().any(|r| r.len() != dim) {
-                bail!("gp.{field}.rows must be {dim}×{dim}");
+                let lengths: Vec<usize> = rows.iter().map(Vec::len).collect();
+                bail!(
+                    "gp.{field} must be {dim}×{dim}: got {} row(s) of length(s) {lengths:?}",
+                    rows.len()
+                );
             }
             DMatrix::from_fn(dim, dim, |i, j| rows[i][j])
         }

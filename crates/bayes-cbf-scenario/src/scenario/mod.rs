@@ -894,6 +894,20 @@ mod tests {
         .unwrap()
         .0;
         assert_eq!(rows.gp.b, table.gp.b);
+        let err = format!(
+            "{:#}",
+            build(
+                &load("double-integrator", &["gp.B=[[1.0, 0.0, 0.0]]".into()])
+                    .unwrap()
+                    .0
+            )
+            .err()
+            .unwrap()
+        );
+        assert!(
+            err.contains("gp.B must be 2×2: got 1 row(s) of length(s) [3]"),
+            "{err}"
+        );
         for (set, want) in [
             ("gp.A=\"eye\"", "expected a matrix (an array of rows"),
             (
