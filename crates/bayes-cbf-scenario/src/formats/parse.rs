@@ -132,12 +132,7 @@ pub fn json_error_message(text: &str, e: &serde_json::Error) -> String {
     let Some((start, word)) = found else {
         return e.to_string();
     };
-    // the nearest key before it: `"key":`
-    let before = &text[..start];
-    let field = before.rfind("\":").and_then(|end| {
-        let start = before[..end].rfind('"')?;
-        Some(&before[start + 1..end])
-    });
+    let field = enclosing_key(&text[..start]);
     let place = format!("line {} column {}", e.line(), e.column() - (at - start));
     match field {
         Some(f) => format!(
@@ -147,6 +142,45 @@ pub fn json_error_message(text: &str, e: &serde_json::Error) -> String {
             "{word} ({place}) is not a JSON number: give finite numbers (Python: json.dump(..., allow_nan=False) finds them)"
         ),
     }
+}
+
+/// The key of the innermost object member that the end of the JSON
+/// prefix `before` stands in (through arrays and past closed objects).
+fn enclosing_key(before: &str) -> Option<String> {
+    // one entry per open container: the current key of an object, None
+    // for an array
+    let mut open: Vec<Option<String>> = Vec::new();
+    let mut chars = before.chars();
+    let mut last_string = None;
+    while let Some(c) = chars.next() {
+        match c {
+            '"' => {
+                let mut s = String::new();
+                while let Some(c) = chars.next() {
+                    match c {
+                        '\\' => {
+                            chars.next();
+                        }
+                        '"' => break,
+                        c => s.push(c),
+                    }
+                }
+                last_string = Some(s);
+            }
+            ':' => {
+                if let Some(top @ Some(_)) = open.last_mut() {
+                    *top = last_string.take();
+                }
+            }
+            '{' => open.push(Some(String::new())),
+            '[' => open.push(None),
+            '}' | ']' => {
+                open.pop();
+            }
+            _ => {}
+        }
+    }
+    open.into_iter().rev().flatten().find(|k| !k.is_empty())
 }
 
 /// JSON text as a value (after a byte-order mark, if any), refusing an
@@ -247,6 +281,13 @@ mod json_tests {
                 r#"[1, -Infinity]"#,
                 "-Infinity (line 1 column 5) is not a JSON number",
             ),
+            // past a closed object inside the array, the array's own key
+            (
+                r#"{"type": "half_space", "normal": [{"k": 1}, NaN], "offset": 0}"#,
+                "field 'normal' holds NaN",
+            ),
+            // a key with an escaped quote, and a colon inside a string
+            (r#"{"a\"b": "x:y", "c": [NaN]}"#, "field 'c' holds NaN"),
         ] {
             let e = json_value(text).unwrap_err();
             let m = json_error_message(text, &e);
