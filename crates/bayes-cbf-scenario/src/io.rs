@@ -64,6 +64,14 @@ fn destination(path: &Path) -> Result<Destination> {
     }
 }
 
+/// The directory `path` lies in: `.` for a bare name.
+fn parent_dir(path: &Path) -> &Path {
+    match path.parent() {
+        Some(d) if !d.as_os_str().is_empty() => d,
+        _ => Path::new("."),
+    }
+}
+
 /// A temporary sibling of `path`, keeping its extension (plotters picks the
 /// image format from it); the directory is created if missing.
 fn temp_sibling(path: &Path) -> Result<PathBuf> {
@@ -71,10 +79,7 @@ fn temp_sibling(path: &Path) -> Result<PathBuf> {
     let name = path
         .file_name()
         .ok_or_else(|| err!("output path '{}' has no file name", path.display()))?;
-    let dir = match path.parent() {
-        Some(d) if !d.as_os_str().is_empty() => d.to_path_buf(),
-        _ => PathBuf::from("."),
-    };
+    let dir = parent_dir(path).to_path_buf();
     if let Some(file) = dir.ancestors().find(|a| a.is_file()) {
         bail!(
             "cannot create output directory '{}': '{}' is a file, not a directory",
@@ -187,10 +192,7 @@ impl StagedDir {
     pub fn new(out: &Path) -> Result<Self> {
         // a first run to `out` stages beside it, later ones inside it
         let name = out.file_name().unwrap_or_default().to_string_lossy();
-        let parent = match out.parent() {
-            Some(d) if !d.as_os_str().is_empty() => d,
-            _ => Path::new("."),
-        };
+        let parent = parent_dir(out);
         if parent.is_dir() {
             remove_stale(parent, &format!(".{name}.tmp-"));
         }

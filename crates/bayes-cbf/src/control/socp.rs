@@ -101,8 +101,6 @@ pub(crate) struct ConeProgram {
     cones: Vec<SupportedConeT<f64>>,
     /// Scratch for one row of `A` (capacity `m`, reused).
     g_buf: Vec<f64>,
-    /// `max(1, ‖û‖∞)` of the objective ([`set_objective`](Self::set_objective)).
-    u_ref_scale: f64,
     /// The reference `û` (length `m`).
     u_ref: Vec<f64>,
     /// Scratch for `b − Ax` (one entry per row).
@@ -200,7 +198,6 @@ impl ConeProgram {
             p_pattern: (pcol, prow),
             cones,
             g_buf: Vec::with_capacity(m),
-            u_ref_scale: 1.0,
             u_ref: vec![0.0; m],
             s_buf: vec![0.0; rows],
             saved: (vec![0.0; rows], vec![0.0; nv], vec![0.0; p_len]),
@@ -295,7 +292,6 @@ impl ConeProgram {
             }
             self.q[i] = -2.0 * s;
         }
-        self.u_ref_scale = u_ref.iter().fold(1.0, |a, v| a.max(v.abs()));
         self.u_ref.copy_from_slice(u_ref);
     }
 
@@ -401,7 +397,7 @@ impl ConeProgram {
     /// rescue's first cap. Such programs go to [`rescue`](Self::rescue)
     /// directly: the solvers misread them as unbounded or infeasible.
     fn badly_scaled(&self) -> bool {
-        let cap = RESCUE_CAP * self.u_ref_scale;
+        let cap = RESCUE_CAP * self.u_ref.iter().fold(1.0_f64, |a, v| a.max(v.abs()));
         self.q
             .iter()
             .chain(&self.p_nz)
