@@ -108,7 +108,9 @@ fn learning_reduces_the_uncertainty() {
 /// not those of the file's bounds (±4): where the max-margin control that
 /// the fallback starts from lies on the far bounds, the fallback's
 /// controls differ (seeds 92000–92099: 493 at ±4, 622 at ±10³⁰⁰, at most
-/// 84 in a run of 600; seeds 96000–96099: 510 and 720, at most 121).
+/// 84 in a run of 600; seeds 96000–96099: 510 and 720, at most 121), so
+/// the test allows a third of the steps, well clear of both the defect and
+/// the spread over seeds.
 #[test]
 fn huge_bounds_keep_the_runs_safe_and_solved() {
     for seed in [74000, 74001, 74002] {
@@ -121,7 +123,7 @@ fn huge_bounds_keep_the_runs_safe_and_solved() {
             let (sc, _) = scenario::load("double-integrator", &sets).unwrap();
             let s = scenario::run_scenario(&sc, |_, _| {}).unwrap().summary;
             assert!(
-                s.safe && s.infeasible_steps < s.steps / 5,
+                s.safe && s.infeasible_steps < s.steps / 3,
                 "seed {seed}, bounds ±{b}: {s:#?}"
             );
         }
