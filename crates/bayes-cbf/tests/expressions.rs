@@ -3,9 +3,10 @@
 //! to 1e-12; evaluation failures are typed errors naming the entry.
 
 use bayes_cbf::barrier::{
-    cbc_moments, AckermannClf, CircleHeading, ConditionMoments, DynBarrier, DynLyapunov,
-    ExpressionBarrier, ExpressionClf, MomentWorkspace, PendulumSector,
+    cbc_moments, clc_moments, AckermannClf, CircleHeading, ConditionMoments, DynBarrier,
+    DynLyapunov, ExpressionBarrier, ExpressionClf, MomentWorkspace, PendulumSector,
 };
+use bayes_cbf::control::{ControlOutput, SafetyController, SafetySettings};
 use bayes_cbf::gp::{InputMap, Mvgp, MvgpHyper, PriorMean, Rbf};
 use bayes_cbf::systems::{Ackermann, DynSystem, ExpressionSystem, Pendulum};
 use num_dual::{Dual64, HyperDual64};
@@ -253,6 +254,91 @@ fn non_finite_evaluations_are_errors_naming_the_entry() {
         .unwrap_err()
         .to_string();
     assert!(err.contains("h of barrier 'root' = NaN"), "{err}");
+}
+
+/// A zero-mean model on two states and one control, without data.
+fn prior_model() -> Mvgp {
+    let hyper = MvgpHyper {
+        kernel: Rbf::new(vec![1.0, 1.0], 1.0).unwrap(),
+        A: nalgebra::DMatrix::identity(2, 2),
+        B: nalgebra::DMatrix::identity(2, 2),
+        sigma: 0.1,
+    };
+    Mvgp::new(2, 1, hyper, PriorMean::Zero, InputMap::Identity).unwrap()
+}
+
+/// Where `h` is finite but its gradient is not, the message names the
+/// gradient; a failing barrier among several is named by its index, since
+/// barriers that share a formula differ only in their parameters; a CLF
+/// that is not differentiable at its reference names `V` and the reference.
+#[test]
+fn failures_name_the_barrier_the_derivative_and_the_clf() {
+    let model = prior_model();
+    let mut ws = MomentWorkspace::new(&model);
+    let mut out = ConditionMoments::zeros(1);
+    ws.update(&model, &[1.0, 0.0], 1).unwrap();
+    // (a − 1)^1.5: gradient 0 at a = 1, fine for relative degree 1
+    let smooth =
+        ExpressionBarrier::new(&["a", "b"], &[], "(a - 1)^1.5 + 1 - b", 1, vec![1.0]).unwrap();
+    cbc_moments(&mut ws, &smooth, &mut out).unwrap();
+    assert_eq!((out.value, out.e[0]), (1.0, 1.0));
+    // (a − 1)^0.5: value 1, infinite gradient, which is named as such
+    let kink =
+        ExpressionBarrier::new(&["a", "b"], &[], "(a - 1)^0.5 + 1 - b", 1, vec![1.0]).unwrap();
+    let err = cbc_moments(&mut ws, &kink, &mut out)
+        .unwrap_err()
+        .to_string();
+    assert!(
+        err.starts_with("∇h of barrier") && err.contains("is inf at x = [1.0, 0.0]"),
+        "{err}"
+    );
+    // two discs of one formula: the second fails, and is named
+    let disc = |c: f64| -> Arc<dyn DynBarrier> {
+        Arc::new(
+            ExpressionBarrier::new(
+                &["a", "b"],
+                &[("c", c)],
+                "a^2 + b^2 - 0.25 + 0*log(a + c)",
+                1,
+                vec![1.0],
+            )
+            .unwrap(),
+        )
+    };
+    let mut ctrl = SafetyController::new(
+        2,
+        1,
+        vec![disc(0.0), disc(-2.0)],
+        None,
+        SafetySettings::new(1),
+    )
+    .unwrap();
+    let mut co = ControlOutput::new(1, 2);
+    let err = ctrl
+        .step(&model, &[1.0, 0.0], &[0.0], None, &mut co)
+        .unwrap_err()
+        .to_string();
+    assert!(
+        err.starts_with("barriers[1]: ") && err.contains("= NaN"),
+        "{err}"
+    );
+    // V = ‖x − x_d‖ at x = x_d
+    let clf = ExpressionClf::new(&["a", "b"], &[], "sqrt((a - a_d)^2 + (b - b_d)^2)", 1.0).unwrap();
+    let err = clc_moments(&mut ws, &clf, &[1.0, 0.0], &[0.0, 0.0], &mut out)
+        .unwrap_err()
+        .to_string();
+    assert!(
+        err.starts_with("clf: ∇ₓV is NaN") && err.contains("x_d = [1.0, 0.0]"),
+        "{err}"
+    );
+    // a state named like another state's reference
+    let err = ExpressionClf::new(&["x", "x_d"], &[], "(x - x_d)^2", 1.0)
+        .unwrap_err()
+        .to_string();
+    assert!(
+        err.contains("clashes with the reference of state 'x'"),
+        "{err}"
+    );
 }
 
 /// An observation whose prior mean fails to evaluate is rejected and

@@ -15,13 +15,14 @@
 //! callback (into Python, say) costs far more.
 //!
 //! Callbacks may fail (a Python exception) or return non-finite values.
-//! [`DynBarrier`] methods are infallible, so the first failure is kept and
-//! reported by [`DynBarrier::take_error`]; [`super::cbc_moments`] checks it
+//! [`DynBarrier`] methods are infallible, so the first failure is kept, for
+//! the thread that met it, and reported to that thread by
+//! [`DynBarrier::take_error`]; [`super::cbc_moments`] checks it
 //! after every evaluation and returns it as an [`crate::InputError`].
 
 use super::DynBarrier;
+use crate::expr::Failure;
 use num_dual::{Dual64, HyperDual64};
-use std::sync::Mutex;
 
 /// `h(x)`, or a message saying why it could not be evaluated.
 pub type ValueFn = Box<dyn Fn(&[f64]) -> Result<f64, String> + Send + Sync>;
@@ -42,7 +43,7 @@ pub struct CallbackBarrier {
     h: ValueFn,
     grad: ArrayFn,
     hess: Option<ArrayFn>,
-    error: Mutex<Option<String>>,
+    failure: Failure,
 }
 
 impl std::fmt::Debug for CallbackBarrier {
@@ -91,15 +92,12 @@ impl CallbackBarrier {
             h,
             grad,
             hess,
-            error: Mutex::new(None),
+            failure: Failure::default(),
         })
     }
 
     fn fail(&self, msg: String) {
-        let mut e = self.error.lock().unwrap_or_else(|p| p.into_inner());
-        if e.is_none() {
-            *e = Some(msg);
-        }
+        self.failure.record(|| msg);
     }
 
     /// `h(x)`, recording a failure and returning NaN.
@@ -238,7 +236,7 @@ impl DynBarrier for CallbackBarrier {
         self.eval_h(x)
     }
     fn take_error(&self) -> Option<String> {
-        self.error.lock().unwrap_or_else(|p| p.into_inner()).take()
+        self.failure.take()
     }
 }
 
@@ -360,6 +358,44 @@ mod tests {
         let no_hess = CallbackBarrier::new("c", 1, 1, vec![1.0], ok_h, ok_g, None).unwrap();
         no_hess.hessian(&[0.0], &mut grad, &mut hess, &mut []);
         assert!(no_hess.take_error().unwrap().contains("hess is required"));
+    }
+
+    /// A barrier shared by threads reports to each thread its own failure:
+    /// a thread that evaluates where `h` is fine is not handed another
+    /// thread's failure, and the failing thread gets its own message.
+    #[test]
+    fn failures_are_reported_to_the_thread_that_met_them() {
+        let h: ValueFn = Box::new(|x| {
+            if x[0] > 5.0 {
+                Err("bad region".into())
+            } else {
+                Ok(x[0])
+            }
+        });
+        let g: ArrayFn = Box::new(|_, out| {
+            out.fill(1.0);
+            Ok(())
+        });
+        let cb = CallbackBarrier::new("shared", 1, 1, vec![1.0], h, g, None).unwrap();
+        let failed = std::sync::Barrier::new(2);
+        let taken = std::sync::Barrier::new(2);
+        std::thread::scope(|s| {
+            s.spawn(|| {
+                assert!(cb.value(&[6.0]).is_nan());
+                failed.wait();
+                taken.wait();
+                let e = cb.take_error().unwrap();
+                assert!(e.contains("bad region") && e.contains("6.0"), "{e}");
+                assert!(cb.take_error().is_none());
+            });
+            s.spawn(|| {
+                failed.wait();
+                assert_eq!(cb.value(&[1.5]), 1.5);
+                assert_eq!(cb.take_error(), None);
+                taken.wait();
+            });
+        });
+        assert_eq!(cb.take_error(), None);
     }
 
     #[test]

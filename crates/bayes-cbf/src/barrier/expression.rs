@@ -148,7 +148,17 @@ impl ExpressionClf {
     ) -> Result<Self, InputError> {
         let reference: Vec<String> = state.iter().map(|s| format!("{}_d", s.as_ref())).collect();
         let mut names = names(state, &[])?;
-        for r in &reference {
+        for (r, s) in reference.iter().zip(state) {
+            if state.iter().any(|t| t.as_ref() == r) {
+                return Err(InputError::Invalid {
+                    field: "state".into(),
+                    value: r.clone(),
+                    reason: format!(
+                        "a state named '{r}' clashes with the reference of state '{}' in V (the reference names are the state names with _d): rename one of them",
+                        s.as_ref()
+                    ),
+                });
+            }
             names.add_var(r)?;
         }
         for (p, value) in params {

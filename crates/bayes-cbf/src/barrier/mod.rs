@@ -62,9 +62,9 @@ pub trait Barrier: Send + Sync {
     fn name(&self) -> &str {
         "barrier"
     }
-    /// The first failed evaluation since the last call, for barriers whose
-    /// evaluation can fail ([`ExpressionBarrier`]); `None` for barriers
-    /// written in Rust.
+    /// The first failed evaluation on this thread since its last call, for
+    /// barriers whose evaluation can fail ([`ExpressionBarrier`]); `None`
+    /// for barriers written in Rust.
     fn take_error(&self) -> Option<String> {
         None
     }
@@ -129,9 +129,9 @@ pub trait DynBarrier: Send + Sync {
         h
     }
 
-    /// The first failure of an evaluation since the last call, for barriers
-    /// whose evaluation can fail (callbacks: [`CallbackBarrier`]); `None`
-    /// for barriers written in Rust.
+    /// The first failure of an evaluation on this thread since its last
+    /// call, for barriers whose evaluation can fail (callbacks:
+    /// [`CallbackBarrier`]); `None` for barriers written in Rust.
     fn take_error(&self) -> Option<String> {
         None
     }

@@ -489,6 +489,22 @@ pub fn clc_moments(
         return Err(InputError::shape("reference", n, xd.len().min(xd_dot.len())).into());
     }
     let (v, dvdt) = clf.gradient(&ws.x, xd, xd_dot, &mut ws.grad, &mut ws.sd);
+    let at = |what: &str, bad: f64| {
+        let x = &ws.x;
+        Err(InputError::Evaluation(format!(
+            "clf: {what} is {bad} at x = {x:?}, x_d = {xd:?} (V is not defined or not differentiable there)"
+        ))
+        .into())
+    };
+    if !v.is_finite() {
+        return at("V", v);
+    }
+    if let Some(&bad) = ws.grad[..n].iter().find(|g| !g.is_finite()) {
+        return at("∇ₓV", bad);
+    }
+    if !dvdt.is_finite() {
+        return at("∇_{x_d}V · ẋ_d", dvdt);
+    }
     rd1(ws, v, clf.gamma(), out);
     out.e[0] += dvdt;
     out.value = v;

@@ -272,6 +272,18 @@ impl ControlOutput {
     }
 }
 
+/// Prefixes `barriers[i]: ` to a failed evaluation of barrier `i`, which
+/// barriers that share a formula (discs with other parameters) would not
+/// tell apart.
+fn naming_barrier(i: usize) -> impl Fn(Error) -> Error {
+    move |e| match e {
+        Error::Input(InputError::Evaluation(m)) => {
+            InputError::Evaluation(format!("barriers[{i}]: {m}")).into()
+        }
+        e => e,
+    }
+}
+
 /// The report of one barrier condition at `u`.
 fn report(mom: &ConditionMoments, c: f64, u: &[f64], zeta: f64) -> ConstraintReport {
     let mean = mom.mean(u);
@@ -1024,10 +1036,10 @@ impl SafetyController {
         let ws = self.ws.get_or_insert_with(|| MomentWorkspace::new(model));
         ws.update(model, x, self.max_degree)?;
         let cbcs = self.cbcs.iter_mut().zip(self.noise.iter_mut());
-        for (b, (mom, noise)) in self.barriers.iter().zip(cbcs) {
+        for (i, (b, (mom, noise))) in self.barriers.iter().zip(cbcs).enumerate() {
             *noise = 0.0;
             if b.relative_degree() <= 2 {
-                cbc_moments(ws, b.as_ref(), mom)?;
+                cbc_moments(ws, b.as_ref(), mom).map_err(naming_barrier(i))?;
                 if self.filter.settings.predictive {
                     let latent = mom.cov[(0, 0)];
                     add_observation_noise(ws, mom)?;
@@ -1040,7 +1052,9 @@ impl SafetyController {
                     seed: self.mc.seed.wrapping_add(self.steps),
                     ..self.mc
                 };
-                *mom = mc_cbc_moments(model, b.as_ref(), x, &mc)?.moments;
+                *mom = mc_cbc_moments(model, b.as_ref(), x, &mc)
+                    .map_err(naming_barrier(i))?
+                    .moments;
             }
         }
         self.steps += 1;

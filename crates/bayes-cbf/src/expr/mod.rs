@@ -195,7 +195,7 @@ fn unary<D: DualNum<Primitive = f64> + Copy>(node: Node, v: D) -> D {
     match node {
         Node::Neg(_) => -v,
         Node::PowI(_, n) => v.powi(n),
-        Node::PowF(_, e) => v.powf(e),
+        Node::PowF(_, e) => pow_const(v, e),
         Node::Call1(f, _) => match f {
             Func::Sin => v.sin(),
             Func::Cos => v.cos(),
@@ -222,6 +222,40 @@ fn unary<D: DualNum<Primitive = f64> + Copy>(node: Node, v: D) -> D {
     }
 }
 
+/// `x^c` for a constant `c`, by its Taylor series at the real part `r`:
+/// `Σ_k f⁽ᵏ⁾(r) dᵏ/k!` with `d = x − r` and `f⁽ᵏ⁾(r) = c(c−1)…(c−k+1)
+/// r^(c−k)`, up to the order of derivatives `D` carries (`d` is nilpotent,
+/// so the sum is exact). num-dual's `powf` forms `r^(c−3) r³` instead,
+/// which is `∞ · 0 = NaN` at `r = 0`, even in the value, and overflows at
+/// tiny `r`.
+///
+/// Where `f⁽ᵏ⁾(r)` is infinite (`r = 0`, `k > c`), the term is `dᵏ`
+/// scaled by `±MAX²` instead: exactly 0 where `dᵏ` is (a composition such
+/// as `(px² + py²)^1.5` at the origin, C² with value, gradient and Hessian
+/// 0), `±∞` where an entry of `dᵏ` is a normal number (`x^0.5` at 0, whose
+/// derivative is infinite, reported as not finite by the caller), and the
+/// real part 0 either way, whereas `dᵏ · ∞` would be NaN in every part.
+/// (Dual numbers compare by their real parts only, so whether `dᵏ` is zero
+/// cannot be asked.)
+fn pow_const<D: DualNum<Primitive = f64> + Copy>(x: D, c: f64) -> D {
+    let r = x.re();
+    let d = x - D::from(r);
+    let mut out = D::from(r.powf(c));
+    let (mut dk, mut coef, mut fact) = (d, c, 1.0);
+    for k in 1..=D::NDERIV {
+        let f = coef * r.powf(c - k as f64) / fact;
+        out += if f.is_infinite() {
+            dk * f64::MAX * (f64::MAX * f.signum())
+        } else {
+            dk * f
+        };
+        coef *= c - k as f64;
+        fact *= (k + 1) as f64;
+        dk *= d;
+    }
+    out
+}
+
 /// A node of two operands applied to their values `u`, `v`.
 fn binary<D: DualNum<Primitive = f64> + Copy>(node: Node, u: D, v: D) -> D {
     match node {
@@ -236,15 +270,17 @@ fn binary<D: DualNum<Primitive = f64> + Copy>(node: Node, u: D, v: D) -> D {
             // at its reference point) stays finite
             Func::Atan2 if u.re() == 0.0 && v.re() == 0.0 => D::from(u.re().atan2(v.re())),
             Func::Atan2 => crate::barrier::atan2(u, v),
+            // a NaN in either argument is the result (it is reported as
+            // not finite), whichever argument it is
             Func::Min => {
-                if v.re() < u.re() {
+                if v.re() < u.re() || v.re().is_nan() {
                     v
                 } else {
                     u
                 }
             }
             Func::Max => {
-                if v.re() > u.re() {
+                if v.re() > u.re() || v.re().is_nan() {
                     v
                 } else {
                     u
@@ -286,6 +322,29 @@ impl Expr {
     pub fn parse(field: &str, text: &str, names: &Names) -> Result<Self, InputError> {
         let mut p = parse::Parser::new(field, text, names)?;
         p.parse()?;
+        // parameters and numbers folded into a constant that is not finite
+        // (1/m with m = 0, log of a negative parameter) would fail at every
+        // state, as if the state were the cause
+        for node in &p.nodes {
+            if let Node::Div(_, d) = *node {
+                if p.nodes[d as usize] == Node::Const(0.0) {
+                    return Err(error(
+                        field,
+                        None,
+                        "a division by a part without states that is 0, whatever the state: check the parameters and numbers it uses".into(),
+                    ));
+                }
+            }
+            if let Node::Const(v) | Node::PowF(_, v) = *node {
+                if !v.is_finite() {
+                    return Err(error(
+                        field,
+                        None,
+                        format!("a part of the expression without states is {v}, whatever the state: check the parameters and numbers it uses (a division by zero, the log of a negative number, ...)"),
+                    ));
+                }
+            }
+        }
         Ok(Self {
             stack: stack_need(&p.nodes),
             nodes: p.nodes,
@@ -343,38 +402,43 @@ impl Expr {
     }
 }
 
-/// The first failed evaluation of an expression-defined function, kept
-/// because the evaluation traits are infallible (a non-finite value is
-/// recorded, the caller asks with `take_error`). One atomic load per check
-/// when nothing failed.
+/// The first failed evaluation of a function whose evaluation traits are
+/// infallible (an expression, a callback), kept per thread: a non-finite
+/// value or an error is recorded, and the caller asks with `take`, which
+/// reports to each thread its own failure (a function shared by threads
+/// does not hand one thread's failure to another). One atomic load per
+/// check when nothing failed.
 #[derive(Debug, Default)]
 pub(crate) struct Failure {
-    failed: std::sync::atomic::AtomicBool,
-    message: std::sync::Mutex<Option<String>>,
+    /// How many threads have a failure kept.
+    pending: std::sync::atomic::AtomicUsize,
+    messages: std::sync::Mutex<Vec<(std::thread::ThreadId, String)>>,
 }
 
 impl Failure {
-    /// Keeps `message()` unless a failure is already kept.
+    /// Keeps `message()` for this thread unless it has a failure kept.
     pub(crate) fn record(&self, message: impl FnOnce() -> String) {
         use std::sync::atomic::Ordering;
-        if !self.failed.load(Ordering::Relaxed) {
-            let mut slot = self.message.lock().unwrap_or_else(|e| e.into_inner());
-            if slot.is_none() {
-                *slot = Some(message());
-                self.failed.store(true, Ordering::Release);
-            }
+        let id = std::thread::current().id();
+        let mut kept = self.messages.lock().unwrap_or_else(|e| e.into_inner());
+        if !kept.iter().any(|(t, _)| *t == id) {
+            kept.push((id, message()));
+            self.pending.store(kept.len(), Ordering::Release);
         }
     }
 
-    /// The kept failure, clearing it.
+    /// This thread's kept failure, clearing it.
     pub(crate) fn take(&self) -> Option<String> {
         use std::sync::atomic::Ordering;
-        if !self.failed.load(Ordering::Acquire) {
+        if self.pending.load(Ordering::Acquire) == 0 {
             return None;
         }
-        let mut slot = self.message.lock().unwrap_or_else(|e| e.into_inner());
-        self.failed.store(false, Ordering::Release);
-        slot.take()
+        let id = std::thread::current().id();
+        let mut kept = self.messages.lock().unwrap_or_else(|e| e.into_inner());
+        let i = kept.iter().position(|(t, _)| *t == id)?;
+        let (_, message) = kept.swap_remove(i);
+        self.pending.store(kept.len(), Ordering::Release);
+        Some(message)
     }
 }
 

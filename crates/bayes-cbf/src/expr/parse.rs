@@ -69,6 +69,15 @@ fn tokenise<'a>(field: &str, text: &'a str) -> Result<Vec<Token<'a>>, InputError
             let v: f64 = lit
                 .parse()
                 .map_err(|_| super::error(field, Some(col), format!("malformed number '{lit}'")))?;
+            if !v.is_finite() {
+                return Err(super::error(
+                    field,
+                    Some(col),
+                    format!(
+                        "the number '{lit}' is beyond the range of double precision (±1.8e308)"
+                    ),
+                ));
+            }
             toks.push(Token {
                 tok: Tok::Num(v),
                 col,
@@ -308,10 +317,13 @@ impl<'a> Parser<'a> {
                 ),
             )
         })?;
-        let mut args = vec![self.sum()?];
-        while self.peek().tok == Tok::Op(',') {
-            self.pos += 1;
+        let mut args = Vec::with_capacity(2);
+        if self.peek().tok != Tok::Op(')') {
             args.push(self.sum()?);
+            while self.peek().tok == Tok::Op(',') {
+                self.pos += 1;
+                args.push(self.sum()?);
+            }
         }
         self.expect(')')?;
         if args.len() != func.arity() {

@@ -16,6 +16,9 @@ fn cases() -> Vec<Case> {
         ("2^-1*x", |x, _| 0.5 * x),
         ("x^y", |x, y| x.powf(y)),
         ("x^2.5 + y^3", |x, y| x.powf(2.5) + y.powi(3)),
+        ("(x*x + y*y)^1.5 - x^(1/3)", |x, y| {
+            (x * x + y * y).powf(1.5) - x.cbrt()
+        }),
         ("2^3^2", |_, _| 2f64.powi(9)),
         ("a*sin(x)*cos(y) - tan(x*y)", |x, y| {
             1.5 * x.sin() * y.cos() - (x * y).tan()
@@ -104,6 +107,90 @@ fn gradients_and_hessians_match_finite_differences() {
     }
 }
 
+/// Value, gradient and Hessian of `e` at `p` by (hyper-)dual numbers.
+fn derivatives(e: &Expr, p: [f64; 2]) -> (f64, [f64; 2], [[f64; 2]; 2]) {
+    let (mut g, mut hs) = ([0.0; 2], [[0.0; 2]; 2]);
+    let mut d = [Dual64::from(0.0); 2];
+    let mut hd = [HyperDual64::from(0.0); 2];
+    for j in 0..2 {
+        seed_dual(&p, j, &mut d);
+        g[j] = e.eval(&d).eps;
+        for k in 0..2 {
+            seed_hyper(&p, j, k, &mut hd);
+            hs[j][k] = e.eval(&hd).eps1eps2;
+        }
+    }
+    (e.eval(&p), g, hs)
+}
+
+/// A constant non-integer power at and near a zero base: `(x² + y²)^1.5`
+/// is C² at the origin with value, gradient and Hessian 0 (num-dual's
+/// `powf` gave NaN there, `∞ · 0`), `x^0.5` at `10⁻¹⁵⁰` has finite
+/// derivatives (num-dual's overflowed), and `x^0.5` at 0, whose derivative
+/// is infinite, is not finite rather than a number.
+#[test]
+fn constant_powers_are_exact_at_and_near_a_zero_base() {
+    let n = names();
+    let cone = Expr::parse("e", "9 - (x^2 + y^2)^1.5", &n).unwrap();
+    assert_eq!(
+        derivatives(&cone, [0.0, 0.0]),
+        (9.0, [0.0; 2], [[0.0; 2]; 2])
+    );
+    // away from the origin: r³ with r = |(x, y)|, against its closed form
+    let (x, y) = (0.3, -0.4);
+    let (v, g, hs) = derivatives(&cone, [x, y]);
+    let r = 0.5;
+    assert!((v - (9.0 - r * r * r)).abs() < 1e-14);
+    let want_g = [-3.0 * r * x, -3.0 * r * y];
+    let want_h = [
+        [-3.0 * (r + x * x / r), -3.0 * x * y / r],
+        [-3.0 * x * y / r, -3.0 * (r + y * y / r)],
+    ];
+    for j in 0..2 {
+        assert!((g[j] - want_g[j]).abs() < 1e-13, "{g:?}");
+        for k in 0..2 {
+            assert!((hs[j][k] - want_h[j][k]).abs() < 1e-13, "{hs:?}");
+        }
+    }
+    let root = Expr::parse("e", "x^0.5 + y", &n).unwrap();
+    let (v, g, hs) = derivatives(&root, [1e-150, 1.0]);
+    assert_eq!(v, 1e-75 + 1.0);
+    assert!((g[0] / (0.5e75) - 1.0).abs() < 1e-12, "{g:?}");
+    assert!((hs[0][0] / (-0.25e225) - 1.0).abs() < 1e-12, "{hs:?}");
+    let (_, g, _) = derivatives(&root, [0.0, 1.0]);
+    assert!(!g[0].is_finite(), "{g:?}");
+    // |x|^1.5 is C¹ at 0; x·|x|^0.5, the same function, is a product with
+    // a factor whose derivative is infinite there, which forward
+    // differentiation cannot resolve: its value is 0, its derivative not
+    // finite (the caller reports that, not a NaN value)
+    let mut d = [Dual64::from(0.0); 2];
+    seed_dual(&[0.0, 1.0], 0, &mut d);
+    let drag = Expr::parse("e", "abs(x)^1.5", &n).unwrap().eval(&d);
+    assert_eq!((drag.re, drag.eps), (0.0, 0.0));
+    let product = Expr::parse("e", "x*abs(x)^0.5", &n).unwrap().eval(&d);
+    assert_eq!(product.re, 0.0);
+    assert!(!product.eps.is_finite());
+}
+
+/// `min` and `max` pass a NaN on whichever side it stands, so that a
+/// function undefined at a state is reported there.
+#[test]
+fn min_and_max_keep_a_nan_on_either_side() {
+    let n = names();
+    for text in [
+        "min(x, log(y))",
+        "min(log(y), x)",
+        "max(x, sqrt(y))",
+        "max(sqrt(y), x)",
+    ] {
+        let e = Expr::parse("e", text, &n).unwrap();
+        let v: f64 = e.eval(&[0.5, -1.0]);
+        assert!(v.is_nan(), "{text}: {v}");
+        let (v, _, _) = derivatives(&e, [0.5, 2.0]);
+        assert!(v.is_finite(), "{text}: {v}");
+    }
+}
+
 #[test]
 fn parameters_and_constant_subexpressions_fold() {
     let n = Names::new(&["theta"], &[("m", 2.0), ("l", 0.5)]).unwrap();
@@ -145,12 +232,27 @@ fn errors_name_the_field_and_column() {
         ("1.2.3", "column 1", "malformed number '1.2.3'"),
         ("θ + 1", "column 1", "unexpected character 'θ'"),
         ("x + (y", "column 7", "expected ')', found the end"),
+        ("max()", "column 1", "max takes two arguments, got 0"),
+        (
+            "x - 1e400*y",
+            "column 5",
+            "the number '1e400' is beyond the range",
+        ),
     ];
     for (text, col, msg) in cases {
         let e = Expr::parse("barriers[0].h", text, &n).unwrap_err();
         let s = e.to_string();
         assert!(
             s.starts_with("barriers[0].h") && s.contains(col) && s.contains(msg),
+            "{text}: {s}"
+        );
+    }
+    // parameters folded into a constant that is not finite
+    let c = Names::new(&["x"], &[("c", -1.0), ("m", 0.0)]).unwrap();
+    for text in ["x + 0*log(c)", "-x/m", "x^(1/m)", "-c/m*x"] {
+        let s = Expr::parse("f[1]", text, &c).unwrap_err().to_string();
+        assert!(
+            s.starts_with("f[1]") && s.contains("without states") && s.contains("parameters"),
             "{text}: {s}"
         );
     }

@@ -288,11 +288,11 @@ impl<K: Kernel> Mvgp<K> {
             .into());
         }
         if known.len() == self.n {
-            return Err(InputError::invalid(
-                "known_rows",
-                known.len() as f64,
-                "every row is known: nothing is left to learn",
-            )
+            return Err(InputError::Invalid {
+                field: "known_rows".into(),
+                value: format!("{known:?}"),
+                reason: "every row is known: nothing is left to learn".into(),
+            }
             .into());
         }
         self.known = known;

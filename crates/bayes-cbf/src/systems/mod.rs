@@ -46,7 +46,7 @@ pub trait ControlAffine: Send + Sync {
     fn angle_indices(&self) -> &[usize] {
         &[]
     }
-    /// The first failed evaluation since the last call, for systems whose
+    /// The first failed evaluation on this thread since its last call, for systems whose
     /// evaluation can fail (an expression that is not finite at some state:
     /// [`ExpressionSystem`]); `None` for systems written in Rust.
     fn take_error(&self) -> Option<String> {
