@@ -180,6 +180,11 @@ pub enum GpError {
     /// An operation that needs data was called on an empty model.
     #[error("the model has no training data")]
     NoData,
+    /// A fit's stop flag was set before it finished
+    /// ([`crate::gp::fit_until`]); the model's hyperparameters are as
+    /// before the fit.
+    #[error("the hyperparameter fit was interrupted; the model keeps its hyperparameters")]
+    Interrupted,
 }
 
 /// Numerical failures of the safety filter.

@@ -627,3 +627,78 @@ fn the_fitted_noise_leaves_the_pivots_a_margin() {
     assert!(worst >= 3.9e-10, "smallest relative pivot {worst:e}");
     assert_eq!(model.factor().max_jitter(), 0.0);
 }
+
+/// A fit whose stop flag another thread sets ends with `Interrupted` soon
+/// after, the model keeping its hyperparameters and data; a fit whose flag
+/// stays clear is `fit` to the bit; a CoGP fit stopped before it starts
+/// changes nothing either.
+#[test]
+fn a_stopped_fit_is_interrupted_and_changes_nothing() {
+    use bayes_cbf::gp::{fit_cogp_until, fit_until, Cogp, CogpFitSettings, CogpHyper};
+    use bayes_cbf::GpError;
+    use std::sync::atomic::{AtomicBool, Ordering};
+    use std::time::{Duration, Instant};
+
+    let sys = Ackermann { wheelbase: 1.0 };
+    let mut rng = ChaCha8Rng::seed_from_u64(5);
+    let (lo, hi) = ([-3.0, -3.0, -3.0], [3.0, 3.0, 3.0]);
+    let data = sample_uniform(&sys, &lo, &hi, &[-1.0; 2], &[1.0; 2], 300, 0.01, &mut rng).unwrap();
+    let fresh = || {
+        let mut m = Mvgp::new(
+            3,
+            2,
+            default_hyper(3, 3, 2),
+            PriorMean::Zero,
+            InputMap::Identity,
+        )
+        .unwrap();
+        m.set_data(&data.xs, &data.us, &data.xdot).unwrap();
+        m
+    };
+    let settings = FitSettings {
+        restarts: 50,
+        ..FitSettings::default()
+    };
+    let mut model = fresh();
+    let before = model.hyper().clone();
+    let stop = AtomicBool::new(false);
+    let started = Instant::now();
+    let (result, stopped_at) = std::thread::scope(|s| {
+        s.spawn(|| {
+            std::thread::sleep(Duration::from_millis(100));
+            stop.store(true, Ordering::Relaxed);
+        });
+        let r = fit_until(&mut model, &settings, &stop);
+        (r, started.elapsed())
+    });
+    assert_eq!(result.unwrap_err(), GpError::Interrupted.into());
+    // 51 starts of a 300-point fit take seconds; one evaluation, milliseconds
+    assert!(stopped_at < Duration::from_secs(2), "{stopped_at:?}");
+    assert_eq!(model.hyper(), &before);
+    assert_eq!(model.len(), 300);
+
+    let quick = FitSettings {
+        max_iters: 5,
+        ..FitSettings::default()
+    };
+    let (mut a, mut b) = (fresh(), fresh());
+    let ra = fit(&mut a, &quick).unwrap();
+    let rb = fit_until(&mut b, &quick, &AtomicBool::new(false)).unwrap();
+    assert_eq!((ra, a.hyper()), (rb, b.hyper()));
+
+    let hyper = CogpHyper {
+        kernel: Rbf::new(vec![1.0; 3], 1.0).unwrap(),
+        Sigma: DMatrix::identity(9, 9),
+        S: DMatrix::identity(3, 3) * 0.01,
+    };
+    let mut cogp = Cogp::new(3, 2, hyper.clone(), PriorMean::Zero, InputMap::Identity).unwrap();
+    cogp.set_data(&data.xs[..60], &data.us[..40], &data.xdot[..60])
+        .unwrap();
+    let r = fit_cogp_until(
+        &mut cogp,
+        &CogpFitSettings::default(),
+        &AtomicBool::new(true),
+    );
+    assert_eq!(r.unwrap_err(), GpError::Interrupted.into());
+    assert_eq!(cogp.hyper(), &hyper);
+}

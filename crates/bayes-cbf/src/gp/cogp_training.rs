@@ -22,10 +22,11 @@ use super::optimise::{
 use super::psd::{PsdParam, SCALE_RANGE};
 use super::theta::{input_spreads, kernel_bounds, kernel_from_free, pack_free, start_from_inputs};
 use super::training::{FitReport, Rank};
-use crate::error::{Error, InputError};
+use crate::error::{Error, GpError, InputError};
 use nalgebra::DMatrix;
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
+use std::sync::atomic::AtomicBool;
 
 /// Settings of [`fit_cogp`], validated by [`CogpFitSettings::validate`].
 #[derive(Debug, Clone, PartialEq)]
@@ -272,10 +273,21 @@ fn data_driven_start<K: Kernel>(
 ///
 /// ## Reference
 /// Paper, Appendix (Coregionalization GP) and Sec. VII-A.
-#[allow(non_snake_case)]
 pub fn fit_cogp<K: Kernel>(
     model: &mut Cogp<K>,
     settings: &CogpFitSettings,
+) -> Result<FitReport, Error> {
+    fit_cogp_until(model, settings, &AtomicBool::new(false))
+}
+
+/// [`fit_cogp`], stopped once `stop` is set (by another thread), within one
+/// likelihood evaluation: it then returns [`GpError::Interrupted`] and
+/// leaves the model's hyperparameters as they were.
+#[allow(non_snake_case)]
+pub fn fit_cogp_until<K: Kernel>(
+    model: &mut Cogp<K>,
+    settings: &CogpFitSettings,
+    stop: &AtomicBool,
 ) -> Result<FitReport, Error> {
     settings.validate()?;
     let k = model.len();
@@ -314,8 +326,10 @@ pub fn fit_cogp<K: Kernel>(
         data,
         &Sigma0,
         &S0,
-    ));
-    let mut full = Harness::new(Likelihood::new(layout, kernel0.clone(), data, &Sigma0, &S0));
+    ))
+    .with_stop(stop);
+    let mut full =
+        Harness::new(Likelihood::new(layout, kernel0.clone(), data, &Sigma0, &S0)).with_stop(stop);
     // a run that stops early (line-search failure) resumes from its last
     // point with fresh memory, up to 4 times, while it improves
     let run = RunSettings {
@@ -357,6 +371,9 @@ pub fn fit_cogp<K: Kernel>(
             candidates: candidate.and_then(|t| full.point(t)).into_iter().collect(),
         })
     })?;
+    if full.stopped() {
+        return Err(GpError::Interrupted.into());
+    }
     let evaluations = full.evaluations() + diag.evaluations();
     let (kern, Sigma, S) = full.objective().unpack(&best.theta)?;
     drop((full, diag));

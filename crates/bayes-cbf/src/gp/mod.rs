@@ -61,7 +61,7 @@ mod theta;
 mod training;
 
 pub use cogp::{cogp_outputs, Cogp, CogpGradient, CogpHyper, CogpPosterior};
-pub use cogp_training::{fit_cogp, CogpFitSettings};
+pub use cogp_training::{fit_cogp, fit_cogp_until, CogpFitSettings};
 pub use factor::{CholFactor, JITTER_LEVELS};
 pub use input_map::{Feature, InputMap};
 pub use joint::{JointPosterior, JointWorkspace};
@@ -77,4 +77,4 @@ pub use mvgp::{
 };
 pub use prior::{check_dims, PriorMean, MAX_DIMENSION};
 pub use simd::set_linear_algebra_threads;
-pub use training::{fit, FitReport, FitSettings, MvgpLikelihood, Rank};
+pub use training::{fit, fit_until, FitReport, FitSettings, MvgpLikelihood, Rank};

@@ -50,6 +50,12 @@
 //! memory, from its best point while that still improves and iterations
 //! remain.
 //!
+//! ## Stopping
+//! A harness given a stop flag ([`Harness::with_stop`]) checks it before
+//! every evaluation and iteration: once it is set, evaluations fail at once
+//! and the start ends with [`GpError::Interrupted`], within one likelihood
+//! evaluation of the flag being set.
+//!
 //! ## Starts and pre-fits
 //! [`multi_start`] runs the starts of a fit and keeps the best point over all
 //! of them. Each start is described by a [`StartPlan`]: the point L-BFGS
@@ -64,6 +70,7 @@ use rand_chacha::ChaCha8Rng;
 use rand_distr::{Distribution, StandardNormal};
 use std::collections::VecDeque;
 use std::fmt;
+use std::sync::atomic::{AtomicBool, Ordering};
 
 /// Checks the iteration budget and the number of restarts of a fit's
 /// settings: `max_iters ≥ 1`, `restarts ≤ 1000`.
@@ -92,6 +99,8 @@ pub(crate) enum EvalFailure {
     NotPositiveDefinite,
     /// The log likelihood is not finite.
     NonFinite,
+    /// The fit's stop flag is set.
+    Stopped,
 }
 
 impl fmt::Display for EvalFailure {
@@ -101,6 +110,7 @@ impl fmt::Display for EvalFailure {
             EvalFailure::InvalidHyper => "invalid kernel hyperparameters",
             EvalFailure::NotPositiveDefinite => "Gram matrix not positive definite",
             EvalFailure::NonFinite => "log likelihood not finite",
+            EvalFailure::Stopped => "stopped",
         })
     }
 }
@@ -153,6 +163,8 @@ enum Stop {
     LineSearch,
     /// Iterations used up.
     Iterations,
+    /// The stop flag is set.
+    Stopped,
 }
 
 /// One curvature pair of the L-BFGS memory.
@@ -164,8 +176,10 @@ struct Pair {
 }
 
 /// An objective with its counters, minimised by projected L-BFGS.
-pub(crate) struct Harness<O: Objective> {
+pub(crate) struct Harness<'s, O: Objective> {
     objective: O,
+    /// Ends the fit once set (module docs).
+    stop: Option<&'s AtomicBool>,
     /// Objective evaluations, failed ones included.
     evaluations: usize,
     /// Failed evaluations.
@@ -176,15 +190,27 @@ pub(crate) struct Harness<O: Objective> {
     best: Option<Point>,
 }
 
-impl<O: Objective> Harness<O> {
+impl<'s, O: Objective> Harness<'s, O> {
     pub fn new(objective: O) -> Self {
         Self {
             objective,
+            stop: None,
             evaluations: 0,
             failures: 0,
             last_failure: None,
             best: None,
         }
+    }
+
+    /// The harness, stopping once `stop` is set (module docs).
+    pub fn with_stop(mut self, stop: &'s AtomicBool) -> Self {
+        self.stop = Some(stop);
+        self
+    }
+
+    /// Whether the stop flag is set.
+    pub fn stopped(&self) -> bool {
+        self.stop.is_some_and(|s| s.load(Ordering::Relaxed))
     }
 
     /// The objective.
@@ -215,6 +241,9 @@ impl<O: Objective> Harness<O> {
     /// `−log p(θ)` with its gradient; counts the evaluation and records the
     /// best successful point of the current start.
     fn evaluate(&mut self, theta: &[f64], grad: &mut [f64]) -> Result<f64, EvalFailure> {
+        if self.stopped() {
+            return Err(EvalFailure::Stopped);
+        }
         self.evaluations += 1;
         let r = if theta.iter().all(|v| v.is_finite()) {
             self.objective.eval(theta, grad)
@@ -269,14 +298,19 @@ impl<O: Objective> Harness<O> {
         self.best = None;
         self.project(&mut theta);
         let mut grad = vec![0.0; theta.len()];
-        let Ok(mut value) = self.evaluate(&theta, &mut grad) else {
-            return Ok(None);
+        let mut value = match self.evaluate(&theta, &mut grad) {
+            Ok(v) => v,
+            Err(EvalFailure::Stopped) => return Err(GpError::Interrupted),
+            Err(_) => return Ok(None),
         };
         let (mut remaining, mut resumes) = (settings.max_iters, 0);
         loop {
             let run_value = value;
             let (used, stop) =
                 self.minimise(&mut theta, &mut value, &mut grad, remaining, settings);
+            if stop == Stop::Stopped {
+                return Err(GpError::Interrupted);
+            }
             remaining = remaining.saturating_sub(used.max(1));
             // a run whose line search failed resumes, with fresh memory, from
             // its last (best accepted) point if it improved on its start
@@ -310,6 +344,9 @@ impl<O: Objective> Harness<O> {
         let mut free = vec![true; dim];
         let mut search = LineSearch::new(dim);
         for it in 0..max_iters {
+            if self.stopped() {
+                return (it, Stop::Stopped);
+            }
             let (lo, hi) = self.objective.bounds();
             // convergence on the projected gradient; the active set
             let mut pg = 0.0f64;
@@ -364,7 +401,12 @@ impl<O: Objective> Harness<O> {
             };
             let Some(ft) = search.run(self, theta, *f, slope, &d, alpha0.min(alpha_max), alpha_max)
             else {
-                return (it, Stop::LineSearch);
+                let why = if self.stopped() {
+                    Stop::Stopped
+                } else {
+                    Stop::LineSearch
+                };
+                return (it, why);
             };
             // curvature pair
             let s: Vec<f64> = (0..dim).map(|i| search.point[i] - theta[i]).collect();
@@ -760,6 +802,62 @@ mod tests {
         );
         // L-BFGS takes some 35–60 evaluations here
         assert!(h.evaluations() < 120, "{}", h.evaluations());
+    }
+
+    /// Rosenbrock that sets `stop` at its `after`-th evaluation (as another
+    /// thread would between two evaluations).
+    struct StoppingRosenbrock<'a> {
+        inner: Rosenbrock,
+        stop: &'a AtomicBool,
+        after: usize,
+        evaluations: usize,
+    }
+
+    impl Objective for StoppingRosenbrock<'_> {
+        fn eval(&mut self, th: &[f64], g: &mut [f64]) -> Result<f64, EvalFailure> {
+            self.evaluations += 1;
+            if self.evaluations == self.after {
+                self.stop.store(true, Ordering::Relaxed);
+            }
+            self.inner.eval(th, g)
+        }
+        fn bounds(&self) -> (&[f64], &[f64]) {
+            self.inner.bounds()
+        }
+    }
+
+    /// A set stop flag ends the start with `Interrupted` before the next
+    /// evaluation, wherever the optimiser is (start point, iteration, line
+    /// search), and a harness stopped before it starts evaluates nothing.
+    #[test]
+    fn a_set_stop_flag_ends_the_start_at_the_next_evaluation() {
+        for after in [1, 2, 7, 20] {
+            let stop = AtomicBool::new(false);
+            let objective = StoppingRosenbrock {
+                inner: Rosenbrock {
+                    lo: vec![f64::NEG_INFINITY; 2],
+                    hi: vec![f64::INFINITY; 2],
+                },
+                stop: &stop,
+                after,
+                evaluations: 0,
+            };
+            let mut h = Harness::new(objective).with_stop(&stop);
+            let r = h.run_start(vec![-1.2, 1.0], &settings());
+            assert_eq!(r, Err(GpError::Interrupted), "after {after}");
+            assert_eq!(h.objective().evaluations, after);
+        }
+        let stop = AtomicBool::new(true);
+        let mut h = Harness::new(Rosenbrock {
+            lo: vec![f64::NEG_INFINITY; 2],
+            hi: vec![f64::INFINITY; 2],
+        })
+        .with_stop(&stop);
+        assert_eq!(
+            h.run_start(vec![0.0, 0.0], &settings()),
+            Err(GpError::Interrupted)
+        );
+        assert_eq!(h.evaluations(), 0);
     }
 
     /// With the optimum outside the box, the answer is the KKT point on the

@@ -62,6 +62,7 @@ use faer::{MatMut, MatRef, Par};
 use nalgebra::DMatrix;
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
+use std::sync::atomic::AtomicBool;
 
 /// Structure of a learned covariance matrix `C Cᵀ + diag(v)`.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
@@ -774,12 +775,24 @@ impl<K: Kernel> Objective for MvgpLikelihood<'_, K> {
 /// ## Reference
 /// Paper, Sec. IV (marginal likelihood of Eq. 11), Prop. 1.
 pub fn fit<K: Kernel>(model: &mut Mvgp<K>, settings: &FitSettings) -> Result<FitReport, Error> {
+    fit_until(model, settings, &AtomicBool::new(false))
+}
+
+/// [`fit`], stopped once `stop` is set (by another thread: a Ctrl-C
+/// handler, a deadline), within one likelihood evaluation: it then returns
+/// [`GpError::Interrupted`] and leaves the
+/// model's hyperparameters as they were.
+pub fn fit_until<K: Kernel>(
+    model: &mut Mvgp<K>,
+    settings: &FitSettings,
+    stop: &AtomicBool,
+) -> Result<FitReport, Error> {
     let initial_ll = model.log_marginal_likelihood();
     let likelihood = MvgpLikelihood::new(model, settings)?;
     let mut th0 = likelihood.start.clone();
     let off_sigma = likelihood.layout.off_sigma();
     let sigma_max = likelihood.upper[off_sigma];
-    let mut harness = Harness::new(likelihood);
+    let mut harness = Harness::new(likelihood).with_stop(stop);
     // a start whose Gram matrix does not factorise without jitter (the
     // fit evaluates exactly; e.g. the model's own σ on redundant online
     // data) starts again with ten times the noise, up to σ's bound
@@ -818,6 +831,9 @@ pub fn fit<K: Kernel>(model: &mut Mvgp<K>, settings: &FitSettings) -> Result<Fit
             break;
         }
         theta[off_sigma] = (theta[off_sigma] + 0.1).min(sigma_max);
+    }
+    if harness.stopped() {
+        return Err(GpError::Interrupted.into());
     }
     let evaluations = harness.evaluations();
     let hyper = harness.objective().hyper(&theta)?;
