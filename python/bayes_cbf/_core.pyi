@@ -176,7 +176,8 @@ class Barrier:
     """Class-K gains: [alpha] or k_alpha."""
     name: Final[str]
     """The barrier's name in reports: its type (``"disc"``, ...), its ``h`` for
-    an expression, the given name for a callback."""
+    an expression, the given name for a callback, the file's path for
+    :meth:`Barrier.load` (as the command line's ``control`` names it)."""
     def to_json(self) -> Optional[str]: ...
 
 class CLF:

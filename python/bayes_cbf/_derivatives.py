@@ -9,6 +9,22 @@ import numpy as np
 from ._core import InputError
 
 
+def _real(name: str, v: Any) -> float:
+    """``v`` as a float, refusing what is not a real number (a bool, a string)."""
+    if isinstance(v, (bool, np.bool_)) or not isinstance(v, (int, float, np.integer, np.floating)):
+        raise InputError(f"{name}: {v!r} is not a real number")
+    return float(v)
+
+
+def _count(name: str, v: Any, least: int = 1) -> int:
+    """``v`` as an int ``>= least``, refusing fractions, bools and strings."""
+    if isinstance(v, (bool, np.bool_)) or not isinstance(v, (int, np.integer)):
+        raise InputError(f"{name}: {v!r} is not an integer")
+    if v < least:
+        raise InputError(f"{name}: {v} must be >= {least}")
+    return int(v)
+
+
 def check_derivatives(
     h: Callable[[np.ndarray], float],
     grad: Callable[[np.ndarray], np.ndarray],
@@ -31,21 +47,22 @@ def check_derivatives(
     Use it before :meth:`Barrier.callback`: wrong derivatives give wrong
     moments and an unsafe filter.
     """
+    step, rtol, atol = _real("step", step), _real("rtol", rtol), _real("atol", atol)
     if not (np.isfinite(step) and step > 0):
         raise InputError(f"step: {step!r} must be finite and > 0")
     for name, tol in (("rtol", rtol), ("atol", atol)):
         if not (np.isfinite(tol) and tol >= 0):
             raise InputError(f"{name}: {tol!r} must be finite and >= 0")
+    if state_dim is not None:
+        state_dim = _count("state_dim", state_dim)
     if points is None:
         if state_dim is None:
             raise InputError("check_derivatives: give points or state_dim")
-        if int(state_dim) < 1:
-            raise InputError(f"state_dim: {state_dim} must be >= 1")
-        points = np.random.default_rng(seed).standard_normal((10, int(state_dim)))
+        points = np.random.default_rng(_count("seed", seed, 0)).standard_normal((10, state_dim))
     points = np.atleast_2d(np.asarray(points, dtype=np.float64))
     if points.ndim != 2 or points.shape[0] == 0 or points.shape[1] == 0:
         raise InputError(f"points: expected a non-empty (q, n) array, got shape {points.shape}")
-    if state_dim is not None and points.shape[1] != int(state_dim):
+    if state_dim is not None and points.shape[1] != state_dim:
         raise InputError(
             f"points: {points.shape[1]} columns, but state_dim is {state_dim}"
         )
@@ -69,7 +86,17 @@ def check_derivatives(
 
         return call
 
-    h, grad = wrap("h", h), wrap("grad", grad)
+    def scalar(f: Callable[[np.ndarray], Any]) -> Callable[[np.ndarray], float]:
+        # h's value as the barrier reads it: a number, or an array of one
+        def call(x: np.ndarray) -> float:
+            v = np.asarray(f(x), dtype=np.float64)
+            if v.size != 1:
+                raise InputError(f"h: returned {v.size} values at x = {x.tolist()}, expected one")
+            return float(v.reshape(-1)[0])
+
+        return call
+
+    h, grad = scalar(wrap("h", h)), wrap("grad", grad)
     if hess is not None:
         hess = wrap("hess", hess)
     ok = True

@@ -76,9 +76,10 @@ class SafetyFilterWrapper(gym.Wrapper, gym.utils.RecordConstructorArgs):
         violations.
 
     ``info`` of each step gains ``filter_status``, ``p_star``, ``u_ref``,
-    ``u_applied`` and, with ``barriers_for_log``, ``barrier_values`` (at the
-    new state) and ``violation``. :attr:`episode_stats` sums them over the
-    episode.
+    ``u_applied``, ``barrier_values`` (the logged barriers at the new state;
+    empty without ``barriers_for_log``) and ``violation`` (a logged barrier
+    below 0; ``False`` without any). :attr:`episode_stats` sums them over
+    the episode.
 
     With ``learn=True`` the model keeps what it learned across ``reset``:
     that is the point of learning online, and it makes the wrapped
@@ -116,6 +117,10 @@ class SafetyFilterWrapper(gym.Wrapper, gym.utils.RecordConstructorArgs):
             barriers_for_log=barriers_for_log,
         )
         super().__init__(env)
+        if not isinstance(filter, SafetyFilter):
+            raise InputError(
+                f"filter: {type(filter).__name__}, expected a bayes_cbf.SafetyFilter"
+            )
         if not isinstance(env.action_space, gym.spaces.Box):
             raise InputError("env: the action space must be a gymnasium.spaces.Box")
         self.filter = filter
@@ -137,10 +142,10 @@ class SafetyFilterWrapper(gym.Wrapper, gym.utils.RecordConstructorArgs):
                 raise InputError("dt: give the control period (the environment has no positive dt)")
         self.dt = float(dt)
         n = self.model.state_dim
-        for i in angle_indices:
-            if not 0 <= i < n:
+        self.angle_indices = [_count("angle_indices", i, 0) for i in angle_indices]
+        for i in self.angle_indices:
+            if i >= n:
                 raise InputError(f"angle_indices: {i} is not a state index (state_dim = {n})")
-        self.angle_indices = list(angle_indices)
         self.max_data = _count("max_data", max_data, 1)
         self.refit_every = _count("refit_every", refit_every, 0)
         if label_at not in ("midpoint", "start"):

@@ -70,7 +70,8 @@ def test_without_learning_the_wrapper_passes_check_env():
 
 def test_wrapper_rejects_bad_setups():
     for field, value in [("max_data", 0), ("max_data", 2.5), ("refit_every", -1),
-                         ("refit_every", "3"), ("max_data", True)]:
+                         ("refit_every", "3"), ("max_data", True), ("angle_indices", [0.5]),
+                         ("angle_indices", [-1]), ("angle_indices", [2])]:
         model = bc.MVGP(2, 1, [1.0, 1.0], np.eye(2), np.eye(2), 0.1)
         filt = bc.SafetyFilter(model, [bc.Barrier.half_space([1.0, 0.0], 0.0, alpha=1.0)])
         with pytest.raises(bc.InputError, match=field):
@@ -81,6 +82,8 @@ def test_wrapper_rejects_bad_setups():
         filt = bc.SafetyFilter(model, [bc.Barrier.half_space([1.0, 0.0], 0.0, alpha=1.0)])
         with pytest.raises(bc.InputError, match="must be a finite number > 0"):
             SafetyFilterWrapper(gym.make("Pendulum-v1"), filt, lambda o: o[:2], dt=dt)
+    with pytest.raises(bc.InputError, match="filter: NoneType, expected"):
+        SafetyFilterWrapper(gym.make("Pendulum-v1"), None, lambda o: o[:2])
     w, _ = make()
     with pytest.raises(bc.InputError, match="reset"):
         w.step(np.zeros(1))

@@ -189,7 +189,7 @@ fn with_vector<R>(
             v.len()
         )));
     }
-    check_finite(field, &v, 1)?;
+    check_finite(field, &v, None)?;
     Ok(f(&v))
 }
 
@@ -225,7 +225,7 @@ pub fn with_matrix<R>(
         )));
     }
     let v = row_major(&arr);
-    check_finite(field, &v, c)?;
+    check_finite(field, &v, Some(c))?;
     Ok(f(&v, r, c))
 }
 
@@ -247,14 +247,13 @@ pub fn square(obj: &Bound<'_, PyAny>, field: &str, d: usize) -> PyResult<DMatrix
     })
 }
 
-/// Rejects NaN and infinities, naming the entry (`field[i][j]` for rows of
-/// `cols`).
-pub fn check_finite(field: &str, v: &[f64], cols: usize) -> PyResult<()> {
+/// Rejects NaN and infinities, naming the entry: `field[i][j]` for a
+/// matrix of `cols` columns (one column included), `field[i]` for a vector.
+pub fn check_finite(field: &str, v: &[f64], cols: Option<usize>) -> PyResult<()> {
     if let Some(i) = v.iter().position(|x| !x.is_finite()) {
-        let at = if cols > 1 {
-            format!("[{}][{}]", i / cols, i % cols)
-        } else {
-            format!("[{i}]")
+        let at = match cols {
+            Some(c) => format!("[{}][{}]", i / c.max(1), i % c.max(1)),
+            None => format!("[{i}]"),
         };
         return Err(input_err(format!("{field}{at} = {} is not finite", v[i])));
     }

@@ -8,6 +8,7 @@
 
 mod args;
 mod convert;
+mod interrupt;
 mod models;
 mod safety;
 mod scenarios;

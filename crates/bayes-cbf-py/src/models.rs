@@ -7,8 +7,8 @@ use crate::convert::{
     to_numpy, vector, with_matrix, NdArray, NumericalError,
 };
 use bayes_cbf::gp::{
-    fit, fit_cogp, Cogp, CogpFitSettings, CogpHyper, FitReport, FitSettings, Mvgp, Posterior,
-    PosteriorWorkspace, Rank, Rbf,
+    fit_cogp_until, fit_until, Cogp, CogpFitSettings, CogpHyper, FitReport, FitSettings, Mvgp,
+    Posterior, PosteriorWorkspace, Rank, Rbf,
 };
 use bayes_cbf_scenario::input_map_spec::{to_input_map, FeatureSpec};
 use bayes_cbf_scenario::io::write_atomic;
@@ -138,7 +138,7 @@ impl FitWarning for Cogp {
 /// The `#[pymethods]` that `MVGP` and `CoGP` share: `fit` (named rank
 /// settings, then `max_iters`, `seed`, `restarts` and the model's extra
 /// settings, with their defaults), `fit_report`, `log_marginal_likelihood`,
-/// `state_dim`, `control_dim` and `len`. `$fit` is the library's fit of the
+/// `state_dim`, `control_dim` and `len`. `$fit` is the library's stoppable fit of the
 /// model and `$settings` its settings.
 macro_rules! gp_methods {
     (
@@ -182,12 +182,13 @@ macro_rules! gp_methods {
                 };
                 settings.validate().map_err(core_err)?;
                 let model = &mut slf.model;
-                let report = py.detach(|| -> Result<FitReport, bayes_cbf::Error> {
+                // Ctrl-C stops the fit (KeyboardInterrupt): the model then
+                // holds the new data with its hyperparameters as before
+                let report = crate::interrupt::interruptible(py, |stop| {
                     model.set_data(&xs, &us, &xd)?;
-                    $fit(model, &settings)
+                    $fit(model, &settings, stop)
                 });
-                crate::warnings::emit(py)?;
-                let report = report.map_err(core_err)?;
+                let report = crate::warnings::after(py, report)?.map_err(core_err)?;
                 slf.last_fit = Some(report);
                 if let Some(w) = FitWarning::fit_warning(&slf.model) {
                     let msg = std::ffi::CString::new(w).unwrap_or_default();
@@ -205,8 +206,9 @@ macro_rules! gp_methods {
             }
 
             /// `log p(Ẋ | X, U)` under the current hyperparameters.
-            fn log_marginal_likelihood(&self) -> PyResult<f64> {
+            fn log_marginal_likelihood(&self, py: Python<'_>) -> PyResult<f64> {
                 let v = self.model.log_marginal_likelihood();
+                crate::warnings::emit(py)?;
                 if !v.is_finite() {
                     return Err(NumericalError::new_err(format!(
                         "the log marginal likelihood is {v}: the data or the \
@@ -273,7 +275,7 @@ gp_methods! {
     /// (L-BFGS) on the data `X (k, n)`, `U (k, m)`, `Xdot (k, n)`, which
     /// replace the model's data. Returns `self`. `sigma_min` floors the noise
     /// standard deviation of state component 0, `noise_sigma·√A[0, 0]`.
-    PyMvgp: fit = fit(FitSettings { rank_a, rank_b, sigma_min: f64 = 0.0 }),
+    PyMvgp: fit = fit_until(FitSettings { rank_a, rank_b, sigma_min: f64 = 0.0 }),
     text_signature = "($self, X, U, Xdot, rank_a='full', rank_b='full', max_iters=100, seed=0, restarts=0, sigma_min=0.0)"
 }
 
@@ -314,7 +316,7 @@ impl PyMvgp {
             known_rows: known_rows.unwrap_or_default(),
             data: Default::default(),
         };
-        Self::from_file(&file)
+        crate::warnings::after(A.py(), Self::from_file(&file))
     }
 
     /// Posterior at the rows of `Xq (q, n)`: the means `M_k(x)` as
@@ -325,12 +327,13 @@ impl PyMvgp {
         let model = &self.model;
         let p = model.control_dim() + 1;
         let (mut ws, mut post) = posterior_buffers(model);
-        predict_rows(Xq, (model.state_dim(), p, p), |x, means, bs| {
+        let rows = predict_rows(Xq, (model.state_dim(), p, p), |x, means, bs| {
             model.posterior_into(x, &mut ws, &mut post)?;
             extend_rows(means, &post.mean);
             extend_rows(bs, &post.B);
             Ok(())
-        })
+        });
+        crate::warnings::after(Xq.py(), rows)
     }
 
     /// Median wall time (s) of the library computing the posterior at every
@@ -376,7 +379,8 @@ impl PyMvgp {
         let x = vector(x, "x", Some(n))?;
         let u = vector(u, "u", Some(m))?;
         let xd = vector(xdot, "xdot", Some(n))?;
-        self.model.add_observation(&x, &u, &xd).map_err(core_err)
+        let added = self.model.add_observation(&x, &u, &xd).map_err(core_err);
+        crate::warnings::after(xdot.py(), added)
     }
 
     /// Adds `(x, u, ẋ)` to a model kept at `budget` observations: the
@@ -395,18 +399,20 @@ impl PyMvgp {
         let x = vector(x, "x", Some(n))?;
         let u = vector(u, "u", Some(m))?;
         let xd = vector(xdot, "xdot", Some(n))?;
-        self.model
+        let added = self
+            .model
             .add_observation_within_budget(&x, &u, &xd, budget)
-            .map_err(core_err)
+            .map_err(core_err);
+        crate::warnings::after(xdot.py(), added)
     }
 
     /// Drops the oldest observation (sliding window), O(k²).
-    fn remove_oldest(&mut self) -> PyResult<()> {
+    fn remove_oldest(&mut self, py: Python<'_>) -> PyResult<()> {
         if self.model.is_empty() {
             return Err(input_err("remove_oldest: the model has no observations"));
         }
         self.model.remove_oldest();
-        Ok(())
+        crate::warnings::after(py, Ok(()))
     }
 
     /// Writes the model file (`model.json`, the CLI's format) completely or
@@ -425,14 +431,14 @@ impl PyMvgp {
     #[staticmethod]
     fn load(py: Python<'_>, #[pyo3(from_py_with = args::path)] path: PathBuf) -> PyResult<Self> {
         let file = py.detach(|| ModelFile::load(&path)).map_err(scenario_err)?;
-        Self::from_file(&file)
+        crate::warnings::after(py, Self::from_file(&file))
     }
 
     /// The model from model-file text.
     #[staticmethod]
-    fn from_json(#[pyo3(from_py_with = args::text)] text: &str) -> PyResult<Self> {
+    fn from_json(py: Python<'_>, #[pyo3(from_py_with = args::text)] text: &str) -> PyResult<Self> {
         let file = ModelFile::parse(text, "model").map_err(scenario_err)?;
-        Self::from_file(&file)
+        crate::warnings::after(py, Self::from_file(&file))
     }
 
     /// The model-file text (hyperparameters and data).
@@ -523,7 +529,7 @@ pub struct PyCogp {
 gp_methods! {
     /// Learns `Σ`, `S` and the kernel on `X (k, n)`, `U (k, m)`,
     /// `Xdot (k, n)`, which replace the model's data. Returns `self`.
-    PyCogp: fit = fit_cogp(CogpFitSettings { rank_sigma, rank_s }),
+    PyCogp: fit = fit_cogp_until(CogpFitSettings { rank_sigma, rank_s }),
     text_signature = "($self, X, U, Xdot, rank_sigma='full', rank_s='full', max_iters=100, seed=0, restarts=0)"
 }
 
@@ -562,11 +568,14 @@ impl PyCogp {
         };
         let map = to_input_map(input_map_of(input_map)?.as_deref());
         let prior = prior_of(prior_mean)?.to_prior().map_err(scenario_err)?;
-        let model = Cogp::new(n, m, hyper, prior, map).map_err(core_err)?;
-        Ok(Self {
-            model,
-            last_fit: None,
-        })
+        let model = Cogp::new(n, m, hyper, prior, map).map_err(core_err);
+        crate::warnings::after(
+            lengthscales.py(),
+            model.map(|model| Self {
+                model,
+                last_fit: None,
+            }),
+        )
     }
 
     /// Posterior at the rows of `Xq (q, n)`: the means `(q, n, 1+m)` and the
@@ -575,12 +584,13 @@ impl PyCogp {
     fn predict<'py>(&self, Xq: &Bound<'py, PyAny>) -> PyResult<ArrayPair<'py>> {
         let model = &self.model;
         let (n, p) = (model.state_dim(), model.control_dim() + 1);
-        predict_rows(Xq, (n, p, n * p), |x, means, covs| {
+        let rows = predict_rows(Xq, (n, p, n * p), |x, means, covs| {
             let post = model.posterior(x)?;
             extend_rows(means, &post.mean);
             extend_rows(covs, &post.cov);
             Ok(())
-        })
+        });
+        crate::warnings::after(Xq.py(), rows)
     }
 
     /// Output covariance `Σ` (`n(1+m)` square).

@@ -340,7 +340,13 @@ impl PyBarrier {
     /// [`crate::convert::InputError`].
     fn check(&self, v: f64) -> PyResult<f64> {
         if let Some(e) = self.barrier.take_error() {
-            return Err(input_err(format!("barrier '{}': {e}", self.label)));
+            // an expression's message names its barrier already
+            let named = e.contains(&format!("barrier '{}'", self.label));
+            return Err(input_err(if named {
+                e
+            } else {
+                format!("barrier '{}': {e}", self.label)
+            }));
         }
         if !v.is_finite() {
             return Err(input_err(format!(
@@ -631,7 +637,8 @@ impl PySafetyFilter {
         settings.fallback = Fallback::parse(fallback).map_err(core_err)?;
         let degrees = bs.iter().map(|b| b.relative_degree()).collect();
         let nb = bs.len();
-        let ctrl = SafetyController::new(n, m, bs, clf, settings).map_err(core_err)?;
+        let ctrl = SafetyController::new(n, m, bs, clf, settings)
+            .map_err(|e| core_err(argument_names(e)))?;
         Ok(Self {
             model: model.unbind(),
             ctrl,
@@ -722,6 +729,31 @@ impl PySafetyFilter {
     }
 }
 
+/// The library's settings error under the name of the constructor's
+/// argument: `probability` (the library says `controller.probability`, as
+/// in a scenario file) and `clf_weight` (the settings' `lambda`).
+fn argument_names(e: bayes_cbf::InputError) -> bayes_cbf::InputError {
+    match e {
+        bayes_cbf::InputError::Invalid {
+            field,
+            value,
+            reason,
+        } => {
+            let field = match field.as_str() {
+                "controller.probability" => "probability".to_string(),
+                "lambda" => "clf_weight".to_string(),
+                _ => field,
+            };
+            bayes_cbf::InputError::Invalid {
+                field,
+                value,
+                reason,
+            }
+        }
+        e => e,
+    }
+}
+
 /// One step of the library's controller on the filter's buffers.
 type Step<'a> = dyn FnMut() -> Result<(), bayes_cbf::Error> + 'a;
 
@@ -735,8 +767,8 @@ type StepInputs<'a, 'py> = (
 );
 
 impl PySafetyFilter {
-    /// Copies `x`, `u_ref` and the CLF reference `x_d`, `xdot_d` (when
-    /// given) into the filter's buffers, then calls `run(step)` with the GIL
+    /// Copies `x`, `u_ref` and the CLF reference `x_d`, `xdot_d` (zeros
+    /// when not given) into the filter's buffers, then calls `run(step)` with the GIL
     /// released, where `step()` is one step of the controller on them into
     /// `self.out`.
     fn with_step<R: Send>(
@@ -748,11 +780,16 @@ impl PySafetyFilter {
         copy_into(x, "x", &mut self.x)?;
         copy_into(u_ref, "u_ref", &mut self.u_ref)?;
         let with_ref = x_d.is_some() || xdot_d.is_some();
-        if let Some(v) = x_d {
-            copy_into(v, "x_d", &mut self.xd)?;
-        }
-        if let Some(v) = xdot_d {
-            copy_into(v, "xdot_d", &mut self.xd_dot)?;
+        // an absent reference is zero at this step, whatever an earlier
+        // step was given
+        for (given, name, buf) in [
+            (x_d, "x_d", &mut self.xd),
+            (xdot_d, "xdot_d", &mut self.xd_dot),
+        ] {
+            match given {
+                Some(v) => copy_into(v, name, buf)?,
+                None => buf.fill(0.0),
+            }
         }
         let model = borrow(self.model.bind(py), "the filter's model")?;
         let m = &model.model;

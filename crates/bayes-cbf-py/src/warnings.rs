@@ -68,3 +68,14 @@ pub fn emit(py: Python<'_>) -> PyResult<()> {
     }
     Ok(())
 }
+
+/// `result` of a call into the library, after issuing the warnings the call
+/// raised: each call issues its own, not the next call that emits. An
+/// error of the call comes first; a warning the filter turns into an
+/// exception comes after a result.
+pub fn after<T>(py: Python<'_>, result: PyResult<T>) -> PyResult<T> {
+    let warned = emit(py);
+    let value = result?;
+    warned?;
+    Ok(value)
+}

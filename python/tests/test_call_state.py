@@ -1,0 +1,118 @@
+"""What one call leaves behind for the next: a CLF reference not given is
+zero at that call, warnings are issued by the call that raised them, and a
+callback's failure is reported to the thread whose call met it."""
+
+from __future__ import annotations
+
+import threading
+import warnings
+
+import numpy as np
+import pytest
+
+import bayes_cbf as bc
+
+PENDULUM = {"type": "pendulum", "mass": 1.0, "length": 1.0, "gravity": 10.0}
+
+
+def clf_filter():
+    model = bc.MVGP(2, 1, [1.0, 1.0], np.eye(2), np.eye(2), 0.1, prior_mean=PENDULUM)
+    clf = bc.CLF.expression("(x - x_d)^2 + (y - y_d)^2", ["x", "y"], gamma=1.0)
+    return lambda: bc.SafetyFilter(model, [], clf=clf)
+
+
+def test_an_absent_reference_is_zero_whatever_an_earlier_call_gave():
+    fresh = clf_filter()
+    x, u_ref, zero = [0.3, 0.2], [0.0], [0.0, 0.0]
+    want = fresh().filter(x, u_ref, x_d=zero, xdot_d=zero).u
+    assert not np.allclose(want, fresh().filter(x, u_ref, x_d=[2.0, -1.0]).u)
+    f = fresh()
+    f.filter(x, u_ref, x_d=[2.0, -1.0])
+    np.testing.assert_array_equal(f.filter(x, u_ref, xdot_d=zero).u, want)
+    f.filter(x, u_ref, xdot_d=[5.0, 5.0])
+    np.testing.assert_array_equal(f.filter(x, u_ref, x_d=zero).u, want)
+    f.filter(x, u_ref, x_d=[2.0, -1.0], xdot_d=[5.0, 5.0])
+    np.testing.assert_array_equal(f.filter(x, u_ref).u, want)
+
+
+def test_warnings_are_issued_by_the_call_that_raised_them():
+    model = bc.MVGP(2, 1, [1.0, 1.0], np.eye(2), np.eye(2), 1e-6)
+    with pytest.warns(UserWarning, match="jitter"):
+        for _ in range(3):
+            model.add_observation([0.0, 0.0], [0.0], [1.0, 1.0])
+    other = bc.MVGP(2, 1, [1.0, 1.0], np.eye(2), np.eye(2), 0.1, prior_mean=PENDULUM)
+    disc = bc.Barrier.disc(2, [0, 1], [0.0, 0.0], 1.0)
+    with pytest.warns(UserWarning, match="jitter"):
+        model.add_observation([0.0, 0.0], [0.0], [1.0, 1.0])  # in this call, not the next
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        bc.moments(other, disc, [2.0, 1.0], [0.0])
+        with pytest.raises(UserWarning, match="jitter"):
+            model.add_observation([0.0, 0.0], [0.0], [1.0, 1.0])
+
+
+def test_a_callback_failure_is_reported_to_its_own_thread():
+    in_h, b_done = threading.Event(), threading.Event()
+
+    def grad(x):
+        if x[0] > 5:
+            raise ValueError("bad region")
+        return 2 * x
+
+    def h(x):
+        if x[0] > 5:  # grad has failed on this thread: let the other call now
+            in_h.set()
+            b_done.wait(5)
+        return x[0] ** 2 + x[1] ** 2 - 1.0
+
+    b = bc.Barrier.callback(h, grad, state_dim=2)
+    out = {}
+
+    def failing():
+        with pytest.raises(bc.InputError, match="bad region") as e:
+            b.gradient([6.0, 0.5])
+        out["failing"] = str(e.value)
+
+    def healthy():
+        in_h.wait(5)
+        try:
+            out["healthy"] = b.value([1.5, 0.5])
+        finally:
+            b_done.set()
+
+    threads = [threading.Thread(target=failing), threading.Thread(target=healthy)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert out["healthy"] == pytest.approx(1.5)
+    assert "6.0" in out["failing"]
+
+
+def test_ctrl_c_stops_a_fit_and_leaves_the_hyperparameters():
+    """SIGINT during a long fit raises KeyboardInterrupt within a moment,
+    not when the fit ends; the model keeps its hyperparameters."""
+    import os
+    import signal
+    import time
+
+    rng = np.random.default_rng(0)
+    k = 1500
+    X = rng.uniform(-3, 3, (k, 2))
+    U = rng.uniform(-2, 2, (k, 1))
+    Xd = np.c_[X[:, 1], -10 * np.sin(X[:, 0]) + U[:, 0]] + 0.05 * rng.normal(size=(k, 2))
+    m = bc.MVGP(2, 1, [1.0, 1.0], np.eye(2), np.eye(2), 0.1)
+    before = (m.lengthscales.copy(), m.A.copy(), m.B.copy(), m.noise_sigma)
+    timer = threading.Timer(0.5, lambda: os.kill(os.getpid(), signal.SIGINT))
+    started = time.monotonic()
+    timer.start()
+    # 20 restarts of a 1500-point fit take a minute; one evaluation, 0.1 s
+    with pytest.raises(KeyboardInterrupt):
+        m.fit(X, U, Xd, max_iters=40, restarts=20)
+    elapsed = time.monotonic() - started
+    timer.join()
+    assert elapsed < 5.0, elapsed
+    after = (m.lengthscales, m.A, m.B, m.noise_sigma)
+    for a, b in zip(before, after):
+        np.testing.assert_array_equal(a, b)
+    assert len(m) == k
