@@ -116,3 +116,20 @@ def test_ctrl_c_stops_a_fit_and_leaves_the_hyperparameters():
     for a, b in zip(before, after):
         np.testing.assert_array_equal(a, b)
     assert len(m) == k
+
+
+def test_ctrl_c_stops_a_run():
+    """SIGINT during a long run raises KeyboardInterrupt before its next
+    step, not when the run ends."""
+    import os
+    import signal
+    import time
+
+    timer = threading.Timer(0.5, lambda: os.kill(os.getpid(), signal.SIGINT))
+    started = time.monotonic()
+    timer.start()
+    # 200 000 steps of the pendulum take minutes
+    with pytest.raises(KeyboardInterrupt):
+        bc.run_scenario("pendulum-safe", seed=1, overrides={"steps": 200000})
+    timer.join()
+    assert time.monotonic() - started < 5.0

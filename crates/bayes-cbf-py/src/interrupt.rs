@@ -7,6 +7,7 @@
 
 use pyo3::prelude::*;
 use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Arc;
 use std::time::Duration;
 
 /// How often the calling thread checks for signals.
@@ -19,9 +20,9 @@ const POLL: Duration = Duration::from_millis(50);
 /// stays clear.
 pub fn interruptible<T: Send>(
     py: Python<'_>,
-    work: impl FnOnce(&AtomicBool) -> T + Send,
+    work: impl FnOnce(&Arc<AtomicBool>) -> T + Send,
 ) -> PyResult<T> {
-    let stop = AtomicBool::new(false);
+    let stop = Arc::new(AtomicBool::new(false));
     let mut signal: Option<PyErr> = None;
     let caller = std::thread::current();
     let out = py.detach(|| {

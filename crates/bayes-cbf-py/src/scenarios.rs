@@ -3,7 +3,7 @@
 
 use crate::args;
 use crate::convert::{input_err, json_of, scenario_err, to_numpy};
-use bayes_cbf_scenario::scenario::{self, run_scenario as run, Column, Trajectory, BUILTIN};
+use bayes_cbf_scenario::scenario::{self, run_scenario_until, Column, Trajectory, BUILTIN};
 use pyo3::prelude::*;
 use pyo3::types::{PyDict, PyList};
 
@@ -58,14 +58,14 @@ pub fn run_scenario<'py>(
     if let Some(s) = seed {
         sets.push(format!("seed={s}"));
     }
-    let result = py.detach(|| -> bayes_cbf_scenario::Result<_> {
+    // Ctrl-C ends the run before its next step (KeyboardInterrupt)
+    let result = crate::interrupt::interruptible(py, |stop| -> bayes_cbf_scenario::Result<_> {
         let (sc, _) = scenario::load(name, &sets)?;
-        let out = run(&sc, |_, _| {})?;
+        let out = run_scenario_until(&sc, |_, _| {}, stop.clone())?;
         let json = serde_json::to_string(&out.summary)?;
         Ok((Trajectory::of(&out), json))
     });
-    crate::warnings::emit(py)?;
-    let (output, summary_json) = result.map_err(scenario_err)?;
+    let (output, summary_json) = crate::warnings::after(py, result)?.map_err(scenario_err)?;
     let summary = py
         .import("json")?
         .call_method1("loads", (summary_json,))?

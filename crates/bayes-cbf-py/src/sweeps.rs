@@ -8,7 +8,7 @@ use bayes_cbf::control::Fallback;
 use bayes_cbf_scenario::experiments::calibration::{self, CalibrationPart};
 use bayes_cbf_scenario::experiments::ExperimentArgs;
 use bayes_cbf_scenario::sweep::{
-    merge_sweeps, parse_rows_csv, rows_csv, run_seeds, summarise, SeedRange, Shard, SweepMeta,
+    merge_sweeps, parse_rows_csv, rows_csv, run_seeds_until, summarise, SeedRange, Shard, SweepMeta,
 };
 use pyo3::prelude::*;
 
@@ -58,9 +58,11 @@ pub fn check_scenario(name: &str, sets: Vec<String>) -> PyResult<()> {
 #[pyfunction]
 pub fn sweep_shard(py: Python<'_>, meta: &str) -> PyResult<String> {
     let meta = parse_meta(meta)?;
-    let rows = py.detach(|| run_seeds(&meta, &|_, _| {}));
-    crate::warnings::emit(py)?;
-    Ok(rows_csv(&rows.map_err(scenario_err)?))
+    // Ctrl-C ends the runs under way and starts no others
+    let rows = crate::interrupt::interruptible(py, |stop| run_seeds_until(&meta, &|_, _| {}, stop));
+    Ok(rows_csv(
+        &crate::warnings::after(py, rows)?.map_err(scenario_err)?,
+    ))
 }
 
 /// Merges shards `(meta JSON, rows CSV)` into the whole sweep: returns the

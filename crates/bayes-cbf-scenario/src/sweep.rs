@@ -21,14 +21,15 @@
 //! parses back to the same `f64`, and parses correctly rounded, so the
 //! round trip is exact.
 
-use crate::error::{Context, Result};
-use crate::scenario::{self, run_scenario};
+use crate::error::{Context, Error, Result};
+use crate::scenario::{self, run_scenario_until};
 use crate::stats::wilson;
 use crate::{bail, err};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 use std::str::FromStr;
-use std::sync::atomic::{AtomicUsize, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
+use std::sync::Arc;
 use std::time::Instant;
 
 /// A range of seeds: `A..B` (B excluded) or `A..=B` (B included).
@@ -354,6 +355,18 @@ pub fn run_seeds(
     meta: &SweepMeta,
     progress: &(dyn Fn(usize, usize) + Sync),
 ) -> Result<Vec<SweepRow>> {
+    run_seeds_until(meta, progress, &Arc::new(AtomicBool::new(false)))
+}
+
+/// [`run_seeds`], stopped once `stop` is set (by another thread: a Ctrl-C
+/// handler, a deadline): the runs under way end before their next step,
+/// the others do not start, and the sweep is
+/// [`bayes_cbf::Error::Interrupted`], not rows.
+pub fn run_seeds_until(
+    meta: &SweepMeta,
+    progress: &(dyn Fn(usize, usize) + Sync),
+    stop: &Arc<AtomicBool>,
+) -> Result<Vec<SweepRow>> {
     meta.shard.validate()?;
     if meta.seeds.is_empty() {
         bail!(
@@ -377,6 +390,9 @@ pub fn run_seeds(
     seeds
         .par_iter()
         .map(|&seed| {
+            if stop.load(Ordering::Relaxed) {
+                return Err(bayes_cbf::Error::Interrupted.into());
+            }
             let mut sets = meta.sets.clone();
             sets.push(format!("seed={seed}"));
             let (sc, _) =
@@ -384,7 +400,7 @@ pub fn run_seeds(
             let started = Instant::now();
             // steps completed: the observer sees step k once it is done
             let mut completed = 0;
-            let row = match run_scenario(&sc, |k, _| completed = k + 1) {
+            let row = match run_scenario_until(&sc, |k, _| completed = k + 1, Arc::clone(stop)) {
                 Ok(out) => {
                     let s = &out.summary;
                     SweepRow {
@@ -398,6 +414,9 @@ pub fn run_seeds(
                         wall_time_s: s.wall_time_s,
                         error: None,
                     }
+                }
+                Err(e) if matches!(e.root(), Error::Core(bayes_cbf::Error::Interrupted)) => {
+                    return Err(e)
                 }
                 Err(e) => SweepRow::stopped(
                     seed,

@@ -292,3 +292,44 @@ fn a_seed_that_stops_is_a_row_and_every_seed_stopping_is_an_error() {
     let e = merge_sweeps(parts).unwrap_err().to_string();
     assert!(e.contains("every one of the 4 seeds stopped"), "{e}");
 }
+
+/// A stop flag set by another thread ends a run before its next step and a
+/// sweep without rows: `Interrupted`, soon after, whatever was under way.
+#[test]
+fn a_stop_flag_interrupts_runs_and_sweeps() {
+    use bayes_cbf_scenario::scenario::{self, run_scenario_until};
+    use bayes_cbf_scenario::sweep::run_seeds_until;
+    use std::sync::atomic::{AtomicBool, Ordering};
+    use std::sync::Arc;
+    use std::time::{Duration, Instant};
+
+    let interrupted = |e: &bayes_cbf_scenario::Error| {
+        matches!(
+            e.root(),
+            bayes_cbf_scenario::Error::Core(bayes_cbf::Error::Interrupted)
+        )
+    };
+    // 200 000 steps of the pendulum take minutes; the flag is set at 0.2 s
+    let (sc, _) = scenario::load("pendulum-safe", &["steps=200000".to_string()]).unwrap();
+    let stop = Arc::new(AtomicBool::new(false));
+    let started = Instant::now();
+    let r = std::thread::scope(|s| {
+        s.spawn(|| {
+            std::thread::sleep(Duration::from_millis(200));
+            stop.store(true, Ordering::Relaxed);
+        });
+        run_scenario_until(&sc, |_, _| {}, Arc::clone(&stop))
+    });
+    let e = r.err().expect("interrupted, not finished");
+    assert!(interrupted(&e), "{e}");
+    assert!(
+        started.elapsed() < Duration::from_secs(5),
+        "{:?}",
+        started.elapsed()
+    );
+    assert!(e.to_string().contains("scenario 'pendulum-safe'"), "{e}");
+
+    let set = Arc::new(AtomicBool::new(true));
+    let e = run_seeds_until(&meta(Shard::WHOLE), &|_, _| {}, &set).unwrap_err();
+    assert!(interrupted(&e), "{e}");
+}

@@ -180,11 +180,6 @@ pub enum GpError {
     /// An operation that needs data was called on an empty model.
     #[error("the model has no training data")]
     NoData,
-    /// A fit's stop flag was set before it finished
-    /// ([`crate::gp::fit_until`]); the model's hyperparameters are as
-    /// before the fit.
-    #[error("the hyperparameter fit was interrupted; the model keeps its hyperparameters")]
-    Interrupted,
 }
 
 /// Numerical failures of the safety filter.
@@ -225,6 +220,12 @@ pub enum Error {
     /// Numerical failure in the safety filter.
     #[error(transparent)]
     Control(#[from] ControlError),
+    /// A stop flag was set before the work finished: a fit
+    /// ([`crate::gp::fit_until`]), which then leaves the model's
+    /// hyperparameters as they were, or a closed-loop run
+    /// ([`crate::sim::ClosedLoop::with_stop`]).
+    #[error("interrupted: stopped before it finished")]
+    Interrupted,
 }
 
 #[cfg(test)]

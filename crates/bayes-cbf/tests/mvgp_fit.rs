@@ -635,7 +635,7 @@ fn the_fitted_noise_leaves_the_pivots_a_margin() {
 #[test]
 fn a_stopped_fit_is_interrupted_and_changes_nothing() {
     use bayes_cbf::gp::{fit_cogp_until, fit_until, Cogp, CogpFitSettings, CogpHyper};
-    use bayes_cbf::GpError;
+    use bayes_cbf::Error;
     use std::sync::atomic::{AtomicBool, Ordering};
     use std::time::{Duration, Instant};
 
@@ -671,7 +671,7 @@ fn a_stopped_fit_is_interrupted_and_changes_nothing() {
         let r = fit_until(&mut model, &settings, &stop);
         (r, started.elapsed())
     });
-    assert_eq!(result.unwrap_err(), GpError::Interrupted.into());
+    assert_eq!(result.unwrap_err(), Error::Interrupted);
     // 51 starts of a 300-point fit take seconds; one evaluation, milliseconds
     assert!(stopped_at < Duration::from_secs(2), "{stopped_at:?}");
     assert_eq!(model.hyper(), &before);
@@ -699,6 +699,6 @@ fn a_stopped_fit_is_interrupted_and_changes_nothing() {
         &CogpFitSettings::default(),
         &AtomicBool::new(true),
     );
-    assert_eq!(r.unwrap_err(), GpError::Interrupted.into());
+    assert_eq!(r.unwrap_err(), Error::Interrupted);
     assert_eq!(cogp.hyper(), &hyper);
 }

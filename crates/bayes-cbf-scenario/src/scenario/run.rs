@@ -8,6 +8,7 @@ use crate::stats::quantile;
 use bayes_cbf::control::{TriggerReport, TriggerSettings};
 use bayes_cbf::sim::{ClosedLoop, LoopResult, Monitor, StepRecord, StepStatus};
 use serde::{Deserialize, Serialize};
+use std::sync::atomic::AtomicBool;
 use std::sync::Arc;
 use std::time::Instant;
 
@@ -163,9 +164,17 @@ pub struct TriggerSummary {
 }
 
 /// Runs `scenario`; `progress(k, steps)` is called after each step.
-pub fn run_scenario(
+pub fn run_scenario(scenario: &Scenario, progress: impl FnMut(usize, usize)) -> Result<RunOutput> {
+    run_scenario_until(scenario, progress, Arc::new(AtomicBool::new(false)))
+}
+
+/// [`run_scenario`], stopped once `stop` is set (by another thread: a
+/// Ctrl-C handler, a deadline) with [`bayes_cbf::Error::Interrupted`]
+/// before the next step ([`ClosedLoop::with_stop`]).
+pub fn run_scenario_until(
     scenario: &Scenario,
     mut progress: impl FnMut(usize, usize),
+    stop: Arc<AtomicBool>,
 ) -> Result<RunOutput> {
     let mut built = build(scenario)?;
     let monitors: Vec<Monitor> = built
@@ -187,7 +196,7 @@ pub fn run_scenario(
         &built.start,
         &built.loop_settings,
     )
-    .map(|l| l.with_monitors(&monitors))
+    .map(|l| l.with_monitors(&monitors).with_stop(stop))
     .and_then(|l| l.run(&mut |k, _: &_| progress(k, steps)))
     .with_context(|| format!("scenario '{}'", scenario.name))?;
     let wall = started.elapsed().as_secs_f64();

@@ -22,7 +22,7 @@ use super::optimise::{
 use super::psd::{PsdParam, SCALE_RANGE};
 use super::theta::{input_spreads, kernel_bounds, kernel_from_free, pack_free, start_from_inputs};
 use super::training::{FitReport, Rank};
-use crate::error::{Error, GpError, InputError};
+use crate::error::{Error, InputError};
 use nalgebra::DMatrix;
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
@@ -281,7 +281,7 @@ pub fn fit_cogp<K: Kernel>(
 }
 
 /// [`fit_cogp`], stopped once `stop` is set (by another thread), within one
-/// likelihood evaluation: it then returns [`GpError::Interrupted`] and
+/// likelihood evaluation: it then returns [`Error::Interrupted`] and
 /// leaves the model's hyperparameters as they were.
 #[allow(non_snake_case)]
 pub fn fit_cogp_until<K: Kernel>(
@@ -372,7 +372,7 @@ pub fn fit_cogp_until<K: Kernel>(
         })
     })?;
     if full.stopped() {
-        return Err(GpError::Interrupted.into());
+        return Err(Error::Interrupted);
     }
     let evaluations = full.evaluations() + diag.evaluations();
     let (kern, Sigma, S) = full.objective().unpack(&best.theta)?;

@@ -53,7 +53,7 @@
 //! ## Stopping
 //! A harness given a stop flag ([`Harness::with_stop`]) checks it before
 //! every evaluation and iteration: once it is set, evaluations fail at once
-//! and the start ends with [`GpError::Interrupted`], within one likelihood
+//! and the start ends with [`Error::Interrupted`], within one likelihood
 //! evaluation of the flag being set.
 //!
 //! ## Starts and pre-fits
@@ -65,7 +65,7 @@
 //! lifted optimum itself is then one of the plan's candidates, so the full
 //! fit is never worse than the restricted one.
 
-use crate::error::{GpError, InputError};
+use crate::error::{Error, GpError, InputError};
 use rand_chacha::ChaCha8Rng;
 use rand_distr::{Distribution, StandardNormal};
 use std::collections::VecDeque;
@@ -294,13 +294,13 @@ impl<'s, O: Objective> Harness<'s, O> {
         &mut self,
         mut theta: Vec<f64>,
         settings: &RunSettings,
-    ) -> Result<Option<Point>, GpError> {
+    ) -> Result<Option<Point>, Error> {
         self.best = None;
         self.project(&mut theta);
         let mut grad = vec![0.0; theta.len()];
         let mut value = match self.evaluate(&theta, &mut grad) {
             Ok(v) => v,
-            Err(EvalFailure::Stopped) => return Err(GpError::Interrupted),
+            Err(EvalFailure::Stopped) => return Err(Error::Interrupted),
             Err(_) => return Ok(None),
         };
         let (mut remaining, mut resumes) = (settings.max_iters, 0);
@@ -309,7 +309,7 @@ impl<'s, O: Objective> Harness<'s, O> {
             let (used, stop) =
                 self.minimise(&mut theta, &mut value, &mut grad, remaining, settings);
             if stop == Stop::Stopped {
-                return Err(GpError::Interrupted);
+                return Err(Error::Interrupted);
             }
             remaining = remaining.saturating_sub(used.max(1));
             // a run whose line search failed resumes, with fresh memory, from
@@ -661,13 +661,14 @@ impl StartPlan {
 /// returns the best point over every start and candidate (the first on
 /// ties).
 ///
-/// Fails with [`GpError::Optimisation`] if no evaluation succeeded.
-pub(crate) fn multi_start<O: Objective, E: From<GpError>>(
+/// Fails with [`GpError::Optimisation`] if no evaluation succeeded, with
+/// [`Error::Interrupted`] once the harness's stop flag is set.
+pub(crate) fn multi_start<O: Objective>(
     harness: &mut Harness<O>,
     starts: usize,
     settings: &RunSettings,
-    mut plan: impl FnMut(&mut Harness<O>, usize) -> Result<StartPlan, E>,
-) -> Result<Point, E> {
+    mut plan: impl FnMut(&mut Harness<O>, usize) -> Result<StartPlan, Error>,
+) -> Result<Point, Error> {
     let mut best: Option<Point> = None;
     for s in 0..starts {
         let StartPlan { theta, candidates } = plan(harness, s)?;
@@ -844,7 +845,7 @@ mod tests {
             };
             let mut h = Harness::new(objective).with_stop(&stop);
             let r = h.run_start(vec![-1.2, 1.0], &settings());
-            assert_eq!(r, Err(GpError::Interrupted), "after {after}");
+            assert_eq!(r, Err(Error::Interrupted), "after {after}");
             assert_eq!(h.objective().evaluations, after);
         }
         let stop = AtomicBool::new(true);
@@ -855,7 +856,7 @@ mod tests {
         .with_stop(&stop);
         assert_eq!(
             h.run_start(vec![0.0, 0.0], &settings()),
-            Err(GpError::Interrupted)
+            Err(Error::Interrupted)
         );
         assert_eq!(h.evaluations(), 0);
     }
@@ -911,11 +912,9 @@ mod tests {
     fn a_failing_start_point_gives_no_point_and_a_typed_error() {
         let mut h = Harness::new(Bowl::unbounded(vec![1.0], 1.0));
         assert_eq!(h.run_start(vec![5.0], &settings()).unwrap(), None);
-        let e = multi_start(&mut h, 2, &settings(), |_, _| {
-            Ok::<_, GpError>(StartPlan::at(vec![5.0]))
-        })
-        .unwrap_err();
-        assert!(matches!(e, GpError::Optimisation(_)), "{e}");
+        let e =
+            multi_start(&mut h, 2, &settings(), |_, _| Ok(StartPlan::at(vec![5.0]))).unwrap_err();
+        assert!(matches!(e, Error::Gp(GpError::Optimisation(_))), "{e}");
         assert_eq!(h.last_failure(), Some(EvalFailure::OutOfRange));
     }
 
@@ -927,7 +926,7 @@ mod tests {
             value: 0.0,
         };
         let p = multi_start(&mut h, 1, &settings(), |_, _| {
-            Ok::<_, GpError>(StartPlan {
+            Ok(StartPlan {
                 theta: vec![3.0],
                 candidates: vec![exact.clone()],
             })

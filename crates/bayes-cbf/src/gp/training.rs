@@ -780,7 +780,7 @@ pub fn fit<K: Kernel>(model: &mut Mvgp<K>, settings: &FitSettings) -> Result<Fit
 
 /// [`fit`], stopped once `stop` is set (by another thread: a Ctrl-C
 /// handler, a deadline), within one likelihood evaluation: it then returns
-/// [`GpError::Interrupted`] and leaves the
+/// [`Error::Interrupted`] and leaves the
 /// model's hyperparameters as they were.
 pub fn fit_until<K: Kernel>(
     model: &mut Mvgp<K>,
@@ -833,7 +833,7 @@ pub fn fit_until<K: Kernel>(
         theta[off_sigma] = (theta[off_sigma] + 0.1).min(sigma_max);
     }
     if harness.stopped() {
-        return Err(GpError::Interrupted.into());
+        return Err(Error::Interrupted);
     }
     let evaluations = harness.evaluations();
     let hyper = harness.objective().hyper(&theta)?;

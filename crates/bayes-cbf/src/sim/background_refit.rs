@@ -5,7 +5,7 @@
 //!
 //! A refit due after step `k` (the schedule of
 //! [`LoopSettings::refit_every`](super::LoopSettings::refit_every) and
-//! `refit_geometric`) launches [`fit`] on a copy of the model as it is at
+//! `refit_geometric`) launches [`fit`](crate::gp::fit) on a copy of the model as it is at
 //! that moment: the same data, factor and hyperparameters, and the same fit
 //! settings and seed as the synchronous refit. The loop goes on with the
 //! previous hyperparameters, learning as usual, and after step `k + d`
@@ -31,7 +31,9 @@
 //! new hyperparameters (O(k³), on the loop's thread).
 
 use crate::error::Error;
-use crate::gp::{fit, FitReport, FitSettings, Mvgp};
+use crate::gp::{fit_until, FitReport, FitSettings, Mvgp};
+use std::sync::atomic::AtomicBool;
+use std::sync::Arc;
 use std::thread::JoinHandle;
 
 /// One change of the model's data since the launch.
@@ -51,12 +53,19 @@ pub(crate) struct BackgroundRefit {
 }
 
 impl BackgroundRefit {
-    /// Starts `fit(copy of model, settings)` after step `step`; the result is
-    /// applied after step `step + lag`.
-    pub(crate) fn launch(model: &Mvgp, settings: FitSettings, step: usize, lag: usize) -> Self {
+    /// Starts `fit(copy of model, settings)` after step `step`, stopped
+    /// once the loop's `stop` flag is set; the result is applied after step
+    /// `step + lag`.
+    pub(crate) fn launch(
+        model: &Mvgp,
+        settings: FitSettings,
+        step: usize,
+        lag: usize,
+        stop: Arc<AtomicBool>,
+    ) -> Self {
         let mut copy = model.clone();
         let handle = std::thread::spawn(move || {
-            let report = fit(&mut copy, &settings)?;
+            let report = fit_until(&mut copy, &settings, &stop)?;
             Ok((copy, report))
         });
         Self {
@@ -89,6 +98,8 @@ impl BackgroundRefit {
         let launched = self.launched;
         let (mut fitted, _report) = match self.handle.join() {
             Ok(Ok(r)) => r,
+            // the loop's stop flag is set: it ends at its next step
+            Ok(Err(Error::Interrupted)) => return,
             Ok(Err(e)) => {
                 log::warn!("refit launched at step {launched} failed ({e}); keeping the previous hyperparameters");
                 return;

@@ -12,11 +12,12 @@ use crate::control::{
     TriggerReport, TriggerSettings,
 };
 use crate::error::{check_nonnegative, check_positive, Error, InputError};
-use crate::gp::{fit, FitSettings, Mvgp};
+use crate::gp::{fit_until, FitSettings, Mvgp};
 use crate::systems::{wrap_angle, DynSystem};
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use rand_distr::{Distribution, StandardNormal};
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 use std::time::Instant;
 
@@ -335,6 +336,9 @@ pub struct ClosedLoop<'a> {
     t_now: f64,
     k: usize,
     last: Option<StepRecord>,
+    /// Ends [`run`](Self::run) and the refits once set
+    /// ([`with_stop`](Self::with_stop)).
+    stop: Arc<AtomicBool>,
 }
 
 impl<'a> ClosedLoop<'a> {
@@ -410,7 +414,18 @@ impl<'a> ClosedLoop<'a> {
             t_now: 0.0,
             k: 0,
             last: None,
+            stop: Arc::new(AtomicBool::new(false)),
         })
+    }
+
+    /// The loop, stopped by `stop`: once it is set (by another thread: a
+    /// Ctrl-C handler, a deadline), [`run`](Self::run) returns
+    /// [`Error::Interrupted`] before its next step, and a refit running,
+    /// in the loop or on the background thread, ends within one likelihood
+    /// evaluation, keeping the previous hyperparameters.
+    pub fn with_stop(mut self, stop: Arc<AtomicBool>) -> Self {
+        self.stop = stop;
+        self
     }
 
     /// Also records the minimum of each monitor (e.g. the signed distance
@@ -503,6 +518,9 @@ impl<'a> ClosedLoop<'a> {
     pub fn run(mut self, observer: &mut dyn Observer) -> Result<LoopResult, Error> {
         let mut records = crate::error::reserve("steps", self.settings.steps)?;
         while !self.is_finished() {
+            if self.stop.load(Ordering::Relaxed) {
+                return Err(Error::Interrupted);
+            }
             let rec = self.advance()?;
             observer.observe(self.k - 1, &rec);
             records.push(rec);
@@ -751,16 +769,21 @@ impl<'a> ClosedLoop<'a> {
             };
             match s.refit_background {
                 None => {
-                    if let Err(e) = fit(&mut self.model, &fs) {
-                        log::warn!(
+                    match fit_until(&mut self.model, &fs, &self.stop) {
+                        // an interrupted refit ends the run at the next step
+                        Ok(_) | Err(Error::Interrupted) => {}
+                        Err(e) => log::warn!(
                             "refit at step {k} failed ({e}); keeping the previous hyperparameters"
-                        );
+                        ),
                     }
                 }
                 Some(_) if self.background.is_some() => {
                     log::info!("refit due at step {k} skipped: the previous one is still running");
                 }
-                Some(d) => self.background = Some(BackgroundRefit::launch(&self.model, fs, k, d)),
+                Some(d) => {
+                    let stop = Arc::clone(&self.stop);
+                    self.background = Some(BackgroundRefit::launch(&self.model, fs, k, d, stop));
+                }
             }
         }
         swapped || (due && s.refit_background.is_none())
