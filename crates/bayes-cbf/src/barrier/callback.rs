@@ -321,19 +321,29 @@ mod tests {
         assert_eq!(hess, [0.0, 1.0, 1.0, 0.0]);
     }
 
+    /// `h` failing with `message` where `x₀ > limit`, `below(x₀)` elsewhere.
+    fn failing_above(limit: f64, message: &'static str, below: fn(f64) -> f64) -> ValueFn {
+        Box::new(move |x| {
+            if x[0] > limit {
+                Err(message.into())
+            } else {
+                Ok(below(x[0]))
+            }
+        })
+    }
+
+    /// A gradient or Hessian of constant entries `v`.
+    fn filled(v: f64) -> ArrayFn {
+        Box::new(move |_, out| {
+            out.fill(v);
+            Ok(())
+        })
+    }
+
     #[test]
     fn failures_are_recorded_once_and_taken() {
-        let h: ValueFn = Box::new(|x| {
-            if x[0] > 0.0 {
-                Err("boom".into())
-            } else {
-                Ok(f64::INFINITY)
-            }
-        });
-        let g: ArrayFn = Box::new(|_, out| {
-            out.fill(0.0);
-            Ok(())
-        });
+        let h = failing_above(0.0, "boom", |_| f64::INFINITY);
+        let g = filled(0.0);
         let cb = CallbackBarrier::new("bad", 1, 1, vec![1.0], h, g, None).unwrap();
         assert!(cb.value(&[1.0]).is_nan());
         assert!(cb.value(&[-1.0]).is_nan());
@@ -351,11 +361,7 @@ mod tests {
         // the first failure wins: the missing Hessian comes before h
         assert!(cb.take_error().unwrap().contains("hess is required"));
         let ok_h: ValueFn = Box::new(|_| Ok(1.0));
-        let ok_g: ArrayFn = Box::new(|_, out| {
-            out.fill(0.0);
-            Ok(())
-        });
-        let no_hess = CallbackBarrier::new("c", 1, 1, vec![1.0], ok_h, ok_g, None).unwrap();
+        let no_hess = CallbackBarrier::new("c", 1, 1, vec![1.0], ok_h, filled(0.0), None).unwrap();
         no_hess.hessian(&[0.0], &mut grad, &mut hess, &mut []);
         assert!(no_hess.take_error().unwrap().contains("hess is required"));
     }
@@ -365,18 +371,8 @@ mod tests {
     /// thread's failure, and the failing thread gets its own message.
     #[test]
     fn failures_are_reported_to_the_thread_that_met_them() {
-        let h: ValueFn = Box::new(|x| {
-            if x[0] > 5.0 {
-                Err("bad region".into())
-            } else {
-                Ok(x[0])
-            }
-        });
-        let g: ArrayFn = Box::new(|_, out| {
-            out.fill(1.0);
-            Ok(())
-        });
-        let cb = CallbackBarrier::new("shared", 1, 1, vec![1.0], h, g, None).unwrap();
+        let h = failing_above(5.0, "bad region", |x| x);
+        let cb = CallbackBarrier::new("shared", 1, 1, vec![1.0], h, filled(1.0), None).unwrap();
         let failed = std::sync::Barrier::new(2);
         let taken = std::sync::Barrier::new(2);
         std::thread::scope(|s| {
