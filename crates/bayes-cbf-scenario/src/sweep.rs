@@ -2,7 +2,7 @@
 //! that any scheduler can run, and merged back into exactly the result of
 //! the unsharded sweep.
 //!
-//! A sweep runs [`run_scenario`] once per seed (in parallel on rayon; each
+//! A sweep runs [`run_scenario`](crate::scenario::run_scenario) once per seed (in parallel on rayon; each
 //! run depends only on its seed, so the rows do not depend on the thread
 //! count) and keeps one [`SweepRow`] per seed. Shard `I/N` runs the seeds
 //! at positions `I, I + N, I + 2N, …` of the range. [`merge_sweeps`] checks
