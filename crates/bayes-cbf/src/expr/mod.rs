@@ -194,7 +194,12 @@ fn stack_need(nodes: &[Node]) -> usize {
 fn unary<D: DualNum<Primitive = f64> + Copy>(node: Node, v: D) -> D {
     match node {
         Node::Neg(_) => -v,
-        Node::PowI(_, n) => v.powi(n),
+        Node::PowI(_, n) => match n {
+            0 => D::from(1.0),
+            1 => v,
+            2 => v * v,
+            _ => pow_const(v, n as f64),
+        },
         Node::PowF(_, e) => pow_const(v, e),
         Node::Call1(f, _) => match f {
             Func::Sin => v.sin(),
@@ -225,18 +230,20 @@ fn unary<D: DualNum<Primitive = f64> + Copy>(node: Node, v: D) -> D {
 /// `x^c` for a constant `c`, by its Taylor series at the real part `r`:
 /// `Σ_k f⁽ᵏ⁾(r) dᵏ/k!` with `d = x − r` and `f⁽ᵏ⁾(r) = c(c−1)…(c−k+1)
 /// r^(c−k)`, up to the order of derivatives `D` carries (`d` is nilpotent,
-/// so the sum is exact). num-dual's `powf` forms `r^(c−3) r³` instead,
-/// which is `∞ · 0 = NaN` at `r = 0`, even in the value, and overflows at
-/// tiny `r`.
+/// so the sum is exact). num-dual's `powf` and `powi` form `r^(c−3) r³`
+/// instead, which is `∞ · 0 = NaN` at `r = 0`, even in the value, and
+/// overflows at small `r` (`x^-1` at `10⁻¹⁰⁰`).
 ///
-/// Where `f⁽ᵏ⁾(r)` is infinite (`r = 0`, `k > c`), the term is `dᵏ`
-/// scaled by `±MAX²` instead: exactly 0 where `dᵏ` is (a composition such
-/// as `(px² + py²)^1.5` at the origin, C² with value, gradient and Hessian
-/// 0), `±∞` where an entry of `dᵏ` is a normal number (`x^0.5` at 0, whose
-/// derivative is infinite, reported as not finite by the caller), and the
-/// real part 0 either way, whereas `dᵏ · ∞` would be NaN in every part.
-/// (Dual numbers compare by their real parts only, so whether `dᵏ` is zero
-/// cannot be asked.)
+/// At `r = 0` exactly, where `f⁽ᵏ⁾(0)` is infinite (`k > c`), the term is
+/// `dᵏ` scaled by `±MAX³` instead: exactly 0 where `dᵏ` is (a composition
+/// such as `(px² + py²)^1.5` at the origin, C² with value, gradient and
+/// Hessian 0), `±∞` where it is not (any non-zero entry, subnormal ones
+/// included: `x^0.5` at 0, whose derivative is infinite), and the real
+/// part 0 either way, whereas `dᵏ · ∞` would be NaN in every part. (Dual
+/// numbers compare by their real parts only, so whether `dᵏ` is zero
+/// cannot be asked.) Elsewhere an overflowing `f⁽ᵏ⁾(r)` (a base below
+/// about `10⁻³⁰⁰`) makes the result not finite, which the caller reports:
+/// an error at such a state, never a wrong finite number.
 fn pow_const<D: DualNum<Primitive = f64> + Copy>(x: D, c: f64) -> D {
     let r = x.re();
     let d = x - D::from(r);
@@ -244,8 +251,8 @@ fn pow_const<D: DualNum<Primitive = f64> + Copy>(x: D, c: f64) -> D {
     let (mut dk, mut coef, mut fact) = (d, c, 1.0);
     for k in 1..=D::NDERIV {
         let f = coef * r.powf(c - k as f64) / fact;
-        out += if f.is_infinite() {
-            dk * f64::MAX * (f64::MAX * f.signum())
+        out += if f.is_infinite() && r == 0.0 {
+            dk * f64::MAX * f64::MAX * (f64::MAX * f.signum())
         } else {
             dk * f
         };
