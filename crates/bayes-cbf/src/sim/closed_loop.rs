@@ -519,6 +519,11 @@ impl<'a> ClosedLoop<'a> {
         let mut records = crate::error::reserve("steps", self.settings.steps)?;
         while !self.is_finished() {
             if self.stop.load(Ordering::Relaxed) {
+                // a background refit sees the flag too and ends within one
+                // evaluation: joined, so that no thread outlives the run
+                if let Some(bg) = self.background.take() {
+                    bg.abandon();
+                }
                 return Err(Error::Interrupted);
             }
             let rec = self.advance()?;
