@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import numbers
 from typing import Any, Callable, Optional
 
 import numpy as np
@@ -10,8 +11,14 @@ from ._core import InputError
 
 
 def _real(name: str, v: Any) -> float:
-    """``v`` as a float, refusing what is not a real number (a bool, a string)."""
-    if isinstance(v, (bool, np.bool_)) or not isinstance(v, (int, float, np.integer, np.floating)):
+    """``v`` (a number or a 0-d array of one) as a float, refusing what is
+    not a real number (a bool, a string, an array of several)."""
+    a = np.asarray(v) if isinstance(v, np.ndarray) else v
+    if isinstance(a, np.ndarray):
+        if a.ndim != 0 or a.dtype.kind not in "iuf":
+            raise InputError(f"{name}: {v!r} is not a real number")
+        return float(a)
+    if isinstance(v, (bool, np.bool_)) or not isinstance(v, numbers.Real):
         raise InputError(f"{name}: {v!r} is not a real number")
     return float(v)
 
@@ -34,7 +41,7 @@ def check_derivatives(
     step: float = 1e-5,
     rtol: float = 1e-4,
     atol: float = 1e-6,
-    seed: int = 0,
+    seed: Optional[int] = 0,
 ) -> dict:
     """Compares ``grad`` (and ``hess``) with central differences of ``h`` (and
     ``grad``) at ``points`` (``(q, n)``; default: 10 standard-normal points in
@@ -58,7 +65,8 @@ def check_derivatives(
     if points is None:
         if state_dim is None:
             raise InputError("check_derivatives: give points or state_dim")
-        points = np.random.default_rng(_count("seed", seed, 0)).standard_normal((10, state_dim))
+        rng = np.random.default_rng(None if seed is None else _count("seed", seed, 0))
+        points = rng.standard_normal((10, state_dim))
     points = np.atleast_2d(np.asarray(points, dtype=np.float64))
     if points.ndim != 2 or points.shape[0] == 0 or points.shape[1] == 0:
         raise InputError(f"points: expected a non-empty (q, n) array, got shape {points.shape}")
@@ -87,12 +95,15 @@ def check_derivatives(
         return call
 
     def scalar(f: Callable[[np.ndarray], Any]) -> Callable[[np.ndarray], float]:
-        # h's value as the barrier reads it: a number, or an array of one
+        # h's value as Barrier.callback reads it: a float (or a 0-d array)
         def call(x: np.ndarray) -> float:
-            v = np.asarray(f(x), dtype=np.float64)
-            if v.size != 1:
-                raise InputError(f"h: returned {v.size} values at x = {x.tolist()}, expected one")
-            return float(v.reshape(-1)[0])
+            v = f(x)
+            if np.ndim(v) != 0:
+                raise InputError(
+                    f"h: returned an array of shape {np.shape(v)} at x = {x.tolist()}, "
+                    "expected a float (as Barrier.callback does)"
+                )
+            return float(v)
 
         return call
 

@@ -156,3 +156,17 @@ COMPLEX = [
 @pytest.mark.parametrize("field,thunk", COMPLEX, ids=[c[0] for c in COMPLEX])
 def test_complex_arrays_are_refused(field, thunk):
     raises_naming(field, thunk, "complex values are not accepted")
+
+
+BOOLEAN = [
+    ("A", lambda: mvgp(A=np.eye(2, dtype=bool))),
+    ("x", lambda: half_space().value(np.array([True, False]))),
+    ("Xq", lambda: mvgp().predict(np.array([[True, False]]))),
+]
+
+
+@pytest.mark.parametrize("field,thunk", BOOLEAN, ids=[c[0] for c in BOOLEAN])
+def test_boolean_arrays_are_refused(field, thunk):
+    """As a scalar argument refuses True, an array of booleans is not one of
+    numbers (a mixed list such as [True, 1.5] is numbers to numpy)."""
+    raises_naming(field, thunk, "booleans are not numbers")

@@ -133,3 +133,18 @@ def test_ctrl_c_stops_a_run():
         bc.run_scenario("pendulum-safe", seed=1, overrides={"steps": 200000})
     timer.join()
     assert time.monotonic() - started < 5.0
+
+
+def test_a_monte_carlo_condition_reports_its_own_failure():
+    """Relative degree 3 (moments from posterior draws on a lattice around
+    x): h undefined on the lattice is this step's error, naming the
+    barrier, and not a later call's."""
+    model = bc.MVGP(3, 1, [1.0] * 3, np.eye(3), np.eye(2), 0.1)
+    b = bc.Barrier.expression("log(x) + 5", ["x", "y", "z"], relative_degree=3,
+                              k_alpha=[1.0, 3.0, 3.0])
+    f = bc.SafetyFilter(model, [b])
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # the Monte Carlo estimate's cost
+        with pytest.raises(bc.InputError, match=r"barriers\[0\]: h of barrier 'log\(x\) \+ 5'"):
+            f.filter([0.0005, 0.0, 0.0], [0.0])
+    assert b.value([1.0, 0.0, 0.0]) == 5.0

@@ -127,9 +127,22 @@ def test_check_derivatives_reports_failures_and_refuses_bad_settings():
         ({"state_dim": 0}, "state_dim"),
         ({"points": np.zeros((0, 2))}, "points"),
         ({"points": np.zeros((3, 2)), "state_dim": 3}, "points"),
+        ({"state_dim": 2.7}, "state_dim: 2.7 is not an integer"),
+        ({"state_dim": "2"}, "state_dim"),
+        ({"state_dim": 2, "step": "a"}, "step: 'a' is not a real number"),
+        ({"state_dim": 2, "rtol": True}, "rtol"),
     ]:
         with pytest.raises(bc.InputError, match=field):
             bc.check_derivatives(h, g, **kw)
+    # numbers of numpy, 0-d arrays and a seed of None are numbers and a seed
+    ok = bc.check_derivatives(h, g, state_dim=np.int64(2), step=np.array(1e-5),
+                              atol=np.float32(1e-6), seed=None)
+    assert ok["ok"]
+    # h as Barrier.callback reads it: a float, not an array of one
+    with pytest.raises(bc.InputError, match="expected a float"):
+        bc.check_derivatives(lambda x: np.array([x @ x]), g, state_dim=2)
+    with pytest.raises(bc.InputError, match="h must return a float"):
+        bc.Barrier.callback(lambda x: np.array([x @ x]), g).value([1.0, 0.0])
 
 
 def test_check_derivatives_wraps_a_callbacks_exception():

@@ -108,7 +108,7 @@ pub fn core_err(e: impl Into<bayes_cbf::Error>) -> PyErr {
 /// A float64 array of `obj` (numpy arrays of float64 as they are; lists and
 /// other real dtypes converted by `numpy.asarray`), with `ndim`
 /// dimensions. Errors name `field`; complex values are one (numpy would
-/// drop their imaginary parts).
+/// drop their imaginary parts), and so are booleans.
 pub fn array<'py>(
     obj: &Bound<'py, PyAny>,
     field: &str,
@@ -126,9 +126,16 @@ pub fn array<'py>(
                 ))
             };
             let any = np.call_method1("asarray", (obj,)).map_err(not_numbers)?;
-            if any.getattr("dtype")?.getattr("kind")?.extract::<String>()? == "c" {
+            let kind = any.getattr("dtype")?.getattr("kind")?.extract::<String>()?;
+            // as a scalar argument refuses True: a bool array is not numbers
+            let refused = match kind.as_str() {
+                "c" => Some("complex values are not accepted"),
+                "b" => Some("booleans are not numbers"),
+                _ => None,
+            };
+            if let Some(why) = refused {
                 return Err(input_err(format!(
-                    "{field}: complex values are not accepted (got dtype {})",
+                    "{field}: {why} (got dtype {})",
                     any.getattr("dtype")?
                 )));
             }

@@ -13,15 +13,16 @@ use std::time::Duration;
 /// How often the calling thread checks for signals.
 const POLL: Duration = Duration::from_millis(50);
 
-/// `work(stop)` on a worker thread, the GIL released; a Python signal
-/// handler that raises (Ctrl-C's `KeyboardInterrupt`) sets `stop`, and its
-/// exception is this call's once `work` has returned. Outside the main
-/// thread, where Python handles no signals, this is `work` with a flag that
-/// stays clear.
+/// `work(stop)` on a worker thread, the GIL released, and the exception of
+/// a Python signal handler that raised meanwhile (Ctrl-C's
+/// `KeyboardInterrupt`), which set `stop`: the caller raises it after
+/// keeping what `work` did, since `work` may have finished as the handler
+/// ran. Outside the main thread, where Python handles no signals, this is
+/// `work` with a flag that stays clear.
 pub fn interruptible<T: Send>(
     py: Python<'_>,
     work: impl FnOnce(&Arc<AtomicBool>) -> T + Send,
-) -> PyResult<T> {
+) -> (T, PyResult<()>) {
     let stop = Arc::new(AtomicBool::new(false));
     let mut signal: Option<PyErr> = None;
     let caller = std::thread::current();
@@ -46,8 +47,5 @@ pub fn interruptible<T: Send>(
                 .unwrap_or_else(|panic| std::panic::resume_unwind(panic))
         })
     });
-    match signal {
-        Some(e) => Err(e),
-        None => Ok(out),
-    }
+    (out, signal.map_or(Ok(()), Err))
 }

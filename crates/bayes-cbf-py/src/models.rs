@@ -184,11 +184,17 @@ macro_rules! gp_methods {
                 let model = &mut slf.model;
                 // Ctrl-C stops the fit (KeyboardInterrupt): the model then
                 // holds the new data with its hyperparameters as before
-                let report = crate::interrupt::interruptible(py, |stop| {
+                let (report, signal) = crate::interrupt::interruptible(py, |stop| {
                     model.set_data(&xs, &us, &xd)?;
                     $fit(model, &settings, stop)
                 });
-                let report = crate::warnings::after(py, report)?.map_err(core_err)?;
+                // a fit that finished as the signal came keeps its result:
+                // the report says so
+                if let Ok(r) = &report {
+                    slf.last_fit = Some(r.clone());
+                }
+                let report =
+                    crate::warnings::after(py, signal.map(|()| report))?.map_err(core_err)?;
                 slf.last_fit = Some(report);
                 if let Some(w) = FitWarning::fit_warning(&slf.model) {
                     let msg = std::ffi::CString::new(w).unwrap_or_default();

@@ -59,13 +59,15 @@ pub fn run_scenario<'py>(
         sets.push(format!("seed={s}"));
     }
     // Ctrl-C ends the run before its next step (KeyboardInterrupt)
-    let result = crate::interrupt::interruptible(py, |stop| -> bayes_cbf_scenario::Result<_> {
-        let (sc, _) = scenario::load(name, &sets)?;
-        let out = run_scenario_until(&sc, |_, _| {}, stop.clone())?;
-        let json = serde_json::to_string(&out.summary)?;
-        Ok((Trajectory::of(&out), json))
-    });
-    let (output, summary_json) = crate::warnings::after(py, result)?.map_err(scenario_err)?;
+    let (result, signal) =
+        crate::interrupt::interruptible(py, |stop| -> bayes_cbf_scenario::Result<_> {
+            let (sc, _) = scenario::load(name, &sets)?;
+            let out = run_scenario_until(&sc, |_, _| {}, stop.clone())?;
+            let json = serde_json::to_string(&out.summary)?;
+            Ok((Trajectory::of(&out), json))
+        });
+    let (output, summary_json) =
+        crate::warnings::after(py, signal.map(|()| result))?.map_err(scenario_err)?;
     let summary = py
         .import("json")?
         .call_method1("loads", (summary_json,))?

@@ -59,9 +59,10 @@ pub fn check_scenario(name: &str, sets: Vec<String>) -> PyResult<()> {
 pub fn sweep_shard(py: Python<'_>, meta: &str) -> PyResult<String> {
     let meta = parse_meta(meta)?;
     // Ctrl-C ends the runs under way and starts no others
-    let rows = crate::interrupt::interruptible(py, |stop| run_seeds_until(&meta, &|_, _| {}, stop));
+    let (rows, signal) =
+        crate::interrupt::interruptible(py, |stop| run_seeds_until(&meta, &|_, _| {}, stop));
     Ok(rows_csv(
-        &crate::warnings::after(py, rows)?.map_err(scenario_err)?,
+        &crate::warnings::after(py, signal.map(|()| rows))?.map_err(scenario_err)?,
     ))
 }
 
