@@ -337,6 +337,23 @@ def test_an_unresolvable_covariance_is_a_numerical_error():
         f.filter([0.1, 0.2], [0.0])
 
 
+def test_an_unresolved_variance_is_a_numerical_error():
+    """At a kernel variance of 1e14 the condition's variance at u = 0.5 is
+    below the rounding of its terms: moments raises NumericalError where it
+    returned 0."""
+    A = np.array([[1.0, 0.1], [0.1, 0.8]])
+    B = np.array([[1.0, 0.2], [0.2, 0.5]])
+    sector = bc.Barrier.pendulum_sector(0.7854, 0.3927, relative_degree=1, alpha=2.0)
+    for variance, resolved in [(1.5, True), (1e14, False)]:
+        m = bc.MVGP(2, 1, [0.7, 1.3], A, B, 0.1, variance=variance)
+        m.add_observation([0.1, 0.2], [0.5], [0.2, -0.4])
+        if resolved:
+            assert bc.moments(m, sector, [0.1, 0.2], [0.5])[1] > 0.0
+        else:
+            with pytest.raises(bc.NumericalError, match="not resolved"):
+                bc.moments(m, sector, [0.1, 0.2], [0.5])
+
+
 def test_a_missing_model_file_is_file_not_found(tmp_path):
     with pytest.raises(FileNotFoundError, match="nowhere.json"):
         bc.MVGP.load(str(tmp_path / "nowhere.json"))

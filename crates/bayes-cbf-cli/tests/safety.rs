@@ -170,6 +170,30 @@ fn an_unresolvable_covariance_is_an_error_not_an_optimum() {
     );
 }
 
+/// At a kernel variance of 10¹⁴ the condition's variance at u = 0.5 (0.004
+/// at unit variance) is below the rounding of its terms: `moments` says so
+/// and names the barrier, where it printed 0. At the file's variance the
+/// same query gives the number.
+#[test]
+fn an_unresolved_variance_is_an_error_not_zero() {
+    let huge = MODEL.replace("\"variance\": 1.5", "\"variance\": 1e14");
+    let dir = setup(
+        "moments_unresolved",
+        &[("huge.json", &huge), ("b.json", SECTOR_RD1)],
+    );
+    let args = "moments --model huge.json --barrier b.json --x 0.1,0.2 --u 0.5";
+    assert_fails(
+        &run_in(&dir, &words(args)),
+        &["barrier 'b.json'", "variance at u", "not resolved"],
+        args,
+    );
+    let fine = run_in(
+        &dir,
+        &words("moments --model model.json --barrier b.json --x 0.1,0.2 --u 0.5"),
+    );
+    assert!(fine.status.success(), "{}", fine.stderr);
+}
+
 #[test]
 fn bad_safety_input_names_the_field() {
     let dir = setup(

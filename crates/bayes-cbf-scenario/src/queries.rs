@@ -90,7 +90,11 @@ pub fn condition_moments(
         )
     };
     mom.check_finite(label, x)?;
-    let (mean, variance) = (mom.mean(u), mom.variance(u));
+    let mean = mom.mean(u);
+    let variance = mom
+        .variance_resolved(u)
+        .map_err(bayes_cbf::Error::from)
+        .with_context(|| label.to_string())?;
     if !(mean.is_finite() && variance.is_finite()) {
         bail!(
             "{label}: the condition at u = {u:?} overflows (mean {mean:e}, variance {variance:e})"

@@ -205,6 +205,21 @@ pub enum ControlError {
         /// Largest absolute entry of the condition's covariance.
         scale: f64,
     },
+    /// A condition's variance at a control is not resolved: the rounding
+    /// of the terms it is summed from (`u̲ᵀ Cov u̲` with entries far larger
+    /// than the result) could be a tenth of it or more, so the value, at
+    /// worst clamped to 0, says little. A kernel variance far above the
+    /// data's spread does this (10¹³ and more for the model of the
+    /// command-line tests, where the variance is 0.004).
+    #[error("the condition's variance at u ({variance:.3e}) is not resolved: the rounding of the covariance's terms could be {rounding:.1e} (largest entry {scale:.1e}), a tenth of it or more; check the model's kernel variance and noise")]
+    VarianceUnresolved {
+        /// The computed `u̲ᵀ Cov u̲` (before clamping at 0).
+        variance: f64,
+        /// Bound on its rounding error.
+        rounding: f64,
+        /// Largest absolute entry of the covariance.
+        scale: f64,
+    },
 }
 
 /// Any error of this library.

@@ -665,3 +665,33 @@ fn predictive_moments_match_monte_carlo_of_the_realised_condition() {
     let e = add_observation_noise(&ws, &mut out).unwrap_err();
     assert!(e.to_string().contains("relative_degree"), "{e}");
 }
+
+/// `Cov = a v vᵀ + diag(0.004, 0)` with `v = (1, −2)` orthogonal to
+/// `u̲ = (1, 0.5)`: the variance at `u = 0.5` is 0.004 whatever `a`. At
+/// `a = 1` it is resolved (to 1e-12); at `a = 10¹³` the terms of `u̲ᵀ Cov
+/// u̲` are 10¹³ and their rounding could be 10⁻³, a fourth of the
+/// result: `variance_resolved` says so instead of giving a number. At
+/// `a = 10¹⁵`, where 0.004 is below an ulp of the terms, `variance` gives
+/// 0.
+#[test]
+fn a_variance_below_the_rounding_of_its_terms_is_unresolved() {
+    use bayes_cbf::ControlError;
+    let at = |a: f64| {
+        let cov = DMatrix::from_row_slice(2, 2, &[a + 0.004, -2.0 * a, -2.0 * a, 4.0 * a]);
+        ConditionMoments::from_parts(vec![0.17, -0.11], cov, 1).unwrap()
+    };
+    let v = at(1.0).variance_resolved(&[0.5]).unwrap();
+    assert!((v - 0.004).abs() < 1e-12, "{v}");
+    for a in [1e13, 1e15] {
+        let mom = at(a);
+        let e = mom.variance_resolved(&[0.5]).unwrap_err();
+        assert!(matches!(e, ControlError::VarianceUnresolved { .. }), "{e}");
+        assert!(e.to_string().contains("not resolved"), "{e}");
+    }
+    // what the unchecked sum gives where 0.004 is below an ulp of 10¹⁵
+    assert_eq!(at(1e15).variance(&[0.5]), 0.0);
+    // where the rounding cannot hide a standard deviation that matters,
+    // a variance of 0 is 0 (a deterministic condition)
+    let exact = ConditionMoments::from_parts(vec![0.17, -0.11], DMatrix::zeros(2, 2), 1).unwrap();
+    assert_eq!(exact.variance_resolved(&[0.5]).unwrap(), 0.0);
+}

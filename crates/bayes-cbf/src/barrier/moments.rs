@@ -25,7 +25,7 @@
 //! the tests, and so is that swap.
 
 use super::{DynBarrier, DynLyapunov};
-use crate::error::{Error, InputError};
+use crate::error::{ControlError, Error, InputError};
 use crate::gp::{JointPosterior, JointWorkspace, Kernel, Mvgp, Posterior, PosteriorWorkspace};
 use nalgebra::DMatrix;
 use num_dual::{Dual64, HyperDual64};
@@ -130,6 +130,38 @@ impl ConditionMoments {
     pub fn mean(&self, u: &[f64]) -> f64 {
         self.e[0] + u.iter().zip(&self.e[1..]).map(|(a, b)| a * b).sum::<f64>()
     }
+    /// `Var[C]` at control `u`, or [`ControlError::VarianceUnresolved`]
+    /// when the rounding of the sum it comes from could be a tenth of it or
+    /// more, and that rounding matters: `u̲ᵀ C u̲` sums `(1+m)²` terms
+    /// `u̲_i C_ij u̲_j`, each rounded, so its error is up to about `r =
+    /// 2 (1+m)² ε Σ |u̲_i C_ij u̲_j|` (ε the machine epsilon, doubled for
+    /// the rounding of `C` itself), and it matters when `√r`, the standard
+    /// deviation it could hide, exceeds `10⁻⁶ max(1, |E[C]|)`. For a report
+    /// of the variance (`bayes-cbf moments`, Python's `moments`), where
+    /// [`variance`](Self::variance) would give the rounding, clamped at 0.
+    pub fn variance_resolved(&self, u: &[f64]) -> Result<f64, ControlError> {
+        let p = self.e.len();
+        let ub = |i: usize| if i == 0 { 1.0 } else { u[i - 1] };
+        let (mut s, mut size) = (0.0, 0.0f64);
+        for i in 0..p {
+            for j in 0..p {
+                let t = ub(i) * self.cov[(i, j)] * ub(j);
+                s += t;
+                size += t.abs();
+            }
+        }
+        let rounding = 2.0 * (p * p) as f64 * f64::EPSILON * size;
+        let matters = rounding.sqrt() > 1e-6 * self.mean(u).abs().max(1.0);
+        if rounding > 0.1 * s.max(0.0) && matters {
+            return Err(ControlError::VarianceUnresolved {
+                variance: s,
+                rounding,
+                scale: self.cov.amax(),
+            });
+        }
+        Ok(s.max(0.0))
+    }
+
     /// `Var[C]` at control `u`.
     pub fn variance(&self, u: &[f64]) -> f64 {
         let p = self.e.len();
