@@ -150,17 +150,20 @@ fn control_reports_infeasibility_and_fallback() {
     assert!((c - (0.999f64 / 0.001).sqrt()).abs() < 1e-6, "{c}");
 }
 
+/// A scratch directory holding `model.json`, the model at kernel variance
+/// `variance` as `huge.json` and the relative-degree-1 sector as `b.json`.
+fn huge_variance(name: &str, variance: &str) -> Scratch {
+    let huge = MODEL.replace("\"variance\": 1.5", &format!("\"variance\": {variance}"));
+    setup(name, &[("huge.json", &huge), ("b.json", SECTOR_RD1)])
+}
+
 /// A kernel variance of 10¹⁶ puts the condition's covariance at ~10¹⁵, whose
 /// rounding hides the standard deviation at the control: the solver's
 /// control misses the condition by 1.7, and the command fails with a
 /// numerical error instead of reporting it as optimal.
 #[test]
 fn an_unresolvable_covariance_is_an_error_not_an_optimum() {
-    let huge = MODEL.replace("\"variance\": 1.5", "\"variance\": 1e16");
-    let dir = setup(
-        "control_unresolved",
-        &[("huge.json", &huge), ("b.json", SECTOR_RD1)],
-    );
+    let dir = huge_variance("control_unresolved", "1e16");
     let args = "control --model huge.json --barrier b.json --x 0.1,0.2 --probability 0.9 \
                 --u-min=-5 --u-max 5";
     assert_fails(
@@ -176,11 +179,7 @@ fn an_unresolvable_covariance_is_an_error_not_an_optimum() {
 /// same query gives the number.
 #[test]
 fn an_unresolved_variance_is_an_error_not_zero() {
-    let huge = MODEL.replace("\"variance\": 1.5", "\"variance\": 1e14");
-    let dir = setup(
-        "moments_unresolved",
-        &[("huge.json", &huge), ("b.json", SECTOR_RD1)],
-    );
+    let dir = huge_variance("moments_unresolved", "1e14");
     let args = "moments --model huge.json --barrier b.json --x 0.1,0.2 --u 0.5";
     assert_fails(
         &run_in(&dir, &words(args)),
