@@ -140,16 +140,8 @@ impl ConditionMoments {
     /// of the variance (`bayes-cbf moments`, Python's `moments`), where
     /// [`variance`](Self::variance) would give the rounding, clamped at 0.
     pub fn variance_resolved(&self, u: &[f64]) -> Result<f64, ControlError> {
+        let (s, size) = self.quadratic_form(u);
         let p = self.e.len();
-        let ub = |i: usize| if i == 0 { 1.0 } else { u[i - 1] };
-        let (mut s, mut size) = (0.0, 0.0f64);
-        for i in 0..p {
-            for j in 0..p {
-                let t = ub(i) * self.cov[(i, j)] * ub(j);
-                s += t;
-                size += t.abs();
-            }
-        }
         let rounding = 2.0 * (p * p) as f64 * f64::EPSILON * size;
         let matters = rounding.sqrt() > 1e-6 * self.mean(u).abs().max(1.0);
         if rounding > 0.1 * s.max(0.0) && matters {
@@ -164,15 +156,22 @@ impl ConditionMoments {
 
     /// `Var[C]` at control `u`.
     pub fn variance(&self, u: &[f64]) -> f64 {
+        self.quadratic_form(u).0.max(0.0)
+    }
+
+    /// `u̲ᵀ C u̲` and the sum of its terms' magnitudes `Σ |u̲_i C_ij u̲_j|`.
+    fn quadratic_form(&self, u: &[f64]) -> (f64, f64) {
         let p = self.e.len();
         let ub = |i: usize| if i == 0 { 1.0 } else { u[i - 1] };
-        let mut s = 0.0;
+        let (mut s, mut size) = (0.0, 0.0f64);
         for i in 0..p {
             for j in 0..p {
-                s += ub(i) * self.cov[(i, j)] * ub(j);
+                let t = ub(i) * self.cov[(i, j)] * ub(j);
+                s += t;
+                size += t.abs();
             }
         }
-        s.max(0.0)
+        (s, size)
     }
 }
 
@@ -378,19 +377,21 @@ fn warn_unmodelled_lgh(ws: &MomentWorkspace, barrier: &dyn DynBarrier, out: &Con
     }
 }
 
-/// Rejects a failed or non-finite evaluation of `h`, `∇h` or `∇²h`, naming
-/// the barrier (a callback's own message first).
-fn check_evaluation(
+/// Rejects a failed or non-finite evaluation of `h` (at `x`, or on a
+/// lattice around it), `∇h` or `∇²h`, naming the barrier (a callback's own
+/// message first): the evaluation's failure is this call's error, not a
+/// later call's.
+pub(super) fn check_evaluation(
     barrier: &dyn DynBarrier,
     x: &[f64],
-    h: f64,
+    h: &[f64],
     grad: &[f64],
     hess: &[f64],
 ) -> Result<(), Error> {
     if let Some(msg) = barrier.take_error() {
         return Err(InputError::Evaluation(msg).into());
     }
-    for (what, v) in [("h", std::slice::from_ref(&h)), ("∇h", grad), ("∇²h", hess)] {
+    for (what, v) in [("h", h), ("∇h", grad), ("∇²h", hess)] {
         if let Some(bad) = v.iter().find(|v| !v.is_finite()) {
             return Err(InputError::Evaluation(format!(
                 "{what} of barrier '{}' is {bad} at x = {x:?}",
@@ -416,7 +417,7 @@ pub fn cbc_moments(
         1 => {
             check_dims(ws, barrier.state_dim(), 1)?;
             let h = barrier.gradient(&ws.x, &mut ws.grad, &mut ws.sd);
-            check_evaluation(barrier, &ws.x, h, &ws.grad, &[])?;
+            check_evaluation(barrier, &ws.x, &[h], &ws.grad, &[])?;
             rd1(ws, h, gains[0], out);
             out.value = h;
             out.relative_degree = 1;
@@ -424,7 +425,7 @@ pub fn cbc_moments(
         2 => {
             check_dims(ws, barrier.state_dim(), 2)?;
             let h = barrier.hessian(&ws.x, &mut ws.grad, &mut ws.hess, &mut ws.sh);
-            check_evaluation(barrier, &ws.x, h, &ws.grad, &ws.hess)?;
+            check_evaluation(barrier, &ws.x, &[h], &ws.grad, &ws.hess)?;
             rd2(ws, h, gains[0], gains[1], out);
             warn_unmodelled_lgh(ws, barrier, out);
             out.value = h;

@@ -167,17 +167,7 @@ pub fn mc_cbc_moments<K: Kernel>(
     };
     let point = |off: &[i64]| -> Vec<f64> { (0..n).map(|i| x[i] + s * off[i] as f64).collect() };
     let h_vals: Vec<f64> = pts_h.iter().map(|o| barrier.value(&point(o))).collect();
-    // a failed evaluation is this call's error, not a later call's
-    if let Some(msg) = barrier.take_error() {
-        return Err(InputError::Evaluation(msg).into());
-    }
-    if let Some(bad) = h_vals.iter().find(|v| !v.is_finite()) {
-        return Err(InputError::Evaluation(format!(
-            "h of barrier '{}' is {bad} on the finite-difference lattice around x = {x:?}",
-            barrier.name()
-        ))
-        .into());
-    }
+    super::moments::check_evaluation(barrier, x, &h_vals, &[], &[])?;
     let pts_f: Vec<Vec<i64>> = lattice(n, rf);
     let np = pts_f.len();
     // joint posterior on the F lattice: means and Ĉ
