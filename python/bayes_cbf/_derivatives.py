@@ -2,34 +2,12 @@
 
 from __future__ import annotations
 
-import numbers
 from typing import Any, Callable, Optional
 
 import numpy as np
 
+from ._checks import count, real
 from ._core import InputError
-
-
-def _real(name: str, v: Any) -> float:
-    """``v`` (a number or a 0-d array of one) as a float, refusing what is
-    not a real number (a bool, a string, an array of several)."""
-    a = np.asarray(v) if isinstance(v, np.ndarray) else v
-    if isinstance(a, np.ndarray):
-        if a.ndim != 0 or a.dtype.kind not in "iuf":
-            raise InputError(f"{name}: {v!r} is not a real number")
-        return float(a)
-    if isinstance(v, (bool, np.bool_)) or not isinstance(v, numbers.Real):
-        raise InputError(f"{name}: {v!r} is not a real number")
-    return float(v)
-
-
-def _count(name: str, v: Any, least: int = 1) -> int:
-    """``v`` as an int ``>= least``, refusing fractions, bools and strings."""
-    if isinstance(v, (bool, np.bool_)) or not isinstance(v, (int, np.integer)):
-        raise InputError(f"{name}: {v!r} is not an integer")
-    if v < least:
-        raise InputError(f"{name}: {v} must be >= {least}")
-    return int(v)
 
 
 def check_derivatives(
@@ -54,18 +32,18 @@ def check_derivatives(
     Use it before :meth:`Barrier.callback`: wrong derivatives give wrong
     moments and an unsafe filter.
     """
-    step, rtol, atol = _real("step", step), _real("rtol", rtol), _real("atol", atol)
+    step, rtol, atol = real("step", step), real("rtol", rtol), real("atol", atol)
     if not (np.isfinite(step) and step > 0):
         raise InputError(f"step: {step!r} must be finite and > 0")
     for name, tol in (("rtol", rtol), ("atol", atol)):
         if not (np.isfinite(tol) and tol >= 0):
             raise InputError(f"{name}: {tol!r} must be finite and >= 0")
     if state_dim is not None:
-        state_dim = _count("state_dim", state_dim)
+        state_dim = count("state_dim", state_dim, 1)
     if points is None:
         if state_dim is None:
             raise InputError("check_derivatives: give points or state_dim")
-        rng = np.random.default_rng(None if seed is None else _count("seed", seed, 0))
+        rng = np.random.default_rng(None if seed is None else count("seed", seed, 0))
         points = rng.standard_normal((10, state_dim))
     points = np.atleast_2d(np.asarray(points, dtype=np.float64))
     if points.ndim != 2 or points.shape[0] == 0 or points.shape[1] == 0:

@@ -29,17 +29,8 @@ except ImportError as e:  # pragma: no cover - exercised only without gymnasium
         "bayes_cbf.gym needs gymnasium: pip install 'bayes_cbf[gym]'"
     ) from e
 
+from ._checks import count
 from ._core import InputError, SafetyFilter
-
-
-def _count(field: str, value: Any, least: int) -> int:
-    """``value`` as a whole number ``>= least``, or an :class:`InputError`
-    naming ``field``."""
-    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)):
-        raise InputError(f"{field}: {value!r} is not a whole number")
-    if value < least:
-        raise InputError(f"{field}: {value} must be >= {least}")
-    return int(value)
 
 
 class SafetyFilterWrapper(gym.Wrapper, gym.utils.RecordConstructorArgs):
@@ -142,12 +133,12 @@ class SafetyFilterWrapper(gym.Wrapper, gym.utils.RecordConstructorArgs):
                 raise InputError("dt: give the control period (the environment has no positive dt)")
         self.dt = float(dt)
         n = self.model.state_dim
-        self.angle_indices = [_count("angle_indices", i, 0) for i in angle_indices]
+        self.angle_indices = [count("angle_indices", i, 0) for i in angle_indices]
         for i in self.angle_indices:
             if i >= n:
                 raise InputError(f"angle_indices: {i} is not a state index (state_dim = {n})")
-        self.max_data = _count("max_data", max_data, 1)
-        self.refit_every = _count("refit_every", refit_every, 0)
+        self.max_data = count("max_data", max_data, 1)
+        self.refit_every = count("refit_every", refit_every, 0)
         if label_at not in ("midpoint", "start"):
             raise InputError(f"label_at: {label_at!r}, expected 'midpoint' or 'start'")
         self.label_at = label_at
