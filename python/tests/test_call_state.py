@@ -135,6 +135,25 @@ def test_ctrl_c_stops_a_run():
     assert time.monotonic() - started < 5.0
 
 
+def test_ctrl_c_stops_a_calibration_shard():
+    """SIGINT during a calibration shard raises KeyboardInterrupt once the
+    episodes under way have stopped, not when the shard ends."""
+    import os
+    import signal
+    import time
+
+    from bayes_cbf import _core
+
+    timer = threading.Timer(0.5, lambda: os.kill(os.getpid(), signal.SIGINT))
+    started = time.monotonic()
+    timer.start()
+    # the full calibration takes minutes
+    with pytest.raises(KeyboardInterrupt):
+        _core.calibration_shard(seed=2)
+    timer.join()
+    assert time.monotonic() - started < 10.0
+
+
 def test_a_monte_carlo_condition_reports_its_own_failure():
     """Relative degree 3 (moments from posterior draws on a lattice around
     x): h undefined on the lattice is this step's error, naming the

@@ -127,9 +127,11 @@ pub fn calibration_shard(
 ) -> PyResult<String> {
     let s = shard(index, count)?;
     let (args, options) = calibration_options(seed, quick, episodes, fallback)?;
-    let part = py.detach(|| calibration::run_shard(&args, &options, s, &|_: usize, _: usize| {}));
-    crate::warnings::emit(py)?;
-    let part = part.map_err(scenario_err)?;
+    // Ctrl-C ends the episodes under way and starts no others
+    let (part, signal) = crate::interrupt::interruptible(py, |stop| {
+        calibration::run_shard_until(&args, &options, s, &|_: usize, _: usize| {}, stop)
+    });
+    let part = crate::warnings::after(py, signal.map(|()| part))?.map_err(scenario_err)?;
     serde_json::to_string(&part).map_err(|e| input_err(e.to_string()))
 }
 

@@ -332,4 +332,33 @@ fn a_stop_flag_interrupts_runs_and_sweeps() {
     let set = Arc::new(AtomicBool::new(true));
     let e = run_seeds_until(&meta(Shard::WHOLE), &|_, _| {}, &set).unwrap_err();
     assert!(interrupted(&e), "{e}");
+
+    // the full calibration takes minutes; the flag is set at 0.3 s, and the
+    // shard is an error, not a part holding the episodes that had ended
+    let args = ExperimentArgs {
+        seed: 5,
+        quick: false,
+    };
+    let stop = Arc::new(AtomicBool::new(false));
+    let started = Instant::now();
+    let r = std::thread::scope(|s| {
+        s.spawn(|| {
+            std::thread::sleep(Duration::from_millis(300));
+            stop.store(true, Ordering::Relaxed);
+        });
+        calibration::run_shard_until(
+            &args,
+            &Options::default(),
+            Shard::WHOLE,
+            &|_: usize, _: usize| {},
+            &stop,
+        )
+    });
+    let e = r.expect_err("interrupted, not finished");
+    assert!(interrupted(&e), "{e}");
+    assert!(
+        started.elapsed() < Duration::from_secs(10),
+        "{:?}",
+        started.elapsed()
+    );
 }

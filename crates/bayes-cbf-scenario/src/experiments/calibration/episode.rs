@@ -35,6 +35,7 @@ use nalgebra::DMatrix;
 use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use std::f64::consts::PI;
+use std::sync::atomic::AtomicBool;
 use std::sync::Arc;
 
 use crate::error::{Context, Result};
@@ -515,9 +516,15 @@ pub(crate) fn condition(
 }
 
 /// Runs the episode of `task` (its system, truth, controller and length)
-/// from `seed`, with `fallback`, and summarises it.
-pub(crate) fn run_episode(task: &Task, fallback: Fallback, seed: u64) -> EpisodeStats {
-    match run_inner(task, fallback, seed) {
+/// from `seed`, with `fallback`, and summarises it; the episode ends
+/// before its next step once `stop` is set.
+pub(crate) fn run_episode(
+    task: &Task,
+    fallback: Fallback,
+    seed: u64,
+    stop: &Arc<AtomicBool>,
+) -> EpisodeStats {
+    match run_inner(task, fallback, seed, stop) {
         Ok(s) => s,
         Err(e) => EpisodeStats {
             error: Some(format!("{e:#}")),
@@ -527,7 +534,12 @@ pub(crate) fn run_episode(task: &Task, fallback: Fallback, seed: u64) -> Episode
     }
 }
 
-fn run_inner(task: &Task, fallback: Fallback, seed: u64) -> Result<EpisodeStats> {
+fn run_inner(
+    task: &Task,
+    fallback: Fallback,
+    seed: u64,
+    stop: &Arc<AtomicBool>,
+) -> Result<EpisodeStats> {
     let (system, steps) = (task.system, task.steps);
     let kind = CONTROLLERS[task.controller];
     let mut s = setup(system, task.truth, seed, steps)?;
@@ -552,7 +564,8 @@ fn run_inner(task: &Task, fallback: Fallback, seed: u64) -> Result<EpisodeStats>
         &s.loop_settings,
     )
     .context("closed loop")?
-    .with_monitors(&s.monitors);
+    .with_monitors(&s.monitors)
+    .with_stop(Arc::clone(stop));
     // the condition's moments under the model that chooses each step's
     // control (hyperparameters refitted or not), at the applied control
     let b = s.barrier.as_ref();

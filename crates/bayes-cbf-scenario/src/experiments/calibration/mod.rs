@@ -77,7 +77,8 @@ use crate::sweep::{check_shard_set, Shard};
 use bayes_cbf::control::Fallback;
 use episode::{run_episode, EpisodeStats, System, TruthKind, CONTROLLERS};
 use rayon::prelude::*;
-use std::sync::atomic::{AtomicUsize, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
+use std::sync::Arc;
 use std::time::Instant;
 
 pub use report::{
@@ -226,16 +227,20 @@ pub(crate) fn run_tasks(
     seed: u64,
     progress: &dyn Progress,
 ) -> Vec<(Task, EpisodeStats)> {
-    run_shard_tasks(plan, seed, Shard::WHOLE, progress)
+    let never = Arc::new(AtomicBool::new(false));
+    run_shard_tasks(plan, seed, Shard::WHOLE, progress, &never)
 }
 
 /// Runs the tasks of `plan` that belong to `shard` (by position in task
-/// order), in parallel, and returns them in task order.
+/// order), in parallel, and returns them in task order. Once `stop` is set
+/// the episodes under way end before their next step and no other starts
+/// (what they return is then of no use: the caller checks `stop`).
 fn run_shard_tasks(
     plan: &Plan,
     seed: u64,
     shard: Shard,
     progress: &dyn Progress,
+    stop: &Arc<AtomicBool>,
 ) -> Vec<(Task, EpisodeStats)> {
     let all: Vec<Task> = tasks(plan)
         .into_iter()
@@ -246,7 +251,10 @@ fn run_shard_tasks(
     let done = AtomicUsize::new(0);
     all.par_iter()
         .map(|t| {
-            let s = run_episode(t, plan.fallback, episode_seed(seed, t));
+            if stop.load(Ordering::Relaxed) {
+                return (*t, EpisodeStats::default());
+            }
+            let s = run_episode(t, plan.fallback, episode_seed(seed, t), stop);
             progress.update(done.fetch_add(1, Ordering::Relaxed) + 1, all.len());
             (*t, s)
         })
@@ -282,11 +290,34 @@ pub fn run_shard(
     shard: Shard,
     progress: &dyn Progress,
 ) -> Result<CalibrationPart> {
+    run_shard_until(
+        args,
+        options,
+        shard,
+        progress,
+        &Arc::new(AtomicBool::new(false)),
+    )
+}
+
+/// [`run_shard`], stopped once `stop` is set (by another thread: a Ctrl-C
+/// handler, a deadline): the episodes under way end before their next
+/// step, the others do not start, and the shard is
+/// [`bayes_cbf::Error::Interrupted`], not a part.
+pub fn run_shard_until(
+    args: &ExperimentArgs,
+    options: &Options,
+    shard: Shard,
+    progress: &dyn Progress,
+    stop: &Arc<AtomicBool>,
+) -> Result<CalibrationPart> {
     shard.validate()?;
     let plan = Plan::new(args.quick, options.episodes, options.fallback)?;
     bayes_cbf::gp::set_linear_algebra_threads(1);
     let start = Instant::now();
-    let results = run_shard_tasks(&plan, args.seed, shard, progress);
+    let results = run_shard_tasks(&plan, args.seed, shard, progress, stop);
+    if stop.load(Ordering::Relaxed) {
+        return Err(bayes_cbf::Error::Interrupted.into());
+    }
     Ok(CalibrationPart {
         seed: args.seed,
         quick: args.quick,
