@@ -416,7 +416,9 @@ impl SafetyFilter {
     /// Solves the SOCP for reference `u_ref` and writes the outcome.
     ///
     /// `cbcs` has one entry per barrier (each with its relative degree),
-    /// `clc` is required iff the filter was built with a CLF.
+    /// `clc` is required iff the filter was built with a CLF. On an error
+    /// `out` holds no outcome: after a solution rejected by its check
+    /// ([`ControlError::Unresolved`]) its `u` and `delta` are NaN.
     pub fn solve(
         &mut self,
         cbcs: &[ConditionMoments],
@@ -500,7 +502,13 @@ impl SafetyFilter {
             out.constraints[k] = report(mom, c, &out.u, zeta);
         }
         if !out.is_infeasible() {
-            check_solution(cbcs, &out.constraints, status)?;
+            if let Err(e) = check_solution(cbcs, &out.constraints, status) {
+                // no control to apply: a caller that ignores the error
+                // gets NaN, not the rejected control
+                out.u.fill(f64::NAN);
+                out.delta = f64::NAN;
+                return Err(e.into());
+            }
         }
         let (u, delta) = (&out.u, out.delta);
         out.clf = clc.map(|mom| {
@@ -1139,6 +1147,34 @@ mod tests {
                 other => panic!("{slack} {status:?}: {other:?}"),
             }
         }
+    }
+
+    /// A solution the check rejects leaves no control in `out`: its `u`
+    /// is NaN, not the rejected control a caller ignoring the error would
+    /// apply. The covariance `s·[1 −1; −1 1]` at `s = 10¹⁶` rounds its
+    /// quadratic form by ~1 near `u = 1`, where the condition binds.
+    #[test]
+    fn a_rejected_solution_leaves_no_control() {
+        let mut settings = SafetySettings::new(1);
+        settings.u_min = Some(vec![-5.0]);
+        settings.u_max = Some(vec![5.0]);
+        settings.probability = 0.9;
+        let solve = |s: f64, out: &mut ControlOutput| {
+            let mut filter = SafetyFilter::new(1, 1, false, settings.clone()).unwrap();
+            let a = 0.1;
+            let cov = DMatrix::from_row_slice(2, 2, &[s * a * a, -s * a, -s * a, s]);
+            let mom = ConditionMoments::from_parts(vec![-a, 1.0], cov, 1).unwrap();
+            filter.solve(&[mom], None, &[0.0], out)
+        };
+        let mut out = ControlOutput::new(1, 1);
+        // resolved at s = 10¹²: the condition binds at u = 0.1
+        solve(1e12, &mut out).unwrap();
+        assert!((out.u[0] - 0.1).abs() < 1e-9, "{out:?}");
+        match solve(1e16, &mut out) {
+            Err(Error::Control(ControlError::Unresolved { barrier: 0, .. })) => {}
+            other => panic!("{other:?}"),
+        }
+        assert!(out.u[0].is_nan() && out.delta.is_nan(), "{out:?}");
     }
 
     /// With no maximiser (here an unbounded margin: no bounds and a
