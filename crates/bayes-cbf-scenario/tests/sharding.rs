@@ -293,15 +293,36 @@ fn a_seed_that_stops_is_a_row_and_every_seed_stopping_is_an_error() {
     assert!(e.contains("every one of the 4 seeds stopped"), "{e}");
 }
 
+/// `work(stop)` with `stop` set by another thread after `delay`: its
+/// error, which must come within `limit`.
+fn stopped_after<T: std::fmt::Debug>(
+    delay: std::time::Duration,
+    limit: std::time::Duration,
+    work: impl FnOnce(&std::sync::Arc<std::sync::atomic::AtomicBool>) -> bayes_cbf_scenario::Result<T>,
+) -> bayes_cbf_scenario::Error {
+    let stop = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(false));
+    let started = std::time::Instant::now();
+    let r = std::thread::scope(|s| {
+        s.spawn(|| {
+            std::thread::sleep(delay);
+            stop.store(true, std::sync::atomic::Ordering::Relaxed);
+        });
+        work(&stop)
+    });
+    let e = r.expect_err("interrupted, not finished");
+    assert!(started.elapsed() < limit, "{:?}", started.elapsed());
+    e
+}
+
 /// A stop flag set by another thread ends a run before its next step and a
 /// sweep without rows: `Interrupted`, soon after, whatever was under way.
 #[test]
 fn a_stop_flag_interrupts_runs_and_sweeps() {
     use bayes_cbf_scenario::scenario::{self, run_scenario_until};
     use bayes_cbf_scenario::sweep::run_seeds_until;
-    use std::sync::atomic::{AtomicBool, Ordering};
+    use std::sync::atomic::AtomicBool;
     use std::sync::Arc;
-    use std::time::{Duration, Instant};
+    use std::time::Duration;
 
     let interrupted = |e: &bayes_cbf_scenario::Error| {
         matches!(
@@ -311,22 +332,10 @@ fn a_stop_flag_interrupts_runs_and_sweeps() {
     };
     // 200 000 steps of the pendulum take minutes; the flag is set at 0.2 s
     let (sc, _) = scenario::load("pendulum-safe", &["steps=200000".to_string()]).unwrap();
-    let stop = Arc::new(AtomicBool::new(false));
-    let started = Instant::now();
-    let r = std::thread::scope(|s| {
-        s.spawn(|| {
-            std::thread::sleep(Duration::from_millis(200));
-            stop.store(true, Ordering::Relaxed);
-        });
-        run_scenario_until(&sc, |_, _| {}, Arc::clone(&stop))
+    let e = stopped_after(Duration::from_millis(200), Duration::from_secs(5), |stop| {
+        run_scenario_until(&sc, |_, _| {}, Arc::clone(stop)).map(|_| ())
     });
-    let e = r.err().expect("interrupted, not finished");
     assert!(interrupted(&e), "{e}");
-    assert!(
-        started.elapsed() < Duration::from_secs(5),
-        "{:?}",
-        started.elapsed()
-    );
     assert!(e.to_string().contains("scenario 'pendulum-safe'"), "{e}");
 
     let set = Arc::new(AtomicBool::new(true));
@@ -339,26 +348,18 @@ fn a_stop_flag_interrupts_runs_and_sweeps() {
         seed: 5,
         quick: false,
     };
-    let stop = Arc::new(AtomicBool::new(false));
-    let started = Instant::now();
-    let r = std::thread::scope(|s| {
-        s.spawn(|| {
-            std::thread::sleep(Duration::from_millis(300));
-            stop.store(true, Ordering::Relaxed);
-        });
-        calibration::run_shard_until(
-            &args,
-            &Options::default(),
-            Shard::WHOLE,
-            &|_: usize, _: usize| {},
-            &stop,
-        )
-    });
-    let e = r.expect_err("interrupted, not finished");
-    assert!(interrupted(&e), "{e}");
-    assert!(
-        started.elapsed() < Duration::from_secs(10),
-        "{:?}",
-        started.elapsed()
+    let e = stopped_after(
+        Duration::from_millis(300),
+        Duration::from_secs(10),
+        |stop| {
+            calibration::run_shard_until(
+                &args,
+                &Options::default(),
+                Shard::WHOLE,
+                &|_: usize, _: usize| {},
+                stop,
+            )
+        },
     );
+    assert!(interrupted(&e), "{e}");
 }
