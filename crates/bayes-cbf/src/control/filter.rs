@@ -34,7 +34,10 @@ pub enum Fallback {
     /// Solve the same SOCP at the largest feasible probability `p*`
     /// (graceful degradation; the maximal-margin control if no `p*` exists).
     /// It maximises the conditions' probability, and may take inputs they
-    /// do not constrain to their bounds.
+    /// do not constrain to their bounds. Without bounds `p*` may be reached
+    /// only as the control grows without limit (a condition whose mean
+    /// grows with `u` faster than `c·std`): the control is then as large as
+    /// `p*`'s tolerance (`p_star_tol`) requires, and bounds keep it finite.
     Relax,
 }
 
@@ -651,27 +654,61 @@ impl SafetyFilter {
         if q < lo {
             // no start, or u_p affords too little: start from the lowest
             // admissible p
-            match self.max_margin(cbcs, lo, u)? {
+            q = match self.max_margin(cbcs, lo, u)? {
                 Some(t) if t < -1e-9 => return Ok(None),
-                // an unbounded margin: feasible, with no maximiser to go on from
-                None => return Ok(Some(lo)),
-                Some(_) => {}
-            }
-            q = self.afforded_probability(cbcs, u).clamp(lo, p);
+                Some(_) => self.afforded_probability(cbcs, u).clamp(lo, p),
+                None => match self.past_unbounded(cbcs, lo, p, tol, u)? {
+                    (level, true) => self.afforded_probability(cbcs, u).clamp(level, p),
+                    (level, false) => return Ok(Some(level)),
+                },
+            };
         }
         for _ in 0..50 {
-            match self.max_margin(cbcs, q, u)? {
-                Some(t) if t > 1e-12 => {}
-                _ => break,
-            }
+            let level = match self.max_margin(cbcs, q, u)? {
+                Some(t) if t > 1e-12 => q,
+                Some(_) => break,
+                None => match self.past_unbounded(cbcs, q, p, tol, u)? {
+                    (level, true) => level,
+                    (level, false) => {
+                        q = level;
+                        break;
+                    }
+                },
+            };
             let next = self.afforded_probability(cbcs, u).min(p);
-            if next <= q + tol {
-                q = q.max(next);
+            if next <= level + tol {
+                q = level.max(next);
                 break;
             }
             q = next;
         }
         Ok(Some(q))
+    }
+
+    /// Where the worst margin stops being unbounded (without input bounds
+    /// it grows without limit along some direction of `u` while the
+    /// factors are small): bisection on the probability between `lo`, whose
+    /// margin is unbounded (so feasible), and the infeasible `hi`. Returns
+    /// the first level found whose margin has a maximiser and is ≥ 0, with
+    /// that maximiser in `u` (`true`), or, when the bracket narrows to
+    /// `tol` first, its feasible end (`false`; `u` holds nothing).
+    fn past_unbounded(
+        &mut self,
+        cbcs: &[ConditionMoments],
+        mut lo: f64,
+        mut hi: f64,
+        tol: f64,
+        u: &mut [f64],
+    ) -> Result<(f64, bool), Error> {
+        while hi - lo > tol {
+            let mid = 0.5 * (lo + hi);
+            match self.max_margin(cbcs, mid, u)? {
+                None => lo = mid,
+                Some(t) if t >= -1e-12 => return Ok((mid, true)),
+                Some(_) => hi = mid,
+            }
+        }
+        Ok((lo, false))
     }
 
     fn infeasible(
@@ -1175,6 +1212,53 @@ mod tests {
             other => panic!("{other:?}"),
         }
         assert!(out.u[0].is_nan() && out.delta.is_nan(), "{out:?}");
+    }
+
+    /// Without input bounds the worst margin is unbounded at low
+    /// probabilities, and `p*` lies beyond them. Two conditions with a
+    /// closed-form `p*`, `Var[C](u) = 1 + u²`:
+    /// - `E[C] = 2 + u`: `max_u 2 + u − c√(1 + u²) = 2 − √(c² − 1)` for
+    ///   `c ≥ 1` (unbounded below 1), zero at `c = √5`;
+    /// - `E[C] = −1 + u`: unbounded for `c < 1`, negative from 1 on (the
+    ///   supremum, −1, is never reached), so `p*` is the level of `c = 1`.
+    ///
+    /// `p*` is that factor's probability (Gaussian for relative degree 1,
+    /// Cantelli for 2) and `relax` solves there, meeting the condition.
+    #[test]
+    fn p_star_lies_beyond_an_unbounded_margin() {
+        for (e0, c_star) in [(2.0, 5f64.sqrt()), (-1.0, 1.0)] {
+            for degree in [1, 2] {
+                let p_star = factor_probability(c_star, degree);
+                let mut settings = SafetySettings::new(1);
+                settings.fallback = Fallback::Relax;
+                settings.probability = 0.5 + 0.5 * p_star.max(0.6);
+                let mut filter = SafetyFilter::new(1, 1, false, settings).unwrap();
+                let mom =
+                    ConditionMoments::from_parts(vec![e0, 1.0], DMatrix::identity(2, 2), degree)
+                        .unwrap();
+                let mut out = ControlOutput::new(1, 1);
+                filter
+                    .solve(&[mom.clone()], None, &[0.0], &mut out)
+                    .unwrap();
+                let ControlStatus::Infeasible(info) = &out.status else {
+                    panic!("{e0} {degree}: {out:?}");
+                };
+                let got = info.p_star.expect("p* exists");
+                assert!(
+                    (got - p_star).abs() < 1e-4,
+                    "{e0} {degree}: p* {got} ≠ {p_star}"
+                );
+                assert!(got <= p_star + 1e-9, "{e0} {degree}: p* {got} > {p_star}");
+                // relax meets the condition at p* (its own factor)
+                let c = quantile_factor(got, degree).unwrap();
+                let slack = mom.mean(&out.u) - c * mom.variance(&out.u).sqrt();
+                assert!(
+                    slack > -1e-6,
+                    "{e0} {degree}: slack {slack} at u {:?}",
+                    out.u
+                );
+            }
+        }
     }
 
     /// With no maximiser (here an unbounded margin: no bounds and a
