@@ -270,9 +270,13 @@ impl MomentWorkspace {
         x: &[f64],
         max_degree: usize,
     ) -> Result<(), InputError> {
+        let (n, p) = (model.state_dim(), model.control_dim() + 1);
+        if self.x.len() != n || self.post.B.nrows() != p {
+            // made for a model of another shape
+            *self = Self::new(model);
+        }
         if max_degree >= 2 {
             model.joint_posterior_into(x, &mut self.joint_ws, &mut self.joint)?;
-            let (n, p) = (model.state_dim(), model.control_dim() + 1);
             for c in 0..p {
                 for i in 0..n {
                     self.post.mean[(i, c)] = self.joint.mean[(i, c)];

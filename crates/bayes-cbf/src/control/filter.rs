@@ -1238,7 +1238,7 @@ mod tests {
                         .unwrap();
                 let mut out = ControlOutput::new(1, 1);
                 filter
-                    .solve(&[mom.clone()], None, &[0.0], &mut out)
+                    .solve(std::slice::from_ref(&mom), None, &[0.0], &mut out)
                     .unwrap();
                 let ControlStatus::Infeasible(info) = &out.status else {
                     panic!("{e0} {degree}: {out:?}");

@@ -91,11 +91,17 @@ impl<K: Kernel> Mvgp<K> {
             *out = JointPosterior::zeros(n, m);
         }
         let k = self.len();
-        if ws.omega.nrows() < k {
+        // a workspace of a model of another shape is remade
+        let d = self.input_map().output_dim(n);
+        if ws.omega.nrows() < k
+            || ws.omega.ncols() != pp
+            || ws.z.len() != d
+            || ws.gx.len() != n
+            || ws.m0.len() != n * p
+        {
             *ws = self.joint_workspace();
         }
         let map = self.input_map();
-        let d = ws.z.len();
         let kern = &self.hyper().kernel;
         let b = &self.hyper().B;
         map.apply(x, &mut ws.z);

@@ -701,6 +701,18 @@ impl<K: Kernel> Mvgp<K> {
         }
     }
 
+    /// Whether `ws` was made for a model of this shape (state, control and
+    /// kernel-input dimensions) and holds its data; a workspace of another
+    /// model is remade, not indexed out of its bounds.
+    fn fits(&self, ws: &PosteriorWorkspace) -> bool {
+        let (k, p) = (self.len(), self.m + 1);
+        ws.z.len() == self.input_map.output_dim(self.n)
+            && ws.m0.len() == self.n * p
+            && ws.w.ncols() == p
+            && ws.kvec.len() >= k
+            && ws.w.nrows() >= k
+    }
+
     pub(crate) fn check_x(&self, x: &[f64]) -> Result<(), InputError> {
         check_state("x", self.n, x)
     }
@@ -710,10 +722,10 @@ impl<K: Kernel> Mvgp<K> {
     fn fill_w(&self, x: &[f64], ws: &mut PosteriorWorkspace) {
         let k = self.len();
         let p = self.m + 1;
-        let d = ws.z.len();
-        if ws.kvec.len() < k || ws.w.nrows() < k {
+        if !self.fits(ws) {
             *ws = self.workspace();
         }
+        let d = ws.z.len();
         self.input_map.apply(x, &mut ws.z);
         for j in 0..k {
             let kv = self
@@ -767,6 +779,9 @@ impl<K: Kernel> Mvgp<K> {
         out: &mut Posterior,
     ) -> Result<(), InputError> {
         self.check_x(x)?;
+        if !self.fits(ws) {
+            *ws = self.workspace();
+        }
         let (n, p, k) = (self.n, self.m + 1, self.len());
         if out.mean.shape() != (n, p) {
             out.mean = DMatrix::zeros(n, p);

@@ -368,6 +368,17 @@ impl<'a> ClosedLoop<'a> {
             )
             .into());
         }
+        for (i, b) in barriers.iter().enumerate() {
+            if b.state_dim() != n {
+                return Err(InputError::shape(
+                    &format!("barriers[{i}] state dimension"),
+                    n,
+                    b.state_dim(),
+                )
+                .into());
+            }
+        }
+        reference.check_dims(n, m)?;
         if let Some(ts) = &settings.trigger {
             let nb = controller.barrier_moments().len();
             if nb != barriers.len() {
@@ -555,6 +566,17 @@ impl<'a> ClosedLoop<'a> {
         let self_triggered = self.self_triggered();
         let horizon = self.horizon();
         self.reference.at(k, t, &self.x, &mut self.rng, &mut self.r);
+        // a reference may have replaced the vectors
+        let m = self.truth.control_dim();
+        for (field, len, want) in [
+            ("reference control", self.r.u_ref.len(), m),
+            ("reference x_d", self.r.xd.len(), n),
+            ("reference ẋ_d", self.r.xd_dot.len(), n),
+        ] {
+            if len != want {
+                return Err(InputError::shape(field, want, len).into());
+            }
+        }
         let start = Instant::now();
         self.controller.step(
             &self.model,
@@ -616,7 +638,7 @@ impl<'a> ClosedLoop<'a> {
                 for (f, mm) in monitors.iter().zip(mon_min.iter_mut()) {
                     *mm = mm.min(f(xs));
                 }
-            });
+            })?;
         if let Some(msg) = self.truth.take_error() {
             return Err(InputError::Evaluation(format!("true system at step {k}: {msg}")).into());
         }

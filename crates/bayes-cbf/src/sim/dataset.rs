@@ -150,7 +150,7 @@ pub fn simulate_trajectory<R: Rng + ?Sized>(
         }
         ds.xs.extend_from_slice(&x);
         ds.us.extend_from_slice(&u);
-        sim.step(&mut x, &u, dt, rng);
+        sim.step(&mut x, &u, dt, rng)?;
     }
     // forward differences (x_{j+1} − x_j)/dt, wrapped for angles: the held
     // control u_j acts over exactly that interval

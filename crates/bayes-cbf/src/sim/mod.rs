@@ -98,7 +98,8 @@ impl<'a> Simulator<'a> {
     /// Holds `u` constant over `[t, t + interval]` and integrates `x` in place
     /// with RK4 sub-steps. `observer(t_rel, x)` is called after every sub-step
     /// (for checking a barrier on the fine grid); pass `|_, _| {}` if unused.
-    #[track_caller]
+    /// A state or control of the wrong length, or an interval that is not
+    /// finite, is an error (`x` unchanged); an interval ≤ 0 does nothing.
     pub fn step_with<R: Rng + ?Sized>(
         &mut self,
         x: &mut [f64],
@@ -106,12 +107,19 @@ impl<'a> Simulator<'a> {
         interval: f64,
         rng: &mut R,
         mut observer: impl FnMut(f64, &[f64]),
-    ) {
+    ) -> Result<(), InputError> {
         let n = self.system.state_dim();
-        assert_eq!(x.len(), n, "state length");
-        assert_eq!(u.len(), self.system.control_dim(), "control length");
+        if x.len() != n {
+            return Err(InputError::shape("x", n, x.len()));
+        }
+        if u.len() != self.system.control_dim() {
+            return Err(InputError::shape("u", self.system.control_dim(), u.len()));
+        }
+        if !interval.is_finite() {
+            return Err(InputError::invalid("interval", interval, "must be finite"));
+        }
         if interval <= 0.0 {
-            return;
+            return Ok(());
         }
         let steps = (interval / self.settings.internal_step).ceil().max(1.0) as usize;
         let h = interval / steps as f64;
@@ -131,10 +139,17 @@ impl<'a> Simulator<'a> {
             }
             observer((s + 1) as f64 * h, x);
         }
+        Ok(())
     }
 
     /// [`step_with`](Self::step_with) without an observer.
-    pub fn step<R: Rng + ?Sized>(&mut self, x: &mut [f64], u: &[f64], interval: f64, rng: &mut R) {
+    pub fn step<R: Rng + ?Sized>(
+        &mut self,
+        x: &mut [f64],
+        u: &[f64],
+        interval: f64,
+        rng: &mut R,
+    ) -> Result<(), InputError> {
         self.step_with(x, u, interval, rng, |_, _| {})
     }
 
@@ -174,11 +189,11 @@ mod tests {
         let mut sim = Simulator::new(&sys, SimSettings::default());
         let mut rng = ChaCha8Rng::seed_from_u64(0);
         let mut x = [0.0, 0.0, 0.0];
-        sim.step(&mut x, &[1.0, 0.0], 1.0, &mut rng);
+        sim.step(&mut x, &[1.0, 0.0], 1.0, &mut rng).unwrap();
         assert!((x[0] - 1.0).abs() < 1e-12 && x[1].abs() < 1e-12);
         // constant turn rate z/L = 0.5 rad/s with v = 1: circle of radius 2
         let mut x = [0.0, 0.0, 0.0];
-        sim.step(&mut x, &[1.0, 1.0], 1.0, &mut rng);
+        sim.step(&mut x, &[1.0, 1.0], 1.0, &mut rng).unwrap();
         let (ex, ey) = (2.0 * (0.5f64).sin(), 2.0 * (1.0 - (0.5f64).cos()));
         assert!(
             (x[0] - ex).abs() < 1e-10 && (x[1] - ey).abs() < 1e-10,
@@ -196,7 +211,7 @@ mod tests {
         let mut x = [1.0, 0.0];
         let e0 = energy(&x);
         for _ in 0..100 {
-            sim.step(&mut x, &[0.0], 0.05, &mut rng);
+            sim.step(&mut x, &[0.0], 0.05, &mut rng).unwrap();
         }
         assert!((energy(&x) - e0).abs() < 1e-8);
     }
@@ -207,7 +222,24 @@ mod tests {
         let mut sim = Simulator::new(&sys, SimSettings::default());
         let mut rng = ChaCha8Rng::seed_from_u64(0);
         let mut x = [3.1, 5.0];
-        sim.step(&mut x, &[0.0], 0.1, &mut rng);
+        sim.step(&mut x, &[0.0], 0.1, &mut rng).unwrap();
         assert!(x[0] < 0.0 && x[0] >= -std::f64::consts::PI);
+    }
+
+    /// A state or control of the wrong length and a non-finite interval
+    /// are errors naming them, and leave the state as it was.
+    #[test]
+    fn wrong_lengths_are_errors() {
+        let sys = Pendulum::default();
+        let mut sim = Simulator::new(&sys, SimSettings::default());
+        let mut rng = ChaCha8Rng::seed_from_u64(0);
+        let mut x = [0.1, 0.0];
+        let e = sim.step(&mut x, &[0.0, 1.0], 0.1, &mut rng).unwrap_err();
+        assert!(e.to_string().contains("shape of u:"), "{e}");
+        let e = sim.step(&mut [0.1], &[0.0], 0.1, &mut rng).unwrap_err();
+        assert!(e.to_string().contains("shape of x:"), "{e}");
+        let e = sim.step(&mut x, &[0.0], f64::NAN, &mut rng).unwrap_err();
+        assert!(e.to_string().contains("interval = NaN"), "{e}");
+        assert_eq!(x, [0.1, 0.0]);
     }
 }

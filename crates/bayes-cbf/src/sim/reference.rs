@@ -17,8 +17,26 @@ pub struct ReferenceOut {
 
 /// A source of references, called once per control step.
 pub trait Reference: Send {
-    /// Fills `out` for step `k` at time `t` and state `x`.
+    /// Fills `out` for step `k` at time `t` and state `x`; its vectors
+    /// have the lengths `m`, `n` and `n` of the system.
     fn at(&mut self, k: usize, t: f64, x: &[f64], rng: &mut ChaCha8Rng, out: &mut ReferenceOut);
+
+    /// Checks that the reference is made for a system with `n` states and
+    /// `m` controls (a closed loop calls it before its first step); the
+    /// default accepts any.
+    fn check_dims(&self, n: usize, m: usize) -> Result<(), InputError> {
+        let _ = (n, m);
+        Ok(())
+    }
+}
+
+/// `len` entries of `field` where `expected` are needed.
+fn check_len(field: &str, expected: usize, len: usize) -> Result<(), InputError> {
+    if len == expected {
+        Ok(())
+    } else {
+        Err(InputError::shape(field, expected, len))
+    }
 }
 
 /// A constant reference control and no CLF reference.
@@ -30,6 +48,10 @@ impl Reference for ConstantReference {
         out.u_ref.copy_from_slice(&self.0);
         out.xd.copy_from_slice(x);
         out.xd_dot.fill(0.0);
+    }
+
+    fn check_dims(&self, _n: usize, m: usize) -> Result<(), InputError> {
+        check_len("reference control", m, self.0.len())
     }
 }
 
@@ -81,6 +103,10 @@ impl Reference for EpsilonGreedy {
         out.xd.copy_from_slice(x);
         out.xd_dot.fill(0.0);
     }
+
+    fn check_dims(&self, _n: usize, m: usize) -> Result<(), InputError> {
+        check_len("epsilon_greedy.lo", m, self.lo.len())
+    }
 }
 
 /// The time-parameterised straight line from `start` to `goal` of the
@@ -124,6 +150,10 @@ impl Reference for StraightLinePlanner {
             out.xd_dot[i] = if moving { d / self.duration } else { 0.0 };
         }
         out.u_ref.fill(0.0);
+    }
+
+    fn check_dims(&self, n: usize, _m: usize) -> Result<(), InputError> {
+        check_len("planner.start", n, self.start.len())
     }
 }
 
@@ -204,6 +234,11 @@ impl Reference for LinearFeedback {
         }
         out.xd.copy_from_slice(x);
         out.xd_dot.fill(0.0);
+    }
+
+    fn check_dims(&self, n: usize, m: usize) -> Result<(), InputError> {
+        check_len("feedback.u0", m, self.u0.len())?;
+        check_len("feedback.target", n, self.target.len())
     }
 }
 
