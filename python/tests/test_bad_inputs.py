@@ -69,7 +69,7 @@ CONSTRUCTOR_CASES = [
     ("sector edge unknown", lambda: bc.Barrier.pendulum_sector_edge(0.0, 0.3, "middle", k_alpha=[1.0, 3.0]), "edge"),
     ("callback not callable", lambda: bc.Barrier.callback(3, lambda x: x), "h"),
     ("callback rd2 without hess", lambda: bc.Barrier.callback(
-        lambda x: 1.0, lambda x: x, state_dim=2, relative_degree=2, k_alpha=[1.0, 1.0]), "hess"),
+        lambda x: 1.0, lambda x: x, state_dim=2, relative_degree=2, k_alpha=[1.0, 2.0]), "hess"),
     ("clf unknown type", lambda: bc.CLF.from_json('{"type": "quadratic"}'), "clf"),
     ("clf ackermann NaN", lambda: bc.CLF.ackermann(float("nan"), 1.0, 1.0), "w1"),
     ("clf ackermann gamma", lambda: bc.CLF.ackermann(1.0, 1.0, -1.0), "gamma"),

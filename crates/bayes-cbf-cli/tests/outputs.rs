@@ -187,8 +187,8 @@ fn the_stage_of_an_interrupted_run_is_removed_by_the_next() {
 }
 
 /// A start far outside what the model can absorb: each step's observation
-/// is skipped, and said so three times, not once a step; ψ₁ of 10²⁰⁰ is
-/// printed in scientific notation, not in 200 digits.
+/// is skipped, and said so three times, not once a step; the start's h of
+/// −10²⁰⁰ is printed in scientific notation, not in 200 digits.
 #[test]
 fn warnings_of_a_wild_start_are_few_and_short() {
     let dir = scratch_dir("outputs-wild-start");
@@ -203,9 +203,46 @@ fn warnings_of_a_wild_start_are_few_and_short() {
         .stderr
         .contains("later skipped observations of this run are not shown"));
     assert!(
-        r.stderr.contains("ψ₁ = ḣ + λh = -1.000e200"),
+        r.stderr
+            .contains("outside the safe set (h = -1.000e200 < 0)"),
         "{}",
         r.stderr
     );
     assert!(r.stderr.lines().count() < 12, "{}", r.stderr);
+}
+
+/// Gains refused or warned of: complex roots are an error naming
+/// `k_alpha`; real poles beyond `1/dt` (here a double pole at 200 /s with
+/// dt = 0.01) run, with a warning that the hold lets h cross between steps,
+/// which gains below `1/dt` do not get.
+#[test]
+fn gains_with_complex_roots_are_refused_and_fast_ones_warned_of() {
+    let dir = scratch_dir("outputs-gains");
+    let r = run_in(
+        &dir,
+        &short_run(&["--set", "barriers.0.k_alpha=[4.0, 1.0]", "--out", "a"]),
+    );
+    assert!(!r.status.success());
+    assert!(
+        r.stderr
+            .contains("barriers[0]: invalid k_alpha = [4.0, 1.0]")
+            && r.stderr.contains("not all real"),
+        "{}",
+        r.stderr
+    );
+    assert!(!dir.join("a").exists());
+    let r = run_in(
+        &dir,
+        &short_run(&["--set", "barriers.0.k_alpha=[40000.0, 400.0]", "--out", "b"]),
+    );
+    assert!(r.status.success(), "{}", r.stderr);
+    assert!(
+        r.stderr
+            .contains("a pole of 200.000 /s, beyond 1/dt = 100.000 /s"),
+        "{}",
+        r.stderr
+    );
+    let r = run_in(&dir, &short_run(&["--out", "c"]));
+    assert!(r.status.success(), "{}", r.stderr);
+    assert!(!r.stderr.contains("beyond 1/dt"), "{}", r.stderr);
 }

@@ -369,6 +369,9 @@ pub fn build(s: &Scenario) -> Result<Built> {
         .validate()
         .map_err(|e| crate::err!("run settings: {e}"))?;
     warn_start_margin(&barriers, truth.as_ref(), &start, s.seed);
+    if loop_settings.trigger.is_none() {
+        warn_fast_gains(&barriers, loop_settings.dt);
+    }
     Ok(Built {
         start,
         truth,
@@ -383,6 +386,45 @@ pub fn build(s: &Scenario) -> Result<Built> {
 
 static CLF_WITHOUT_PLANNER: AtomicBool = AtomicBool::new(false);
 static START_OUTSIDE: AtomicBool = AtomicBool::new(false);
+static START_UNSAFE: AtomicBool = AtomicBool::new(false);
+static FAST_GAINS: AtomicBool = AtomicBool::new(false);
+
+/// The fastest pole of a barrier's condition: `α` at relative degree 1,
+/// the larger root magnitude of `s² + k₁s + k₀` at 2 (real roots: the
+/// gains are checked); `None` above.
+fn fastest_pole(b: &dyn DynBarrier) -> Option<f64> {
+    match (b.relative_degree(), b.gains()) {
+        (1, &[alpha]) => Some(alpha),
+        (2, &[k0, k1]) => Some(0.5 * (k1 + (k1 * k1 - 4.0 * k0).max(0.0).sqrt())),
+        _ => None,
+    }
+}
+
+/// Warns, once per process, when a barrier's fastest pole `λ` exceeds
+/// `1/dt`: the condition holds at each step, but the control is held over
+/// `dt`, in which `h` moves by about `−λ h dt`, past zero when `λ dt > 1`.
+fn warn_fast_gains(barriers: &[Arc<dyn DynBarrier>], dt: f64) {
+    for (i, b) in barriers.iter().enumerate() {
+        if let Some(pole) = fastest_pole(b.as_ref()).filter(|p| p * dt > 1.0) {
+            let gains = if b.relative_degree() == 1 {
+                "alpha"
+            } else {
+                "k_alpha"
+            };
+            warn_once(
+                &FAST_GAINS,
+                format!(
+                    "barriers[{i}]: its gains ask for a pole of {} /s, beyond 1/dt = {} /s: \
+                     the control is held over dt, in which h moves by about −λ·h·dt and \
+                     crosses zero although each step meets its condition; lower {gains} \
+                     below 1/dt or shorten dt (docs/robots.md, \"Noise and starts\")",
+                    short(pole),
+                    short(1.0 / dt)
+                ),
+            );
+        }
+    }
+}
 static KNOWN_ROW_MISFIT: AtomicBool = AtomicBool::new(false);
 
 /// Warns, once per process, when a run's data contradict a row declared
@@ -475,6 +517,18 @@ fn warn_start_margin(
     seed: u64,
 ) {
     for (i, b) in barriers.iter().enumerate() {
+        let h = b.value(x);
+        if h < 0.0 {
+            warn_once(
+                &START_UNSAFE,
+                format!(
+                    "barriers[{i}]: the start {x:?} (seed {seed}) is outside the safe set \
+                     (h = {} < 0): the run is unsafe from its first state",
+                    short(h)
+                ),
+            );
+            continue;
+        }
         if let Ok(Some(psi)) = start_margin(truth, b.as_ref(), x) {
             if psi < 0.0 {
                 warn_once(

@@ -398,7 +398,7 @@ mod tests {
     fn relative_degree_two_needs_a_hessian() {
         let h: ValueFn = Box::new(|_| Ok(0.0));
         let g: ArrayFn = Box::new(|_, _| Ok(()));
-        let e = CallbackBarrier::new("c", 2, 2, vec![1.0, 1.0], h, g, None).unwrap_err();
+        let e = CallbackBarrier::new("c", 2, 2, vec![1.0, 2.0], h, g, None).unwrap_err();
         assert!(e.to_string().contains("hess"), "{e}");
     }
 }

@@ -78,7 +78,8 @@ fn check_point(
 
 /// `ψ₁(x) = L_f h(x) + λ h(x)` of a relative-degree-2 barrier at a start
 /// `x` of `system`, `λ` the larger root of `s² + k₁ s + k₀` (gains
-/// `[k₀, k₁]`); `None` for another relative degree or complex roots.
+/// `[k₀, k₁]`); `None` for another relative degree (or complex roots, which
+/// [`validate_gains`](super::validate_gains) refuses).
 ///
 /// For real roots `−λ₁`, `−λ₂` the condition `ḧ + k₁ ḣ + k₀ h ≥ 0` is
 /// `ψ̇₁ + λ₂ ψ₁ ≥ 0` with `ψ₁ = ḣ + λ₁ h`, so `ψ₁(t) ≥ ψ₁(0) e^{−λ₂ t}`, and
@@ -327,9 +328,9 @@ mod tests {
                 "{gains:?}: {crossed} crossed, {kept} kept"
             );
         }
-        // complex roots and relative degree 1 have no such margin
-        let complex = HalfSpace::new(vec![-1.0, 0.0], -1.0, 2, vec![4.0, 1.0]).unwrap();
-        assert_eq!(start_margin(&cart, &complex, &[0.0, 1.0]).unwrap(), None);
+        // gains with complex roots are refused; relative degree 1 has no
+        // such margin
+        assert!(HalfSpace::new(vec![-1.0, 0.0], -1.0, 2, vec![4.0, 1.0]).is_err());
         let rd1 = HalfSpace::new(vec![-1.0, 0.0], -1.0, 1, vec![1.0]).unwrap();
         assert_eq!(start_margin(&cart, &rd1, &[0.0, 1.0]).unwrap(), None);
     }

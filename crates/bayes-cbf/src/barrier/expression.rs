@@ -53,7 +53,7 @@ impl Clone for ExpressionBarrier {
 
 impl ExpressionBarrier {
     /// Parses `h` over `state` and `params`; `gains` are `[α]` for relative
-    /// degree 1 and `k_α` (Hurwitz) for relative degree ≥ 2
+    /// degree 1 and `k_α` (real negative roots) for relative degree ≥ 2
     /// ([`validate_gains`]).
     pub fn new<S: AsRef<str>>(
         state: &[S],

@@ -198,6 +198,12 @@ pub fn atan2<D: DualNum<Primitive = f64> + Copy>(y: D, x: D) -> D {
 /// condition, does not bring `h` back and `CBC⁽ʳ⁾ ≥ 0` does not keep
 /// `h ≥ 0` (paper, Def. 4; exponential CBFs). `k_α0 = 0` is the first
 /// failure: `s = 0` is a root.
+///
+/// The roots must also be real (poles `−p_i`, `p_i > 0`: Nguyen & Sreenath,
+/// Thm. 2, which Def. 4 rests on). With complex roots the boundary of the
+/// condition is a damped oscillation about `h = 0`: where the condition
+/// binds, `h` crosses zero although every step meets it (`k_α = [4, 1]`
+/// from rest at `h = 1` reaches `h = −0.44`).
 pub fn validate_gains(r: usize, gains: &[f64]) -> Result<(), InputError> {
     if r == 0 {
         return Err(InputError::invalid("relative_degree", 0.0, "must be ≥ 1"));
@@ -227,7 +233,65 @@ pub fn validate_gains(r: usize, gains: &[f64]) -> Result<(), InputError> {
             ),
         });
     }
+    if r >= 2 && !has_real_roots(gains) {
+        let example = match r {
+            2 => "with poles −p₁, −p₂ (p_i > 0) k_alpha = [p₁p₂, p₁ + p₂], e.g. [1, 2], [2, 3] or [16, 8]",
+            3 => "with poles −p₁, −p₂, −p₃ (p_i > 0) k_alpha = [p₁p₂p₃, p₁p₂ + p₁p₃ + p₂p₃, p₁ + p₂ + p₃], e.g. [1, 3, 3]",
+            _ => "the coefficients of Π (s + p_i) with every p_i > 0",
+        };
+        return Err(InputError::Invalid {
+            field: "k_alpha".into(),
+            value: format!("{gains:?}"),
+            reason: format!(
+                "the roots of s^{r} + Σ k_alpha[i] s^i are not all real: where the condition binds, h follows a damped oscillation about 0 and crosses it, so CBC ≥ 0 does not keep h ≥ 0; choose real poles: {example}"
+            ),
+        });
+    }
     Ok(())
+}
+
+/// Whether every root of `sʳ + k[r−1] sʳ⁻¹ + … + k[0]` (monic, `r =
+/// k.len()`) is real, a multiple root included: for `r ≤ 3` by the
+/// discriminant (`≥ 0` to a relative `1e-9` of its terms); above, from the
+/// companion matrix's eigenvalues, whose imaginary parts must be within
+/// 1 % of their modulus (the eigenvalues of a multiple root spread by
+/// `ε^(1/multiplicity)`; a pair that near the real axis, damping ratio
+/// above 0.99995, overshoots by `e^(−πζ/√(1−ζ²)) < e^(−300)`).
+pub fn has_real_roots(k: &[f64]) -> bool {
+    match *k {
+        [] | [_] => true,
+        // s² + b s + c
+        [c, b] => b * b >= 4.0 * c * (1.0 - 1e-9),
+        // s³ + a s² + b s + c: discriminant ≥ 0
+        [c, b, a] => {
+            let terms = [
+                18.0 * a * b * c,
+                -4.0 * a.powi(3) * c,
+                a * a * b * b,
+                -4.0 * b.powi(3),
+                -27.0 * c * c,
+            ];
+            let disc: f64 = terms.iter().sum();
+            let scale: f64 = terms.iter().map(|t| t.abs()).sum();
+            disc >= -1e-9 * scale
+        }
+        _ => {
+            let r = k.len();
+            let companion = nalgebra::DMatrix::from_fn(r, r, |i, j| {
+                if i == 0 {
+                    -k[r - 1 - j]
+                } else if j + 1 == i {
+                    1.0
+                } else {
+                    0.0
+                }
+            });
+            companion
+                .complex_eigenvalues()
+                .iter()
+                .all(|z| z.im.abs() <= 1e-2 * z.norm())
+        }
+    }
 }
 
 /// Whether `sʳ + k[r−1] sʳ⁻¹ + … + k[0]` (monic, `r = k.len()`) has every
@@ -319,6 +383,63 @@ mod tests {
             .contains("Hurwitz"));
         assert!(validate_gains(2, &[1.0, 3.0]).is_ok());
         assert!(validate_gains(1, &[0.0]).is_ok());
+    }
+
+    /// Gains with complex roots are refused, multiple real roots are not;
+    /// against the roots of random polynomials of degree 2 to 5 (from
+    /// their real poles, and perturbed).
+    #[test]
+    fn gains_must_have_real_roots() {
+        // s² + s + 4: −0.5 ± 1.94i; s² + 2s + 1 = (s + 1)²; s² + 8s + 16
+        assert!(!has_real_roots(&[4.0, 1.0]));
+        assert!(has_real_roots(&[1.0, 2.0]));
+        assert!(has_real_roots(&[16.0, 8.0]));
+        // (s + 1)³, (s + 1)(s² + s + 1), (s + 1)⁴, (s + 1)²(s² + 2s + 2)
+        assert!(has_real_roots(&[1.0, 3.0, 3.0]));
+        assert!(!has_real_roots(&[1.0, 2.0, 2.0]));
+        assert!(has_real_roots(&[1.0, 4.0, 6.0, 4.0]));
+        assert!(!has_real_roots(&[2.0, 6.0, 7.0, 4.0]));
+        let e = validate_gains(2, &[4.0, 1.0]).unwrap_err().to_string();
+        assert!(e.contains("k_alpha") && e.contains("not all real"), "{e}");
+        assert!(validate_gains(3, &[1.0, 2.0, 2.0]).is_err());
+        assert!(validate_gains(3, &[6.0, 11.0, 6.0]).is_ok());
+        // random real poles, and the same polynomials with a complex pair
+        let mut seed = 11u64;
+        let mut next = || {
+            seed = seed
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            0.1 + (seed >> 11) as f64 / (1u64 << 53) as f64 * 5.0
+        };
+        // coefficients k[0..r] of Π (s + p_i) · (s² + 2as + a² + b²)^pair
+        let monic = |roots: &[f64], pair: Option<(f64, f64)>| -> Vec<f64> {
+            let mut c = vec![1.0]; // highest power first
+            let mut mul = |f: &[f64]| {
+                let mut out = vec![0.0; c.len() + f.len() - 1];
+                for (i, a) in c.iter().enumerate() {
+                    for (j, b) in f.iter().enumerate() {
+                        out[i + j] += a * b;
+                    }
+                }
+                c = out;
+            };
+            for p in roots {
+                mul(&[1.0, *p]);
+            }
+            if let Some((a, b)) = pair {
+                mul(&[1.0, 2.0 * a, a * a + b * b]);
+            }
+            c.iter().skip(1).rev().copied().collect()
+        };
+        for r in 2..=5 {
+            for _ in 0..300 {
+                let roots: Vec<f64> = (0..r).map(|_| next()).collect();
+                assert!(has_real_roots(&monic(&roots, None)), "{roots:?}");
+                let (a, b) = (next(), 0.2 + next());
+                let k = monic(&roots[..r - 2], Some((a, b)));
+                assert!(!has_real_roots(&k), "{roots:?} ± {b}i: {k:?}");
+            }
+        }
     }
 
     #[test]

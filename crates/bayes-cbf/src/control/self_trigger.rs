@@ -827,7 +827,7 @@ mod tests {
     fn the_shifted_barrier_is_h_minus_zeta_b_and_forwards_the_rest() {
         use crate::barrier::{PendulumSectorEdge, SectorEdge};
         let inner: Arc<dyn DynBarrier> = Arc::new(
-            PendulumSectorEdge::new(0.8, 0.4, SectorEdge::Upper, 2, vec![4.0, 3.0]).unwrap(),
+            PendulumSectorEdge::new(0.8, 0.4, SectorEdge::Upper, 2, vec![2.0, 3.0]).unwrap(),
         );
         let b = ShiftedBarrier::new(inner.clone(), 0.05);
         for x in [[0.3, -0.2], [1.4, 0.7]] {
@@ -846,7 +846,7 @@ mod tests {
         }
         assert_eq!(b.state_dim(), 2);
         assert_eq!(b.relative_degree(), 2);
-        assert_eq!(b.gains(), &[4.0, 3.0]);
+        assert_eq!(b.gains(), &[2.0, 3.0]);
         assert_eq!(b.name(), inner.name());
     }
 
