@@ -41,3 +41,11 @@ pub mod sim;
 pub mod systems;
 
 pub use error::{ControlError, Error, GpError, InputError};
+
+// The crates whose types the public API takes and returns (matrices, dual
+// numbers for user functions, the random streams of references and the
+// simulator), re-exported so that a user's code names the same versions.
+pub use nalgebra;
+pub use num_dual;
+pub use rand;
+pub use rand_chacha;
