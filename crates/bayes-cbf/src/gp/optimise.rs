@@ -667,18 +667,35 @@ pub(crate) fn multi_start<O: Objective>(
     harness: &mut Harness<O>,
     starts: usize,
     settings: &RunSettings,
-    mut plan: impl FnMut(&mut Harness<O>, usize) -> Result<StartPlan, Error>,
+    plan: impl FnMut(&mut Harness<O>, usize) -> Result<StartPlan, Error>,
 ) -> Result<Point, Error> {
-    let mut best: Option<Point> = None;
+    let mut ranked = multi_start_ranked(harness, starts, settings, plan)?;
+    Ok(ranked.swap_remove(0))
+}
+
+/// [`multi_start`], returning the best point of each start (its run or
+/// its candidates), best first (earlier starts first on ties): for a fit
+/// whose result is adjusted afterwards, which may change the order.
+pub(crate) fn multi_start_ranked<O: Objective>(
+    harness: &mut Harness<O>,
+    starts: usize,
+    settings: &RunSettings,
+    mut plan: impl FnMut(&mut Harness<O>, usize) -> Result<StartPlan, Error>,
+) -> Result<Vec<Point>, Error> {
+    let mut ranked: Vec<Point> = Vec::with_capacity(starts);
     for s in 0..starts {
         let StartPlan { theta, candidates } = plan(harness, s)?;
         let found = harness.run_start(theta, settings)?;
+        let mut best: Option<Point> = None;
         for p in candidates.into_iter().chain(found) {
             if best.as_ref().is_none_or(|b| p.value < b.value) {
                 best = Some(p);
             }
         }
+        ranked.extend(best);
     }
+    // stable: the first of equal values stays first
+    ranked.sort_by(|a, b| a.value.total_cmp(&b.value));
     if harness.failures() > 0 {
         log::debug!(
             "hyperparameter fit: {} of {} evaluations failed",
@@ -686,15 +703,16 @@ pub(crate) fn multi_start<O: Objective>(
             harness.evaluations()
         );
     }
-    best.ok_or_else(|| {
+    if ranked.is_empty() {
         let why = harness
             .last_failure()
             .map_or("no evaluation".to_string(), |f| f.to_string());
-        GpError::Optimisation(format!(
+        return Err(GpError::Optimisation(format!(
             "no hyperparameters gave a finite likelihood (last failure: {why})"
         ))
-        .into()
-    })
+        .into());
+    }
+    Ok(ranked)
 }
 
 /// Adds `N(0, 0.5²)` noise to every entry (random restarts).

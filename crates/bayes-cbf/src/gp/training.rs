@@ -49,7 +49,7 @@ use super::factor::{factor_in_place, inverse_in_place, DenseScratch, Jitter};
 use super::kernel::{sum_by_4, Kernel, Rbf};
 use super::mvgp::{Mvgp, MvgpHyper};
 use super::optimise::{
-    multi_start, perturb, EvalFailure, Harness, Objective, RunSettings, StartPlan,
+    multi_start_ranked, perturb, EvalFailure, Harness, Objective, RunSettings, StartPlan,
 };
 use super::psd::{PsdParam, SCALE_RANGE};
 use super::simd::with_faer;
@@ -813,7 +813,7 @@ pub fn fit_until<K: Kernel>(
     };
     let starts = 1 + settings.restarts;
     let mut rng = ChaCha8Rng::seed_from_u64(settings.seed);
-    let best = multi_start(&mut harness, starts, &run, |_, s| {
+    let ranked = multi_start_ranked(&mut harness, starts, &run, |_, s| {
         let mut th = th0.clone();
         if s > 0 {
             perturb(&mut th, &mut rng);
@@ -823,25 +823,62 @@ pub fn fit_until<K: Kernel>(
     // the model refactorises the result with its own roundoff: a pivot at
     // the floor could then need jitter, so the result must factorise with
     // a margin, and σ_f grows by steps of 10 % until it does (twice σ
-    // lifts the floor of every pivot four times)
+    // lifts the floor of every pivot four times). Each start's result is
+    // so adjusted, and the one whose model has the largest likelihood
+    // wins: an adjustment can cost a start its lead, so more starts never
+    // give a worse model.
     harness.objective_mut().work.pivot_margin = FINAL_PIVOT_MARGIN;
-    let mut theta = best.theta;
-    for _ in 0..30 {
-        if harness.point(theta.clone()).is_some() || theta[off_sigma] >= sigma_max {
-            break;
+    let mut hypers = Vec::with_capacity(ranked.len());
+    for p in ranked {
+        let mut theta = p.theta;
+        for _ in 0..30 {
+            if harness.point(theta.clone()).is_some() || theta[off_sigma] >= sigma_max {
+                break;
+            }
+            theta[off_sigma] = (theta[off_sigma] + 0.1).min(sigma_max);
         }
-        theta[off_sigma] = (theta[off_sigma] + 0.1).min(sigma_max);
+        hypers.push(harness.objective().hyper(&theta)?);
     }
     if harness.stopped() {
         return Err(Error::Interrupted);
     }
     let evaluations = harness.evaluations();
-    let hyper = harness.objective().hyper(&theta)?;
     drop(harness);
-    model.set_hyper(hyper)?;
+    if hypers.len() == 1 {
+        // one start: no comparison, no copy of the model
+        model.set_hyper(hypers.swap_remove(0))?;
+        return Ok(FitReport {
+            initial_log_likelihood: initial_ll,
+            log_likelihood: model.log_marginal_likelihood(),
+            evaluations,
+            starts,
+        });
+    }
+    let mut best: Option<(f64, Mvgp<K>)> = None;
+    let mut failure = None;
+    for hyper in hypers {
+        let mut trial = model.clone();
+        match trial.set_hyper(hyper) {
+            Ok(()) => {
+                let ll = trial.log_marginal_likelihood();
+                if best.as_ref().is_none_or(|(b, _)| ll > *b) {
+                    best = Some((ll, trial));
+                }
+            }
+            Err(e) => failure = Some(e),
+        }
+    }
+    let (log_likelihood, fitted) = match (best, failure) {
+        (Some(b), _) => b,
+        (None, Some(e)) => return Err(e),
+        (None, None) => {
+            return Err(GpError::Optimisation("no start gave hyperparameters".into()).into())
+        }
+    };
+    *model = fitted;
     Ok(FitReport {
         initial_log_likelihood: initial_ll,
-        log_likelihood: model.log_marginal_likelihood(),
+        log_likelihood,
         evaluations,
         starts,
     })
