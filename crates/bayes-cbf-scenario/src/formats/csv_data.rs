@@ -50,6 +50,12 @@ fn show_header(h: &[String]) -> String {
 /// labels errors. Blank lines are skipped; line numbers are 1-based.
 pub fn parse_table(text: &str, name: &str, header: &[String]) -> Result<Vec<Vec<f64>>> {
     let text = crate::parse::strip_bom(text);
+    if text.contains('\r') && !text.contains('\n') {
+        bail!(
+            "{name}: its lines end in a carriage return alone (CR, old Mac OS line endings); \
+             convert them to LF or CRLF"
+        );
+    }
     let mut lines = text
         .lines()
         .enumerate()
@@ -191,6 +197,13 @@ mod tests {
                 vec![1.0, 2.0, 3.0, 4.0, 5.0],
                 vec![6.0, 7.0, 8.0, 9.0, 10.0]
             ]
+        );
+        // CR alone ends no line for `lines`: said so, not a header of 13 columns
+        let e = parse_table("x1,x2,u1,xdot1,xdot2\r1,2,3,4,5\r", "d.csv", &h).unwrap_err();
+        assert!(
+            e.to_string()
+                .contains("d.csv: its lines end in a carriage return alone"),
+            "{e}"
         );
         let e = parse_table("x1,x2,u1,xdot1,xdot2\n1,2,3,4\n", "d.csv", &h).unwrap_err();
         assert!(
