@@ -54,17 +54,21 @@ impl KnownRowMisfit {
 
     /// A one-line explanation for a warning.
     pub fn describe(&self) -> String {
+        let percent = 100.0 * self.rms_misfit / self.rms_label.max(f64::MIN_POSITIVE);
+        // labels of (nearly) zero size make the share astronomical: no
+        // hundreds of digits
+        let percent = if percent < 1e6 {
+            format!("{percent:.0}")
+        } else {
+            format!("{percent:.1e}")
+        };
         format!(
             "row {} of F is declared known, but the data differ from the prior mean's \
-             value on it by {:.3e} (root mean square; {:.0} % of the labels', at most \
+             value on it by {:.3e} (root mean square; {percent} % of the labels', at most \
              {:.3e} at observation {}), in a way that follows the state and control \
              rather than noise: the prior mean does not give this row, and the model \
              ignores what the data say about it",
-            self.row,
-            self.rms_misfit,
-            100.0 * self.rms_misfit / self.rms_label.max(f64::MIN_POSITIVE),
-            self.max_misfit,
-            self.observation
+            self.row, self.rms_misfit, self.max_misfit, self.observation
         )
     }
 }
