@@ -4,7 +4,7 @@
 
 mod common;
 
-use common::{run_in, scratch_dir};
+use common::{run_in, scratch_dir, Run};
 use std::process::{Command, Stdio};
 
 /// A short run of the double integrator, extra arguments appended.
@@ -12,6 +12,11 @@ fn short_run<'a>(extra: &[&'a str]) -> Vec<&'a str> {
     let mut args = vec!["run", "double-integrator", "--set", "steps=20"];
     args.extend_from_slice(extra);
     args
+}
+
+/// [`short_run`] in `dir` with the override `set`, written to `out`.
+fn short_run_set(dir: &std::path::Path, set: &str, out: &str) -> Run {
+    run_in(dir, &short_run(&["--set", set, "--out", out]))
 }
 
 /// Three observations of a 2-state, 1-control system.
@@ -192,10 +197,7 @@ fn the_stage_of_an_interrupted_run_is_removed_by_the_next() {
 #[test]
 fn warnings_of_a_wild_start_are_few_and_short() {
     let dir = scratch_dir("outputs-wild-start");
-    let r = run_in(
-        &dir,
-        &short_run(&["--set", "start.0=1e200", "--out", "out"]),
-    );
+    let r = short_run_set(&dir, "start.0=1e200", "out");
     assert!(r.status.success(), "{}", r.stderr);
     let skipped = r.stderr.matches("observation skipped").count();
     assert_eq!(skipped, 3, "{}", r.stderr);
@@ -218,10 +220,7 @@ fn warnings_of_a_wild_start_are_few_and_short() {
 #[test]
 fn gains_with_complex_roots_are_refused_and_fast_ones_warned_of() {
     let dir = scratch_dir("outputs-gains");
-    let r = run_in(
-        &dir,
-        &short_run(&["--set", "barriers.0.k_alpha=[4.0, 1.0]", "--out", "a"]),
-    );
+    let r = short_run_set(&dir, "barriers.0.k_alpha=[4.0, 1.0]", "a");
     assert!(!r.status.success());
     assert!(
         r.stderr
@@ -231,10 +230,7 @@ fn gains_with_complex_roots_are_refused_and_fast_ones_warned_of() {
         r.stderr
     );
     assert!(!dir.join("a").exists());
-    let r = run_in(
-        &dir,
-        &short_run(&["--set", "barriers.0.k_alpha=[40000.0, 400.0]", "--out", "b"]),
-    );
+    let r = short_run_set(&dir, "barriers.0.k_alpha=[40000.0, 400.0]", "b");
     assert!(r.status.success(), "{}", r.stderr);
     assert!(
         r.stderr

@@ -21,12 +21,17 @@ fn default_hyper(d: usize, n: usize, m: usize) -> MvgpHyper {
     }
 }
 
+/// A zero-mean MVGP (unit start) on rows `xs`, `us`, `xdot`.
+fn zero_mean_model(n: usize, m: usize, xs: &[f64], us: &[f64], xdot: &[f64]) -> Mvgp {
+    let hyper = default_hyper(n, n, m);
+    let mut model = Mvgp::new(n, m, hyper, PriorMean::Zero, InputMap::Identity).unwrap();
+    model.set_data(xs, us, xdot).unwrap();
+    model
+}
+
 /// The pendulum MVGP (zero prior mean, unit start) on `data`.
 fn pendulum_mvgp(data: &bayes_cbf::sim::Dataset) -> Mvgp {
-    let hyper = default_hyper(2, 2, 1);
-    let mut model = Mvgp::new(2, 1, hyper, PriorMean::Zero, InputMap::Identity).unwrap();
-    model.set_data(&data.xs, &data.us, &data.xdot).unwrap();
-    model
+    zero_mean_model(2, 1, &data.xs, &data.us, &data.xdot)
 }
 
 #[test]
@@ -69,15 +74,7 @@ fn fit_beats_true_hyperparameters_on_mvgp_samples() {
     let ll_true = true_model.log_marginal_likelihood();
 
     for (ra, rb) in [(Rank::Full, Rank::Full), (Rank::Low(1), Rank::Full)] {
-        let mut model = Mvgp::new(
-            n,
-            m,
-            default_hyper(n, n, m),
-            PriorMean::Zero,
-            InputMap::Identity,
-        )
-        .unwrap();
-        model.set_data(&xs, &us, &xdot).unwrap();
+        let mut model = zero_mean_model(n, m, &xs, &us, &xdot);
         let rep = fit(
             &mut model,
             &FitSettings {
@@ -727,15 +724,7 @@ fn more_restarts_never_give_a_worse_model() {
         }
         let mut last = f64::NEG_INFINITY;
         for restarts in 0..6 {
-            let mut model = Mvgp::new(
-                2,
-                3,
-                default_hyper(2, 2, 3),
-                PriorMean::Zero,
-                InputMap::Identity,
-            )
-            .unwrap();
-            model.set_data(&xs, &us, &xdot).unwrap();
+            let mut model = zero_mean_model(2, 3, &xs, &us, &xdot);
             let report = fit(
                 &mut model,
                 &FitSettings {

@@ -217,22 +217,15 @@ mod tests {
     }
 
     #[test]
-    fn angle_wraps() {
+    fn angles_wrap_and_wrong_lengths_are_errors() {
         let sys = Pendulum::default();
         let mut sim = Simulator::new(&sys, SimSettings::default());
         let mut rng = ChaCha8Rng::seed_from_u64(0);
         let mut x = [3.1, 5.0];
         sim.step(&mut x, &[0.0], 0.1, &mut rng).unwrap();
         assert!(x[0] < 0.0 && x[0] >= -std::f64::consts::PI);
-    }
-
-    /// A state or control of the wrong length and a non-finite interval
-    /// are errors naming them, and leave the state as it was.
-    #[test]
-    fn wrong_lengths_are_errors() {
-        let sys = Pendulum::default();
-        let mut sim = Simulator::new(&sys, SimSettings::default());
-        let mut rng = ChaCha8Rng::seed_from_u64(0);
+        // a state or control of the wrong length and a non-finite interval
+        // are errors naming them, and leave the state as it was
         let mut x = [0.1, 0.0];
         let e = sim.step(&mut x, &[0.0, 1.0], 0.1, &mut rng).unwrap_err();
         assert!(e.to_string().contains("shape of u:"), "{e}");
