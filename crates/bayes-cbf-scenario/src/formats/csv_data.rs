@@ -198,29 +198,28 @@ mod tests {
                 vec![6.0, 7.0, 8.0, 9.0, 10.0]
             ]
         );
-        // CR alone ends no line for `lines`: said so, not a header of 13 columns
-        let e = parse_table("x1,x2,u1,xdot1,xdot2\r1,2,3,4,5\r", "d.csv", &h).unwrap_err();
-        assert!(
-            e.to_string()
-                .contains("d.csv: its lines end in a carriage return alone"),
-            "{e}"
-        );
-        let e = parse_table("x1,x2,u1,xdot1,xdot2\n1,2,3,4\n", "d.csv", &h).unwrap_err();
-        assert!(
-            e.to_string().contains("line 2: expected 5 columns, got 4"),
-            "{e}"
-        );
-        let e = parse_table("x1,x2,u1,xdot1,xdot2\n1,2,3,nan,5\n", "d.csv", &h).unwrap_err();
-        assert!(
-            e.to_string()
-                .contains("column xdot1: value nan is not finite"),
-            "{e}"
-        );
-        let e = parse_table("x1,x2,u,xdot1,xdot2\n", "d.csv", &h).unwrap_err();
-        assert!(
-            e.to_string().contains("column 3 is \"u\", expected \"u1\""),
-            "{e}"
-        );
+        for (text, message) in [
+            // CR alone ends no line for `lines`: said so, not a header of 13 columns
+            (
+                "x1,x2,u1,xdot1,xdot2\r1,2,3,4,5\r",
+                "d.csv: its lines end in a carriage return alone",
+            ),
+            (
+                "x1,x2,u1,xdot1,xdot2\n1,2,3,4\n",
+                "line 2: expected 5 columns, got 4",
+            ),
+            (
+                "x1,x2,u1,xdot1,xdot2\n1,2,3,nan,5\n",
+                "column xdot1: value nan is not finite",
+            ),
+            (
+                "x1,x2,u,xdot1,xdot2\n",
+                "column 3 is \"u\", expected \"u1\"",
+            ),
+        ] {
+            let e = parse_table(text, "d.csv", &h).unwrap_err().to_string();
+            assert!(e.contains(message), "{e}");
+        }
         assert!(parse_table("", "d.csv", &h)
             .unwrap_err()
             .to_string()
