@@ -216,7 +216,7 @@ fn warnings_of_a_wild_start_are_few_and_short() {
 /// Gains refused or warned of: complex roots are an error naming
 /// `k_alpha`; real poles beyond `1/dt` (here a double pole at 200 /s with
 /// dt = 0.01) run, with a warning that the hold lets h cross between steps,
-/// which gains below `1/dt` do not get.
+/// which gains below `1/dt` and self-triggered holds do not get.
 #[test]
 fn gains_with_complex_roots_are_refused_and_fast_ones_warned_of() {
     let dir = scratch_dir("outputs-gains");
@@ -241,4 +241,29 @@ fn gains_with_complex_roots_are_refused_and_fast_ones_warned_of() {
     let r = run_in(&dir, &short_run(&["--out", "c"]));
     assert!(r.status.success(), "{}", r.stderr);
     assert!(!r.stderr.contains("beyond 1/dt"), "{}", r.stderr);
+    // a trigger that only evaluates τ_k holds for dt and is warned of; a
+    // self-triggered hold is sized to the gains and is not
+    for (hold, warned) in [("false", true), ("true", false)] {
+        let set = format!("trigger.self_triggered={hold}");
+        let args = [
+            "run",
+            "ackermann-self-triggered",
+            "--set",
+            "barriers.0.alpha=300",
+            "--set",
+            "steps=5",
+            "--set",
+            &set,
+            "--out",
+            "d",
+        ];
+        let r = run_in(&dir, &args);
+        assert!(r.status.success(), "{}", r.stderr);
+        assert_eq!(
+            r.stderr.contains("beyond 1/dt"),
+            warned,
+            "{hold}: {}",
+            r.stderr
+        );
+    }
 }

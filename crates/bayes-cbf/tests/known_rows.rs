@@ -309,16 +309,15 @@ fn known_row_misfit_tells_a_wrong_prior_from_noise() {
     assert!(m.smooth_share > 0.8, "{m:?}");
     assert!(m.is_large(), "{m:?}");
     assert!(m.describe().contains("row 0"), "{}", m.describe());
-    // labels of no size: the share is written short, not in 300 digits
+    // labels of nearly no size: the share is written short, not in 300
+    // digits
     let tiny = bayes_cbf::gp::KnownRowMisfit {
-        rms_label: 0.0,
+        rms_label: 1e-300,
         ..m
     };
-    assert!(
-        tiny.describe().contains("% of the labels'") && tiny.describe().len() < 500,
-        "{}",
-        tiny.describe()
-    );
+    let text = tiny.describe();
+    assert!(text.contains("e301 % of the labels'"), "{text}");
+    assert!(text.len() < 500, "{text}");
     // label noise as large as the labels: a right prior, not flagged
     let (noisy, _) = labelled(300, |_, _, rng| normal(rng));
     let m = noisy.known_row_misfit().unwrap();

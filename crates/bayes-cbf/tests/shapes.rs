@@ -84,6 +84,23 @@ fn references_of_another_shape_are_errors() {
             Box::new(StraightLinePlanner::new(vec![0.0; 3], vec![1.0; 3], 1.0).unwrap()),
             "planner.start",
         ),
+        // public fields: struct literals whose second vector is short
+        (
+            Box::new(EpsilonGreedy {
+                lo: vec![-1.0],
+                hi: vec![],
+                decay: 50.0,
+            }),
+            "epsilon_greedy.hi",
+        ),
+        (
+            Box::new(StraightLinePlanner {
+                start: vec![0.0; 2],
+                goal: vec![1.0],
+                duration: 1.0,
+            }),
+            "planner.goal",
+        ),
         (
             Box::new(
                 LinearFeedback::new(

@@ -369,7 +369,9 @@ pub fn build(s: &Scenario) -> Result<Built> {
         .validate()
         .map_err(|e| crate::err!("run settings: {e}"))?;
     warn_start_margin(&barriers, truth.as_ref(), &start, s.seed);
-    if loop_settings.trigger.is_none() {
+    // controls held for dt (a trigger that only evaluates τ_k holds them
+    // for dt too)
+    if !loop_settings.trigger.as_ref().is_some_and(|t| t.hold) {
         warn_fast_gains(&barriers, loop_settings.dt);
     }
     Ok(Built {

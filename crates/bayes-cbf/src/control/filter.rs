@@ -331,6 +331,17 @@ fn check_solution(
     Ok(())
 }
 
+/// The max-margin program's outcome at one probability.
+enum Margin {
+    /// Its maximum (the maximiser is written out).
+    Max(f64),
+    /// No maximum: the margin grows without limit (no input bounds), so
+    /// the conditions are feasible at that probability.
+    Unbounded,
+    /// The solver failed: nothing is known.
+    Failed,
+}
+
 /// The one check of the probability against the conditions: with a
 /// relative-degree-1 condition (a barrier of relative degree 1 or a CLF)
 /// `p ≥ 0.5` is required, since `c(p) < 0` would make the cone constraint
@@ -529,13 +540,28 @@ impl SafetyFilter {
     }
 
     /// Worst barrier margin `max_u min_i SCBC_i(u)` at probability `p`,
-    /// and the maximiser written into `u`. `None` when unbounded (no bounds).
+    /// and the maximiser written into `u`. `None` when there is none
+    /// (unbounded without input bounds, or the solver failed).
     fn max_margin(
         &mut self,
         cbcs: &[ConditionMoments],
         p: f64,
         u: &mut [f64],
     ) -> Result<Option<f64>, Error> {
+        Ok(match self.margin_at(cbcs, p, u)? {
+            Margin::Max(t) => Some(t),
+            Margin::Unbounded | Margin::Failed => None,
+        })
+    }
+
+    /// [`max_margin`](Self::max_margin), telling an unbounded margin
+    /// (feasible at `p`) from a failed solve (nothing known).
+    fn margin_at(
+        &mut self,
+        cbcs: &[ConditionMoments],
+        p: f64,
+        u: &mut [f64],
+    ) -> Result<Margin, Error> {
         let shape = self.shape;
         let prog = self.margin.get_or_insert_with(|| {
             let mut pr = ConeProgram::new(shape, true);
@@ -549,13 +575,15 @@ impl SafetyFilter {
             prog.set_barrier(k, mom, c, self.settings.zeta);
         }
         let st = prog.solve();
-        if st.is_solved() {
+        Ok(if st.is_solved() {
             let x = prog.x();
             u.copy_from_slice(&x[..shape.m]);
-            Ok(Some(x[shape.m]))
+            Margin::Max(x[shape.m])
+        } else if st == SolveStatus::Unbounded {
+            Margin::Unbounded
         } else {
-            Ok(None)
-        }
+            Margin::Failed
+        })
     }
 
     /// The largest probability at which `u` meets every barrier
@@ -654,20 +682,22 @@ impl SafetyFilter {
         if q < lo {
             // no start, or u_p affords too little: start from the lowest
             // admissible p
-            q = match self.max_margin(cbcs, lo, u)? {
-                Some(t) if t < -1e-9 => return Ok(None),
-                Some(_) => self.afforded_probability(cbcs, u).clamp(lo, p),
-                None => match self.past_unbounded(cbcs, lo, p, tol, u)? {
+            q = match self.margin_at(cbcs, lo, u)? {
+                Margin::Max(t) if t < -1e-9 => return Ok(None),
+                Margin::Max(_) => self.afforded_probability(cbcs, u).clamp(lo, p),
+                Margin::Unbounded => match self.past_unbounded(cbcs, lo, p, tol, u)? {
                     (level, true) => self.afforded_probability(cbcs, u).clamp(level, p),
                     (level, false) => return Ok(Some(level)),
                 },
+                // nothing known beyond the lowest admissible level
+                Margin::Failed => return Ok(Some(lo)),
             };
         }
         for _ in 0..50 {
-            let level = match self.max_margin(cbcs, q, u)? {
-                Some(t) if t > 1e-12 => q,
-                Some(_) => break,
-                None => match self.past_unbounded(cbcs, q, p, tol, u)? {
+            let level = match self.margin_at(cbcs, q, u)? {
+                Margin::Max(t) if t > 1e-12 => q,
+                Margin::Max(_) | Margin::Failed => break,
+                Margin::Unbounded => match self.past_unbounded(cbcs, q, p, tol, u)? {
                     (level, true) => level,
                     (level, false) => {
                         q = level;
@@ -691,7 +721,8 @@ impl SafetyFilter {
     /// margin is unbounded (so feasible), and the infeasible `hi`. Returns
     /// the first level found whose margin has a maximiser and is ≥ 0, with
     /// that maximiser in `u` (`true`), or, when the bracket narrows to
-    /// `tol` first, its feasible end (`false`; `u` holds nothing).
+    /// `tol` (or to neighbouring numbers, or a solve fails) first, its
+    /// feasible end (`false`; `u` holds nothing).
     fn past_unbounded(
         &mut self,
         cbcs: &[ConditionMoments],
@@ -700,12 +731,17 @@ impl SafetyFilter {
         tol: f64,
         u: &mut [f64],
     ) -> Result<(f64, bool), Error> {
-        while hi - lo > tol {
+        // 64 halvings narrow any bracket within [0, 1] to below 1e-19
+        for _ in 0..64 {
             let mid = 0.5 * (lo + hi);
-            match self.max_margin(cbcs, mid, u)? {
-                None => lo = mid,
-                Some(t) if t >= -1e-12 => return Ok((mid, true)),
-                Some(_) => hi = mid,
+            if hi - lo <= tol || mid <= lo || mid >= hi {
+                break;
+            }
+            match self.margin_at(cbcs, mid, u)? {
+                Margin::Unbounded => lo = mid,
+                Margin::Max(t) if t >= -1e-12 => return Ok((mid, true)),
+                Margin::Max(_) => hi = mid,
+                Margin::Failed => break,
             }
         }
         Ok((lo, false))
@@ -1223,14 +1259,21 @@ mod tests {
     ///   supremum, −1, is never reached), so `p*` is the level of `c = 1`.
     ///
     /// `p*` is that factor's probability (Gaussian for relative degree 1,
-    /// Cantelli for 2) and `relax` solves there, meeting the condition.
+    /// Cantelli for 2) and `relax` solves there, meeting the condition;
+    /// also at a tolerance below the spacing of numbers near `p*`, where
+    /// the bisection stops at neighbouring numbers.
     #[test]
     fn p_star_lies_beyond_an_unbounded_margin() {
-        for (e0, c_star) in [(2.0, 5f64.sqrt()), (-1.0, 1.0)] {
-            for degree in [1, 2] {
+        let cases = [(2.0, 5f64.sqrt()), (-1.0, 1.0)];
+        for ((e0, c_star), (degree, tol)) in cases
+            .into_iter()
+            .flat_map(|c| [(1, 1e-5), (2, 1e-5), (1, 1e-17), (2, 1e-17)].map(|d| (c, d)))
+        {
+            {
                 let p_star = factor_probability(c_star, degree);
                 let mut settings = SafetySettings::new(1);
                 settings.fallback = Fallback::Relax;
+                settings.p_star_tol = tol;
                 settings.probability = 0.5 + 0.5 * p_star.max(0.6);
                 let mut filter = SafetyFilter::new(1, 1, false, settings).unwrap();
                 let mom =
@@ -1249,6 +1292,11 @@ mod tests {
                     "{e0} {degree}: p* {got} ≠ {p_star}"
                 );
                 assert!(got <= p_star + 1e-9, "{e0} {degree}: p* {got} > {p_star}");
+                if tol < 1e-9 {
+                    // p* that near the asymptote asks for a control near
+                    // 1/tol, beyond the solver: relax falls back
+                    continue;
+                }
                 // relax meets the condition at p* (its own factor)
                 let c = quantile_factor(got, degree).unwrap();
                 let slack = mom.mean(&out.u) - c * mom.variance(&out.u).sqrt();

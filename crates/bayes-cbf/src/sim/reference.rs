@@ -105,7 +105,8 @@ impl Reference for EpsilonGreedy {
     }
 
     fn check_dims(&self, _n: usize, m: usize) -> Result<(), InputError> {
-        check_len("epsilon_greedy.lo", m, self.lo.len())
+        check_len("epsilon_greedy.lo", m, self.lo.len())?;
+        check_len("epsilon_greedy.hi", m, self.hi.len())
     }
 }
 
@@ -153,7 +154,8 @@ impl Reference for StraightLinePlanner {
     }
 
     fn check_dims(&self, n: usize, _m: usize) -> Result<(), InputError> {
-        check_len("planner.start", n, self.start.len())
+        check_len("planner.start", n, self.start.len())?;
+        check_len("planner.goal", n, self.goal.len())
     }
 }
 

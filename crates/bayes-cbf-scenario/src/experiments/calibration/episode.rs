@@ -575,6 +575,10 @@ fn run_inner(
     let mut moments = Vec::with_capacity(steps);
     let mut records = Vec::with_capacity(steps);
     while !lp.is_finished() {
+        // this loop steps the engine itself: `run` would check the flag
+        if stop.load(std::sync::atomic::Ordering::Relaxed) {
+            return Err(bayes_cbf::Error::Interrupted.into());
+        }
         ws.update(lp.model(), lp.state(), degree)
             .context("the model's moments")?;
         cbc_moments(&mut ws, b, &mut mom).context("the model's moments")?;
