@@ -837,7 +837,7 @@ pub fn fit_until<K: Kernel>(
             }
             theta[off_sigma] = (theta[off_sigma] + 0.1).min(sigma_max);
         }
-        hypers.push(harness.objective().hyper(&theta)?);
+        hypers.push(harness.objective().hyper(&theta));
     }
     if harness.stopped() {
         return Err(Error::Interrupted);
@@ -846,7 +846,7 @@ pub fn fit_until<K: Kernel>(
     drop(harness);
     if hypers.len() == 1 {
         // one start: no comparison, no copy of the model
-        model.set_hyper(hypers.swap_remove(0))?;
+        model.set_hyper(hypers.swap_remove(0)?)?;
         return Ok(FitReport {
             initial_log_likelihood: initial_ll,
             log_likelihood: model.log_marginal_likelihood(),
@@ -858,7 +858,7 @@ pub fn fit_until<K: Kernel>(
     let mut failure = None;
     for hyper in hypers {
         let mut trial = model.clone();
-        match trial.set_hyper(hyper) {
+        match hyper.and_then(|h| trial.set_hyper(h)) {
             Ok(()) => {
                 let ll = trial.log_marginal_likelihood();
                 if best.as_ref().is_none_or(|(b, _)| ll > *b) {
