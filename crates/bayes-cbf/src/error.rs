@@ -115,6 +115,15 @@ pub fn check_finite(field: &str, v: &[f64]) -> Result<(), InputError> {
     }
 }
 
+/// Checks that `field` has `len` entries where `expected` are needed.
+pub fn check_len(field: &str, expected: usize, len: usize) -> Result<(), InputError> {
+    if len == expected {
+        Ok(())
+    } else {
+        Err(InputError::shape(field, expected, len))
+    }
+}
+
 /// Checks that the scalar `v` is finite, naming `field`.
 pub fn check_finite_scalar(field: &str, v: f64) -> Result<(), InputError> {
     if v.is_finite() {

@@ -8,7 +8,7 @@ use crate::error::{check_vector, Context, Result};
 use crate::input_map_spec::to_input_map;
 use crate::parse::parse_rank;
 use crate::prior_spec::{PriorSpec, SystemNames};
-use bayes_cbf::barrier::{start_margin, DynBarrier};
+use bayes_cbf::barrier::{fastest_pole, start_margin, DynBarrier};
 use bayes_cbf::control::{
     Fallback, RecalibrationSettings, SafetyController, SafetySettings, SelfTriggered, TauSource,
     TriggerSettings,
@@ -390,17 +390,6 @@ static CLF_WITHOUT_PLANNER: AtomicBool = AtomicBool::new(false);
 static START_OUTSIDE: AtomicBool = AtomicBool::new(false);
 static START_UNSAFE: AtomicBool = AtomicBool::new(false);
 static FAST_GAINS: AtomicBool = AtomicBool::new(false);
-
-/// The fastest pole of a barrier's condition: `α` at relative degree 1,
-/// the larger root magnitude of `s² + k₁s + k₀` at 2 (real roots: the
-/// gains are checked); `None` above.
-fn fastest_pole(b: &dyn DynBarrier) -> Option<f64> {
-    match (b.relative_degree(), b.gains()) {
-        (1, &[alpha]) => Some(alpha),
-        (2, &[k0, k1]) => Some(0.5 * (k1 + (k1 * k1 - 4.0 * k0).max(0.0).sqrt())),
-        _ => None,
-    }
-}
 
 /// Warns, once per process, when a barrier's fastest pole `λ` exceeds
 /// `1/dt`: the condition holds at each step, but the control is held over

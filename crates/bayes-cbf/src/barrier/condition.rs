@@ -76,10 +76,24 @@ fn check_point(
     Ok(())
 }
 
+/// The fastest pole `λ` of a barrier's condition: `α` at relative degree
+/// 1; at 2 the larger root magnitude of `s² + k₁ s + k₀` (gains `[k₀, k₁]`),
+/// with a double root's discriminant rounded below zero taken as zero, as
+/// [`has_real_roots`](super::has_real_roots) takes it; `None` above, or for
+/// complex roots.
+pub fn fastest_pole(barrier: &dyn DynBarrier) -> Option<f64> {
+    match (barrier.relative_degree(), barrier.gains()) {
+        (1, &[alpha]) => Some(alpha),
+        (2, &[k0, k1]) => super::has_real_roots(&[k0, k1])
+            .then(|| 0.5 * (k1 + (k1 * k1 - 4.0 * k0).max(0.0).sqrt())),
+        _ => None,
+    }
+}
+
 /// `ψ₁(x) = L_f h(x) + λ h(x)` of a relative-degree-2 barrier at a start
 /// `x` of `system`, `λ` the larger root of `s² + k₁ s + k₀` (gains
-/// `[k₀, k₁]`); `None` for another relative degree (or complex roots, which
-/// [`validate_gains`](super::validate_gains) refuses).
+/// `[k₀, k₁]`, [`fastest_pole`]); `None` for another relative degree (or
+/// complex roots, which [`validate_gains`](super::validate_gains) refuses).
 ///
 /// For real roots `−λ₁`, `−λ₂` the condition `ḧ + k₁ ḣ + k₀ h ≥ 0` is
 /// `ψ̇₁ + λ₂ ψ₁ ≥ 0` with `ψ₁ = ḣ + λ₁ h`, so `ψ₁(t) ≥ ψ₁(0) e^{−λ₂ t}`, and
@@ -97,15 +111,10 @@ pub fn start_margin(
     let (n, m) = (system.state_dim(), system.control_dim());
     check_point(barrier, n, x, ("x", x, n))?;
     check_finite("x", x)?;
-    let k = barrier.gains();
-    if barrier.relative_degree() != 2 || k.len() != 2 {
-        return Ok(None);
-    }
-    let disc = k[1] * k[1] - 4.0 * k[0];
-    if disc < 0.0 {
-        return Ok(None);
-    }
-    let lambda = 0.5 * (k[1] + disc.sqrt());
+    let lambda = match fastest_pole(barrier) {
+        Some(l) if barrier.relative_degree() == 2 => l,
+        _ => return Ok(None),
+    };
     let mut fbuf = vec![0.0; n * (1 + m)];
     let mut f = vec![0.0; n];
     system.xdot(x, &vec![0.0; m], &mut fbuf, &mut f);

@@ -32,7 +32,7 @@ pub use builtins::{
 };
 pub use callback::{ArrayFn, CallbackBarrier, ValueFn};
 pub use clf::{AckermannClf, DynLyapunov, Lyapunov};
-pub use condition::{realised_condition, start_margin, true_condition};
+pub use condition::{fastest_pole, realised_condition, start_margin, true_condition};
 pub use expression::{ExpressionBarrier, ExpressionClf};
 pub use moments::{
     add_observation_noise, cbc_moments, clc_moments, factor_probability, quantile_factor,

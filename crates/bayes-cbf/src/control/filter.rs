@@ -1264,12 +1264,8 @@ mod tests {
     /// the bisection stops at neighbouring numbers.
     #[test]
     fn p_star_lies_beyond_an_unbounded_margin() {
-        let cases = [(2.0, 5f64.sqrt()), (-1.0, 1.0)];
-        for ((e0, c_star), (degree, tol)) in cases
-            .into_iter()
-            .flat_map(|c| [(1, 1e-5), (2, 1e-5), (1, 1e-17), (2, 1e-17)].map(|d| (c, d)))
-        {
-            {
+        for (e0, c_star) in [(2.0, 5f64.sqrt()), (-1.0, 1.0)] {
+            for (degree, tol) in [(1, 1e-5), (2, 1e-5), (1, 1e-17), (2, 1e-17)] {
                 let p_star = factor_probability(c_star, degree);
                 let mut settings = SafetySettings::new(1);
                 settings.fallback = Fallback::Relax;

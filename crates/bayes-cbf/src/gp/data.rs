@@ -4,7 +4,7 @@
 //! Shared by the MVGP and the CoGP.
 
 use super::input_map::InputMap;
-use crate::error::{check_finite, InputError};
+use crate::error::{check_finite, check_len, InputError};
 
 /// Stored observations of a model with state dim `n`, control dim `m` and
 /// mapped-input dim `d` (`p = 1 + m`).
@@ -106,9 +106,7 @@ fn check_values(name: &str, j: usize, v: &[f64]) -> Result<(), InputError> {
 
 /// Checks a query state `x` of dimension `n`, named `field` in the errors.
 pub(crate) fn check_state(field: &str, n: usize, x: &[f64]) -> Result<(), InputError> {
-    if x.len() != n {
-        return Err(InputError::shape(field, n, x.len()));
-    }
+    check_len(field, n, x.len())?;
     check_finite(field, x)
 }
 

@@ -11,7 +11,7 @@ use crate::control::{
     evaluate_trigger, ControlOutput, ControlStatus, RecalibrationSettings, SafetyController,
     TriggerReport, TriggerSettings,
 };
-use crate::error::{check_nonnegative, check_positive, Error, InputError};
+use crate::error::{check_len, check_nonnegative, check_positive, Error, InputError};
 use crate::gp::{fit_until, FitSettings, Mvgp};
 use crate::systems::{wrap_angle, DynSystem};
 use rand::SeedableRng;
@@ -370,12 +370,8 @@ impl<'a> ClosedLoop<'a> {
         }
         for (i, b) in barriers.iter().enumerate() {
             if b.state_dim() != n {
-                return Err(InputError::shape(
-                    &format!("barriers[{i}] state dimension"),
-                    n,
-                    b.state_dim(),
-                )
-                .into());
+                // the field is formatted only on failure
+                check_len(&format!("barriers[{i}] state dimension"), n, b.state_dim())?;
             }
         }
         reference.check_dims(n, m)?;
@@ -568,15 +564,9 @@ impl<'a> ClosedLoop<'a> {
         self.reference.at(k, t, &self.x, &mut self.rng, &mut self.r);
         // a reference may have replaced the vectors
         let m = self.truth.control_dim();
-        for (field, len, want) in [
-            ("reference control", self.r.u_ref.len(), m),
-            ("reference x_d", self.r.xd.len(), n),
-            ("reference ẋ_d", self.r.xd_dot.len(), n),
-        ] {
-            if len != want {
-                return Err(InputError::shape(field, want, len).into());
-            }
-        }
+        check_len("reference control", m, self.r.u_ref.len())?;
+        check_len("reference x_d", n, self.r.xd.len())?;
+        check_len("reference ẋ_d", n, self.r.xd_dot.len())?;
         let start = Instant::now();
         self.controller.step(
             &self.model,

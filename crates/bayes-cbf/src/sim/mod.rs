@@ -16,7 +16,7 @@ pub use reference::{
     ConstantReference, EpsilonGreedy, LinearFeedback, Reference, ReferenceOut, StraightLinePlanner,
 };
 
-use crate::error::{check_nonnegative, check_positive, InputError};
+use crate::error::{check_finite_scalar, check_len, check_nonnegative, check_positive, InputError};
 use crate::systems::{wrap_angle, DynSystem};
 use rand::Rng;
 use rand_distr::{Distribution, StandardNormal};
@@ -109,15 +109,9 @@ impl<'a> Simulator<'a> {
         mut observer: impl FnMut(f64, &[f64]),
     ) -> Result<(), InputError> {
         let n = self.system.state_dim();
-        if x.len() != n {
-            return Err(InputError::shape("x", n, x.len()));
-        }
-        if u.len() != self.system.control_dim() {
-            return Err(InputError::shape("u", self.system.control_dim(), u.len()));
-        }
-        if !interval.is_finite() {
-            return Err(InputError::invalid("interval", interval, "must be finite"));
-        }
+        check_len("x", n, x.len())?;
+        check_len("u", self.system.control_dim(), u.len())?;
+        check_finite_scalar("interval", interval)?;
         if interval <= 0.0 {
             return Ok(());
         }

@@ -1,6 +1,6 @@
 //! Reference controls `û` and time-varying CLF references `x_d(t)`.
 
-use crate::error::{check_positive, InputError};
+use crate::error::{check_len, check_positive, InputError};
 use rand::RngExt;
 use rand_chacha::ChaCha8Rng;
 
@@ -27,15 +27,6 @@ pub trait Reference: Send {
     fn check_dims(&self, n: usize, m: usize) -> Result<(), InputError> {
         let _ = (n, m);
         Ok(())
-    }
-}
-
-/// `len` entries of `field` where `expected` are needed.
-fn check_len(field: &str, expected: usize, len: usize) -> Result<(), InputError> {
-    if len == expected {
-        Ok(())
-    } else {
-        Err(InputError::shape(field, expected, len))
     }
 }
 
