@@ -65,6 +65,7 @@ impl ExpressionBarrier {
         let names = names(state, params)?;
         let text = h.trim().to_string();
         let h = Expr::parse("h", h, &names)?;
+        names.check_params_used()?;
         validate_gains(relative_degree, &gains)?;
         Ok(Self {
             state: names.vars().to_vec(),
@@ -165,9 +166,11 @@ impl ExpressionClf {
             names.add_param(p.as_ref(), *value)?;
         }
         check_nonnegative("gamma", gamma)?;
+        let v = Expr::parse("V", v, &names)?;
+        names.check_params_used()?;
         Ok(Self {
             n: state.len(),
-            v: Expr::parse("V", v, &names)?,
+            v,
             gamma,
         })
     }

@@ -214,13 +214,22 @@ pub fn validate_gains(r: usize, gains: &[f64]) -> Result<(), InputError> {
         return Err(InputError::shape(field, want, gains.len()));
     }
     for (i, g) in gains.iter().enumerate() {
-        if !(g.is_finite() && *g >= 0.0) {
-            let field = if r == 1 {
+        let field = || {
+            if r == 1 {
                 "alpha".to_string()
             } else {
                 format!("k_alpha[{i}]")
-            };
-            return Err(InputError::invalid(&field, *g, "must be finite and ≥ 0"));
+            }
+        };
+        if !(g.is_finite() && *g >= 0.0) {
+            return Err(InputError::invalid(&field(), *g, "must be finite and ≥ 0"));
+        }
+        if !(g * g).is_finite() {
+            return Err(InputError::invalid(
+                &field(),
+                *g,
+                "must be below 1e154: the condition's variance carries its square, which overflows",
+            ));
         }
     }
     if r >= 2 && !is_hurwitz(gains) {
@@ -440,6 +449,17 @@ mod tests {
                 assert!(!has_real_roots(&k), "{roots:?} ± {b}i: {k:?}");
             }
         }
+    }
+
+    /// Gains whose square overflows name the gain (a run with
+    /// `k_alpha = [1e200, 1e200]` failed later, on non-finite moments).
+    #[test]
+    fn gains_whose_square_overflows_are_named() {
+        let e = validate_gains(2, &[1e200, 1e200]).unwrap_err().to_string();
+        assert!(e.contains("k_alpha[0]") && e.contains("1e154"), "{e}");
+        let e = validate_gains(1, &[2e154]).unwrap_err().to_string();
+        assert!(e.contains("alpha") && e.contains("overflows"), "{e}");
+        assert!(validate_gains(2, &[1e150, 3e75]).is_ok());
     }
 
     #[test]

@@ -457,6 +457,7 @@ pub(crate) fn real_parts<D: DualNum<Primitive = f64> + Copy>(x: &[D]) -> Vec<f64
 mod names {
     use super::{error, Func, Node};
     use crate::error::InputError;
+    use std::cell::Cell;
 
     /// The names an expression may use: variables (in evaluation order),
     /// parameters (folded into constants) and names reserved with a reason
@@ -465,6 +466,9 @@ mod names {
     pub struct Names {
         vars: Vec<String>,
         params: Vec<(String, f64)>,
+        /// Whether an expression parsed over these names used each
+        /// parameter (parallel to `params`).
+        used: Vec<Cell<bool>>,
         reserved: Vec<(String, String)>,
     }
 
@@ -558,7 +562,23 @@ mod names {
                 ));
             }
             self.params.push((name.to_string(), value));
+            self.used.push(Cell::new(false));
             Ok(())
+        }
+
+        /// Checks that every parameter was used by an expression parsed
+        /// over these names (call it after the last one): an unused one
+        /// is most often a misspelt name, whose value (or `--set`
+        /// override) would otherwise change nothing.
+        pub fn check_params_used(&self) -> Result<(), InputError> {
+            match self.params.iter().zip(&self.used).find(|(_, u)| !u.get()) {
+                None => Ok(()),
+                Some(((name, _), _)) => Err(error(
+                    &format!("params.{name}"),
+                    None,
+                    "no expression uses this parameter (a misspelt name? names are case-sensitive): remove it or use it".to_string(),
+                )),
+            }
         }
 
         /// Reserves `name`: using it is an error that gives `reason`.
@@ -595,8 +615,9 @@ mod names {
             if let Some(i) = self.vars.iter().position(|v| v == name) {
                 return Ok(Node::Var(i as u32));
             }
-            if let Some((_, v)) = self.params.iter().find(|(p, _)| p == name) {
-                return Ok(Node::Const(*v));
+            if let Some(i) = self.params.iter().position(|(p, _)| p == name) {
+                self.used[i].set(true);
+                return Ok(Node::Const(self.params[i].1));
             }
             if name == "pi" {
                 return Ok(Node::Const(std::f64::consts::PI));

@@ -296,6 +296,38 @@ fn parameters_and_constant_subexpressions_fold() {
     assert_eq!(e.nodes.len(), 6, "{:?}", e.nodes);
 }
 
+/// A parameter no expression uses is named: its value (or an override of
+/// it) would change nothing. Used in any one expression is enough.
+#[test]
+fn unused_parameters_are_named() {
+    let n = Names::new(&["x"], &[("k", 2.0), ("K", 3.0)]).unwrap();
+    Expr::parse("f[0]", "-k*x", &n).unwrap();
+    let s = n.check_params_used().unwrap_err().to_string();
+    assert!(
+        s.starts_with("params.K") && s.contains("no expression uses"),
+        "{s}"
+    );
+    Expr::parse("f[1]", "K + 0*x", &n).unwrap();
+    n.check_params_used().unwrap();
+    // the system, barrier and CLF constructors check their own
+    let e = crate::systems::ExpressionSystem::new(
+        &["x"],
+        &["u"],
+        &[("m", 1.0), ("mass", 2.0)],
+        &["0"],
+        &[vec!["1/m"]],
+        &[],
+    )
+    .unwrap_err();
+    assert!(e.to_string().contains("params.mass"), "{e}");
+    let e = crate::barrier::ExpressionBarrier::new(&["x"], &[("r", 1.0)], "1 - x", 1, vec![1.0])
+        .unwrap_err();
+    assert!(e.to_string().contains("params.r"), "{e}");
+    let e =
+        crate::barrier::ExpressionClf::new(&["x"], &[("w", 1.0)], "(x - x_d)^2", 1.0).unwrap_err();
+    assert!(e.to_string().contains("params.w"), "{e}");
+}
+
 #[test]
 fn errors_name_the_field_and_column() {
     let mut n = names();

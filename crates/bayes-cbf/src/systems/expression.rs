@@ -112,6 +112,7 @@ impl ExpressionSystem {
                 )?);
             }
         }
+        names.check_params_used()?;
         let mut idx = Vec::new();
         for a in angles {
             let i = state
