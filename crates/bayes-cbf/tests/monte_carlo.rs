@@ -245,3 +245,45 @@ fn bad_settings_are_rejected() {
     .contains("step"));
     assert!(mc_cbc_moments(&model, &b, &[0.0], &McSettings::default()).is_err());
 }
+
+/// A step so small that the three nested differences amplify the rounding
+/// of `h` and of the mean of `F` past the condition's spread is refused,
+/// naming `step` (at `s = 1e-6` the mean came out −1.39 where it is
+/// −0.50); steps down to `1e-4` agree with the default.
+#[test]
+fn a_step_below_the_round_off_of_nested_differences_is_refused() {
+    let model = triple_integrator_model(1e-12);
+    let b = bayes_cbf::barrier::ExpressionBarrier::new(
+        &["p", "v", "a"],
+        &[],
+        "1 - p - 0.1*v^2",
+        3,
+        vec![6.0, 11.0, 6.0],
+    )
+    .unwrap();
+    let x = [0.3, 0.4, -0.2];
+    let at = |step| {
+        mc_cbc_moments(
+            &model,
+            &b,
+            &x,
+            &McSettings {
+                samples: 500,
+                step,
+                seed: 4,
+            },
+        )
+    };
+    let reference = at(1e-2).unwrap().moments.e;
+    for step in [1e-3, 1e-4] {
+        let e = at(step).unwrap().moments.e;
+        assert!(
+            (e[0] - reference[0]).abs() < 1e-3,
+            "step {step}: {e:?} vs {reference:?}"
+        );
+    }
+    for step in [1e-6, 1e-8] {
+        let err = at(step).unwrap_err().to_string();
+        assert!(err.contains("step") && err.contains("round-off"), "{err}");
+    }
+}
