@@ -9,6 +9,7 @@ use bayes_cbf::barrier::{
 };
 use serde::Deserialize;
 use std::path::Path;
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 
 /// One barrier as written in a file.
@@ -282,7 +283,9 @@ impl BarrierSpec {
                         bail!("an expression barrier needs \"state\" (the state names)")
                     }
                 };
-                Arc::new(ExpressionBarrier::new(names, &params.pairs(), h, r, gains)?)
+                let barrier = ExpressionBarrier::new(names, &params.pairs(), h, r, gains)?;
+                warn_kinks(&barrier);
+                Arc::new(barrier)
             }
         })
     }
@@ -392,6 +395,24 @@ impl BarrierSpec {
             .build()
             .with_context(|| format!("barrier file '{name}'"))?;
         Ok((spec, b))
+    }
+}
+
+static KINKS: AtomicBool = AtomicBool::new(false);
+
+/// Warns, once per process, of an expression barrier with a kink
+/// ([`ExpressionBarrier::kinks`]).
+fn warn_kinks(barrier: &ExpressionBarrier) {
+    let kinks = barrier.kinks();
+    if !kinks.is_empty() && !KINKS.swap(true, Ordering::Relaxed) {
+        log::warn!(
+            "barrier '{}' uses {}: h has no derivative where it switches, so the condition \
+             there constrains one side only and the other can cross zero although every \
+             step meets it (a min of two walls escapes their corner); write each side as \
+             its own barrier (docs/robots.md, \"Smooth barriers\")",
+            barrier.expression(),
+            kinks.join(", ")
+        );
     }
 }
 

@@ -93,6 +93,16 @@ impl ExpressionBarrier {
     pub fn expression(&self) -> &str {
         self.h.text()
     }
+
+    /// The functions with kinks `h` applies to the state (`abs`, `min`,
+    /// `max`). A barrier must be differentiable (`C¹` at relative degree
+    /// 1, `Cʳ` at `r`): where one of these switches, the condition
+    /// constrains the gradient of one side only, and the other side can
+    /// cross zero although every step meets the condition (`min(1 − x,
+    /// 1 − y)` escapes its corner). Write each side as its own barrier.
+    pub fn kinks(&self) -> Vec<&'static str> {
+        self.h.kinks()
+    }
 }
 
 impl Barrier for ExpressionBarrier {

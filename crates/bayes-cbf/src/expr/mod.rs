@@ -407,6 +407,22 @@ impl Expr {
     pub fn text(&self) -> &str {
         &self.text
     }
+
+    /// The functions with kinks it applies to a variable (`abs`, `min`,
+    /// `max`, in that order, each once): there the expression has no
+    /// derivative, and automatic differentiation takes one side's.
+    pub fn kinks(&self) -> Vec<&'static str> {
+        [Func::Abs, Func::Min, Func::Max]
+            .into_iter()
+            .filter(|f| {
+                self.nodes.iter().any(|node| match *node {
+                    Node::Call1(g, _) | Node::Call2(g, _, _) => g == *f,
+                    _ => false,
+                })
+            })
+            .map(|f| Func::NAMES[Func::ALL.iter().position(|g| *g == f).unwrap_or(0)])
+            .collect()
+    }
 }
 
 /// The first failed evaluation of a function whose evaluation traits are

@@ -328,6 +328,21 @@ fn unused_parameters_are_named() {
     assert!(e.to_string().contains("params.w"), "{e}");
 }
 
+/// `abs`, `min` and `max` of a variable are kinks; folded into a
+/// constant they are not.
+#[test]
+fn kinks_are_the_non_differentiable_functions_of_a_variable() {
+    let n = names();
+    let kinks = |t: &str| Expr::parse("h", t, &n).unwrap().kinks();
+    assert_eq!(kinks("min(1 - x, 1 - y)"), vec!["min"]);
+    assert_eq!(kinks("max(x, 0) + abs(y)"), vec!["abs", "max"]);
+    assert!(kinks("x^2 + sin(y) + abs(a) + min(a, b)").is_empty());
+    let b =
+        crate::barrier::ExpressionBarrier::new(&["x", "y"], &[], "min(1 - x, 1 - y)", 1, vec![1.0])
+            .unwrap();
+    assert_eq!(b.kinks(), vec!["min"]);
+}
+
 #[test]
 fn errors_name_the_field_and_column() {
     let mut n = names();
