@@ -267,3 +267,98 @@ fn gains_with_complex_roots_are_refused_and_fast_ones_warned_of() {
         );
     }
 }
+
+/// A single integrator kept inside a disc (concave `h`, relative degree
+/// 1) and swirled along its wall at about 6 m/s.
+const DISC: &str = r#"
+name = "disc"
+seed = 300000
+dt = 0.01
+steps = 320
+start = [0.0, 0.0]
+start_spread = [0.3, 0.3]
+[system]
+type = "expression"
+state = ["x", "y"]
+control = ["ux", "uy"]
+params = { k = 0.8 }
+f = ["0", "0"]
+g = [["k", "0"], ["0", "k"]]
+[gp]
+prior_mean = { type = "expression", f = ["0", "0"], g = [["1", "0"], ["0", "1"]] }
+lengthscales = [1.0, 1.0]
+A = { type = "identity", scale = 1.0 }
+B = { type = "rows", rows = [[0.1, 0.0, 0.0], [0.0, 0.05, 0.0], [0.0, 0.0, 0.05]] }
+noise_sigma = 0.05
+[learning]
+update_every = 1
+window = 300
+[[barriers]]
+type = "expression"
+params = { R = 1.0 }
+h = "R^2 - x^2 - y^2"
+relative_degree = 1
+alpha = 2.0
+[controller]
+probability = 0.99
+u_min = [-10.0, -10.0]
+u_max = [10.0, 10.0]
+fallback = "relax"
+[reference]
+type = "feedback"
+u0 = [0.0, 0.0]
+gain = [[-0.5, -8.0], [8.0, -0.5]]
+target = [0.0, 0.0]
+[outputs]
+animation = false
+"#;
+
+/// A barrier with a kink (`min`) is warned of; a relative-degree-1
+/// barrier that crosses in steps that met their condition is warned of
+/// with its curvature over the hold and the margin `zeta` that covers it
+/// (with which the run is safe); holds clamped up to `tau_min` are
+/// counted.
+#[test]
+fn kinks_curvature_and_clamped_holds_are_warned_of() {
+    let dir = scratch_dir("outputs-kinks");
+    let r = short_run_set(&dir, "barriers.0.h=min(p_max - p, 2 - p)", "a");
+    assert!(r.status.success(), "{}", r.stderr);
+    assert!(
+        r.stderr.contains("uses min: h has no derivative"),
+        "{}",
+        r.stderr
+    );
+    let r = run_in(&dir, &short_run(&["--out", "b"]));
+    assert!(!r.stderr.contains("no derivative"), "{}", r.stderr);
+    std::fs::write(dir.join("disc.toml"), DISC).unwrap();
+    let r = run_in(&dir, &["run", "disc.toml", "--out", "d"]);
+    assert!(r.status.success(), "{}", r.stderr);
+    assert!(
+        r.stderr.contains("h also moves by ½·τ²·ẋᵀ∇²h·ẋ = -0.004")
+            && r.stderr.contains("controller.zeta ≥ ½·τ·|ẋᵀ∇²h·ẋ| = 0.4"),
+        "{}",
+        r.stderr
+    );
+    let d = std::fs::read_to_string(dir.join("d").join("summary.json")).unwrap();
+    assert!(d.contains("\"safe\": false"), "{d}");
+    let run_set = |scenario, sets: &[&str], out| {
+        let mut args = vec!["run", scenario, "--out", out];
+        for set in sets {
+            args.extend(["--set", *set]);
+        }
+        run_in(&dir, &args)
+    };
+    let r = run_set("disc.toml", &["controller.zeta=0.5"], "e");
+    assert!(!r.stderr.contains("crossed zero"), "{}", r.stderr);
+    let e = std::fs::read_to_string(dir.join("e").join("summary.json")).unwrap();
+    assert!(e.contains("\"safe\": true"), "{e}");
+    let sets = ["steps=40", "trigger.tau_min=0.05"];
+    let r = run_set("ackermann-self-triggered", &sets, "c");
+    assert!(r.status.success(), "{}", r.stderr);
+    assert!(
+        r.stderr
+            .contains("holds were clamped up to tau_min = 0.050 s"),
+        "{}",
+        r.stderr
+    );
+}

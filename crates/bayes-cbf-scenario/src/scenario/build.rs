@@ -374,6 +374,9 @@ pub fn build(s: &Scenario) -> Result<Built> {
     if !loop_settings.trigger.as_ref().is_some_and(|t| t.hold) {
         warn_fast_gains(&barriers, loop_settings.dt);
     }
+    if !s.gp.oracle && l.update_every > 0 {
+        warn_noise_below_labels(&model, s.sim.process_noise, s.dt);
+    }
     Ok(Built {
         start,
         truth,
@@ -478,6 +481,126 @@ pub(crate) fn warn_crossing_outside(
                 short(psi)
             ),
         );
+    }
+}
+
+static NOISE_BELOW_LABELS: AtomicBool = AtomicBool::new(false);
+
+/// Warns, once per process, when the model's noise on a learned row,
+/// `σ·√A_ii`, is below the noise that process noise `σ_w` puts on the
+/// learning labels, `σ_w/√dt` (finite differences over `dt`): the
+/// conditions then take the labels for more exact than they are.
+fn warn_noise_below_labels(model: &Mvgp, process_noise: f64, dt: f64) {
+    let label = process_noise / dt.sqrt();
+    let (sigma, a) = (model.hyper().sigma, &model.hyper().A);
+    let low = model
+        .learned_rows()
+        .into_iter()
+        .map(|i| (i, sigma * a[(i, i)].sqrt()))
+        .find(|(_, noise)| *noise < label);
+    if let Some((i, noise)) = low {
+        warn_once(
+            &NOISE_BELOW_LABELS,
+            format!(
+                "gp.noise_sigma: the model's noise on row {i}, σ·√A_ii = {}, is below the \
+                 noise sim.process_noise puts on the learning labels, σ_w/√dt = {}: the \
+                 conditions take the labels for more exact than they are, and can cross; \
+                 raise noise_sigma (docs/robots.md, \"Tell the model the noise it will see\")",
+                short(noise),
+                short(label)
+            ),
+        );
+    }
+}
+
+static CLAMPED_HOLDS: AtomicBool = AtomicBool::new(false);
+
+/// Warns, once per process, when self-triggered holds were clamped up to
+/// `tau_min`: there the hold that keeps the conditions (Props. 3, 5) was
+/// shorter than the one applied, which lies outside the guarantee.
+pub(crate) fn warn_clamped_holds(records: &[StepRecord], tau_min: f64, seed: u64) {
+    let reports: Vec<_> = records.iter().filter_map(|r| r.trigger.as_ref()).collect();
+    let clamped: Vec<f64> = reports
+        .iter()
+        .filter(|t| t.clamped_low)
+        .map(|t| t.tau_analytic)
+        .collect();
+    if clamped.is_empty() {
+        return;
+    }
+    warn_once(
+        &CLAMPED_HOLDS,
+        format!(
+            "trigger (seed {seed}): {} of {} holds were clamped up to tau_min = {} s, where the \
+             hold that keeps the conditions was shorter (analytic τ_k down to {} s): those \
+             holds lie outside the guarantee; lower trigger.tau_min towards the τ_k the \
+             run needs, or lower the gains (docs/robots.md, \"Holds clamped to tau_min\")",
+            clamped.len(),
+            reports.len(),
+            short(tau_min),
+            short(clamped.iter().copied().fold(f64::INFINITY, f64::min))
+        ),
+    );
+}
+
+static CROSSED_IN_MET_STEP: AtomicBool = AtomicBool::new(false);
+
+/// Warns, once per process, when a relative-degree-1 barrier's `h` crossed
+/// zero within a held step that met its condition. The condition bounds
+/// `ḣ` at the step; over the hold `τ`, `h` also moves by
+/// `½τ²ẋᵀ∇²h ẋ` (its curvature along the motion, at the step's state and
+/// control under the true dynamics, given in the warning), besides noise
+/// and model error beyond `p`.
+pub(crate) fn warn_crossing_in_met_step(
+    barriers: &[Arc<dyn DynBarrier>],
+    truth: &dyn DynSystem,
+    records: &[StepRecord],
+    seed: u64,
+) {
+    let n = truth.state_dim();
+    for (i, b) in barriers.iter().enumerate() {
+        if b.relative_degree() != 1 {
+            continue;
+        }
+        let found = records
+            .iter()
+            .find(|r| r.status != StepStatus::Infeasible && r.h[i] >= 0.0 && r.h_fine_min[i] < 0.0);
+        let Some(r) = found else { continue };
+        let mut fbuf = vec![0.0; n * (1 + truth.control_dim())];
+        let mut xdot = vec![0.0; n];
+        truth.xdot(&r.x, &r.u, &mut fbuf, &mut xdot);
+        let (mut grad, mut hess) = (vec![0.0; n], vec![0.0; n * n]);
+        let mut scratch = vec![bayes_cbf::num_dual::HyperDual64::from(0.0); n];
+        b.hessian(&r.x, &mut grad, &mut hess, &mut scratch);
+        let curvature: f64 = (0..n)
+            .flat_map(|a| (0..n).map(move |c| (a, c)))
+            .map(|(a, c)| xdot[a] * hess[a * n + c] * xdot[c])
+            .sum();
+        let drop = 0.5 * r.hold * r.hold * curvature;
+        let cause = if drop < 0.0 && -drop > 1e-3 * r.h[i].abs() {
+            format!(
+                "over the hold h also moves by ½·τ²·ẋᵀ∇²h·ẋ = {} there (its curvature \
+                 along the motion, which the condition at the step does not bound); add a \
+                 margin controller.zeta ≥ ½·τ·|ẋᵀ∇²h·ẋ| = {}, shorten dt, or self-trigger",
+                short(drop),
+                short(-drop / r.hold)
+            )
+        } else {
+            "its curvature along the motion does not explain it: noise, model error beyond p \
+             or a kink of h did"
+                .to_string()
+        };
+        warn_once(
+            &CROSSED_IN_MET_STEP,
+            format!(
+                "barriers[{i}] (seed {seed}): h crossed zero at t = {:.3} within a hold of {} s \
+                 that met its condition: {cause} (docs/robots.md, \"Curved barriers over the \
+                 hold\")",
+                r.t,
+                short(r.hold),
+            ),
+        );
+        return;
     }
 }
 

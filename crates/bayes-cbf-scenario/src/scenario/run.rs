@@ -207,6 +207,15 @@ pub fn run_scenario_until(
         &result.records,
         scenario.seed,
     );
+    super::build::warn_crossing_in_met_step(
+        &built.barriers,
+        built.truth.as_ref(),
+        &result.records,
+        scenario.seed,
+    );
+    if let Some(t) = built.loop_settings.trigger.as_ref().filter(|t| t.hold) {
+        super::build::warn_clamped_holds(&result.records, t.tau_min, scenario.seed);
+    }
     let summary = summarise(scenario, &built, &result, wall);
     Ok(RunOutput {
         scenario: scenario.clone(),
