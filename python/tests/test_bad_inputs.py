@@ -121,6 +121,10 @@ def model_cases(model, barrier):
         ("filter x strings", lambda: bc.SafetyFilter(model, [barrier]).filter(["a", "b"], [0.0]), "x"),
         ("barrier value length", lambda: barrier.value(np.zeros(5)), "x"),
         ("check_derivatives no points", lambda: bc.check_derivatives(lambda x: 0.0, lambda x: x), "state_dim"),
+        # a timing of 2**62 runs panicked (capacity overflow), 10**11 aborted
+        ("step timing repeats", lambda: bc.SafetyFilter(model, [barrier]).rust_step_time_us(
+            np.zeros(2), [0.0], repeats=2**62), "repeats"),
+        ("predict timing repeats", lambda: model.rust_predict_time_s(np.zeros((1, 2)), repeats=10**11), "repeats"),
     ]
 
 

@@ -299,3 +299,19 @@ named! {
     repeats restarts samples seed sigma_min state state_dim step text theta_c variance w1 w2 zeta
     V
 }
+
+/// The most runs a timing helper takes (`repeats`): its times are kept
+/// for the median.
+pub const MAX_REPEATS: usize = 10_000_000;
+
+/// Checks a timing helper's `repeats` (at most [`MAX_REPEATS`]).
+pub fn check_repeats(repeats: usize) -> PyResult<usize> {
+    if repeats > MAX_REPEATS {
+        return Err(crate::convert::core_err(bayes_cbf::InputError::invalid(
+            "repeats",
+            repeats as f64,
+            &format!("must be at most {MAX_REPEATS}: each run's time is kept for the median"),
+        )));
+    }
+    Ok(repeats.max(1))
+}

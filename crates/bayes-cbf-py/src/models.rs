@@ -356,10 +356,11 @@ impl PyMvgp {
         let model = &self.model;
         let n = model.state_dim();
         let (xs, _, _) = matrix(Xq, "Xq", None, Some(n))?;
+        let repeats = args::check_repeats(repeats)?;
         py.detach(|| -> Result<f64, bayes_cbf::InputError> {
             let (mut ws, mut post) = posterior_buffers(model);
-            let mut times = Vec::new();
-            for _ in 0..repeats.max(1) {
+            let mut times = Vec::with_capacity(repeats);
+            for _ in 0..repeats {
                 let t = std::time::Instant::now();
                 for x in xs.chunks(n) {
                     model.posterior_into(x, &mut ws, &mut post)?;

@@ -704,9 +704,10 @@ impl PySafetyFilter {
         u_ref: &Bound<'_, PyAny>,
         #[pyo3(from_py_with = args::repeats)] repeats: usize,
     ) -> PyResult<f64> {
+        let repeats = args::check_repeats(repeats)?;
         self.with_step((x, u_ref, None, None), |step| {
-            let mut times = Vec::with_capacity(repeats.max(1));
-            for _ in 0..repeats.max(1) {
+            let mut times = Vec::with_capacity(repeats);
+            for _ in 0..repeats {
                 let t = Instant::now();
                 step()?;
                 times.push(t.elapsed().as_secs_f64() * 1e6);
