@@ -459,6 +459,30 @@ impl SafetyFilter {
             return Err(InputError::shape("u_ref", m, u_ref.len()).into());
         }
         check_finite("u_ref", u_ref)?;
+        // the objective ‖R(u − u_ref)‖² multiplies u_ref by R twice and by
+        // the iterates, as large as u_ref unless bounds keep them smaller:
+        // beyond ~1e308 that overflows, and an overflowing program reads
+        // as infeasible
+        let largest = |v: &mut dyn Iterator<Item = &f64>| v.fold(0.0f64, |a, x| a.max(x.abs()));
+        let (r_max, u_max) = (
+            largest(&mut self.settings.r.iter()),
+            largest(&mut u_ref.iter()),
+        );
+        let iterates = match (&self.settings.u_min, &self.settings.u_max) {
+            (Some(lo), Some(hi)) => u_max.min(largest(&mut lo.iter().chain(hi))),
+            _ => u_max,
+        };
+        let (reach, control) = (r_max * u_max, r_max * iterates.max(1.0));
+        if reach * control > 1e300 {
+            return Err(InputError::invalid(
+                "u_ref",
+                largest(&mut u_ref.iter()),
+                "too large for the objective ‖R(u − u_ref)‖², which would overflow: \
+                 |R|·|u_ref| must stay below 1e150 without input bounds, and \
+                 |R|²·|u_ref|·max(min(|u_ref|, |u_min|, |u_max|), 1) below 1e300 with them",
+            )
+            .into());
+        }
         for (i, mom) in cbcs.iter().chain(clc).enumerate() {
             if mom.e.len() != m + 1 {
                 return Err(
@@ -1248,6 +1272,54 @@ mod tests {
             other => panic!("{other:?}"),
         }
         assert!(out.u[0].is_nan() && out.delta.is_nan(), "{out:?}");
+    }
+
+    /// A reference whose objective would overflow is an error naming
+    /// `u_ref` (`1e308` read as infeasible, `1e160` without bounds as a
+    /// numerical failure of the model); below the limit the program is
+    /// solved: the condition `u ≥ 0.1` (certain) binds for any reference
+    /// under it, and a reference above it is the control (within bounds).
+    #[test]
+    fn an_extreme_reference_is_named_or_solved() {
+        for bounded in [false, true] {
+            let mut settings = SafetySettings::new(1);
+            if bounded {
+                settings.u_min = Some(vec![-10.0]);
+                settings.u_max = Some(vec![10.0]);
+            }
+            let mut filter = SafetyFilter::new(1, 1, false, settings).unwrap();
+            let mom =
+                ConditionMoments::from_parts(vec![-0.1, 1.0], DMatrix::zeros(2, 2), 1).unwrap();
+            let mut out = ControlOutput::new(1, 1);
+            let refused: &[f64] = if bounded {
+                &[-1e308, 1e308, 2e299]
+            } else {
+                &[-1e308, 1e308, -1e160, 1e151]
+            };
+            for &u_ref in refused {
+                let err = filter.solve(std::slice::from_ref(&mom), None, &[u_ref], &mut out);
+                let text = err.unwrap_err().to_string();
+                assert!(
+                    text.contains("u_ref") && text.contains("overflow"),
+                    "{text}"
+                );
+            }
+            let solved = if bounded {
+                vec![(-1e298, 0.1), (-1e160, 0.1), (1e160, 10.0), (5.0, 5.0)]
+            } else {
+                vec![(-1e149, 0.1), (-1e6, 0.1), (5.0, 5.0), (1e149, 1e149)]
+            };
+            for (u_ref, want) in solved {
+                filter
+                    .solve(std::slice::from_ref(&mom), None, &[u_ref], &mut out)
+                    .unwrap();
+                assert_eq!(out.status, ControlStatus::Optimal, "{u_ref}: {out:?}");
+                assert!(
+                    (out.u[0] - want).abs() <= 1e-6 * want.abs().max(1.0),
+                    "{u_ref}: {out:?}"
+                );
+            }
+        }
     }
 
     /// Without input bounds the worst margin is unbounded at low
