@@ -438,7 +438,8 @@ static LEFT_INVARIANT: AtomicBool = AtomicBool::new(false);
 /// Where a relative-degree-2 barrier's `h` first crossed zero in a step that
 /// met its condition, from a state outside the set its gains keep safe
 /// (`ψ₁ < 0`, [`start_margin`] with the true dynamics): the barrier's
-/// index, the step's time, `ψ₁` there and the infeasible steps before it.
+/// index, the step's time, `ψ₁` there and the infeasible steps of the
+/// stretch with `ψ₁ < 0` that led to it and of the step that left the set.
 /// An infeasible stretch left that set, and the condition alone does not
 /// bring the state back before `h` crosses.
 pub(crate) fn crossing_outside(
@@ -453,8 +454,16 @@ pub(crate) fn crossing_outside(
             if !crossed {
                 return None;
             }
-            let psi = start_margin(truth, b.as_ref(), &r.x).ok()??;
-            let infeasible = records[..k]
+            let psi_at = |x: &[f64]| start_margin(truth, b.as_ref(), x).ok().flatten();
+            let psi = psi_at(&r.x)?;
+            // the infeasible steps of the stretch outside the set that led
+            // here and of the step that left it, not those of the whole run
+            let outside = records[..k]
+                .iter()
+                .rev()
+                .take_while(|r| psi_at(&r.x).is_some_and(|p| p < 0.0))
+                .count();
+            let infeasible = records[k.saturating_sub(outside + 1)..k]
                 .iter()
                 .filter(|r| r.status == StepStatus::Infeasible)
                 .count();
@@ -471,13 +480,22 @@ pub(crate) fn warn_crossing_outside(
     seed: u64,
 ) {
     if let Some((i, t, psi, infeasible)) = crossing_outside(barriers, truth, records) {
+        let how = if infeasible > 0 {
+            format!(
+                "the stretch outside it held {infeasible} infeasible step(s) \
+                 (docs/robots.md, \"Infeasible stretches\")"
+            )
+        } else {
+            "steps that met their conditions led there, with no infeasible step: the hold, \
+             noise or model error beyond p (docs/robots.md, \"Noise and starts\")"
+                .to_string()
+        };
         warn_once(
             &LEFT_INVARIANT,
             format!(
                 "barriers[{i}] (seed {seed}): h crossed zero at t = {t:.3} in a step that met \
                  its condition, from a state outside the set its gains keep safe \
-                 (ψ₁ = ḣ + λh = {} < 0) after {infeasible} infeasible step(s) \
-                 (docs/robots.md, \"Infeasible stretches\")",
+                 (ψ₁ = ḣ + λh = {} < 0); {how}",
                 short(psi)
             ),
         );

@@ -804,7 +804,7 @@ mod tests {
 
     /// A crossing in a feasible step is reported when its state lies
     /// outside the set the gains keep (`ψ₁ < 0`), with the infeasible steps
-    /// before it, and not when the state was inside it (a crossing by
+    /// of its way out of that set, and not when the state was inside it (a crossing by
     /// chance, or by noise).
     #[test]
     fn a_feasible_crossing_from_outside_the_kept_set_is_found() {
@@ -844,13 +844,21 @@ mod tests {
         // at rest by the wall: ψ₁ > 0, a crossing the report leaves alone
         let slow = step(0.01, [0.999, 0.0], -0.0001, StepStatus::Optimal);
         assert_eq!(find(&[infeasible.clone(), slow.clone()]), None);
-        // ... but not one that comes after it
+        // ... but not one that comes after it, whose count is that of its
+        // own way out of the set (the step that left it), not the run's
         let later = StepRecord {
             t: 0.02,
             ..fast.clone()
         };
-        let found = find(&[infeasible.clone(), slow, infeasible.clone(), later]);
-        assert_eq!(found.map(|f| (f.1, f.3)), Some((0.02, 2)));
+        let found = find(&[
+            infeasible.clone(),
+            slow.clone(),
+            infeasible.clone(),
+            later.clone(),
+        ]);
+        assert_eq!(found.map(|f| (f.1, f.3)), Some((0.02, 1)));
+        let found = find(&[infeasible.clone(), slow, later]);
+        assert_eq!(found.map(|f| (f.1, f.3)), Some((0.02, 0)));
         // the same fast crossing in an infeasible step is the fallback's
         let fallback = step(0.01, [0.999, 2.0], -0.01, StepStatus::Infeasible);
         assert_eq!(find(&[infeasible, fallback]), None);
