@@ -164,7 +164,7 @@ class Barrier:
     def callback(
         h: Callable[[F64], float], grad: Callable[[F64], ArrayLike],
         hess: Optional[Callable[[F64], ArrayLike]] = None, state_dim: int = 2,
-        relative_degree: int = 1, alpha: float = 1.0, k_alpha: Gains = None,
+        relative_degree: int = 1, alpha: Optional[float] = None, k_alpha: Gains = None,
         name: str = "callback",
     ) -> "Barrier": ...
     def value(self, x: ArrayLike) -> float: ...
@@ -195,6 +195,8 @@ class CLF:
         gamma: float = 1.0,
     ) -> "CLF":
         """V(x, x_d) over the state names and the references <name>_d."""
+    def to_json(self) -> str:
+        """The JSON text from_json reads back."""
         ...
 
 class FilterResult:

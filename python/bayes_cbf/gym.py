@@ -30,7 +30,7 @@ except ImportError as e:  # pragma: no cover - exercised only without gymnasium
     ) from e
 
 from ._checks import count
-from ._core import InputError, SafetyFilter
+from ._core import Barrier, InputError, SafetyFilter
 
 
 class SafetyFilterWrapper(gym.Wrapper, gym.utils.RecordConstructorArgs):
@@ -122,8 +122,12 @@ class SafetyFilterWrapper(gym.Wrapper, gym.utils.RecordConstructorArgs):
                 f"({self.model.control_dim},)"
             )
         self.state_from_obs = state_from_obs
-        self.learn = learn
+        if not isinstance(learn, (bool, np.bool_)):
+            raise InputError(f"learn = {learn!r}: expected True or False")
+        self.learn = bool(learn)
         if dt is not None:
+            if isinstance(dt, np.ndarray) and dt.shape == ():
+                dt = dt.item()
             real = isinstance(dt, numbers.Real) and not isinstance(dt, bool)
             if not real or not np.isfinite(dt) or dt <= 0:
                 raise InputError(f"dt = {dt!r}: the control period must be a finite number > 0")
@@ -143,6 +147,15 @@ class SafetyFilterWrapper(gym.Wrapper, gym.utils.RecordConstructorArgs):
             raise InputError(f"label_at: {label_at!r}, expected 'midpoint' or 'start'")
         self.label_at = label_at
         self.barriers_for_log = list(barriers_for_log)
+        for i, b in enumerate(self.barriers_for_log):
+            if not isinstance(b, Barrier):
+                raise InputError(
+                    f"barriers_for_log[{i}]: {type(b).__name__}, expected a bayes_cbf.Barrier"
+                )
+            if b.state_dim != n:
+                raise InputError(
+                    f"barriers_for_log[{i}]: a barrier on {b.state_dim} states, the model has {n}"
+                )
         self._low = np.asarray(env.action_space.low, dtype=np.float64)
         self._high = np.asarray(env.action_space.high, dtype=np.float64)
         self._x: Optional[np.ndarray] = None
@@ -179,6 +192,9 @@ class SafetyFilterWrapper(gym.Wrapper, gym.utils.RecordConstructorArgs):
     def step(self, action):
         if self._x is None:
             raise InputError("step: call reset() first")
+        kind = np.asarray(action).dtype.kind
+        if kind not in "fiu":
+            raise InputError(f"action: {action!r}, expected numbers (got dtype kind {kind!r})")
         u_ref = np.asarray(action, dtype=np.float64).reshape(-1)
         res = self.filter.filter(self._x, u_ref)
         u = np.clip(res.u, self._low, self._high)

@@ -24,6 +24,7 @@ from outside)::
 from __future__ import annotations
 
 import json
+import numbers
 from typing import Any, Iterable, Optional
 
 from . import _core
@@ -55,9 +56,9 @@ def _init(address: Optional[str], num_cpus: Optional[int]):
 def _shard_count(ray, shards: Optional[int], items: int) -> int:
     if shards is None:
         shards = int(ray.cluster_resources().get("CPU", 1))
-    if not isinstance(shards, int) or shards < 1:
+    if not isinstance(shards, numbers.Integral) or isinstance(shards, bool) or shards < 1:
         raise InputError(f"shards: {shards!r}, must be an integer >= 1")
-    return max(1, min(shards, items))
+    return max(1, min(int(shards), items))
 
 
 # one core per task: the shard runs its episodes in sequence and Ray runs as
@@ -84,6 +85,10 @@ def _seed_range(seeds: Iterable[int]) -> tuple[int, int]:
         if seeds.step != 1 or len(seeds) == 0:
             raise InputError("seeds: expected a non-empty range with step 1, e.g. range(0, 100)")
         return seeds.start, seeds.stop
+    seeds = list(seeds)
+    for x in seeds:
+        if not isinstance(x, numbers.Integral) or isinstance(x, bool):
+            raise InputError(f"seeds: {x!r} is not an integer seed")
     s = sorted(int(x) for x in seeds)
     if not s or s != list(range(s[0], s[-1] + 1)):
         raise InputError("seeds: expected consecutive seeds, e.g. range(0, 100)")

@@ -128,6 +128,14 @@ def test_non_finite_overrides_name_the_key(key, value):
     assert "string" not in msg, msg
 
 
+@pytest.mark.parametrize("key", ["steps=7 #", "steps 7", "dt#", "barriers..alpha", ""])
+def test_override_keys_must_be_dotted_names(key):
+    """A key is pasted before '=' in a `key=value` line: "steps=7 #" would
+    have set steps to 7 and hidden its value behind a comment."""
+    raises_naming(f"overrides['{key}']", lambda: bc.run_scenario(
+        "double-integrator", overrides={key: 1}), "not a key")
+
+
 def test_sweep_overrides_are_converted_as_run_scenarios():
     from bayes_cbf import sweep
 
@@ -170,3 +178,20 @@ def test_boolean_arrays_are_refused(field, thunk):
     """As a scalar argument refuses True, an array of booleans is not one of
     numbers (a mixed list such as [True, 1.5] is numbers to numpy)."""
     raises_naming(field, thunk, "booleans are not numbers")
+
+
+TEXT_AND_DATES = [
+    ("lengthscales", lambda: mvgp(lengthscales=["1.0", "2.0"]), "strings are not numbers"),
+    ("Xq", lambda: mvgp().predict([["0.5", "0.1"]]), "strings are not numbers"),
+    ("x", lambda: half_space().value(np.array(["2020-01-01", "2020-01-02"], dtype="datetime64[D]")),
+     "dates and durations are not numbers"),
+    ("u_ref", lambda: bc.SafetyFilter(mvgp(), [half_space()]).filter(
+        [0.0, 0.0], np.array([5], dtype="timedelta64[s]")), "dates and durations are not numbers"),
+]
+
+
+@pytest.mark.parametrize("field,thunk,why", TEXT_AND_DATES, ids=[c[0] for c in TEXT_AND_DATES])
+def test_string_and_date_arrays_are_refused(field, thunk, why):
+    """As a scalar argument refuses "0.1", numpy's reading of strings of
+    digits (and of dates, as days since 1970) as numbers is refused."""
+    raises_naming(field, thunk, why)

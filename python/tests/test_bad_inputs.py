@@ -268,8 +268,15 @@ def test_results_read_as_python():
     assert b.gains == [1.0] == bc.Barrier.expression("y + 2", ["x", "y"]).gains
     r = bc.SafetyFilter(m, [b], u_min=[-0.1], u_max=[0.1]).filter([0.0, -2.5], [0.0])
     assert "Some(" not in repr(r) and "p_star=" in repr(r), repr(r)
+    with pytest.raises(ValueError, match="read-only"):
+        r.u[0] = 42.0  # a frozen result, its control too
     clf = bc.CLF.ackermann(0.9, 1.5, 10.0)
     assert repr(clf).startswith('CLF({"type":"ackermann"'), repr(clf)
+    # an expression CLF's JSON keeps its state names, and reads back
+    e = bc.CLF.expression("(x - x_d)^2 + (y - y_d)^2", ["x", "y"])
+    back = bc.CLF.from_json(e.to_json())
+    assert repr(back) == repr(e) and '"state":["x","y"]' in e.to_json(), e.to_json()
+    bc.SafetyFilter(mvgp(), [], clf=back).filter([0.5, 0.0], [0.0], x_d=[0.0, 0.0])
     out = bc.run_scenario("double-integrator", overrides={"steps": 5})
     status = out["trajectory"]["status"]
     assert isinstance(status, np.ndarray) and status.shape == (5,), status

@@ -70,6 +70,30 @@ def test_a_raising_callback_is_an_input_error_naming_it(model):
         lambda x: 1.0, lambda x: np.zeros(2), state_dim=2), np.zeros(2), np.zeros(1))[0] > 0
 
 
+def test_callback_outputs_and_gains_are_checked(model):
+    """A Hessian of n² entries in another shape, a bool for h and strings
+    for the gradient are refused; alpha and k_alpha together are too, as
+    for the built-ins, and relative degree 0 is named."""
+    h, g = (lambda x: 1.0 - x @ x), (lambda x: -2 * x)
+    flat = bc.Barrier.callback(h, g, lambda x: (-2 * np.eye(2)).reshape(4, 1),
+                               relative_degree=2, k_alpha=[1.0, 2.0])
+    with pytest.raises(bc.InputError, match=r"hess returned shape \[4, 1\], expected \(2, 2\)"):
+        flat.hessian([0.1, 0.2])
+    with pytest.raises(bc.InputError, match="not a bool"):
+        bc.Barrier.callback(lambda x: True, g).value([0.1, 0.2])
+    with pytest.raises(bc.InputError, match="strings are not numbers"):
+        bc.Barrier.callback(h, lambda x: np.array(["1", "2"])).gradient([0.1, 0.2])
+    with pytest.raises(bc.InputError, match="give either alpha or"):
+        bc.Barrier.callback(h, g, alpha=2.0, k_alpha=[3.0])
+    with pytest.raises(bc.InputError, match="alpha is for relative_degree 1"):
+        bc.Barrier.callback(h, g, relative_degree=2, alpha=2.0)
+    with pytest.raises(bc.InputError, match="relative_degree = 0: must be ≥ 1"):
+        bc.Barrier.callback(h, g, relative_degree=0)
+    assert bc.Barrier.callback(h, g).gains == [1.0]
+    assert bc.Barrier.callback(h, g, alpha=2.5).gains == [2.5]
+    assert bc.Barrier.callback(h, g, k_alpha=[3.0]).gains == [3.0]
+
+
 def test_sector_edges_are_linear_in_the_angle_from_the_centre():
     tc, d = THETA_C, DELTA
     up = bc.Barrier.pendulum_sector_edge(tc, d, "upper", k_alpha=[1.0, 3.0])

@@ -69,12 +69,19 @@ def test_without_learning_the_wrapper_passes_check_env():
 
 
 def test_wrapper_rejects_bad_setups():
-    for field, value in [("max_data", 0), ("max_data", 2.5), ("refit_every", -1),
-                         ("refit_every", "3"), ("max_data", True), ("angle_indices", [0.5]),
-                         ("angle_indices", [-1]), ("angle_indices", [2])]:
+    three = bc.Barrier.half_space([1.0, 0.0, 0.0], 0.0)
+    for field, value, pattern in [
+        ("max_data", 0, "max_data"), ("max_data", 2.5, "max_data"),
+        ("refit_every", -1, "refit_every"), ("refit_every", "3", "refit_every"),
+        ("max_data", True, "max_data"), ("angle_indices", [0.5], "angle_indices"),
+        ("angle_indices", [-1], "angle_indices"), ("angle_indices", [2], "angle_indices"),
+        ("learn", "no", "learn"),
+        ("barriers_for_log", [1.0], r"barriers_for_log\[0\]: float"),
+        ("barriers_for_log", [three], r"barriers_for_log\[0\]: a barrier on 3 states"),
+    ]:
         model = bc.MVGP(2, 1, [1.0, 1.0], np.eye(2), np.eye(2), 0.1)
         filt = bc.SafetyFilter(model, [bc.Barrier.half_space([1.0, 0.0], 0.0, alpha=1.0)])
-        with pytest.raises(bc.InputError, match=field):
+        with pytest.raises(bc.InputError, match=pattern):
             SafetyFilterWrapper(gym.make("Pendulum-v1"), filt, lambda o: o[:2], **{field: value})
     # a period given and wrong is named as given
     for dt in [0.0, -1.0, float("nan"), "0.1"]:
@@ -87,6 +94,15 @@ def test_wrapper_rejects_bad_setups():
     w, _ = make()
     with pytest.raises(bc.InputError, match="reset"):
         w.step(np.zeros(1))
+    w.reset(seed=0)
+    for action in [np.array([True]), "1", np.array(["1.0"])]:
+        with pytest.raises(bc.InputError, match="action"):
+            w.step(action)
+    # a 0-d array is a number, as elsewhere in the package
+    model = bc.MVGP(2, 1, [1.0, 1.0], np.eye(2), np.eye(2), 0.1)
+    filt = bc.SafetyFilter(model, [bc.Barrier.half_space([1.0, 0.0], 0.0, alpha=1.0)])
+    assert SafetyFilterWrapper(gym.make("Pendulum-v1"), filt, lambda o: o[:2],
+                               dt=np.array(0.05)).dt == 0.05
     model = bc.MVGP(2, 2, [1.0, 1.0], np.eye(2), np.eye(3), 0.1)
     filt = bc.SafetyFilter(model, [bc.Barrier.half_space([1.0, 0.0], 0.0, alpha=1.0)])
     with pytest.raises(bc.InputError, match="action shape"):

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 
+import numpy as np
 import pytest
 
 import bayes_cbf as bc
@@ -92,3 +93,20 @@ def test_bad_sweeps_are_input_errors():
     ]:
         with pytest.raises(bc.InputError, match=field):
             call()
+    # seeds are integers: 0.5 and 1.7 were read as seeds 0 and 1
+    for bad in ([0.5, 1.7], [True, 2], ["0", "1"]):
+        with pytest.raises(bc.InputError, match="not an integer seed"):
+            sweep.seeds("pendulum-safe", bad)
+    assert sweep._seed_range(np.arange(3, 6)) == (3, 6)
+
+
+def test_numpy_integers_are_shard_counts():
+    """A shard count from numpy is an integer, as a seed is."""
+    class Cluster:
+        @staticmethod
+        def cluster_resources():
+            return {"CPU": 2}
+    assert sweep._shard_count(Cluster, np.int64(4), 10) == 4
+    assert sweep._shard_count(Cluster, None, 10) == 2
+    with pytest.raises(bc.InputError, match="shards"):
+        sweep._shard_count(Cluster, np.float64(4.0), 10)

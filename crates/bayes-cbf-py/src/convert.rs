@@ -108,7 +108,8 @@ pub fn core_err(e: impl Into<bayes_cbf::Error>) -> PyErr {
 /// A float64 array of `obj` (numpy arrays of float64 as they are; lists and
 /// other real dtypes converted by `numpy.asarray`), with `ndim`
 /// dimensions. Errors name `field`; complex values are one (numpy would
-/// drop their imaginary parts), and so are booleans.
+/// drop their imaginary parts), and so are booleans, strings and dates
+/// (which numpy would read as numbers).
 pub fn array<'py>(
     obj: &Bound<'py, PyAny>,
     field: &str,
@@ -128,10 +129,14 @@ pub fn array<'py>(
             let any = np.call_method1("asarray", (obj,)).map_err(not_numbers)?;
             let kind = any.getattr("dtype")?.getattr("kind")?.extract::<String>()?;
             // as a scalar argument refuses True: a bool array is not numbers
+            // numpy would read strings of digits and dates as numbers too
             let refused = match kind.as_str() {
+                "f" | "i" | "u" | "O" => None,
                 "c" => Some("complex values are not accepted"),
                 "b" => Some("booleans are not numbers"),
-                _ => None,
+                "U" | "S" => Some("strings are not numbers"),
+                "M" | "m" => Some("dates and durations are not numbers"),
+                _ => Some("expected an array of numbers"),
             };
             if let Some(why) = refused {
                 return Err(input_err(format!(

@@ -12,7 +12,7 @@ use bayes_cbf::control::{ControlOutput, Fallback, SafetyController, SafetySettin
 use bayes_cbf_scenario::barrier_file::{BarrierSpec, EdgeSpec};
 use bayes_cbf_scenario::queries::{check_barrier, condition_moments, status_parts};
 use bayes_cbf_scenario::scenario::ClfSpec;
-use numpy::PyArray1;
+use numpy::{PyArray1, PyUntypedArrayMethods};
 use pyo3::prelude::*;
 use pyo3::types::PyDict;
 use std::collections::BTreeMap;
@@ -115,10 +115,11 @@ impl PyBarrier {
     /// for relative degree 2 (or self-triggering), `hess(x) -> (n, n)`.
     /// Dual numbers follow from them by the chain rule, so the moments are
     /// those of a built-in barrier with the same derivatives. `alpha` is the
-    /// class-K gain for relative degree 1, `k_alpha` the gains for relative
-    /// degree ≥ 2. Check the derivatives with `bayes_cbf.check_derivatives`.
+    /// class-K gain for relative degree 1 (1 by default), `k_alpha` the gains
+    /// for relative degree ≥ 2 (one or the other, as for the built-ins).
+    /// Check the derivatives with `bayes_cbf.check_derivatives`.
     #[staticmethod]
-    #[pyo3(signature = (h, grad, hess=None, state_dim=2, relative_degree=1, alpha=1.0, k_alpha=None, name="callback"))]
+    #[pyo3(signature = (h, grad, hess=None, state_dim=2, relative_degree=1, alpha=None, k_alpha=None, name="callback"))]
     #[allow(clippy::too_many_arguments)]
     fn callback(
         h: Py<PyAny>,
@@ -126,7 +127,7 @@ impl PyBarrier {
         hess: Option<Py<PyAny>>,
         #[pyo3(from_py_with = args::state_dim)] state_dim: usize,
         #[pyo3(from_py_with = args::relative_degree)] relative_degree: usize,
-        #[pyo3(from_py_with = args::alpha)] alpha: f64,
+        #[pyo3(from_py_with = args::alpha)] alpha: Option<f64>,
         #[pyo3(from_py_with = args::k_alpha)] k_alpha: Option<Vec<f64>>,
         #[pyo3(from_py_with = args::name)] name: &str,
     ) -> PyResult<Self> {
@@ -144,20 +145,17 @@ impl PyBarrier {
             }
             Ok(())
         })?;
-        let gains = match (relative_degree, k_alpha) {
-            (1, None) => vec![alpha],
-            (_, Some(k)) => k,
-            (r, None) => {
-                return Err(input_err(format!(
-                    "k_alpha: {r} gains are required for relative_degree {r}"
-                )))
-            }
-        };
+        let alpha = default_alpha(relative_degree, alpha, &k_alpha);
+        let gains = bayes_cbf_scenario::barrier_file::gains(relative_degree, &alpha, &k_alpha)
+            .map_err(scenario_err)?;
         let n = state_dim;
         let hf: ValueFn = Box::new(move |x: &[f64]| {
             Python::attach(|py| {
-                call_py(py, &h, x)?
-                    .extract::<f64>()
+                let v = call_py(py, &h, x)?;
+                if v.is_instance_of::<pyo3::types::PyBool>() {
+                    return Err("h must return a float, not a bool".to_string());
+                }
+                v.extract::<f64>()
                     .map_err(|e| format!("h must return a float ({e})"))
             })
         });
@@ -167,6 +165,12 @@ impl PyBarrier {
                     let r = call_py(py, &f, x)?;
                     let v = crate::convert::array(&r, what, if what == "hess" { 2 } else { 1 })
                         .map_err(|e| e.to_string())?;
+                    if what == "hess" && v.shape() != [n, n] {
+                        return Err(format!(
+                            "hess returned shape {:?}, expected ({n}, {n})",
+                            v.shape()
+                        ));
+                    }
                     let flat = crate::convert::row_major(&v);
                     if flat.len() != len {
                         return Err(format!(
@@ -425,11 +429,22 @@ impl PyClf {
             state: None,
         })
     }
+    /// The JSON text `CLF.from_json` reads back (with `state` for an
+    /// expression CLF).
+    fn to_json(&self) -> PyResult<String> {
+        let unwritable = |e: serde_json::Error| input_err(format!("clf: not JSON: {e}"));
+        let spec = serde_json::to_string(&self.spec).map_err(unwritable)?;
+        match (&self.state, spec.strip_suffix('}')) {
+            // the spec's fields in their order, then the state names
+            (Some(state), Some(open)) => {
+                let state = serde_json::to_string(state).map_err(unwritable)?;
+                Ok(format!("{open},\"state\":{state}}}"))
+            }
+            _ => Ok(spec),
+        }
+    }
     fn __repr__(&self) -> String {
-        format!(
-            "CLF({})",
-            serde_json::to_string(&self.spec).unwrap_or_else(|_| "?".into())
-        )
+        format!("CLF({})", self.to_json().unwrap_or_else(|_| "?".into()))
     }
 }
 
@@ -682,7 +697,12 @@ impl PySafetyFilter {
             .zip(&self.out.constraints)
             .map(|((l, r), c)| (l.clone(), *r, *c))
             .collect();
-        let u = PyArray1::from_slice(py, &self.out.u).unbind();
+        let u = PyArray1::from_slice(py, &self.out.u);
+        // the result is frozen: its control too
+        let kw = PyDict::new(py);
+        kw.set_item("write", false)?;
+        u.call_method("setflags", (), Some(&kw))?;
+        let u = u.unbind();
         Ok(PyFilterResult {
             u,
             status,

@@ -19,6 +19,17 @@ fn override_texts(overrides: Option<&Bound<'_, PyDict>>) -> PyResult<Vec<String>
                 input_err("overrides: keys must be strings such as 'controller.probability'")
             })?;
             let field = format!("overrides['{key}']");
+            let segment = |p: &str| {
+                !p.is_empty()
+                    && p.bytes()
+                        .all(|b| b.is_ascii_alphanumeric() || b == b'_' || b == b'-')
+            };
+            if !key.split('.').all(segment) {
+                return Err(input_err(format!(
+                    "{field}: not a key: dotted names and indices (letters, digits, '_', '-') \
+                     such as 'controller.probability' or 'barriers.0.alpha'"
+                )));
+            }
             if v.is_none() {
                 return Err(input_err(format!("{field}: None is not a value")));
             }

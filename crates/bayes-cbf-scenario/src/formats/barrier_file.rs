@@ -156,8 +156,9 @@ impl From<EdgeSpec> for SectorEdge {
     }
 }
 
-/// Gains from `alpha` (relative degree 1) or `k_alpha` (≥ 2).
-fn gains(r: usize, alpha: &Option<f64>, k_alpha: &Option<Vec<f64>>) -> Result<Vec<f64>> {
+/// Gains from `alpha` (relative degree 1) or `k_alpha` (≥ 2); either, not
+/// both, and as many as the relative degree.
+pub fn gains(r: usize, alpha: &Option<f64>, k_alpha: &Option<Vec<f64>>) -> Result<Vec<f64>> {
     match (r, alpha, k_alpha) {
         (0, _, _) => bail!("relative_degree = 0: must be ≥ 1"),
         (1, Some(a), None) => Ok(vec![*a]),
