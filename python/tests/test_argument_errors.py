@@ -183,6 +183,7 @@ def test_boolean_arrays_are_refused(field, thunk):
 TEXT_AND_DATES = [
     ("lengthscales", lambda: mvgp(lengthscales=["1.0", "2.0"]), "strings are not numbers"),
     ("Xq", lambda: mvgp().predict([["0.5", "0.1"]]), "strings are not numbers"),
+    ("x", lambda: half_space().value(np.array([0.5, "0.4"], dtype=object)), "strings are not numbers"),
     ("x", lambda: half_space().value(np.array(["2020-01-01", "2020-01-02"], dtype="datetime64[D]")),
      "dates and durations are not numbers"),
     ("u_ref", lambda: bc.SafetyFilter(mvgp(), [half_space()]).filter(
@@ -195,3 +196,20 @@ def test_string_and_date_arrays_are_refused(field, thunk, why):
     """As a scalar argument refuses "0.1", numpy's reading of strings of
     digits (and of dates, as days since 1970) as numbers is refused."""
     raises_naming(field, thunk, why)
+
+
+def test_a_kinked_barrier_is_warned_of_by_its_constructor():
+    """The warning of a kink in h is issued by Barrier.expression itself,
+    not by whichever call comes next (once per process, as every warning of
+    the library's)."""
+    import subprocess
+    import sys
+    code = (
+        "import warnings, bayes_cbf as bc\n"
+        "with warnings.catch_warnings(record=True) as w:\n"
+        "    warnings.simplefilter('always')\n"
+        "    bc.Barrier.expression('min(1 - x, 1 - y)', ['x', 'y'])\n"
+        "print(sum('uses min' in str(x.message) for x in w))\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "1", out.stdout + out.stderr

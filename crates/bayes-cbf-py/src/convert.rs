@@ -130,7 +130,16 @@ pub fn array<'py>(
             let kind = any.getattr("dtype")?.getattr("kind")?.extract::<String>()?;
             // as a scalar argument refuses True: a bool array is not numbers
             // numpy would read strings of digits and dates as numbers too
+            // in an object array, the entries' own types
+            let texts = kind == "O"
+                && any.call_method0("ravel")?.try_iter()?.any(|e| {
+                    e.is_ok_and(|e| {
+                        e.is_instance_of::<pyo3::types::PyString>()
+                            || e.is_instance_of::<pyo3::types::PyBytes>()
+                    })
+                });
             let refused = match kind.as_str() {
+                _ if texts => Some("strings are not numbers"),
                 "f" | "i" | "u" | "O" => None,
                 "c" => Some("complex values are not accepted"),
                 "b" => Some("booleans are not numbers"),

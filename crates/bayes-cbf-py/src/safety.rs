@@ -152,7 +152,12 @@ impl PyBarrier {
         let hf: ValueFn = Box::new(move |x: &[f64]| {
             Python::attach(|py| {
                 let v = call_py(py, &h, x)?;
-                if v.is_instance_of::<pyo3::types::PyBool>() {
+                // Python's bool, and numpy's (x[0] < 1 gives one)
+                let numpy_bool = v
+                    .getattr("dtype")
+                    .and_then(|d| d.getattr("kind"))
+                    .is_ok_and(|k| k.to_string() == "b");
+                if v.is_instance_of::<pyo3::types::PyBool>() || numpy_bool {
                     return Err("h must return a float, not a bool".to_string());
                 }
                 v.extract::<f64>()
@@ -304,10 +309,17 @@ impl PyBarrier {
     }
 
     /// The barrier a barrier-file description builds (fields validated).
+    /// Its warnings (a kink in `h`) are issued here.
     fn of_spec(spec: BarrierSpec) -> PyResult<Self> {
-        let barrier = spec.build().map_err(scenario_err)?;
-        let label = barrier.name().to_string();
-        Ok(Self::new(barrier, Some(spec), label))
+        Python::attach(|py| {
+            crate::warnings::after(
+                py,
+                spec.build().map_err(scenario_err).map(|barrier| {
+                    let label = barrier.name().to_string();
+                    Self::new(barrier, Some(spec), label)
+                }),
+            )
+        })
     }
 
     /// A derivative of `h` at `x`, of `shape`: `eval(barrier, x, out)`

@@ -286,4 +286,32 @@ fn a_step_below_the_round_off_of_nested_differences_is_refused() {
         let err = at(step).unwrap_err().to_string();
         assert!(err.contains("step") && err.contains("round-off"), "{err}");
     }
+    // far from the origin the lattice points round to ε·|x|: the same
+    // barrier shifted by 1e5 (F does not depend on p) agrees at the
+    // default step and is refused at 1e-4, where the bias was 23 %
+    let far = bayes_cbf::barrier::ExpressionBarrier::new(
+        &["p", "v", "a"],
+        &[("C", 1e5)],
+        "C + 1 - p - 0.1*v^2",
+        3,
+        vec![6.0, 11.0, 6.0],
+    )
+    .unwrap();
+    let x_far = [1e5 + 0.3, 0.4, -0.2];
+    let at_far = |step| {
+        mc_cbc_moments(
+            &model,
+            &far,
+            &x_far,
+            &McSettings {
+                samples: 500,
+                step,
+                seed: 4,
+            },
+        )
+    };
+    let e = at_far(1e-2).unwrap().moments.e;
+    assert!((e[0] - reference[0]).abs() < 1e-3, "{e:?} vs {reference:?}");
+    let err = at_far(1e-4).unwrap_err().to_string();
+    assert!(err.contains("step") && err.contains("round-off"), "{err}");
 }

@@ -538,8 +538,12 @@ static CLAMPED_HOLDS: AtomicBool = AtomicBool::new(false);
 /// shorter than the one applied, which lies outside the guarantee.
 pub(crate) fn warn_clamped_holds(records: &[StepRecord], tau_min: f64, seed: u64) {
     let reports: Vec<_> = records.iter().filter_map(|r| r.trigger.as_ref()).collect();
-    let clamped: Vec<f64> = reports
+    // an infeasible step has no margin (τ_k = 0) and holds its fallback:
+    // not a hold the guarantee sized
+    let clamped: Vec<f64> = records
         .iter()
+        .filter(|r| r.status != StepStatus::Infeasible)
+        .filter_map(|r| r.trigger.as_ref())
         .filter(|t| t.clamped_low)
         .map(|t| t.tau_analytic)
         .collect();
@@ -549,8 +553,9 @@ pub(crate) fn warn_clamped_holds(records: &[StepRecord], tau_min: f64, seed: u64
     warn_once(
         &CLAMPED_HOLDS,
         format!(
-            "trigger (seed {seed}): {} of {} holds were clamped up to tau_min = {} s, where the \
-             hold that keeps the conditions was shorter (analytic τ_k down to {} s): those \
+            "trigger (seed {seed}): {} of {} holds of steps that met their conditions were \
+             clamped up to tau_min = {} s, where the hold that keeps the conditions was \
+             shorter (analytic τ_k down to {} s): those \
              holds lie outside the guarantee; lower trigger.tau_min towards the τ_k the \
              run needs, or lower the gains (docs/robots.md, \"Holds clamped to tau_min\")",
             clamped.len(),
@@ -567,8 +572,9 @@ static CROSSED_IN_MET_STEP: AtomicBool = AtomicBool::new(false);
 /// zero within a held step that met its condition. The condition bounds
 /// `ḣ` at the step; over the hold `τ`, `h` also moves by
 /// `½τ²ẋᵀ∇²h ẋ` (its curvature along the motion, at the step's state and
-/// control under the true dynamics, given in the warning), besides noise
-/// and model error beyond `p`.
+/// control under the true dynamics). The warning blames that term where
+/// `h + τḣ ≥ 0` and `h + τḣ + ½τ²ẋᵀ∇²h ẋ < 0`; otherwise noise, model error
+/// beyond `p` or a kink.
 pub(crate) fn warn_crossing_in_met_step(
     barriers: &[Arc<dyn DynBarrier>],
     truth: &dyn DynSystem,
@@ -595,7 +601,11 @@ pub(crate) fn warn_crossing_in_met_step(
             .map(|(a, c)| xdot[a] * hess[a * n + c] * xdot[c])
             .sum();
         let drop = 0.5 * r.hold * r.hold * curvature;
-        let cause = if drop < 0.0 && -drop > 1e-3 * r.h[i].abs() {
+        // the curvature is the cause where the first-order motion over the
+        // hold keeps h ≥ 0 and the curvature term takes it below
+        let hdot: f64 = grad.iter().zip(&xdot).map(|(g, v)| g * v).sum();
+        let first_order = r.h[i] + r.hold * hdot;
+        let cause = if first_order >= 0.0 && first_order + drop < 0.0 {
             format!(
                 "over the hold h also moves by ½·τ²·ẋᵀ∇²h·ẋ = {} there (its curvature \
                  along the motion, which the condition at the step does not bound); add a \

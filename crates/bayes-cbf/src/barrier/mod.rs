@@ -228,7 +228,7 @@ pub fn validate_gains(r: usize, gains: &[f64]) -> Result<(), InputError> {
             return Err(InputError::invalid(
                 &field(),
                 *g,
-                "must be below 1e154: the condition's variance carries its square, which overflows",
+                "must be below about 1.3e154: the condition's variance carries its square, which overflows",
             ));
         }
     }
@@ -456,7 +456,7 @@ mod tests {
     #[test]
     fn gains_whose_square_overflows_are_named() {
         let e = validate_gains(2, &[1e200, 1e200]).unwrap_err().to_string();
-        assert!(e.contains("k_alpha[0]") && e.contains("1e154"), "{e}");
+        assert!(e.contains("k_alpha[0]") && e.contains("1.3e154"), "{e}");
         let e = validate_gains(1, &[2e154]).unwrap_err().to_string();
         assert!(e.contains("alpha") && e.contains("overflows"), "{e}");
         assert!(validate_gains(2, &[1e150, 3e75]).is_ok());

@@ -127,10 +127,14 @@ struct Lattice {
 }
 
 /// What the round-off probe of [`Lattice::round_off`] perturbs: the
-/// posterior mean of `F` on its lattice and the values of `h`.
+/// posterior mean of `F` on its lattice and the values of `h`, each by its
+/// relative rounding and by the absolute rounding of the lattice points
+/// (`h_abs`, `mean_abs`).
 struct RoundOff<'a> {
     mean: &'a DMatrix<f64>,
     h_vals: &'a [f64],
+    h_abs: f64,
+    mean_abs: f64,
     seed: u64,
 }
 
@@ -220,12 +224,16 @@ impl Lattice {
     /// How far round-off moves `z` against its spread (`spread[c]`, the
     /// standard deviation plus `|E z_c|`), if beyond 1 % in any entry. The
     /// nested differences amplify the rounding of `h` and of the posterior
-    /// mean of `F` (relative `ε`) by `s^{−r}`: a bias, the same in every
-    /// draw, which the standard errors do not show. Sixteen probes of
-    /// `h(1 + εξ)` and `M(1 + εξ')` are compared with the exact values.
+    /// mean of `F` by `s^{−r}`: a bias, the same in every draw, which the
+    /// standard errors do not show. That rounding is relative (`ε`) and
+    /// absolute, from the lattice points `x + s·k`, rounded to
+    /// `ε·(|x| + r s)`, which moves a value by that times its gradient.
+    /// Sixteen probes of `h(1 + εξ) + h_abs ξ'` and likewise of `M` are
+    /// compared with the exact values.
     /// (The draws' own round-off, from the near-singular `Ĉ` of closely
-    /// spaced points, has mean zero: it widens the spread, which the
-    /// variance shows, and does not bias the mean.)
+    /// spaced points, is not probed: it widens the spread, which the
+    /// variance shows, and, through the products of the nested Lie
+    /// derivatives, moves the mean too, at steps far below the default.)
     fn round_off(&self, probe: &RoundOff, gains: &[f64], s: f64, spread: &[f64]) -> Option<f64> {
         let p = spread.len();
         let eps = f64::EPSILON;
@@ -246,13 +254,19 @@ impl Lattice {
         let mut draw = probe.mean.clone();
         const PROBES: usize = 16;
         for _ in 0..PROBES {
+            let mut noise = || -> (f64, f64) {
+                (
+                    StandardNormal.sample(&mut rng),
+                    StandardNormal.sample(&mut rng),
+                )
+            };
             for (hv, h0) in h.iter_mut().zip(probe.h_vals) {
-                let g: f64 = StandardNormal.sample(&mut rng);
-                *hv = h0 * (1.0 + eps * g);
+                let (g, g2) = noise();
+                *hv = h0 * (1.0 + eps * g) + probe.h_abs * g2;
             }
             for (v, m0) in draw.iter_mut().zip(probe.mean.iter()) {
-                let g: f64 = StandardNormal.sample(&mut rng);
-                *v = m0 * (1.0 + eps * g);
+                let (g, g2) = noise();
+                *v = m0 * (1.0 + eps * g) + probe.mean_abs * g2;
             }
             self.condition(&draw, &h, gains, s, &mut scratch, &mut z);
             for c in 0..p {
@@ -369,9 +383,31 @@ pub fn mc_cbc_moments<K: Kernel>(
     }
     let e_se: Vec<f64> = (0..p).map(|c| (cov[(c, c)] / nn).sqrt()).collect();
     let spread: Vec<f64> = (0..p).map(|c| cov[(c, c)].sqrt() + e[c].abs()).collect();
+    // the absolute rounding of the lattice points, times the largest
+    // central difference of h (on its lattice) and of M (on F's)
+    let coordinate = x.iter().fold(0.0f64, |a, v| a.max(v.abs())) + r as f64 * s;
+    let slope = |values: &dyn Fn(usize) -> f64, radius: usize| -> f64 {
+        let mut largest = 0.0f64;
+        for i in 0..n {
+            let mut off = vec![0i64; n];
+            off[i] = 1;
+            let up = lat.index(&off, radius);
+            off[i] = -1;
+            if let (Some(a), Some(b)) = (up, lat.index(&off, radius)) {
+                largest = largest.max(((values(a) - values(b)) / (2.0 * s)).abs());
+            }
+        }
+        largest
+    };
+    let h_slope = slope(&|k| h_vals[k], r);
+    let mean_slope = (0..n * p)
+        .map(|e| slope(&|a| mean[(e % n, a * p + e / n)], r - 1))
+        .fold(0.0f64, f64::max);
     let probe = RoundOff {
         mean: &mean,
         h_vals: &h_vals,
+        h_abs: f64::EPSILON * coordinate * h_slope,
+        mean_abs: f64::EPSILON * coordinate * mean_slope,
         seed: settings.seed,
     };
     if let Some(ratio) = lat.round_off(&probe, gains, s, &spread) {
