@@ -537,13 +537,15 @@ static CLAMPED_HOLDS: AtomicBool = AtomicBool::new(false);
 /// `tau_min`: there the hold that keeps the conditions (Props. 3, 5) was
 /// shorter than the one applied, which lies outside the guarantee.
 pub(crate) fn warn_clamped_holds(records: &[StepRecord], tau_min: f64, seed: u64) {
-    let reports: Vec<_> = records.iter().filter_map(|r| r.trigger.as_ref()).collect();
     // an infeasible step has no margin (τ_k = 0) and holds its fallback:
     // not a hold the guarantee sized
-    let clamped: Vec<f64> = records
+    let reports: Vec<_> = records
         .iter()
         .filter(|r| r.status != StepStatus::Infeasible)
         .filter_map(|r| r.trigger.as_ref())
+        .collect();
+    let clamped: Vec<f64> = reports
+        .iter()
         .filter(|t| t.clamped_low)
         .map(|t| t.tau_analytic)
         .collect();
