@@ -313,7 +313,8 @@ target = [0.0, 0.0]
 animation = false
 "#;
 
-/// A barrier with a kink (`min`) is warned of; a relative-degree-1
+/// A barrier with a kink (`min`) is warned of, and so is a model noise
+/// below the labels' (gone at the labels' level); a relative-degree-1
 /// barrier that crosses in steps that met their condition is warned of
 /// with its curvature over the hold and the margin `zeta` that covers it
 /// (with which the run is safe); holds clamped up to `tau_min` are
@@ -330,6 +331,12 @@ fn kinks_curvature_and_clamped_holds_are_warned_of() {
     );
     let r = run_in(&dir, &short_run(&["--out", "b"]));
     assert!(!r.stderr.contains("no derivative"), "{}", r.stderr);
+    // the built-in's model noise (0.05) is below its labels' (0.01/√0.01)
+    let below = "σ·√A_ii = 0.050, is below the noise sim.process_noise puts on the learning \
+                 labels, σ_w/√dt = 0.100";
+    assert!(r.stderr.contains(below), "{}", r.stderr);
+    let r = short_run_set(&dir, "gp.noise_sigma=0.1", "b2");
+    assert!(!r.stderr.contains("is below the noise"), "{}", r.stderr);
     std::fs::write(dir.join("disc.toml"), DISC).unwrap();
     let r = run_in(&dir, &["run", "disc.toml", "--out", "d"]);
     assert!(r.status.success(), "{}", r.stderr);

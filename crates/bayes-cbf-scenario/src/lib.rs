@@ -34,6 +34,14 @@ pub mod workloads;
 mod fuzz_tests;
 
 pub use error::{Context, Error, Result};
+
+/// Logs `message` as a warning the first time `flag` is seen in this
+/// process (a sweep builds its scenario once per seed).
+pub(crate) fn warn_once(flag: &std::sync::atomic::AtomicBool, message: String) {
+    if !flag.swap(true, std::sync::atomic::Ordering::Relaxed) {
+        log::warn!("{message}");
+    }
+}
 pub use formats::{barrier_file, csv_data, input_map_spec, model_file, params, parse, prior_spec};
 
 /// The README's Rust examples, compiled and run as doctests.

@@ -9,7 +9,7 @@ use bayes_cbf::barrier::{
 };
 use serde::Deserialize;
 use std::path::Path;
-use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::atomic::AtomicBool;
 use std::sync::Arc;
 
 /// One barrier as written in a file.
@@ -405,14 +405,17 @@ static KINKS: AtomicBool = AtomicBool::new(false);
 /// ([`ExpressionBarrier::kinks`]).
 fn warn_kinks(barrier: &ExpressionBarrier) {
     let kinks = barrier.kinks();
-    if !kinks.is_empty() && !KINKS.swap(true, Ordering::Relaxed) {
-        log::warn!(
-            "barrier '{}' uses {}: h has no derivative where it switches, so the condition \
-             there constrains one side only and the other can cross zero although every \
-             step meets it (a min of two walls escapes their corner); write each side as \
-             its own barrier (docs/robots.md, \"Smooth barriers\")",
-            barrier.expression(),
-            kinks.join(", ")
+    if !kinks.is_empty() {
+        crate::warn_once(
+            &KINKS,
+            format!(
+                "barrier '{}' uses {}: h has no derivative where it switches, so the \
+                 condition there constrains one side only and the other can cross zero \
+                 although every step meets it (a min of two walls escapes their corner); \
+                 write each side as its own barrier (docs/robots.md, \"Smooth barriers\")",
+                barrier.expression(),
+                kinks.join(", ")
+            ),
         );
     }
 }

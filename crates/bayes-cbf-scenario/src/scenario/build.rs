@@ -8,6 +8,7 @@ use crate::error::{check_vector, Context, Result};
 use crate::input_map_spec::to_input_map;
 use crate::parse::parse_rank;
 use crate::prior_spec::{PriorSpec, SystemNames};
+use crate::warn_once;
 use bayes_cbf::barrier::{fastest_pole, start_margin, DynBarrier};
 use bayes_cbf::control::{
     Fallback, RecalibrationSettings, SafetyController, SafetySettings, SelfTriggered, TauSource,
@@ -23,7 +24,7 @@ use nalgebra::DMatrix;
 use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use rand_distr::{Distribution, StandardNormal};
-use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::atomic::AtomicBool;
 use std::sync::Arc;
 
 /// Everything a run needs.
@@ -641,14 +642,6 @@ fn short(v: f64) -> String {
         format!("{v:.3e}")
     } else {
         format!("{v:.3}")
-    }
-}
-
-/// Logs `message` as a warning the first time `flag` is seen in this
-/// process (a sweep builds its scenario once per seed).
-fn warn_once(flag: &AtomicBool, message: String) {
-    if !flag.swap(true, Ordering::Relaxed) {
-        log::warn!("{message}");
     }
 }
 
