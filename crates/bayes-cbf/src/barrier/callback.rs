@@ -219,6 +219,7 @@ impl DynBarrier for CallbackBarrier {
     }
     /// One call each of `h` and `∇h` (instead of `n` dual passes).
     fn gradient(&self, x: &[f64], grad: &mut [f64], _scratch: &mut [Dual64]) -> f64 {
+        super::check_buffers(self.n, grad.len(), 0, 0);
         self.eval_grad(x, &mut grad[..self.n]);
         self.eval_h(x)
     }
@@ -231,6 +232,8 @@ impl DynBarrier for CallbackBarrier {
         _scratch: &mut [HyperDual64],
     ) -> f64 {
         let n = self.n;
+        super::check_buffers(n, grad.len(), 0, 0);
+        super::check_hessian_buffer(n, hess.len());
         self.eval_grad(x, &mut grad[..n]);
         self.eval_hess(x, &mut hess[..n * n]);
         self.eval_h(x)

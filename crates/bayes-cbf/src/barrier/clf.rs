@@ -27,6 +27,10 @@ pub trait DynLyapunov: Send + Sync {
     fn gamma(&self) -> f64;
 
     /// `∇ₓV` into `grad`, returns `(V, ∇_{x_d}Vᵀ ẋ_d)`. Scratch length `2n`.
+    ///
+    /// # Panics
+    /// If `grad` is shorter than `x`, `scratch` shorter than `2n`, or `xd`
+    /// or `xd_dot` shorter than `x`.
     fn gradient(
         &self,
         x: &[f64],
@@ -36,6 +40,13 @@ pub trait DynLyapunov: Send + Sync {
         scratch: &mut [Dual64],
     ) -> (f64, f64) {
         let n = x.len();
+        super::check_buffers(n, grad.len(), 2 * n, scratch.len());
+        assert!(
+            xd.len() >= n && xd_dot.len() >= n,
+            "xd and xd_dot need {n} entries, they have {} and {}",
+            xd.len(),
+            xd_dot.len()
+        );
         let (sx, sd) = scratch.split_at_mut(n);
         let mut v = 0.0;
         for j in 0..n {

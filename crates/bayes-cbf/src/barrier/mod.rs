@@ -88,8 +88,13 @@ pub trait DynBarrier: Send + Sync {
     fn name(&self) -> &str;
 
     /// `∇h(x)` into `grad` (length n); returns `h(x)`. `scratch` length `n`.
+    ///
+    /// # Panics
+    /// If `grad` or `scratch` is shorter than `x` (a caller's buffer, not
+    /// user input: [`crate::control::SafetyFilter`] sizes its own).
     fn gradient(&self, x: &[f64], grad: &mut [f64], scratch: &mut [Dual64]) -> f64 {
         let n = x.len();
+        check_buffers(n, grad.len(), n, scratch.len());
         let mut h = 0.0;
         for j in 0..n {
             crate::autodiff::seed_dual(x, j, &mut scratch[..n]);
@@ -105,6 +110,10 @@ pub trait DynBarrier: Send + Sync {
 
     /// `∇²h(x)` into `hess` (row-major `n × n`) and `∇h` into `grad`;
     /// returns `h(x)`. `scratch` length `n`.
+    ///
+    /// # Panics
+    /// If `grad` or `scratch` is shorter than `x`, or `hess` shorter than
+    /// `n²`.
     fn hessian(
         &self,
         x: &[f64],
@@ -113,6 +122,8 @@ pub trait DynBarrier: Send + Sync {
         scratch: &mut [HyperDual64],
     ) -> f64 {
         let n = x.len();
+        check_buffers(n, grad.len(), n, scratch.len());
+        check_hessian_buffer(n, hess.len());
         let mut h = self.value(x);
         for a in 0..n {
             for b in a..n {
@@ -135,6 +146,28 @@ pub trait DynBarrier: Send + Sync {
     fn take_error(&self) -> Option<String> {
         None
     }
+}
+
+/// The buffer-length contract of [`DynBarrier::gradient`] and
+/// [`DynBarrier::hessian`] (and the CLF's gradient), as a clear panic.
+pub(crate) fn check_buffers(n: usize, grad: usize, scratch_needed: usize, scratch: usize) {
+    assert!(
+        grad >= n,
+        "grad has {grad} entries, the gradient of {n} states needs {n}"
+    );
+    assert!(
+        scratch >= scratch_needed,
+        "scratch has {scratch} entries, {scratch_needed} are needed for {n} states"
+    );
+}
+
+/// `hess` holds the `n × n` Hessian, as a clear panic.
+pub(crate) fn check_hessian_buffer(n: usize, hess: usize) {
+    assert!(
+        hess >= n * n,
+        "hess has {hess} entries, the Hessian of {n} states needs {}",
+        n * n
+    );
 }
 
 impl<T: Barrier> DynBarrier for T {
@@ -352,6 +385,24 @@ pub fn is_hurwitz(k: &[f64]) -> bool {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    #[should_panic(expected = "scratch has 1 entries, 3 are needed for 3 states")]
+    fn a_short_scratch_buffer_is_named() {
+        let disc = Disc::new(3, [0, 1], [0.0, 0.0], 1.0, 1, vec![1.0]).unwrap();
+        let mut grad = [0.0; 3];
+        let mut scratch = [Dual64::from(0.0); 1];
+        disc.gradient(&[0.5, 0.5, 0.0], &mut grad, &mut scratch);
+    }
+
+    #[test]
+    #[should_panic(expected = "hess has 4 entries, the Hessian of 3 states needs 9")]
+    fn a_short_hessian_buffer_is_named() {
+        let disc = Disc::new(3, [0, 1], [0.0, 0.0], 1.0, 1, vec![1.0]).unwrap();
+        let (mut grad, mut hess) = ([0.0; 3], [0.0; 4]);
+        let mut scratch = [HyperDual64::from(0.0); 3];
+        disc.hessian(&[0.5, 0.5, 0.0], &mut grad, &mut hess, &mut scratch);
+    }
 
     #[test]
     fn hurwitz_test_matches_the_roots() {
