@@ -24,7 +24,9 @@
 //! ([`crate::barrier::atan2`]) and has zero derivatives at the origin, where
 //! the angle is undefined; `min`/`max` take the derivatives of the
 //! chosen argument; `abs` those of `±x`; `a^b` is `powi` for a constant
-//! integer `b`, `powf` for another constant, `exp(b ln a)` otherwise.
+//! integer `b`, `powf` for another constant, `a^b₀ · exp((b − b₀) ln a)`
+//! otherwise (`b₀` the value of `b`: `x^y` at (2, 3) is 8 exactly, and at
+//! a negative base with an integer exponent it is real).
 
 mod parse;
 
@@ -263,6 +265,32 @@ fn pow_const<D: DualNum<Primitive = f64> + Copy>(x: D, c: f64) -> D {
     out
 }
 
+/// `x^y` with a variable exponent, as `x^y₀ · exp((y − y₀) ln x)` with
+/// `y₀` the real part of `y`: the value is `powf`'s (`2^3 = 8` exactly,
+/// where `exp(3 ln 2)` is `7.999999999999998`) and the derivatives in `x`
+/// are [`pow_const`]'s, so a negative base with an integer exponent and a
+/// zero base are evaluated. The derivatives in `y` carry `ln x`:
+/// - `x > 0`: the identity holds to every order;
+/// - `x = 0` and `y₀ > NDERIV − 1`: every derivative with a `y` in it,
+///   `x^(y−j) lnᵐx` with `j < NDERIV`, tends to 0; the factor is dropped;
+/// - otherwise (`x < 0`, where `x^y` is real on the integers only, or
+///   `x = 0` at a lower exponent, where the limit is infinite) there is
+///   no derivative in `y`: a non-zero part of `y − y₀` is scaled by
+///   `MAX³` to `±∞`, which the caller reports as not finite, and its zero
+///   parts stay 0, as in [`pow_const`].
+fn pow_var<D: DualNum<Primitive = f64> + Copy>(x: D, y: D) -> D {
+    let (r, y0) = (x.re(), y.re());
+    let base = pow_const(x, y0);
+    let dy = y - D::from(y0);
+    if r > 0.0 {
+        base * (dy * x.ln()).exp()
+    } else if r == 0.0 && y0 > (D::NDERIV as f64 - 1.0).max(0.0) {
+        base
+    } else {
+        base * (D::from(1.0) + dy * f64::MAX * f64::MAX * f64::MAX)
+    }
+}
+
 /// A node of two operands applied to their values `u`, `v`.
 fn binary<D: DualNum<Primitive = f64> + Copy>(node: Node, u: D, v: D) -> D {
     match node {
@@ -270,7 +298,7 @@ fn binary<D: DualNum<Primitive = f64> + Copy>(node: Node, u: D, v: D) -> D {
         Node::Sub(..) => u - v,
         Node::Mul(..) => u * v,
         Node::Div(..) => u / v,
-        Node::Pow(..) => (v * u.ln()).exp(),
+        Node::Pow(..) => pow_var(u, v),
         Node::Call2(f, ..) => match f {
             // at the origin, where the angle is undefined: atan2(±0, ±0)
             // with zero derivatives, so that a bearing term (a CLF

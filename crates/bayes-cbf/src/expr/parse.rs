@@ -253,7 +253,7 @@ impl<'a> Parser<'a> {
     }
 
     /// `a^b`: `powi` for a constant integer exponent, `powf` for another
-    /// constant, `exp(b ln a)` otherwise.
+    /// constant, a variable power otherwise.
     fn power_node(&mut self, base: u32, exp: u32) -> u32 {
         match self.nodes[exp as usize] {
             Node::Const(e) if e == e.trunc() && e.abs() <= i32::MAX as f64 => {

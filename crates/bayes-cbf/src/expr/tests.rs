@@ -541,3 +541,48 @@ fn long_sums_evaluate_in_bounded_stack() {
     assert!(close(d.eps1, 2.0 * t * x), "{}", d.eps1);
     assert!(close(d.eps1eps2, 2.0 * t), "{}", d.eps1eps2);
 }
+
+/// `x^y` with a variable exponent, against its closed-form derivatives:
+/// `∂x = y x^(y−1)`, `∂y = x^y ln x`, `∂xx = y(y−1)x^(y−2)`,
+/// `∂xy = x^(y−1)(1 + y ln x)`, `∂yy = x^y ln²x`. At a positive base every
+/// entry; at a negative base with an integer exponent the value and the
+/// derivatives in `x` (there is none in `y`: it is not finite); at a zero
+/// base above the order, zeros.
+#[test]
+fn a_variable_power_has_powf_values_and_its_closed_form_derivatives() {
+    let n = names();
+    let e = Expr::parse("e", "x^y", &n).unwrap();
+    let close = |got: f64, want: f64| (got - want).abs() <= 1e-13 * want.abs().max(1.0);
+    for (x, y) in [(2.0f64, 3.0f64), (0.3, -1.7), (5.5, 0.25), (1.0, 2.0)] {
+        let (v, g, hs) = derivatives(&e, [x, y]);
+        let l = x.ln();
+        let want_g = [y * x.powf(y - 1.0), x.powf(y) * l];
+        let want_h = [
+            [
+                y * (y - 1.0) * x.powf(y - 2.0),
+                x.powf(y - 1.0) * (1.0 + y * l),
+            ],
+            [x.powf(y - 1.0) * (1.0 + y * l), x.powf(y) * l * l],
+        ];
+        assert_eq!(v, x.powf(y), "value at ({x}, {y})");
+        for j in 0..2 {
+            assert!(close(g[j], want_g[j]), "∂{j} at ({x}, {y}): {}", g[j]);
+            for k in 0..2 {
+                assert!(close(hs[j][k], want_h[j][k]), "∂{j}∂{k} at ({x}, {y})");
+            }
+        }
+    }
+    assert_eq!(e.eval(&[2.0f64, 3.0]), 8.0);
+    // a negative base with an integer exponent
+    let (v, g, hs) = derivatives(&e, [-2.0, 3.0]);
+    assert_eq!((v, g[0], hs[0][0]), (-8.0, 12.0, -12.0));
+    assert!(!g[1].is_finite() && !hs[1][1].is_finite());
+    assert!(e.eval(&[-2.0f64, 2.5]).is_nan());
+    // a zero base: x^y and its derivatives tend to 0 for y > 1
+    let (v, g, hs) = derivatives(&e, [0.0, 2.5]);
+    assert_eq!((v, g, hs), (0.0, [0.0; 2], [[0.0; 2]; 2]));
+    assert_eq!(e.eval(&[0.0f64, 0.5]), 0.0);
+    // ∂x = 0.5 x^−0.5 is infinite at 0, and so is ∂xy at y = 1
+    assert!(!derivatives(&e, [0.0, 0.5]).1[0].is_finite());
+    assert!(!derivatives(&e, [0.0, 1.0]).2[0][1].is_finite());
+}
