@@ -49,18 +49,18 @@ fn experiments_write_their_files() {
 #[test]
 fn experiment_sizes_are_checked() {
     for (args, want) in [
-        ("run calibration --episodes 0", "--episodes"),
-        ("run soak --steps 5", "--steps"),
-        ("run soak --window 1 --steps 100", "--window"),
-        ("run speed-test --episodes 3", "--episodes"),
-        ("run calibration --window 30", "--window"),
-        ("run pendulum-safe --steps 30", "--steps"),
-        ("run calibration --episodes -2", "--episodes"),
+        ("run calibration --episodes 0", "episodes"),
+        ("run soak --steps 5", "steps"),
+        ("run soak --window 1 --steps 100", "window"),
+        ("run speed-test --episodes 3", "episodes"),
+        ("run calibration --window 30", "window"),
+        ("run pendulum-safe --steps 30", "steps"),
+        ("run calibration --episodes -2", "episodes"),
         (
             "run calibration --fallback slow",
             "max_margin, brake, hold or relax",
         ),
-        ("run soak --fallback relax", "--fallback"),
+        ("run soak --fallback relax", "fallback"),
         ("run pendulum-safe --fallback relax", "controller.fallback"),
         ("run pendulum-safe --quick", "--set steps=N"),
         ("run no-such-experiment", "no-such-experiment"),

@@ -44,7 +44,7 @@ pub struct SeedRange {
 impl FromStr for SeedRange {
     type Err = crate::Error;
     fn from_str(s: &str) -> Result<Self> {
-        let bad = || err!("--seeds '{s}': expected A..B (B excluded) or A..=B, e.g. 0..100");
+        let bad = || err!("seeds '{s}': expected A..B (B excluded) or A..=B, e.g. 0..100");
         let (a, b, inclusive) = if let Some((a, b)) = s.split_once("..=") {
             (a, b, true)
         } else if let Some((a, b)) = s.split_once("..") {
@@ -60,11 +60,11 @@ impl FromStr for SeedRange {
             b
         };
         if end <= a {
-            bail!("--seeds '{s}': the range is empty");
+            bail!("seeds '{s}': the range is empty");
         }
         // a seed is a scenario's `seed`, a TOML integer
         if end - 1 > i64::MAX as u64 {
-            bail!("--seeds '{s}': seeds are at most {} (2^63 − 1)", i64::MAX);
+            bail!("seeds '{s}': seeds are at most {} (2^63 − 1)", i64::MAX);
         }
         Ok(SeedRange { start: a, end })
     }
@@ -122,7 +122,7 @@ impl Shard {
 impl FromStr for Shard {
     type Err = crate::Error;
     fn from_str(s: &str) -> Result<Self> {
-        let bad = |why: &str| err!("--shard '{s}': {why}");
+        let bad = |why: &str| err!("shard '{s}': {why}");
         let (i, n) = s
             .split_once('/')
             .ok_or_else(|| bad("expected I/N, e.g. 0/4 for the first of four shards"))?;
@@ -693,7 +693,7 @@ mod tests {
         assert_eq!(last.unwrap().len(), 1);
         for bad in ["7..3", "3..3", "a..4", "5", "", "0..=9223372036854775808"] {
             let e = bad.parse::<SeedRange>().unwrap_err().to_string();
-            assert!(e.contains("--seeds"), "{bad}: {e}");
+            assert!(e.contains("seeds '"), "{bad}: {e}");
         }
         assert_eq!(
             "1/3".parse::<Shard>().unwrap(),
@@ -701,7 +701,7 @@ mod tests {
         );
         for bad in ["0/0", "3/2", "2/2", "1", "x/2", "-1/2"] {
             let e = bad.parse::<Shard>().unwrap_err().to_string();
-            assert!(e.contains("--shard"), "{bad}: {e}");
+            assert!(e.contains("shard '"), "{bad}: {e}");
         }
         // shards read from files are validated where they are used
         assert!(check_shard_set([Shard { index: 0, count: 0 }]).is_err());

@@ -88,7 +88,7 @@ impl Settings {
     /// Checks the sizes (errors name the command-line option).
     pub fn validate(&self) -> Result<()> {
         if !(2..=20_000).contains(&self.steps) {
-            bail!("--steps = {} must be between 2 and 20000", self.steps);
+            bail!("steps = {} must be between 2 and 20000", self.steps);
         }
         if self.heldout > 100_000 {
             bail!("--heldout = {} must be at most 100000", self.heldout);

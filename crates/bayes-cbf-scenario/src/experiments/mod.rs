@@ -189,17 +189,17 @@ pub fn run_sized(
         Ok(())
     };
     takes(
-        "--episodes",
+        "episodes",
         sizes.calibration.episodes.is_some(),
         &["calibration"],
     )?;
     takes(
-        "--fallback",
+        "fallback",
         sizes.calibration.fallback.is_some(),
         &["calibration"],
     )?;
-    takes("--steps", sizes.steps.is_some(), &["soak"])?;
-    takes("--window", sizes.window.is_some(), &["soak"])?;
+    takes("steps", sizes.steps.is_some(), &["soak"])?;
+    takes("window", sizes.window.is_some(), &["soak"])?;
     Ok(match name {
         "pendulum-learning" => ExperimentResult::PendulumLearning(pendulum_learning::run(args)?),
         "speed-test" => ExperimentResult::SpeedTest(speed_test::run(args, progress)?),

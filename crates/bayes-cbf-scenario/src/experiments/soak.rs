@@ -201,14 +201,14 @@ pub(crate) fn memory_kb() -> (Option<u64>, Option<u64>) {
 fn sizes(quick: bool, steps: Option<usize>, window: Option<usize>) -> Result<(usize, usize)> {
     let steps = steps.unwrap_or(if quick { QUICK_STEPS } else { DEFAULT_STEPS });
     if steps < 10 {
-        bail!("--steps = {steps}: must be ≥ 10 (the report is per tenth of the run)");
+        bail!("steps = {steps}: must be ≥ 10 (the report is per tenth of the run)");
     }
     if steps.checked_mul(10).is_none() {
-        bail!("--steps = {steps}: too large");
+        bail!("steps = {steps}: too large");
     }
     let window = window.unwrap_or(DEFAULT_WINDOW);
     if window < 2 {
-        bail!("--window = {window}: must be ≥ 2 observations");
+        bail!("window = {window}: must be ≥ 2 observations");
     }
     Ok((steps, window))
 }
@@ -281,9 +281,9 @@ pub fn run(
     let (hwm_start, rss_start) = memory_kb();
     let started = Instant::now();
     let mut tenths = Vec::new();
-    let mut times = bayes_cbf::error::reserve::<f64>("--steps", steps / 10 + 1).map_err(|_| {
+    let mut times = bayes_cbf::error::reserve::<f64>("steps", steps / 10 + 1).map_err(|_| {
         crate::err!(
-            "--steps = {steps}: too large (the memory for a tenth of the run's \
+            "steps = {steps}: too large (the memory for a tenth of the run's \
              control-step times cannot be reserved)"
         )
     })?;
@@ -384,9 +384,9 @@ mod tests {
         );
         assert_eq!(sizes(true, None, Some(50)).unwrap(), (QUICK_STEPS, 50));
         let e = sizes(false, Some(5), None).unwrap_err().to_string();
-        assert!(e.contains("--steps"), "{e}");
+        assert!(e.contains("steps = "), "{e}");
         let e = sizes(false, None, Some(1)).unwrap_err().to_string();
-        assert!(e.contains("--window"), "{e}");
+        assert!(e.contains("window = "), "{e}");
     }
 
     #[test]

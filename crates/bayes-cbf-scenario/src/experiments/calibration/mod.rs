@@ -150,9 +150,9 @@ impl Plan {
     /// episodes.
     pub fn new(quick: bool, episodes: Option<usize>, fallback: Option<Fallback>) -> Result<Self> {
         match episodes {
-            Some(0) => bail!("--episodes = 0: must be ≥ 1"),
+            Some(0) => bail!("episodes = 0: must be ≥ 1"),
             Some(e) if e > MAX_EPISODES => bail!(
-                "--episodes = {e}: too large (at most {MAX_EPISODES} per system and truth; \
+                "episodes = {e}: too large (at most {MAX_EPISODES} per system and truth; \
                  each is one closed-loop run per controller)"
             ),
             _ => {}
@@ -402,7 +402,7 @@ mod tests {
     #[test]
     fn episodes_are_bounded() {
         for (e, msg) in [
-            (0, "--episodes = 0: must be ≥ 1"),
+            (0, "episodes = 0: must be ≥ 1"),
             (usize::MAX, "too large (at most 1000000"),
             (MAX_EPISODES + 1, "too large"),
         ] {
@@ -469,7 +469,7 @@ mod tests {
     #[test]
     fn zero_episodes_is_an_error_naming_the_option() {
         let e = Plan::new(false, Some(0), None).unwrap_err().to_string();
-        assert!(e.contains("--episodes"), "{e}");
+        assert!(e.contains("episodes = "), "{e}");
         assert_eq!(
             Plan::new(true, None, None).unwrap().episodes,
             QUICK_EPISODES
