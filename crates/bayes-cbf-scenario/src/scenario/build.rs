@@ -102,8 +102,13 @@ fn truth(spec: &PriorSpec) -> Result<(Arc<dyn DynSystem>, SystemNames)> {
 pub fn build(s: &Scenario) -> Result<Built> {
     let (truth, names) = truth(&s.system)?;
     let (n, m) = (truth.state_dim(), truth.control_dim());
-    check_vector("start", &s.start, n, "the state dimension")?;
-    let mut start = s.start.clone();
+    let mut start = match &s.start {
+        Some(x) => {
+            check_vector("start", x, n, "the state dimension")?;
+            x.clone()
+        }
+        None => vec![0.0; n],
+    };
     if let Some(spread) = &s.start_spread {
         check_vector("start_spread", spread, n, "the state dimension")?;
         if let Some(i) = spread.iter().position(|v| *v < 0.0) {
@@ -111,7 +116,7 @@ pub fn build(s: &Scenario) -> Result<Built> {
         }
         // the interval [−w, w] must have a finite width, and the start
         // must stay finite wherever in it the draw lands
-        if let Some(i) = (0..n).find(|&i| !(2.0 * spread[i] + s.start[i].abs()).is_finite()) {
+        if let Some(i) = (0..n).find(|&i| !(2.0 * spread[i] + start[i].abs()).is_finite()) {
             bail!(
                 "start_spread[{i}] = {}: too large (start[{i}] ± start_spread[{i}] overflows)",
                 bayes_cbf::error::number(spread[i])
@@ -145,8 +150,12 @@ pub fn build(s: &Scenario) -> Result<Built> {
         b = DMatrix::identity(m + 1, m + 1) * super::ORACLE_VARIANCE;
     }
     let input_map = to_input_map(s.gp.input_map.as_deref());
-    let kernel = Rbf::new(s.gp.lengthscales.clone(), s.gp.kernel_variance)
-        .map_err(|e| crate::err!("gp: {e}"))?;
+    let lengthscales = match &s.gp.lengthscales {
+        Some(l) => l.clone(),
+        None => vec![1.0; input_map.output_dim(n)],
+    };
+    let kernel =
+        Rbf::new(lengthscales, s.gp.kernel_variance).map_err(|e| crate::err!("gp: {e}"))?;
     let hyper = MvgpHyper {
         kernel,
         A: a,
@@ -272,7 +281,7 @@ pub fn build(s: &Scenario) -> Result<Built> {
     };
     // reference: only the planner gives a CLF its reference state x_d;
     // the others hold x_d = x, where the CLF asks nothing
-    if s.clf.is_some() && !matches!(s.reference, ReferenceSpec::Planner { .. }) {
+    if s.clf.is_some() && !matches!(s.reference, Some(ReferenceSpec::Planner { .. })) {
         warn_once(
             &CLF_WITHOUT_PLANNER,
             "clf: the reference is not a planner, so the CLF's reference state x_d is the \
@@ -282,7 +291,8 @@ pub fn build(s: &Scenario) -> Result<Built> {
         );
     }
     let reference: Box<dyn Reference> = match &s.reference {
-        ReferenceSpec::Planner { duration } => {
+        None => Box::new(ConstantReference(vec![0.0; m])),
+        Some(ReferenceSpec::Planner { duration }) => {
             let goal = s
                 .goal
                 .clone()
@@ -292,7 +302,7 @@ pub fn build(s: &Scenario) -> Result<Built> {
                     .map_err(|e| crate::err!("reference: {e}"))?,
             )
         }
-        ReferenceSpec::EpsilonGreedy { lo, hi, decay } => {
+        Some(ReferenceSpec::EpsilonGreedy { lo, hi, decay }) => {
             check_vector("reference.lo", lo, m, "the control dimension")?;
             check_vector("reference.hi", hi, m, "the control dimension")?;
             Box::new(
@@ -300,11 +310,11 @@ pub fn build(s: &Scenario) -> Result<Built> {
                     .map_err(|e| crate::err!("reference: {e}"))?,
             )
         }
-        ReferenceSpec::Constant { u } => {
+        Some(ReferenceSpec::Constant { u }) => {
             check_vector("reference.u", u, m, "the control dimension")?;
             Box::new(ConstantReference(u.clone()))
         }
-        ReferenceSpec::Feedback { u0, gain, target } => {
+        Some(ReferenceSpec::Feedback { u0, gain, target }) => {
             check_vector("reference.u0", u0, m, "the control dimension")?;
             check_vector("reference.target", target, n, "the state dimension")?;
             Box::new(
@@ -375,8 +385,11 @@ pub fn build(s: &Scenario) -> Result<Built> {
     if !loop_settings.trigger.as_ref().is_some_and(|t| t.hold) {
         warn_fast_gains(&barriers, loop_settings.dt);
     }
-    if !s.gp.oracle && l.update_every > 0 {
-        warn_noise_below_labels(&model, s.sim.process_noise, s.dt);
+    // self-triggered labels are differences over their holds: checked on
+    // the run's holds ([`warn_noise_below_held_labels`])
+    let holding = loop_settings.trigger.as_ref().is_some_and(|t| t.hold);
+    if !s.gp.oracle && l.update_every > 0 && !holding {
+        warn_noise_below_labels(&model, s.sim.process_noise, s.dt, "dt");
     }
     Ok(Built {
         start,
@@ -503,14 +516,62 @@ pub(crate) fn warn_crossing_outside(
     }
 }
 
+static CROSSED_IN_INFEASIBLE_STEP: AtomicBool = AtomicBool::new(false);
+
+/// The first step in which a barrier's `h` crossed zero (from `h ≥ 0` at
+/// the step's start) while its SOCP was infeasible: the barrier's index
+/// and the step.
+pub(crate) fn crossing_in_infeasible_step(
+    barriers: usize,
+    records: &[StepRecord],
+) -> Option<(usize, &StepRecord)> {
+    records.iter().find_map(|r| {
+        (0..barriers)
+            .find(|&i| r.status == StepStatus::Infeasible && r.h[i] >= 0.0 && r.h_fine_min[i] < 0.0)
+            .map(|i| (i, r))
+    })
+}
+
+/// Warns, once per process, of a [`crossing_in_infeasible_step`]: no
+/// control met the conditions at `p` there, and the fallback did not keep
+/// `h ≥ 0`. Without such a warning a run whose steps were all infeasible
+/// crossed in silence.
+pub(crate) fn warn_crossing_in_infeasible_step(
+    barriers: usize,
+    records: &[StepRecord],
+    fallback: &str,
+    seed: u64,
+) {
+    if let Some((i, r)) = crossing_in_infeasible_step(barriers, records) {
+        let infeasible = records
+            .iter()
+            .filter(|r| r.status == StepStatus::Infeasible)
+            .count();
+        let p_star = r.p_star.map_or_else(|| "none".to_string(), short);
+        warn_once(
+            &CROSSED_IN_INFEASIBLE_STEP,
+            format!(
+                "barriers[{i}] (seed {seed}): h crossed zero at t = {:.3} in an infeasible step \
+                 (p* = {p_star}; fallback {fallback}), {infeasible} of {} steps were \
+                 infeasible: the model's spread at controller.probability, the input bounds \
+                 or the gains left no control that meets the conditions (docs/robots.md, \
+                 \"Infeasible steps\")",
+                r.t,
+                records.len()
+            ),
+        );
+    }
+}
+
 static NOISE_BELOW_LABELS: AtomicBool = AtomicBool::new(false);
 
 /// Warns, once per process, when the model's noise on a learned row,
 /// `σ·√A_ii`, is below the noise that process noise `σ_w` puts on the
-/// learning labels, `σ_w/√dt` (finite differences over `dt`): the
+/// learning labels, `σ_w/√τ` (finite differences over the hold `τ`, named
+/// `tau`: `dt`, or the median hold of a self-triggered run): the
 /// conditions then take the labels for more exact than they are.
-fn warn_noise_below_labels(model: &Mvgp, process_noise: f64, dt: f64) {
-    let label = process_noise / dt.sqrt();
+fn warn_noise_below_labels(model: &Mvgp, process_noise: f64, hold: f64, tau: &str) {
+    let label = process_noise / hold.sqrt();
     let (sigma, a) = (model.hyper().sigma, &model.hyper().A);
     let low = model
         .learned_rows()
@@ -522,14 +583,37 @@ fn warn_noise_below_labels(model: &Mvgp, process_noise: f64, dt: f64) {
             &NOISE_BELOW_LABELS,
             format!(
                 "gp.noise_sigma: the model's noise on row {i}, σ·√A_ii = {}, is below the \
-                 noise sim.process_noise puts on the learning labels, σ_w/√dt = {}: the \
-                 conditions take the labels for more exact than they are, and can cross; \
-                 raise noise_sigma (docs/robots.md, \"Tell the model the noise it will see\")",
+                 noise sim.process_noise puts on the learning labels, σ_w/√τ = {} with τ = \
+                 {tau} = {} s: the conditions take the labels for more exact than they are, \
+                 and can cross; raise noise_sigma (docs/robots.md, \"Tell the model the \
+                 noise it will see\")",
                 short(noise),
-                short(label)
+                short(label),
+                short(hold)
             ),
         );
     }
+}
+
+/// [`warn_noise_below_labels`] for a self-triggered run: its labels are
+/// differences over the holds, `σ_w/√τ_k`; the warning takes the median
+/// hold (half the labels are at least that noisy).
+pub(crate) fn warn_noise_below_held_labels(
+    model: &Mvgp,
+    process_noise: f64,
+    records: &[StepRecord],
+) {
+    let mut holds: Vec<f64> = records
+        .iter()
+        .map(|r| r.hold)
+        .filter(|h| *h > 0.0)
+        .collect();
+    if holds.is_empty() {
+        return;
+    }
+    holds.sort_by(f64::total_cmp);
+    let median = holds[holds.len() / 2];
+    warn_noise_below_labels(model, process_noise, median, "the median hold");
 }
 
 static CLAMPED_HOLDS: AtomicBool = AtomicBool::new(false);

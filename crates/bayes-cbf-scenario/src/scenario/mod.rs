@@ -69,11 +69,16 @@ pub const BUILTIN: &[(&str, &str)] = &[
     ),
 ];
 
-/// A closed-loop scenario.
+/// A closed-loop scenario. Only `[system]` is required; the defaults are
+/// [`DEFAULT_DT`], [`DEFAULT_STEPS`], the origin as the start, the model
+/// of [`GpSpec::default`], the controller of [`ControllerSpec::default`]
+/// and a zero reference control (`docs/robots.md`, "Defaults").
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct Scenario {
-    /// Name, used for the default output directory.
+    /// Name, used for the default output directory; [`load`] names a file
+    /// without one by its stem.
+    #[serde(default)]
     pub name: String,
     /// One line for `bayes-cbf list`.
     #[serde(default)]
@@ -82,11 +87,14 @@ pub struct Scenario {
     #[serde(default)]
     pub seed: u64,
     /// Control period τ (s).
+    #[serde(default = "default_dt")]
     pub dt: f64,
     /// Control steps.
+    #[serde(default = "default_steps")]
     pub steps: usize,
-    /// Initial state.
-    pub start: Vec<f64>,
+    /// Initial state (default: the origin).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub start: Option<Vec<f64>>,
     /// Half-widths of a uniform spread of the initial state, drawn from
     /// the seed: the run starts at `start + U[−spread, spread]` (seed
     /// sweeps then vary the start, not only the noise).
@@ -98,6 +106,7 @@ pub struct Scenario {
     /// The true system.
     pub system: PriorSpec,
     /// The GP model.
+    #[serde(default)]
     pub gp: GpSpec,
     /// Online learning schedule.
     #[serde(default)]
@@ -116,9 +125,11 @@ pub struct Scenario {
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub clf: Option<ClfSpec>,
     /// The safety controller.
+    #[serde(default)]
     pub controller: ControllerSpec,
-    /// The reference.
-    pub reference: ReferenceSpec,
+    /// The reference (default: the zero control).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub reference: Option<ReferenceSpec>,
     /// Integration.
     #[serde(default)]
     pub sim: SimSpec,
@@ -128,6 +139,18 @@ pub struct Scenario {
     /// Self-triggered control (paper, Sec. V-B, VI-C).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub trigger: Option<TriggerSpec>,
+}
+
+/// Control period of a scenario that gives none (s).
+pub const DEFAULT_DT: f64 = 0.01;
+/// Control steps of a scenario that gives none (5 s at [`DEFAULT_DT`]).
+pub const DEFAULT_STEPS: usize = 500;
+
+fn default_dt() -> f64 {
+    DEFAULT_DT
+}
+fn default_steps() -> usize {
+    DEFAULT_STEPS
 }
 
 /// A disc in the plane of the first two states.
@@ -265,18 +288,23 @@ pub struct GpSpec {
     /// What the kernel sees (default: the whole state).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub input_map: Option<Vec<FeatureSpec>>,
-    /// RBF lengthscales, one per kernel input.
-    pub lengthscales: Vec<f64>,
+    /// RBF lengthscales, one per kernel input (default: 1 each).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub lengthscales: Option<Vec<f64>>,
     /// RBF variance.
     #[serde(default = "one")]
     pub kernel_variance: f64,
-    /// Row covariance `A` (n × n): a table, or the matrix itself.
-    #[serde(rename = "A", deserialize_with = "matrix_spec")]
+    /// Row covariance `A` (n × n): a table, or the matrix itself
+    /// (default: the identity).
+    #[serde(rename = "A", deserialize_with = "matrix_spec", default = "identity")]
     pub a: MatrixSpec,
-    /// Column covariance `B` ((1+m) × (1+m)): a table, or the matrix itself.
-    #[serde(rename = "B", deserialize_with = "matrix_spec")]
+    /// Column covariance `B` ((1+m) × (1+m)): a table, or the matrix
+    /// itself (default: the identity).
+    #[serde(rename = "B", deserialize_with = "matrix_spec", default = "identity")]
     pub b: MatrixSpec,
-    /// Noise scale σ (noise covariance σ²A).
+    /// Noise scale σ (noise covariance σ²A; default
+    /// [`DEFAULT_NOISE_SIGMA`]).
+    #[serde(default = "default_noise_sigma")]
     pub noise_sigma: f64,
     /// Rows of `F` known exactly from the prior mean (e.g. `[0]` for a
     /// pendulum's `θ̇ = ω`); only the others are learned.
@@ -293,6 +321,36 @@ pub struct GpSpec {
     /// a learning run survives only by the margin its model's spread adds.
     #[serde(default, skip_serializing_if = "std::ops::Not::not")]
     pub oracle: bool,
+}
+
+impl Default for GpSpec {
+    /// A zero prior mean, the RBF kernel on the whole state with unit
+    /// lengthscales and variance, `A = I`, `B = I`, `σ =`
+    /// [`DEFAULT_NOISE_SIGMA`], no known rows.
+    fn default() -> Self {
+        Self {
+            prior_mean: PriorSpec::default(),
+            input_map: None,
+            lengthscales: None,
+            kernel_variance: 1.0,
+            a: identity(),
+            b: identity(),
+            noise_sigma: DEFAULT_NOISE_SIGMA,
+            known_rows: Vec::new(),
+            oracle: false,
+        }
+    }
+}
+
+/// The model's noise scale `σ` when a scenario gives none: with `A = I`, a
+/// standard deviation of 0.1 on each learned row of `ẋ`.
+pub const DEFAULT_NOISE_SIGMA: f64 = 0.1;
+
+fn default_noise_sigma() -> f64 {
+    DEFAULT_NOISE_SIGMA
+}
+fn identity() -> MatrixSpec {
+    MatrixSpec::Identity { scale: 1.0 }
 }
 
 /// `B` of the oracle model ([`GpSpec::oracle`]) as a multiple of the
@@ -420,7 +478,9 @@ impl ClfSpec {
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct ControllerSpec {
-    /// Required probability p of each stochastic condition.
+    /// Required probability p of each stochastic condition (default
+    /// [`DEFAULT_PROBABILITY`]).
+    #[serde(default = "default_probability")]
     pub probability: f64,
     /// Margin ζ.
     #[serde(default)]
@@ -446,6 +506,30 @@ pub struct ControllerSpec {
     /// `false` for the paper's condition on the latent `F`.
     #[serde(default = "yes", skip_serializing_if = "is_true")]
     pub predictive: bool,
+}
+
+/// The probability `p` of a scenario that gives none.
+pub const DEFAULT_PROBABILITY: f64 = 0.99;
+
+fn default_probability() -> f64 {
+    DEFAULT_PROBABILITY
+}
+
+impl Default for ControllerSpec {
+    /// `p =` [`DEFAULT_PROBABILITY`], `ζ = 0`, `λ = 1`, `R = I`, no
+    /// bounds, the max-margin fallback, the predictive condition.
+    fn default() -> Self {
+        Self {
+            probability: DEFAULT_PROBABILITY,
+            zeta: 0.0,
+            lambda: 1.0,
+            r: None,
+            u_min: None,
+            u_max: None,
+            fallback: max_margin(),
+            predictive: true,
+        }
+    }
 }
 
 fn max_margin() -> String {
@@ -648,10 +732,24 @@ pub fn scenario_text(name: &str) -> Result<(String, String)> {
             .with_context(|| format!("cannot read scenario file '{name}'"))?;
         return Ok((name.to_string(), crate::parse::strip_bom(&text).to_string()));
     }
+    if path.is_dir() {
+        bail!("scenario '{name}' is a directory, not a scenario file");
+    }
+    if crate::experiments::EXPERIMENTS
+        .iter()
+        .any(|(n, _)| *n == name)
+    {
+        bail!("'{name}' is an experiment, not a closed-loop scenario");
+    }
     let names: Vec<&str> = BUILTIN.iter().map(|(n, _)| *n).collect();
+    let experiments: Vec<&str> = crate::experiments::EXPERIMENTS
+        .iter()
+        .map(|(n, _)| *n)
+        .collect();
     bail!(
-        "unknown scenario '{name}': not a built-in ({}) nor an existing file",
-        names.join(", ")
+        "unknown scenario '{name}': not a built-in ({}), an experiment ({}) nor an existing file",
+        names.join(", "),
+        experiments.join(", ")
     )
 }
 
@@ -696,11 +794,18 @@ pub fn load(name: &str, sets: &[String]) -> Result<(Scenario, String)> {
     } else {
         toml::to_string(&table).context("cannot render the scenario")?
     };
-    let scenario: Scenario = match toml::from_str(&merged) {
+    let mut scenario: Scenario = match toml::from_str(&merged) {
         Ok(s) => s,
         Err(e) if sets.is_empty() => return Err(toml_error(&source, &text, &e)),
         Err(e) => return Err(blame(&source, &text, sets, &e)),
     };
+    if scenario.name.is_empty() {
+        // a file that names no scenario: its stem
+        scenario.name = Path::new(&source)
+            .file_stem()
+            .map(|s| s.to_string_lossy().into_owned())
+            .unwrap_or_default();
+    }
     Ok((scenario, merged))
 }
 
@@ -859,9 +964,96 @@ mod tests {
         assert_eq!(found.map(|f| (f.1, f.3)), Some((0.02, 1)));
         let found = find(&[infeasible.clone(), slow, later]);
         assert_eq!(found.map(|f| (f.1, f.3)), Some((0.02, 0)));
-        // the same fast crossing in an infeasible step is the fallback's
+        // the same fast crossing in an infeasible step is the fallback's,
+        // and is found as such
         let fallback = step(0.01, [0.999, 2.0], -0.01, StepStatus::Infeasible);
-        assert_eq!(find(&[infeasible, fallback]), None);
+        assert_eq!(find(&[infeasible.clone(), fallback.clone()]), None);
+        let in_infeasible = |records: &[StepRecord]| {
+            build::crossing_in_infeasible_step(1, records).map(|(i, r)| (i, r.t))
+        };
+        assert_eq!(
+            in_infeasible(&[infeasible.clone(), fallback]),
+            Some((0, 0.01))
+        );
+        assert_eq!(in_infeasible(&[infeasible.clone(), fast]), None);
+        // an infeasible step that starts below zero did not cross
+        let below = step(0.01, [1.1, 0.0], -0.2, StepStatus::Infeasible);
+        assert_eq!(in_infeasible(&[infeasible, below]), None);
+    }
+
+    /// Only `[system]` is required: the name is the file's stem, and the
+    /// step, horizon, start, model, controller and reference take the
+    /// documented defaults; the scenario of `interfaces.md` runs as
+    /// written there.
+    #[test]
+    fn a_scenario_of_a_system_alone_takes_the_defaults() {
+        let dir = std::env::temp_dir().join(format!("bcbf-defaults-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let file = dir.join("just-a-pendulum.toml");
+        std::fs::write(
+            &file,
+            "[system]\ntype = \"pendulum\"\nmass = 1.0\nlength = 1.0\ngravity = 10.0\n",
+        )
+        .unwrap();
+        let (s, _) = load(file.to_str().unwrap(), &[]).unwrap();
+        assert_eq!(s.name, "just-a-pendulum");
+        assert_eq!((s.dt, s.steps), (DEFAULT_DT, DEFAULT_STEPS));
+        assert_eq!(s.gp, GpSpec::default());
+        assert_eq!(s.controller, ControllerSpec::default());
+        let built = build::build(&s).unwrap();
+        assert_eq!(built.start, vec![0.0, 0.0]);
+        let hyper = built.model.hyper();
+        assert_eq!(hyper.kernel.lengthscales(), &[1.0, 1.0]);
+        assert_eq!(hyper.sigma, DEFAULT_NOISE_SIGMA);
+        assert_eq!(hyper.A, nalgebra::DMatrix::identity(2, 2));
+        assert_eq!(hyper.B, nalgebra::DMatrix::identity(2, 2));
+        assert_eq!(built.controller.settings().probability, DEFAULT_PROBABILITY);
+        // the lengthscales default to the kernel's inputs, not the state's
+        let (s, _) = load(
+            file.to_str().unwrap(),
+            &["gp.input_map=[{ cos = 0 }, { sin = 0 }, 1]".into()],
+        )
+        .unwrap();
+        let built = build::build(&s).unwrap();
+        assert_eq!(built.model.hyper().kernel.lengthscales(), &[1.0; 3]);
+        // the zero reference control, at every state
+        let (s, _) = load(file.to_str().unwrap(), &["steps=3".into()]).unwrap();
+        let out = run::run_scenario(&s, |_, _| {}).unwrap();
+        assert!(out.result.records.iter().all(|r| r.u_ref == [0.0]));
+        // interfaces.md's [system], [gp] and [[barriers]], as written there
+        let spec = "[system]\ntype = \"expression\"\nstate = [\"theta\", \"omega\"]\n\
+            control = [\"u\"]\nparams = { m = 1.0, l = 1.0, g = 10.0 }\n\
+            f = [\"omega\", \"-g/l*sin(theta)\"]\ng = [[\"0\"], [\"1/(m*l^2)\"]]\n\
+            angles = [\"theta\"]\n\n[gp]\nprior_mean = { type = \"expression\", params = \
+            { l = 2.0 }, f = [\"omega\", \"-10/l*sin(theta)\"], g = [[\"0\"], [\"1/l^2\"]] }\n\
+            known_rows = [0]\n\n[[barriers]]\ntype = \"expression\"\n\
+            h = \"cos(0.3927) - cos(theta - 0.7854)\"\nrelative_degree = 2\nk_alpha = [1.0, 3.0]\n";
+        let file = dir.join("spec.toml");
+        std::fs::write(&file, spec).unwrap();
+        let (s, _) = load(file.to_str().unwrap(), &["steps=3".into()]).unwrap();
+        assert_eq!(
+            run::run_scenario(&s, |_, _| {})
+                .unwrap()
+                .result
+                .records
+                .len(),
+            3
+        );
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    #[test]
+    fn unknown_names_list_the_scenarios_and_experiments() {
+        let e = load("no-such", &[]).unwrap_err().to_string();
+        assert!(
+            e.contains("double-integrator") && e.contains("calibration"),
+            "{e}"
+        );
+        let e = load("calibration", &[]).unwrap_err().to_string();
+        assert!(e.contains("is an experiment"), "{e}");
+        let dir = std::env::temp_dir();
+        let e = load(dir.to_str().unwrap(), &[]).unwrap_err().to_string();
+        assert!(e.contains("is a directory"), "{e}");
     }
 
     #[test]
@@ -940,7 +1132,7 @@ mod tests {
         std::fs::write(&path, "# a comment\n\nsteps = 10\n").unwrap();
         let err = format!("{:#}", load(path.to_str().unwrap(), &[]).unwrap_err());
         assert!(
-            err.contains("missing field `name` at the top level") && !err.contains("line"),
+            err.contains("missing field `system` at the top level") && !err.contains("line"),
             "{err}"
         );
         std::fs::remove_dir_all(&dir).unwrap();

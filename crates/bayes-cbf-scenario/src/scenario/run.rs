@@ -207,6 +207,12 @@ pub fn run_scenario_until(
         &result.records,
         scenario.seed,
     );
+    super::build::warn_crossing_in_infeasible_step(
+        built.barriers.len(),
+        &result.records,
+        &scenario.controller.fallback,
+        scenario.seed,
+    );
     super::build::warn_crossing_in_met_step(
         &built.barriers,
         built.truth.as_ref(),
@@ -215,6 +221,13 @@ pub fn run_scenario_until(
     );
     if let Some(t) = built.loop_settings.trigger.as_ref().filter(|t| t.hold) {
         super::build::warn_clamped_holds(&result.records, t.tau_min, scenario.seed);
+        if !scenario.gp.oracle && scenario.learning.update_every > 0 {
+            super::build::warn_noise_below_held_labels(
+                &built.model,
+                scenario.sim.process_noise,
+                &result.records,
+            );
+        }
     }
     let summary = summarise(scenario, &built, &result, wall);
     Ok(RunOutput {
