@@ -23,6 +23,7 @@ pub enum BarrierSpec {
         /// Sector half-width (rad).
         delta: f64,
         /// Relative degree (1 or 2).
+        #[serde(deserialize_with = "crate::parse::whole_number")]
         relative_degree: usize,
         /// Gain for relative degree 1.
         #[serde(default, skip_serializing_if = "Option::is_none")]
@@ -42,6 +43,7 @@ pub enum BarrierSpec {
         /// `"upper"` (`theta_c + delta`) or `"lower"` (`theta_c − delta`).
         edge: EdgeSpec,
         /// Relative degree (1 or 2).
+        #[serde(deserialize_with = "crate::parse::whole_number")]
         relative_degree: usize,
         /// Gain for relative degree 1.
         #[serde(default, skip_serializing_if = "Option::is_none")]
@@ -61,6 +63,7 @@ pub enum BarrierSpec {
         /// Heading weight.
         q2: f64,
         /// Relative degree.
+        #[serde(deserialize_with = "crate::parse::whole_number")]
         relative_degree: usize,
         /// Gain for relative degree 1.
         #[serde(default, skip_serializing_if = "Option::is_none")]
@@ -72,6 +75,7 @@ pub enum BarrierSpec {
     /// `h = ‖x[indices] − center‖² − radius²`.
     Disc {
         /// State dimension.
+        #[serde(deserialize_with = "crate::parse::whole_number")]
         state_dim: usize,
         /// The two plane coordinates.
         indices: [usize; 2],
@@ -80,6 +84,7 @@ pub enum BarrierSpec {
         /// Radius.
         radius: f64,
         /// Relative degree.
+        #[serde(deserialize_with = "crate::parse::whole_number")]
         relative_degree: usize,
         /// Gain for relative degree 1.
         #[serde(default, skip_serializing_if = "Option::is_none")]
@@ -95,6 +100,7 @@ pub enum BarrierSpec {
         /// Offset.
         offset: f64,
         /// Relative degree.
+        #[serde(deserialize_with = "crate::parse::whole_number")]
         relative_degree: usize,
         /// Gain for relative degree 1.
         #[serde(default, skip_serializing_if = "Option::is_none")]
@@ -115,6 +121,7 @@ pub enum BarrierSpec {
         /// `h(x)`.
         h: String,
         /// Relative degree.
+        #[serde(deserialize_with = "crate::parse::whole_number")]
         relative_degree: usize,
         /// Gain for relative degree 1.
         #[serde(default, skip_serializing_if = "Option::is_none")]
@@ -123,6 +130,26 @@ pub enum BarrierSpec {
         #[serde(default, skip_serializing_if = "Option::is_none")]
         k_alpha: Option<Vec<f64>>,
     },
+}
+
+/// Whether `v` reads as the barrier field `key`; unknown keys pass (the
+/// typed parse lists the known ones).
+fn check_field(key: &str, v: &serde_json::Value) -> std::result::Result<(), String> {
+    use crate::parse::type_error as de;
+    match key {
+        "type" | "h" => de::<String>(v),
+        "edge" => de::<EdgeSpec>(v),
+        "theta_c" | "delta" | "radius" | "q1" | "q2" | "offset" => de::<f64>(v),
+        "alpha" => de::<Option<f64>>(v),
+        "relative_degree" | "state_dim" => crate::parse::whole_number_error(v),
+        "center" => de::<[f64; 2]>(v),
+        "indices" => de::<[usize; 2]>(v),
+        "normal" => de::<Vec<f64>>(v),
+        "k_alpha" => de::<Option<Vec<f64>>>(v),
+        "state" => de::<Option<Vec<String>>>(v),
+        "params" => de::<Params>(v),
+        _ => Ok(()),
+    }
 }
 
 /// The `edge` of a `pendulum_sector_edge` barrier.
@@ -379,10 +406,22 @@ impl BarrierSpec {
             bail!("barrier file '{name}' is empty");
         }
         serde_json::from_str(crate::parse::strip_bom(text)).map_err(|e| {
-            crate::err!(
-                "barrier file '{name}': {}",
-                crate::parse::json_error_message(text, &e)
-            )
+            // a field of the wrong type, named (the tagged enum's error
+            // names none)
+            let field = crate::parse::json_value(text)
+                .ok()
+                .and_then(|v| v.as_object().cloned())
+                .and_then(|obj| {
+                    obj.iter()
+                        .find_map(|(k, v)| check_field(k, v).err().map(|fe| (k.clone(), fe)))
+                });
+            match field {
+                Some((key, fe)) => crate::err!("barrier file '{name}': field {key}: {fe}"),
+                None => crate::err!(
+                    "barrier file '{name}': {}",
+                    crate::parse::json_error_message(text, &e)
+                ),
+            }
         })
     }
 
@@ -472,6 +511,24 @@ mod tests {
                 r#"{"type": "half_space", "normal": [0, 0], "offset": 1, "relative_degree": 1, "alpha": 1}"#,
                 "normal",
             ),
+            // fields of the wrong type, named (the tagged enum's own error
+            // names none)
+            (
+                r#"{"type": "circle_heading", "center": [1.0], "radius": 1, "q1": 1, "q2": 1, "relative_degree": 1, "alpha": 1}"#,
+                "field center: invalid length 1",
+            ),
+            (
+                r#"{"type": "pendulum_sector", "theta_c": "0.7", "delta": 0.3, "relative_degree": 1, "alpha": 1}"#,
+                "field theta_c: invalid type",
+            ),
+            (
+                r#"{"type": "expression", "state": ["x"], "h": 3, "relative_degree": 1, "alpha": 1}"#,
+                "field h: invalid type",
+            ),
+            (
+                r#"{"type": "disc", "state_dim": 2.5, "indices": [0, 1], "center": [0, 0], "radius": 1, "relative_degree": 1, "alpha": 1}"#,
+                "field state_dim: invalid value: floating point `2.5`",
+            ),
         ];
         for (text, field) in cases {
             let err = BarrierSpec::parse(text, "f")
@@ -480,6 +537,16 @@ mod tests {
             let msg = format!("{err:#}");
             assert!(msg.contains(field), "{msg} should name {field}");
         }
+    }
+
+    /// A count written as a whole float (`2.0`, as float writers give it)
+    /// reads as the integer.
+    #[test]
+    fn whole_floats_are_counts() {
+        let text = r#"{"type": "disc", "state_dim": 3.0, "indices": [0, 1], "center": [0, 0], "radius": 1, "relative_degree": 2.0, "k_alpha": [1, 2]}"#;
+        let spec = BarrierSpec::parse(text, "f").unwrap();
+        assert_eq!(spec.build().unwrap().state_dim(), 3);
+        assert_eq!(spec.order().0, 2);
     }
 
     #[test]

@@ -47,8 +47,10 @@ pub struct DataSpec {
 #[allow(non_snake_case)]
 pub struct ModelFile {
     /// State dimension `n`.
+    #[serde(deserialize_with = "crate::parse::whole_number")]
     pub state_dim: usize,
     /// Control dimension `m`.
+    #[serde(deserialize_with = "crate::parse::whole_number")]
     pub control_dim: usize,
     /// Scalar kernel `k0`.
     pub kernel: KernelSpec,
@@ -77,11 +79,9 @@ pub struct ModelFile {
 /// Checks one top-level field on its own, so that a type error can be
 /// reported with the name of the field it is in.
 fn check_field(key: &str, v: &Value) -> Result<(), String> {
-    fn de<T: serde::de::DeserializeOwned>(v: &Value) -> Result<(), String> {
-        T::deserialize(v).map(|_| ()).map_err(|e| e.to_string())
-    }
+    use crate::parse::type_error as de;
     match key {
-        "state_dim" | "control_dim" => de::<usize>(v),
+        "state_dim" | "control_dim" => crate::parse::whole_number_error(v),
         "kernel" => de::<KernelSpec>(v),
         "A" | "B" => de::<Vec<Vec<f64>>>(v),
         "noise_sigma" => de::<f64>(v),
@@ -351,5 +351,9 @@ mod tests {
         assert!(err(&GOOD[..GOOD.len() / 2]).contains("truncated"));
         assert!(err("  ").contains("empty"));
         assert!(err("[1, 2]").contains("JSON object"));
+        assert!(err(&with("\"state_dim\": 2", "\"state_dim\": 2.5")).contains("field state_dim"));
+        // a whole float is a dimension
+        let m = ModelFile::parse(&with("\"state_dim\": 2", "\"state_dim\": 2.0"), "m").unwrap();
+        assert_eq!(m.state_dim, 2);
     }
 }

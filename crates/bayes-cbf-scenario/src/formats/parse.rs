@@ -103,6 +103,51 @@ mod tests {
     }
 }
 
+/// Deserializes a count (a dimension, a relative degree): a non-negative
+/// integer, or a number with no fractional part (`2.0`), as JSON writers
+/// of floats (Python's `json.dumps(2.0)`, Julia) give it.
+pub fn whole_number<'de, D: serde::Deserializer<'de>>(
+    d: D,
+) -> std::result::Result<usize, D::Error> {
+    use serde::de::{Error, Unexpected, Visitor};
+    struct Whole;
+    impl Visitor<'_> for Whole {
+        type Value = usize;
+        fn expecting(&self, f: &mut std::fmt::Formatter) -> std::fmt::Result {
+            f.write_str("a non-negative whole number")
+        }
+        fn visit_u64<E: Error>(self, v: u64) -> std::result::Result<usize, E> {
+            usize::try_from(v).map_err(|_| E::invalid_value(Unexpected::Unsigned(v), &self))
+        }
+        fn visit_i64<E: Error>(self, v: i64) -> std::result::Result<usize, E> {
+            usize::try_from(v).map_err(|_| E::invalid_value(Unexpected::Signed(v), &self))
+        }
+        fn visit_f64<E: Error>(self, v: f64) -> std::result::Result<usize, E> {
+            // below 2⁵³ every whole float is exact
+            if v.fract() == 0.0 && (0.0..9_007_199_254_740_992.0).contains(&v) {
+                Ok(v as usize)
+            } else {
+                Err(E::invalid_value(Unexpected::Float(v), &self))
+            }
+        }
+    }
+    d.deserialize_any(Whole)
+}
+
+/// Whether `v` reads as a `T`: the error message if not. Used to name the
+/// field of a file whose typed parse failed (internally tagged enums and
+/// flattened structs lose the path).
+pub fn type_error<T: serde::de::DeserializeOwned>(
+    v: &serde_json::Value,
+) -> std::result::Result<(), String> {
+    T::deserialize(v).map(|_| ()).map_err(|e| e.to_string())
+}
+
+/// [`whole_number`] as a [`type_error`] check.
+pub fn whole_number_error(v: &serde_json::Value) -> std::result::Result<(), String> {
+    whole_number(v).map(|_| ()).map_err(|e| e.to_string())
+}
+
 /// `text` without a leading UTF-8 byte-order mark, which some editors
 /// write and JSON and TOML parsers refuse.
 pub fn strip_bom(text: &str) -> &str {
