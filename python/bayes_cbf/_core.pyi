@@ -117,6 +117,10 @@ class CoGP:
     """Output covariance Σ (n(1+m) square)."""
     S: Final[F64]
     """Noise covariance S (n × n)."""
+    lengthscales: Final[F64]
+    """Kernel lengthscales."""
+    variance: Final[float]
+    """Kernel output scale."""
 
 class Barrier:
     """A control barrier function; the safe set is {x : h(x) >= 0}.

@@ -24,7 +24,10 @@ def check_derivatives(
     """Compares ``grad`` (and ``hess``) with central differences of ``h`` (and
     ``grad``) at ``points`` (``(q, n)``; default: 10 standard-normal points in
     ``state_dim`` dimensions). An entry passes when its error is at most
-    ``atol + rtol * |finite difference|``.
+    ``atol + rtol * |finite difference| + round-off``, where the round-off
+    of a central difference of ``f`` is ``4 eps max|f(x ± step e)| / step``
+    (``eps`` the float64 machine epsilon): a large ``h`` (``1e9 + x²``)
+    cannot be differenced more finely than that at this ``step``.
 
     Returns a dict with ``ok`` (bool), ``grad_error`` and ``hess_error`` (the
     largest absolute error, ``inf`` where a function returned a non-finite
@@ -85,6 +88,11 @@ def check_derivatives(
 
         return call
 
+    def round_off(values: np.ndarray) -> np.ndarray:
+        # the rounding of a central difference of the values at x ± step e_j
+        # (axis 1), per direction j (axis 0)
+        return 4 * np.finfo(np.float64).eps * np.abs(values).max(axis=1) / step
+
     h, grad = scalar(wrap("h", h)), wrap("grad", grad)
     if hess is not None:
         hess = wrap("hess", hess)
@@ -93,23 +101,26 @@ def check_derivatives(
         g = np.asarray(grad(x), dtype=np.float64).reshape(-1)
         if g.shape != (n,):
             raise InputError(f"grad: returned {g.shape[0]} entries, expected {n}")
-        fd = np.array([(h(x + step * e) - h(x - step * e)) / (2 * step) for e in eye])
+        hp = np.array([[h(x + step * e), h(x - step * e)] for e in eye])
+        fd = (hp[:, 0] - hp[:, 1]) / (2 * step)
         err = np.abs(g - fd)
         if worst(err) > worst_g:
             worst_g, worst_x = worst(err), x
-        ok &= bool(np.all(err <= atol + rtol * np.abs(fd)))
+        ok &= bool(np.all(err <= atol + rtol * np.abs(fd) + round_off(hp)))
         if hess is not None:
             H = np.asarray(hess(x), dtype=np.float64)
             if H.shape != (n, n):
                 raise InputError(f"hess: returned shape {H.shape}, expected ({n}, {n})")
-            fdh = np.stack(
+            # gp[j, 0] = grad(x + step e_j), gp[j, 1] = grad(x − step e_j)
+            gp = np.stack(
                 [
-                    (np.asarray(grad(x + step * e)) - np.asarray(grad(x - step * e))) / (2 * step)
+                    np.stack([np.asarray(grad(x + step * e)), np.asarray(grad(x - step * e))])
                     for e in eye
                 ]
-            )
+            ).astype(np.float64)
+            fdh = (gp[:, 0] - gp[:, 1]) / (2 * step)
             errh = np.abs(H - fdh)
             if worst(errh) > worst_h:
                 worst_h, worst_x = worst(errh), x
-            ok &= bool(np.all(errh <= atol + rtol * np.abs(fdh)))
+            ok &= bool(np.all(errh <= atol + rtol * np.abs(fdh) + round_off(gp)))
     return {"ok": ok, "grad_error": worst_g, "hess_error": worst_h, "worst_point": worst_x}

@@ -266,8 +266,16 @@ def test_results_read_as_python():
     m = mvgp().fit(X, U, Xdot, max_iters=5)
     b = bc.Barrier.half_space([0.0, 1.0], -2.0)
     assert b.gains == [1.0] == bc.Barrier.expression("y + 2", ["x", "y"]).gains
-    r = bc.SafetyFilter(m, [b], u_min=[-0.1], u_max=[0.1]).filter([0.0, -2.5], [0.0])
+    f = bc.SafetyFilter(m, [b], u_min=[-0.1], u_max=[0.1])
+    assert repr(f) == (
+        'SafetyFilter(state_dim=2, control_dim=1, barriers=["half_space"], clf=None, '
+        "probability=0.99, zeta=0.0, predictive=False)"
+    ), repr(f)
+    r = f.filter([0.0, -2.5], [0.0])
     assert "Some(" not in repr(r) and "p_star=" in repr(r), repr(r)
+    # a CoGP's kernel reads back as an MVGP's
+    cogp = bc.CoGP(2, 1, [0.5, 2.0], variance=3.0)
+    assert cogp.lengthscales.tolist() == [0.5, 2.0] and cogp.variance == 3.0
     with pytest.raises(ValueError, match="read-only"):
         r.u[0] = 42.0  # a frozen result, its control too
     clf = bc.CLF.ackermann(0.9, 1.5, 10.0)

@@ -55,6 +55,20 @@ def test_check_derivatives_accepts_right_and_rejects_wrong():
     assert not wrong_h["ok"] and wrong_h["hess_error"] > 1e-3
 
 
+def test_check_derivatives_allows_for_the_rounding_of_a_large_h():
+    """h = c + |x|²: the central differences of a value near c round to
+    about eps c / step, which no fixed atol covers at every c; a wrong
+    gradient is still found when its error exceeds that rounding."""
+    for c in (1e6, 1e9, 1e12):
+        h = lambda x, c=c: c * (1.0 + x @ x)
+        g = lambda x, c=c: 2.0 * c * x
+        H = lambda x, c=c: 2.0 * c * np.eye(2)
+        assert bc.check_derivatives(h, g, H, state_dim=2)["ok"], c
+        assert not bc.check_derivatives(h, lambda x, g=g: 1.01 * g(x), state_dim=2)["ok"], c
+    # an offset far above the gradient's scale (the error was 5e-3 > atol)
+    assert bc.check_derivatives(lambda x: 1e9 + x @ x, lambda x: 2.0 * x, state_dim=2)["ok"]
+
+
 def test_a_raising_callback_is_an_input_error_naming_it(model):
     cb = bc.Barrier.callback(lambda x: 1.0 / 0.0, lambda x: np.zeros(2), state_dim=2)
     with pytest.raises(bc.InputError, match="h failed.*ZeroDivisionError"):

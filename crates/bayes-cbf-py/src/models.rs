@@ -610,6 +610,17 @@ impl PyCogp {
     fn s<'py>(&self, py: Python<'py>) -> PyResult<NdArray<'py>> {
         matrix_to_numpy(py, &self.model.hyper().S)
     }
+    /// Kernel lengthscales.
+    #[getter]
+    fn lengthscales<'py>(&self, py: Python<'py>) -> PyResult<NdArray<'py>> {
+        let ls = self.model.hyper().kernel.lengthscales();
+        to_numpy(py, ls.to_vec(), &[ls.len()])
+    }
+    /// Kernel output scale.
+    #[getter]
+    fn variance(&self) -> f64 {
+        self.model.hyper().kernel.variance()
+    }
     fn __repr__(&self) -> String {
         format!(
             "CoGP(state_dim={}, control_dim={}, k={})",

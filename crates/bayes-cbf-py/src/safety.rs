@@ -760,6 +760,25 @@ impl PySafetyFilter {
     fn barrier_names(&self) -> Vec<String> {
         self.labels.clone()
     }
+
+    fn __repr__(&self) -> String {
+        let s = self.ctrl.settings();
+        format!(
+            "SafetyFilter(state_dim={}, control_dim={}, barriers={:?}, clf={}, \
+             probability={:?}, zeta={:?}, predictive={})",
+            self.x.len(),
+            self.u_ref.len(),
+            self.labels,
+            if self.ctrl.clf().is_some() {
+                "True"
+            } else {
+                "None"
+            },
+            s.probability,
+            s.zeta,
+            if s.predictive { "True" } else { "False" }
+        )
+    }
 }
 
 /// The library's settings error under the name of the constructor's
