@@ -315,3 +315,67 @@ fn a_step_below_the_round_off_of_nested_differences_is_refused() {
     let err = at_far(1e-4).unwrap_err().to_string();
     assert!(err.contains("step") && err.contains("round-off"), "{err}");
 }
+
+/// A step so large that the truncation of the nested differences (O(s²),
+/// estimated from the step doubled) exceeds 1 % of the condition's spread
+/// is refused, naming `step`: at `1e300` the variance came out 1.8e-28 and
+/// the mean h itself. Steps whose lattice spans more than the kernel's
+/// lengthscale are refused outright (there the differences alias, and
+/// doubling the step cannot tell); a barrier curved on a scale of 0.2 is
+/// refused at step 0.3 and agrees at 1e-2 and 1e-3.
+#[test]
+fn a_step_beyond_the_truncation_of_nested_differences_is_refused() {
+    let model = triple_integrator_model(1e-12);
+    let wavy = bayes_cbf::barrier::ExpressionBarrier::new(
+        &["p", "v", "a"],
+        &[],
+        "2 - p - 0.1*v^2 - 0.2*sin(5*p)",
+        3,
+        vec![6.0, 11.0, 6.0],
+    )
+    .unwrap();
+    let at = |step| {
+        mc_cbc_moments(
+            &model,
+            &wavy,
+            &[0.3, 0.4, -0.2],
+            &McSettings {
+                samples: 500,
+                step,
+                seed: 4,
+            },
+        )
+    };
+    // beyond the kernel's lengthscale (1), and within it where h's own
+    // curvature sets the truncation
+    for (step, why) in [(1e3, "lengthscale"), (0.3, "truncation")] {
+        let err = at(step).unwrap_err().to_string();
+        assert!(
+            err.contains("step") && err.contains("too large") && err.contains(why),
+            "{step}: {err}"
+        );
+    }
+    // a bounded h stays finite at any step
+    let sector = bayes_cbf::barrier::ExpressionBarrier::new(
+        &["p", "v", "a"],
+        &[],
+        "cos(0.3927) - cos(p - 0.7854)",
+        3,
+        vec![6.0, 11.0, 6.0],
+    )
+    .unwrap();
+    let settings = McSettings {
+        samples: 500,
+        step: 1e300,
+        seed: 4,
+    };
+    let err = mc_cbc_moments(&model, &sector, &[1.3, -0.5, 0.1], &settings)
+        .unwrap_err()
+        .to_string();
+    assert!(err.contains("step") && err.contains("too large"), "{err}");
+    let (a, b) = (at(1e-2).unwrap().moments.e, at(1e-3).unwrap().moments.e);
+    assert!(
+        (a[0] - b[0]).abs() < 1e-3 * a[0].abs().max(1.0),
+        "{a:?} vs {b:?}"
+    );
+}

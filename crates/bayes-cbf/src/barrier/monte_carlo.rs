@@ -50,9 +50,9 @@ impl McSettings {
     /// Checks `samples ≥ 2` and a finite `step > 0`.
     pub fn validate(&self) -> Result<(), InputError> {
         if self.samples < 2 {
-            return Err(InputError::invalid(
+            return Err(InputError::invalid_shown(
                 "samples",
-                self.samples as f64,
+                self.samples,
                 "must be ≥ 2",
             ));
         }
@@ -310,9 +310,9 @@ pub fn mc_cbc_moments<K: Kernel>(
         .and_then(|np| np.checked_mul(p))
         .filter(|&d| d <= MAX_JOINT);
     if joint.is_none() {
-        return Err(InputError::invalid(
+        return Err(InputError::invalid_shown(
             "relative_degree",
-            r as f64,
+            r,
             &format!(
                 "too high for Monte Carlo moments on {n} states: the lattice of \
                  {}^{n} points times {p} columns exceeds {MAX_JOINT} jointly Gaussian entries",
@@ -321,21 +321,43 @@ pub fn mc_cbc_moments<K: Kernel>(
         )
         .into());
     }
-    let lat = Lattice::new(n, r);
-    let point = |off: &[i64]| -> Vec<f64> { (0..n).map(|i| x[i] + s * off[i] as f64).collect() };
-    let h_vals: Vec<f64> = lat
-        .h_points
-        .iter()
-        .map(|o| barrier.value(&point(o)))
-        .collect();
-    super::moments::check_evaluation(barrier, x, &h_vals, &[], &[])?;
-    let np = lat.f_points.len();
-    // joint posterior on the F lattice: means and Ĉ
-    let mut mean = DMatrix::<f64>::zeros(n, np * p);
-    for (a, o) in lat.f_points.iter().enumerate() {
-        let mk = model.posterior_mean(&point(o))?;
-        mean.view_mut((0, a * p), (n, p)).copy_from(&mk);
+    // the lattice of h spans r·s about x; the kernel's inputs move by at
+    // most the states' steps (coordinates, cos and sin): beyond one
+    // lengthscale the differences of F alias, and no truncation estimate
+    // below can tell
+    let scale = model.hyper().kernel.shortest_scale();
+    if r as f64 * s > scale {
+        return Err(InputError::invalid(
+            "step",
+            s,
+            &format!(
+                "too large for relative degree {r}: the lattice of the nested differences \
+                 spans {r}·step = {}, more than the kernel's shortest lengthscale {} \
+                 (decrease step; the default is 1e-2)",
+                crate::error::number(r as f64 * s),
+                crate::error::number(scale)
+            ),
+        )
+        .into());
     }
+    let lat = Lattice::new(n, r);
+    let np = lat.f_points.len();
+    let point = |off: &[i64]| -> Vec<f64> { (0..n).map(|i| x[i] + s * off[i] as f64).collect() };
+    // h on its lattice and the posterior mean of F on F's, at step `step`
+    let lattice_means = |step: f64| -> Result<(Vec<f64>, DMatrix<f64>), Error> {
+        let at =
+            |off: &[i64]| -> Vec<f64> { (0..n).map(|i| x[i] + step * off[i] as f64).collect() };
+        let h_vals: Vec<f64> = lat.h_points.iter().map(|o| barrier.value(&at(o))).collect();
+        let mut mean = DMatrix::<f64>::zeros(n, np * p);
+        for (a, o) in lat.f_points.iter().enumerate() {
+            let mk = model.posterior_mean(&at(o))?;
+            mean.view_mut((0, a * p), (n, p)).copy_from(&mk);
+        }
+        Ok((h_vals, mean))
+    };
+    let (h_vals, mean) = lattice_means(s)?;
+    super::moments::check_evaluation(barrier, x, &h_vals, &[], &[])?;
+    // joint posterior on the F lattice: Ĉ
     let mut chat = DMatrix::<f64>::zeros(np * p, np * p);
     for a in 0..np {
         for b in a..np {
@@ -351,7 +373,7 @@ pub fn mc_cbc_moments<K: Kernel>(
     let la = model.row_cov_factor()?;
     let mut rng = ChaCha8Rng::seed_from_u64(settings.seed);
     let mut zs = crate::error::reserve("samples", settings.samples.saturating_mul(p))
-        .map_err(|_| InputError::invalid("samples", settings.samples as f64, "too large"))?;
+        .map_err(|_| InputError::invalid_shown("samples", settings.samples, "too large"))?;
     zs.resize(settings.samples * p, 0.0);
     let mut scratch = (h_vals.clone(), vec![0.0; h_vals.len()]);
     let mut xi = DMatrix::<f64>::zeros(n, np * p);
@@ -410,16 +432,51 @@ pub fn mc_cbc_moments<K: Kernel>(
         mean_abs: f64::EPSILON * coordinate * mean_slope,
         seed: settings.seed,
     };
+    let share = |ratio: f64| {
+        if ratio.is_finite() {
+            format!("{:.0}% of the condition's spread", 100.0 * ratio)
+        } else {
+            "a spread that is not finite".to_string()
+        }
+    };
     if let Some(ratio) = lat.round_off(&probe, gains, s, &spread) {
         return Err(InputError::invalid(
             "step",
             s,
             &format!(
-                "too small for relative degree {r}: its {} nested differences amplify the \
-                 round-off of h and of the mean of F to {:.0}% of the condition's spread, \
-                 which would bias the moments (increase step; the default is 1e-2)",
-                r,
-                100.0 * ratio
+                "too small for relative degree {r}: its {r} nested differences amplify the \
+                 round-off of h and of the mean of F to {}, which would bias the moments \
+                 (increase step; the default is 1e-2)",
+                share(ratio)
+            ),
+        )
+        .into());
+    }
+    // the truncation of the differences, O(s²): the condition at the
+    // posterior mean at steps s and 2s differ by about 3× the error at s
+    // (at 2s, not s/2, where the round-off would be 2ʳ times larger)
+    let (h2, mean2) = lattice_means(2.0 * s)?;
+    let (mut z1, mut z2) = (vec![0.0; p], vec![0.0; p]);
+    lat.condition(&mean, &h_vals, gains, s, &mut scratch, &mut z1);
+    lat.condition(&mean2, &h2, gains, 2.0 * s, &mut scratch, &mut z2);
+    let truncation = (0..p)
+        .map(|c| match (z2[c] - z1[c]).abs() / 3.0 {
+            0.0 => 0.0,
+            d => d / spread[c],
+        })
+        .fold(
+            0.0f64,
+            |a, v| if v.is_nan() { f64::INFINITY } else { a.max(v) },
+        );
+    if !(truncation <= 1e-2) {
+        return Err(InputError::invalid(
+            "step",
+            s,
+            &format!(
+                "too large for relative degree {r}: the truncation of its {r} nested \
+                 differences, estimated from the step doubled, is {} (decrease step; the \
+                 default is 1e-2)",
+                share(truncation)
             ),
         )
         .into());

@@ -21,6 +21,10 @@ pub trait Kernel: Clone + Send + Sync + std::fmt::Debug {
     fn hess_xy(&self, x: &[f64], y: &[f64], out: &mut [f64]) -> f64;
     /// Writes `∂²k/∂x_i∂x_j` into `out` (row-major `d × d`), returns `k(x, y)`.
     fn hess_xx(&self, x: &[f64], y: &[f64], out: &mut [f64]) -> f64;
+    /// The shortest input distance over which `k` changes by a fraction of
+    /// order one (the smallest lengthscale of the RBF): finite differences
+    /// of the posterior need steps well below it.
+    fn shortest_scale(&self) -> f64;
     /// Number of hyperparameters.
     fn n_hyper(&self) -> usize;
     /// Hyperparameters on a log scale.
@@ -172,6 +176,13 @@ fn exp_neg_half(q: f64) -> f64 {
 impl Kernel for Rbf {
     fn input_dim(&self) -> usize {
         self.lengthscales.len()
+    }
+
+    fn shortest_scale(&self) -> f64 {
+        self.lengthscales
+            .iter()
+            .copied()
+            .fold(f64::INFINITY, f64::min)
     }
 
     #[inline]
