@@ -307,11 +307,13 @@ pub const MAX_REPEATS: usize = 10_000_000;
 /// Checks a timing helper's `repeats` (at most [`MAX_REPEATS`]).
 pub fn check_repeats(repeats: usize) -> PyResult<usize> {
     if repeats > MAX_REPEATS {
-        return Err(crate::convert::core_err(bayes_cbf::InputError::invalid(
-            "repeats",
-            repeats as f64,
-            &format!("must be at most {MAX_REPEATS}: each run's time is kept for the median"),
-        )));
+        return Err(crate::convert::core_err(
+            bayes_cbf::InputError::invalid_shown(
+                "repeats",
+                repeats,
+                &format!("must be at most {MAX_REPEATS}: each run's time is kept for the median"),
+            ),
+        ));
     }
     Ok(repeats.max(1))
 }

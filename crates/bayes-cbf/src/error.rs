@@ -94,9 +94,9 @@ pub fn number(value: f64) -> String {
 pub fn reserve<T>(field: &str, n: usize) -> Result<Vec<T>, InputError> {
     let mut v = Vec::new();
     v.try_reserve_exact(n).map_err(|_| {
-        InputError::invalid(
+        InputError::invalid_shown(
             field,
-            n as f64,
+            n,
             "too large: the memory for one entry each cannot be reserved",
         )
     })?;
@@ -139,9 +139,9 @@ pub fn check_index(field: &str, i: usize, n: usize) -> Result<(), InputError> {
     if i < n {
         Ok(())
     } else {
-        Err(InputError::invalid(
+        Err(InputError::invalid_shown(
             field,
-            i as f64,
+            i,
             &format!("index must be < state dimension {n}"),
         ))
     }

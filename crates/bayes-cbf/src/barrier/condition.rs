@@ -166,9 +166,9 @@ fn along(
             }
             Ok(d + gains[0] * h + gains[1] * lf)
         }
-        r => Err(InputError::invalid(
+        r => Err(InputError::invalid_shown(
             "relative_degree",
-            r as f64,
+            r,
             "the true condition is computed for relative degree 1 and 2",
         )),
     }

@@ -336,7 +336,7 @@ fn check_dims(ws: &MomentWorkspace, dim: usize, needs: usize) -> Result<(), Erro
         return Err(InputError::shape("barrier state dimension", ws.x.len(), dim).into());
     }
     if ws.level < needs {
-        return Err(InputError::invalid("relative_degree", needs as f64, "posterior not prepared for this degree (call MomentWorkspace::update with max_degree ≥ r)").into());
+        return Err(InputError::invalid_shown("relative_degree", needs, "posterior not prepared for this degree (call MomentWorkspace::update with max_degree ≥ r)").into());
     }
     Ok(())
 }
@@ -436,9 +436,9 @@ pub fn cbc_moments(
             out.relative_degree = 2;
         }
         _ => {
-            return Err(InputError::invalid(
+            return Err(InputError::invalid_shown(
                 "relative_degree",
-                r as f64,
+                r,
                 "exact moments exist for relative degree 1 and 2",
             )
             .into());
@@ -498,9 +498,9 @@ pub fn add_observation_noise(
             }
         }
         r => {
-            return Err(InputError::invalid(
+            return Err(InputError::invalid_shown(
                 "relative_degree",
-                r as f64,
+                r,
                 "the observation noise is added to conditions of relative degree 1 and 2",
             )
             .into());

@@ -44,9 +44,9 @@ pub fn cogp_outputs(n: usize, m: usize) -> Result<usize, InputError> {
     super::check_dims(n, m)?;
     let outputs = n * (m + 1);
     if outputs > super::MAX_DIMENSION {
-        return Err(InputError::invalid(
+        return Err(InputError::invalid_shown(
             "state_dim·(1 + control_dim)",
-            outputs as f64,
+            outputs,
             &format!(
                 "too large: the CoGP's output covariance Σ is dense, of side at most {}",
                 super::MAX_DIMENSION

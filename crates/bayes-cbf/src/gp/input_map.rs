@@ -21,9 +21,9 @@ fn check_entries<T: PartialEq>(
         let field = format!("input_map[{j}]");
         check_index(&field, index(e), n)?;
         if entries[..j].contains(e) {
-            return Err(InputError::invalid(
+            return Err(InputError::invalid_shown(
                 &field,
-                index(e) as f64,
+                index(e),
                 &format!("duplicate {kind}"),
             ));
         }

@@ -126,13 +126,13 @@ impl LipschitzSettings {
             check_nonnegative(&format!("cuboid[{i}]"), s)?;
         }
         if self.grid < 2 {
-            return Err(InputError::invalid("grid", self.grid as f64, "must be ≥ 2"));
+            return Err(InputError::invalid_shown("grid", self.grid, "must be ≥ 2"));
         }
         let nodes = self.grid.checked_pow(n as u32);
         if nodes.is_none_or(|g| g > 1_000_000) {
-            return Err(InputError::invalid(
+            return Err(InputError::invalid_shown(
                 "grid",
-                self.grid as f64,
+                self.grid,
                 "grid^n must be ≤ 1e6 nodes",
             ));
         }
@@ -140,9 +140,9 @@ impl LipschitzSettings {
             .and_then(|g| g.checked_mul(self.samples))
             .is_none_or(|d| d > 10_000_000)
         {
-            return Err(InputError::invalid(
+            return Err(InputError::invalid_shown(
                 "samples",
-                self.samples as f64,
+                self.samples,
                 "samples · grid^n must be ≤ 1e7 Jacobian draws per evaluation",
             ));
         }

@@ -284,9 +284,9 @@ impl<K: Kernel> Mvgp<K> {
             .into());
         }
         if let Some(&r) = known.iter().find(|&&r| r >= self.n) {
-            return Err(InputError::invalid(
+            return Err(InputError::invalid_shown(
                 "known_rows",
-                r as f64,
+                r,
                 &format!("is not a row of F (state_dim = {})", self.n),
             )
             .into());

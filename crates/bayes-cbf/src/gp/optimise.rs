@@ -79,9 +79,9 @@ pub(crate) fn check_run_settings(max_iters: u64, restarts: usize) -> Result<(), 
         return Err(InputError::invalid("max_iters", 0.0, "must be ≥ 1"));
     }
     if restarts > 1000 {
-        return Err(InputError::invalid(
+        return Err(InputError::invalid_shown(
             "restarts",
-            restarts as f64,
+            restarts,
             "must be ≤ 1000",
         ));
     }

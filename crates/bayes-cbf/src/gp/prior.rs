@@ -40,9 +40,9 @@ pub fn check_dims(n: usize, m: usize) -> Result<(), crate::error::InputError> {
     }
     for (field, v) in [("state_dim", n), ("control_dim", m.saturating_add(1))] {
         if v > MAX_DIMENSION {
-            return Err(InputError::invalid(
+            return Err(InputError::invalid_shown(
                 field,
-                v as f64,
+                v,
                 &format!("too large: dimensions (state_dim, 1 + control_dim) are at most {MAX_DIMENSION}"),
             ));
         }

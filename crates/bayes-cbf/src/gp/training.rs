@@ -82,9 +82,9 @@ impl Rank {
     /// parameterises (named `field`, of dimension `what`).
     pub fn check(self, field: &str, dim: usize, what: &str) -> Result<(), InputError> {
         match self {
-            Rank::Low(r) if r == 0 || r > dim => Err(InputError::invalid(
+            Rank::Low(r) if r == 0 || r > dim => Err(InputError::invalid_shown(
                 field,
-                r as f64,
+                r,
                 &format!("a low rank must be between 1 and {what} = {dim}"),
             )),
             _ => Ok(()),

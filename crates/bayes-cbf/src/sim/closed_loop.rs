@@ -143,10 +143,10 @@ impl LoopSettings {
         check_nonnegative("xdot_noise", self.xdot_noise)?;
         match self.data {
             DataPolicy::Window(w) if w < 2 => {
-                return Err(InputError::invalid("window", w as f64, "must be ≥ 2"));
+                return Err(InputError::invalid_shown("window", w, "must be ≥ 2"));
             }
             DataPolicy::Budget(b) if b < 2 => {
-                return Err(InputError::invalid("budget", b as f64, "must be ≥ 2"));
+                return Err(InputError::invalid_shown("budget", b, "must be ≥ 2"));
             }
             _ => {}
         }
@@ -162,9 +162,9 @@ impl LoopSettings {
             // the run ends at steps·dt, each hold at least τ_min long
             let triggers = self.steps as f64 * self.dt / t.tau_min;
             if triggers > super::MAX_TRIGGERS as f64 {
-                return Err(InputError::invalid(
+                return Err(InputError::invalid_shown(
                     "steps",
-                    self.steps as f64,
+                    self.steps,
                     &format!(
                         "steps · dt / trigger.tau_min = {} possible triggers, more than {}",
                         crate::error::number(triggers),
@@ -509,9 +509,9 @@ impl<'a> ClosedLoop<'a> {
     /// the controller or the trigger evaluation fails.
     pub fn step(&mut self) -> Result<&StepRecord, Error> {
         if self.is_finished() {
-            return Err(InputError::invalid(
+            return Err(InputError::invalid_shown(
                 "steps",
-                self.settings.steps as f64,
+                self.settings.steps,
                 "the run has reached its horizon",
             )
             .into());

@@ -130,11 +130,7 @@ pub fn simulate_trajectory<R: Rng + ?Sized>(
     }
     check_positive("dt", dt)?;
     if k < 2 {
-        return Err(InputError::invalid(
-            "k",
-            k as f64,
-            "need at least 2 samples",
-        ));
+        return Err(InputError::invalid_shown("k", k, "need at least 2 samples"));
     }
     let mut sim = Simulator::new(system, settings);
     let mut ds = Dataset {

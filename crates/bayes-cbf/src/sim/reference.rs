@@ -196,9 +196,9 @@ impl LinearFeedback {
             flat.extend_from_slice(row);
         }
         if let Some(&i) = angles.iter().find(|&&i| i >= n) {
-            return Err(InputError::invalid(
+            return Err(InputError::invalid_shown(
                 "feedback.angles",
-                i as f64,
+                i,
                 "must index a state",
             ));
         }

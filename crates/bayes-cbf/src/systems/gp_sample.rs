@@ -158,9 +158,9 @@ impl<P: ControlAffine> GpSample<P> {
     /// `A_LL`).
     pub fn with_known_rows(mut self, rows: &[usize]) -> Result<Self, InputError> {
         if let Some(&i) = rows.iter().find(|&&i| i >= self.n) {
-            return Err(InputError::invalid(
+            return Err(InputError::invalid_shown(
                 "known_rows",
-                i as f64,
+                i,
                 &format!("is not a row of F (state_dim = {})", self.n),
             ));
         }
