@@ -24,10 +24,37 @@ fn experiments_write_their_files() {
     assert_eq!(s["quick"], true);
     assert_eq!(s["table"].as_array().unwrap().len(), 16);
     assert!(is_png(&out.join("speed_test.png")) && is_png(&out.join("speed_ratio.png")));
+    // the training samples at the largest k of each system: the pendulum
+    // leaves the third state and the second control empty
+    let samples = std::fs::read_to_string(out.join("trajectory.csv")).unwrap();
+    let mut lines = samples.lines();
+    assert_eq!(
+        lines.next(),
+        Some("system,x1,x2,x3,u1,u2,xdot1,xdot2,xdot3")
+    );
+    let largest = |system: &str| {
+        s["ks"][system]
+            .as_array()
+            .and_then(|ks| ks.iter().filter_map(|k| k.as_u64()).max())
+            .unwrap() as usize
+    };
+    let rows: Vec<&str> = lines.collect();
+    for system in ["pendulum", "ackermann"] {
+        let of = rows.iter().filter(|r| r.starts_with(&format!("{system},")));
+        assert_eq!(of.count(), largest(system), "{system}");
+    }
+    assert!(rows[0].starts_with("pendulum,") && rows[0].split(',').nth(3) == Some(""));
 
     let (_dir, out, s) = run_into("covariance-shapes", &["--quick"]);
     assert_eq!(s["models"].as_array().unwrap().len(), 2);
     assert!(is_png(&out.join("covariance-shapes.png")));
+    // the k Ackermann samples both models are fitted to
+    let samples = std::fs::read_to_string(out.join("trajectory.csv")).unwrap();
+    assert!(samples.starts_with("x1,x2,x3,u1,u2,xdot1,xdot2,xdot3\n"));
+    assert_eq!(
+        samples.lines().count(),
+        1 + s["k"].as_u64().unwrap() as usize
+    );
 
     let (_dir, out, s) = run_into("calibration", &["--quick", "--episodes", "1"]);
     assert_eq!(s["fallback"], "relax");

@@ -23,6 +23,10 @@ fn ackermann_triggering_quick_writes_its_runs() {
         assert!(csv.lines().count() > 2, "{sub}");
         assert!(out.join(sub).join("summary.json").is_file(), "{sub}");
     }
+    // the top level's trajectory.csv is the self-triggered run's
+    let top = std::fs::read_to_string(out.join("trajectory.csv")).unwrap();
+    let sub = std::fs::read_to_string(out.join("self-triggered").join("trajectory.csv")).unwrap();
+    assert_eq!(top, sub);
 }
 
 #[test]

@@ -17,7 +17,7 @@
 //! statistics, the ζ sweep), `lipschitz.png` (L_f and τ_k over the
 //! fixed-step run, Fig. 2), `tau-vs-zeta.png`.
 
-use super::ExperimentArgs;
+use super::{ExperimentArgs, Table};
 use crate::error::Result;
 use crate::scenario::{self, RunOutput, RunSummary};
 use crate::stats;
@@ -83,6 +83,9 @@ pub struct AckermannTriggering {
     pub runs: Vec<(String, RunOutput)>,
     /// `summary.json`: the runs' outcomes, the ζ sweep and the τ–ζ curve.
     pub summary: Summary,
+    /// `trajectory.csv`: the self-triggered run's (the run of Fig. 2;
+    /// every run's is in its subdirectory too).
+    pub tables: Vec<Table>,
 }
 
 impl AckermannTriggering {
@@ -260,5 +263,14 @@ pub fn run(args: &ExperimentArgs) -> Result<AckermannTriggering> {
         ("self-triggered-numerical".to_string(), selfn),
     ];
     runs.extend(zeta_runs);
-    Ok(AckermannTriggering { runs, summary })
+    let tables = runs
+        .iter()
+        .filter(|(dir, _)| dir == "self-triggered")
+        .map(|(_, o)| Table::new("trajectory.csv", scenario::trajectory_csv(o)))
+        .collect();
+    Ok(AckermannTriggering {
+        runs,
+        summary,
+        tables,
+    })
 }

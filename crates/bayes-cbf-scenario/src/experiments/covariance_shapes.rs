@@ -11,7 +11,7 @@
 //! largest Frobenius distance between two normalised blocks (zero for the
 //! MVGP by construction).
 
-use super::{fit_settings, new_model, ExperimentArgs, ModelKind};
+use super::{fit_settings, new_model, ExperimentArgs, ModelKind, Table};
 use crate::error::Result;
 use crate::workloads::ackermann_data;
 use bayes_cbf::gp::{DynamicsModel, InputMap};
@@ -93,6 +93,8 @@ pub struct CovarianceShapes {
     pub models: Vec<ModelShapes>,
     /// `summary.json`.
     pub summary: Summary,
+    /// `trajectory.csv`: the Ackermann samples both models are fitted to.
+    pub tables: Vec<Table>,
 }
 
 /// The `n × n` covariance block of column `c` in `Cov(vec F)` (column-major
@@ -170,5 +172,6 @@ pub fn run(args: &ExperimentArgs) -> Result<CovarianceShapes> {
         x: x_star,
         models: shapes,
         summary,
+        tables: vec![super::samples_table(&[("ackermann", &data)])],
     })
 }

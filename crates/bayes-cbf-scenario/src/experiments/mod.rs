@@ -67,6 +67,42 @@ pub struct Table {
     pub csv: String,
 }
 
+/// `trajectory.csv` of the samples an experiment fits its models to, one
+/// row per sample: `x1..xn`, `u1..um`, `xdot1..xdotn`, after a `system`
+/// column when there are several sets; a system with fewer states or
+/// controls than the widest leaves those cells empty.
+pub(crate) fn samples_table(sets: &[(&str, &Dataset)]) -> Table {
+    let n = sets.iter().map(|(_, d)| d.n).max().unwrap_or(0);
+    let m = sets.iter().map(|(_, d)| d.m).max().unwrap_or(0);
+    let named = sets.len() > 1;
+    let mut header: Vec<String> = Vec::new();
+    if named {
+        header.push("system".into());
+    }
+    header.extend((1..=n).map(|i| format!("x{i}")));
+    header.extend((1..=m).map(|i| format!("u{i}")));
+    header.extend((1..=n).map(|i| format!("xdot{i}")));
+    let mut csv = header.join(",") + "\n";
+    let cells = |v: &[f64], width: usize| -> Vec<String> {
+        (0..width)
+            .map(|i| v.get(i).map_or_else(String::new, |x| x.to_string()))
+            .collect()
+    };
+    for (name, d) in sets {
+        for j in 0..d.len() {
+            let mut row: Vec<String> = Vec::new();
+            if named {
+                row.push(name.to_string());
+            }
+            row.extend(cells(&d.xs[j * d.n..(j + 1) * d.n], n));
+            row.extend(cells(&d.us[j * d.m..(j + 1) * d.m], m));
+            row.extend(cells(&d.xdot[j * d.n..(j + 1) * d.n], n));
+            csv += &(row.join(",") + "\n");
+        }
+    }
+    Table::new("trajectory.csv", csv)
+}
+
 impl Table {
     /// A table for `file`.
     pub fn new(file: &str, csv: String) -> Self {
@@ -153,9 +189,9 @@ impl ExperimentResult {
             ExperimentResult::PendulumLearning(r) => &r.tables,
             ExperimentResult::SpeedTest(r) => &r.tables,
             ExperimentResult::Calibration(r) => &r.tables,
-            ExperimentResult::CovarianceShapes(_)
-            | ExperimentResult::AckermannTriggering(_)
-            | ExperimentResult::Soak(_) => &[],
+            ExperimentResult::CovarianceShapes(r) => &r.tables,
+            ExperimentResult::AckermannTriggering(r) => &r.tables,
+            ExperimentResult::Soak(_) => &[],
         }
     }
 }

@@ -352,10 +352,20 @@ pub(crate) fn run_case(c: Case, seed: u64, max_iters: u64) -> Outcome {
     out
 }
 
+/// The training and test samples of case `c`.
+fn case_data(c: &Case, seed: u64) -> Result<(Dataset, Dataset)> {
+    let s = data_seed(seed, c);
+    let data = c.system.data(c.k + TEST_POINTS, s)?;
+    Ok(random_split(
+        &data,
+        c.k,
+        &mut ChaCha8Rng::seed_from_u64(mix(s)),
+    ))
+}
+
 fn measure(c: Case, seed: u64, max_iters: u64, out: &mut Outcome) -> Result<()> {
     let s = data_seed(seed, &c);
-    let data = c.system.data(c.k + TEST_POINTS, s)?;
-    let (train, test) = random_split(&data, c.k, &mut ChaCha8Rng::seed_from_u64(mix(s)));
+    let (train, test) = case_data(&c, seed)?;
     let mut model = new_model(c.kind, &c.system.input_map(), &train)?;
     let start = Instant::now();
     let report = model.fit(&fit_settings(c.diag, max_iters, s))?;
@@ -486,10 +496,25 @@ pub fn run(args: &ExperimentArgs, progress: &dyn Progress) -> Result<SpeedTest> 
             runs: "runs.csv",
         },
     };
+    // trajectory.csv: the training samples of the first repetition at the
+    // largest k of each system
+    let mut largest = Vec::new();
+    for (system, ks) in &plan.ks {
+        let k = ks.iter().copied().max().unwrap_or(0);
+        let case = Case {
+            system: *system,
+            k,
+            rep: 0,
+            kind: ModelKind::Mvgp,
+            diag: false,
+        };
+        largest.push((system.name(), case_data(&case, args.seed)?.0));
+    }
+    let sets: Vec<(&str, &Dataset)> = largest.iter().map(|(s, d)| (*s, d)).collect();
     Ok(SpeedTest {
         table,
         summary,
-        tables: vec![report::runs_csv(&outcomes)],
+        tables: vec![report::runs_csv(&outcomes), super::samples_table(&sets)],
     })
 }
 
