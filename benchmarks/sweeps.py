@@ -43,7 +43,7 @@ def main() -> None:
     from bayes_cbf import sweep
 
     cores = os.cpu_count() or 1
-    runs = a.episodes * 2 * 2 * 4  # systems x truths x controllers
+    runs = 0  # episode runs: one line of episodes.csv each (controllers x episodes)
     rayon_s, ray_s = [], []
     ray.init(num_cpus=cores, log_to_driver=False)
     sweep.calibration(episodes=1, quick=True)  # warm the workers
@@ -53,6 +53,8 @@ def main() -> None:
             subprocess.run([str(cli()), "run", "calibration", "--episodes", str(a.episodes),
                             "--out", d], check=True, capture_output=True)
             rayon_s.append(time.perf_counter() - t)
+            with open(pathlib.Path(d) / "episodes.csv") as f:
+                runs = sum(1 for _ in f) - 1
         t = time.perf_counter()
         sweep.calibration(episodes=a.episodes, shards=cores)
         ray_s.append(time.perf_counter() - t)
