@@ -333,7 +333,7 @@ fn kinks_curvature_and_clamped_holds_are_warned_of() {
     assert!(!r.stderr.contains("no derivative"), "{}", r.stderr);
     // the built-in's model noise (0.05) is below its labels' (0.01/√0.01)
     let below = "σ·√A_ii = 0.050, is below the noise sim.process_noise puts on the learning \
-                 labels, σ_w/√dt = 0.100";
+                 labels, σ_w/√τ = 0.100 with τ = dt = 0.010 s";
     assert!(r.stderr.contains(below), "{}", r.stderr);
     let r = short_run_set(&dir, "gp.noise_sigma=0.1", "b2");
     assert!(!r.stderr.contains("is below the noise"), "{}", r.stderr);
@@ -372,4 +372,77 @@ fn kinks_curvature_and_clamped_holds_are_warned_of() {
         "{}",
         r.stderr
     );
+}
+
+/// A cart against a wall, written with nothing but its system, barrier,
+/// bounds and reference: the defaults (a zero prior mean) leave the model
+/// ignorant of `p' = v` and of the input, which the run warns of.
+const BARE_CART: &str = r#"
+start = [-0.5, 0.0]
+
+[system]
+type = "expression"
+state = ["p", "v"]
+control = ["F"]
+params = { m = 1.5, c = 0.8 }
+f = ["v", "-c/m*v"]
+g = [["0"], ["1/m"]]
+
+[[barriers]]
+type = "expression"
+h = "1 - p"
+relative_degree = 2
+k_alpha = [4.0, 4.0]
+
+[controller]
+u_min = [-5.0]
+u_max = [5.0]
+
+[reference]
+type = "feedback"
+u0 = [0.0]
+gain = [[4.0, 3.0]]
+target = [0.8, 0.0]
+"#;
+
+/// What a file left at its defaults is warned of: a zero prior mean under
+/// a barrier of relative degree 2, a row declared known that the prior
+/// gets wrong, a run whose steps were mostly infeasible; and none of it
+/// once the prior has the kinematic row and the input's gain.
+#[test]
+fn a_bare_scenario_is_told_what_its_model_lacks() {
+    let dir = scratch_dir("outputs-bare");
+    std::fs::write(dir.join("cart.toml"), BARE_CART).unwrap();
+    let run_set = |sets: &[&str], out| {
+        let mut args = vec!["run", "cart.toml", "--set", "steps=150", "--out", out];
+        for set in sets {
+            args.extend(["--set", *set]);
+        }
+        run_in(&dir, &args)
+    };
+    let r = run_set(&[], "a");
+    assert!(r.status.success(), "{}", r.stderr);
+    let want = "gp.prior_mean is zero and barriers[0] has relative degree 2";
+    assert!(r.stderr.contains(want), "{}", r.stderr);
+    let summary = std::fs::read_to_string(dir.join("a").join("summary.json")).unwrap();
+    assert!(summary.contains("\"fallback\": \"relax\""), "{summary}");
+    // without learning it never learns how the input acts: every step
+    // falls back
+    let r = run_set(&["learning.update_every=0"], "n");
+    let want = "150 of 150 steps were infeasible, so the fallback (relax) acted on most";
+    assert!(r.stderr.contains(want), "{}", r.stderr);
+    // p' = v declared known under a zero prior: 0 where the system has v
+    let r = run_set(&["gp.known_rows=[0]"], "b");
+    let want = "gp.known_rows: row 0 of F is taken from gp.prior_mean, which gives \
+                [0.000, 0.000] at x = [-0.500, 1.000] where the system has [1.000, 0.000]";
+    assert!(r.stderr.contains(want), "{}", r.stderr);
+    let prior = r#"gp.prior_mean={"type":"expression","f":["v","0"],"g":[["0"],["1"]]}"#;
+    let r = run_set(
+        &[prior, "gp.known_rows=[0]", "gp.B=[[1.0,0.0],[0.0,0.01]]"],
+        "c",
+    );
+    assert!(r.status.success(), "{}", r.stderr);
+    for unwanted in ["prior_mean is zero", "gp.known_rows: row", "acted on most"] {
+        assert!(!r.stderr.contains(unwanted), "{unwanted}: {}", r.stderr);
+    }
 }

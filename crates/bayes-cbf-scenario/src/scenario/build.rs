@@ -173,6 +173,7 @@ pub fn build(s: &Scenario) -> Result<Built> {
             );
         }
     }
+    let zero_prior = matches!(prior, PriorMean::Zero);
     if s.gp.oracle {
         prior = PriorMean::System(truth.clone());
     }
@@ -380,6 +381,12 @@ pub fn build(s: &Scenario) -> Result<Built> {
         .validate()
         .map_err(|e| crate::err!("run settings: {e}"))?;
     warn_start_margin(&barriers, truth.as_ref(), &start, s.seed);
+    if !s.gp.oracle {
+        warn_known_rows_at_start(&model, &s.gp.known_rows, truth.as_ref(), &start);
+        if zero_prior {
+            warn_zero_prior(&barriers, l.update_every);
+        }
+    }
     // controls held for dt (a trigger that only evaluates τ_k holds them
     // for dt too)
     if !loop_settings.trigger.as_ref().is_some_and(|t| t.hold) {
@@ -516,6 +523,124 @@ pub(crate) fn warn_crossing_outside(
     }
 }
 
+static KNOWN_ROW_NOT_TRUE: AtomicBool = AtomicBool::new(false);
+
+/// Warns, once per process, when a row of `F` declared known differs from
+/// the system's at the start state or a unit step from it along a
+/// coordinate: a known row is the prior mean's and is never learned (a
+/// zero prior mean makes every known row zero).
+fn warn_known_rows_at_start(model: &Mvgp, known: &[usize], truth: &dyn DynSystem, start: &[f64]) {
+    let n = truth.state_dim();
+    let mut points = vec![start.to_vec()];
+    for j in 0..n {
+        for step in [1.0, -1.0] {
+            let mut x = start.to_vec();
+            x[j] += step;
+            points.push(x);
+        }
+    }
+    for x in &points {
+        if !known_rows_agree(model, known, truth, x) {
+            return;
+        }
+    }
+}
+
+/// [`warn_known_rows_at_start`] at one state `x`: whether every known row
+/// agrees there (after warning of the first that does not).
+fn known_rows_agree(model: &Mvgp, known: &[usize], truth: &dyn DynSystem, x: &[f64]) -> bool {
+    let (n, p) = (truth.state_dim(), truth.control_dim() + 1);
+    let Ok(prior) = model.posterior_mean(x) else {
+        return true;
+    };
+    let mut f = vec![0.0; n * p];
+    truth.eval_f64(x, &mut f);
+    for &i in known.iter().filter(|&&i| i < n) {
+        let true_row: Vec<f64> = (0..p).map(|c| f[i + n * c]).collect();
+        let prior_row: Vec<f64> = (0..p).map(|c| prior[(i, c)]).collect();
+        let scale = true_row.iter().fold(1.0f64, |a, v| a.max(v.abs()));
+        let off = true_row
+            .iter()
+            .zip(&prior_row)
+            .any(|(a, b)| (a - b).abs() > 1e-6 * scale);
+        if off {
+            let show = |row: &[f64]| row.iter().map(|v| short(*v)).collect::<Vec<_>>().join(", ");
+            warn_once(
+                &KNOWN_ROW_NOT_TRUE,
+                format!(
+                    "gp.known_rows: row {i} of F is taken from gp.prior_mean, which gives \
+                     [{}] at x = [{}] where the system has [{}]: a known row is never \
+                     learned, so the model keeps it wrong (a zero prior mean makes every \
+                     known row zero); give gp.prior_mean that row exactly",
+                    show(&prior_row),
+                    show(x),
+                    show(&true_row)
+                ),
+            );
+            return false;
+        }
+    }
+    true
+}
+
+static ZERO_PRIOR: AtomicBool = AtomicBool::new(false);
+
+/// Warns, once per process, of a zero prior mean where it defeats the
+/// conditions: under a barrier of relative degree ≥ 2 (the model knows
+/// neither the rows that tie `h`'s derivatives to the state nor how the
+/// input acts), or without learning (it never learns how the input acts).
+fn warn_zero_prior(barriers: &[Arc<dyn DynBarrier>], update_every: usize) {
+    let high = barriers
+        .iter()
+        .enumerate()
+        .find(|(_, b)| b.relative_degree() >= 2);
+    let why = match high {
+        Some((i, b)) => format!(
+            "barriers[{i}] has relative degree {}: the model knows neither the rows that \
+             tie h's derivatives to the state (as p' = v) nor how the input acts, and a \
+             robot that must learn them can cross (docs/robots.md, \"A zero prior mean\")",
+            b.relative_degree()
+        ),
+        None if update_every == 0 => "learning.update_every = 0: the model never learns how \
+            the input acts, so every step is infeasible and the fallback acts throughout"
+            .to_string(),
+        None => return,
+    };
+    warn_once(
+        &ZERO_PRIOR,
+        format!(
+            "gp.prior_mean is zero and {why}; give gp.prior_mean the rows you know (the \
+             kinematic ones, with gp.known_rows) and the input's sign and rough gain \
+             (README, \"Your own robot\")"
+        ),
+    );
+}
+
+static MOSTLY_INFEASIBLE: AtomicBool = AtomicBool::new(false);
+
+/// Warns, once per process, when most steps of a run were infeasible: the
+/// fallback acted on most of it, safe or not (a robot kept still by it is
+/// safe, and goes nowhere).
+pub(crate) fn warn_mostly_infeasible(records: &[StepRecord], fallback: &str, seed: u64) {
+    let infeasible = records
+        .iter()
+        .filter(|r| r.status == StepStatus::Infeasible)
+        .count();
+    if 2 * infeasible > records.len() {
+        warn_once(
+            &MOSTLY_INFEASIBLE,
+            format!(
+                "seed {seed}: {infeasible} of {} steps were infeasible, so the fallback \
+                 ({fallback}) acted on most of the run and no condition was promised there: \
+                 a model too uncertain of the input's effect for controller.probability (a \
+                 zero prior mean, a wide B), or bounds and gains in conflict (docs/robots.md, \
+                 \"Infeasible steps\")",
+                records.len()
+            ),
+        );
+    }
+}
+
 static CROSSED_IN_INFEASIBLE_STEP: AtomicBool = AtomicBool::new(false);
 
 /// The first step in which a barrier's `h` crossed zero (from `h ≥ 0` at
@@ -547,7 +672,9 @@ pub(crate) fn warn_crossing_in_infeasible_step(
             .iter()
             .filter(|r| r.status == StepStatus::Infeasible)
             .count();
-        let p_star = r.p_star.map_or_else(|| "none".to_string(), short);
+        let p_star = r
+            .p_star
+            .map_or_else(|| "none, no probability was feasible".to_string(), short);
         warn_once(
             &CROSSED_IN_INFEASIBLE_STEP,
             format!(

@@ -71,8 +71,10 @@ pub const BUILTIN: &[(&str, &str)] = &[
 
 /// A closed-loop scenario. Only `[system]` is required; the defaults are
 /// [`DEFAULT_DT`], [`DEFAULT_STEPS`], the origin as the start, the model
-/// of [`GpSpec::default`], the controller of [`ControllerSpec::default`]
-/// and a zero reference control (`docs/robots.md`, "Defaults").
+/// of [`GpSpec::default`], learning at every step
+/// ([`LearningSpec::default`]), the controller of
+/// [`ControllerSpec::default`] and a zero reference control (README, "Your
+/// own robot").
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct Scenario {
@@ -365,7 +367,7 @@ fn one() -> f64 {
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct LearningSpec {
-    /// Add buffered observations every this many steps (0: never).
+    /// Add buffered observations every this many steps (0: never; default 1).
     pub update_every: usize,
     /// Refit hyperparameters every this many steps (0: never).
     pub refit_every: usize,
@@ -398,9 +400,11 @@ pub struct LearningSpec {
 }
 
 impl Default for LearningSpec {
+    /// Learning from every step (an observation each), no refits, all data
+    /// kept, recalibration on.
     fn default() -> Self {
         Self {
-            update_every: 0,
+            update_every: 1,
             refit_every: 0,
             refit_geometric: false,
             refit_background: 0,
@@ -497,8 +501,10 @@ pub struct ControllerSpec {
     /// Upper control bounds.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub u_max: Option<Vec<f64>>,
-    /// max_margin, relax, brake or hold.
-    #[serde(default = "max_margin")]
+    /// relax, max_margin, brake or hold (default relax: the largest
+    /// feasible probability, which brakes where max-margin trades the mean
+    /// for the spread of an uncertain input gain; docs/robots.md).
+    #[serde(default = "relax")]
     pub fallback: String,
     /// Promise each barrier condition as realised over the step,
     /// the model's observation noise included
@@ -517,7 +523,7 @@ fn default_probability() -> f64 {
 
 impl Default for ControllerSpec {
     /// `p =` [`DEFAULT_PROBABILITY`], `ζ = 0`, `λ = 1`, `R = I`, no
-    /// bounds, the max-margin fallback, the predictive condition.
+    /// bounds, the `relax` fallback, the predictive condition.
     fn default() -> Self {
         Self {
             probability: DEFAULT_PROBABILITY,
@@ -526,14 +532,14 @@ impl Default for ControllerSpec {
             r: None,
             u_min: None,
             u_max: None,
-            fallback: max_margin(),
+            fallback: relax(),
             predictive: true,
         }
     }
 }
 
-fn max_margin() -> String {
-    "max_margin".into()
+fn relax() -> String {
+    "relax".into()
 }
 
 fn is_true(b: &bool) -> bool {
@@ -1000,6 +1006,9 @@ mod tests {
         assert_eq!((s.dt, s.steps), (DEFAULT_DT, DEFAULT_STEPS));
         assert_eq!(s.gp, GpSpec::default());
         assert_eq!(s.controller, ControllerSpec::default());
+        // a robot that learns, and relaxes p where nothing is feasible
+        assert_eq!(s.learning.update_every, 1);
+        assert_eq!(s.controller.fallback, "relax");
         let built = build::build(&s).unwrap();
         assert_eq!(built.start, vec![0.0, 0.0]);
         let hyper = built.model.hyper();

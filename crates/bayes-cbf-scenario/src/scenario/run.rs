@@ -207,6 +207,11 @@ pub fn run_scenario_until(
         &result.records,
         scenario.seed,
     );
+    super::build::warn_mostly_infeasible(
+        &result.records,
+        &scenario.controller.fallback,
+        scenario.seed,
+    );
     super::build::warn_crossing_in_infeasible_step(
         built.barriers.len(),
         &result.records,

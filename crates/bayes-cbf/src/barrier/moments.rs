@@ -375,7 +375,7 @@ fn warn_unmodelled_lgh(ws: &MomentWorkspace, barrier: &dyn DynBarrier, out: &Con
     let own = (0..p).map(|c| out.cov[(c, c)]).fold(0.0, f64::max).sqrt();
     if s > 0.1 * own.max(1e-12) && !WARNED.swap(true, Ordering::Relaxed) {
         log::warn!(
-            "barrier '{}' has relative degree 2, but the model leaves L_g h · u uncertain (std {s:.3e} per unit u, against {own:.3e} for the enforced condition): the condition assumes L_g h = 0 and does not cover it; declare the rows of F known from the prior (gp.known_rows) or use relative degree 1",
+            "barrier '{}' has relative degree 2, but the model leaves L_g h · u uncertain (std {s:.3e} per unit u, where the condition's own std is {own:.3e}): the condition assumes L_g h = 0 and does not cover it; declare the rows of F that ∇h weighs known (gp.known_rows), with a prior mean that has them exactly (a known row is the prior mean's), or use relative degree 1",
             barrier.name()
         );
     }
@@ -450,7 +450,7 @@ pub fn cbc_moments(
     let nrm: f64 = out.e[1..].iter().map(|v| v * v).sum::<f64>().sqrt();
     let scale = out.e[0].abs().max(1.0);
     if nrm < 1e-9 * scale && !NO_INPUT_WARNED.swap(true, std::sync::atomic::Ordering::Relaxed) {
-        log::warn!("barrier '{}': L_g L_f^(r-1) h ≈ 0 at x = {:?} (|e_u| = {nrm:.2e}); is relative degree {r} right? (shown once)", barrier.name(), ws.x);
+        log::warn!("barrier '{}': the model's mean of L_g L_f^(r-1) h is ≈ 0 at x = {:?} (|e_u| = {nrm:.2e}): the input has no mean effect on the condition there, because the prior mean gives it none (a zero prior mean, before data) or because relative degree {r} is wrong (shown once)", barrier.name(), ws.x);
     }
     Ok(())
 }

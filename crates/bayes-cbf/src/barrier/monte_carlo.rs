@@ -468,7 +468,7 @@ pub fn mc_cbc_moments<K: Kernel>(
             0.0f64,
             |a, v| if v.is_nan() { f64::INFINITY } else { a.max(v) },
         );
-    if !(truncation <= 1e-2) {
+    if truncation > 1e-2 {
         return Err(InputError::invalid(
             "step",
             s,
