@@ -65,8 +65,17 @@ def test_check_derivatives_allows_for_the_rounding_of_a_large_h():
         H = lambda x, c=c: 2.0 * c * np.eye(2)
         assert bc.check_derivatives(h, g, H, state_dim=2)["ok"], c
         assert not bc.check_derivatives(h, lambda x, g=g: 1.01 * g(x), state_dim=2)["ok"], c
-    # an offset far above the gradient's scale (the error was 5e-3 > atol)
-    assert bc.check_derivatives(lambda x: 1e9 + x @ x, lambda x: 2.0 * x, state_dim=2)["ok"]
+    # an offset far above the gradient's scale: at the default step the
+    # round-off (0.09) hides the gradient (about 1) at some points, and the
+    # check says so rather than pass a wrong one; a larger step resolves it
+    # (the error was 5e-3 > atol, a right gradient failed)
+    offset = lambda x: 1e9 + x @ x
+    at_default = bc.check_derivatives(offset, lambda x: 2.0 * x, state_dim=2)
+    assert at_default["unresolved"] > 0 and not at_default["ok"]
+    assert bc.check_derivatives(offset, lambda x: 2.0 * x, state_dim=2, step=1e-2)["ok"]
+    # a gradient of zeros under an offset of 1e11 (round-off 8.9) is not passed
+    wrong = bc.check_derivatives(lambda x: 1e11 + x @ x, lambda x: np.zeros(2), state_dim=2)
+    assert not wrong["ok"]
 
 
 def test_a_raising_callback_is_an_input_error_naming_it(model):

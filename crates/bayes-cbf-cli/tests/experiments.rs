@@ -76,18 +76,30 @@ fn experiments_write_their_files() {
 #[test]
 fn experiment_sizes_are_checked() {
     for (args, want) in [
-        ("run calibration --episodes 0", "episodes"),
-        ("run soak --steps 5", "steps"),
-        ("run soak --window 1 --steps 100", "window"),
-        ("run speed-test --episodes 3", "episodes"),
-        ("run calibration --window 30", "window"),
-        ("run pendulum-safe --steps 30", "steps"),
+        ("run calibration --episodes 0", "episodes = 0: must be ≥ 1"),
+        ("run soak --steps 5", "steps = 5: must be ≥ 10"),
+        ("run soak --window 1 --steps 100", "window = 1: must be ≥ 2"),
+        (
+            "run speed-test --episodes 3",
+            "episodes applies to the experiment(s) calibration",
+        ),
+        (
+            "run calibration --window 30",
+            "window applies to the experiment(s) soak",
+        ),
+        (
+            "run pendulum-safe --steps 30",
+            "--steps and --window apply to the experiments",
+        ),
         ("run calibration --episodes -2", "episodes"),
         (
             "run calibration --fallback slow",
             "max_margin, brake, hold or relax",
         ),
-        ("run soak --fallback relax", "fallback"),
+        (
+            "run soak --fallback relax",
+            "fallback applies to the experiment(s) calibration",
+        ),
         ("run pendulum-safe --fallback relax", "controller.fallback"),
         ("run pendulum-safe --quick", "--set steps=N"),
         ("run no-such-experiment", "no-such-experiment"),

@@ -429,13 +429,45 @@ fn a_bare_scenario_is_told_what_its_model_lacks() {
     // without learning it never learns how the input acts: every step
     // falls back
     let r = run_set(&["learning.update_every=0"], "n");
-    let want = "150 of 150 steps were infeasible, so the fallback (relax) acted on most";
+    let want = "150 of 150 steps were infeasible, 100% of the run's time, so the fallback \
+                (relax) acted on most";
     assert!(r.stderr.contains(want), "{}", r.stderr);
     // p' = v declared known under a zero prior: 0 where the system has v
     let r = run_set(&["gp.known_rows=[0]"], "b");
     let want = "gp.known_rows: row 0 of F is taken from gp.prior_mean, which gives \
                 [0.000, 0.000] at x = [-0.500, 1.000] where the system has [1.000, 0.000]";
     assert!(r.stderr.contains(want), "{}", r.stderr);
+    // without input bounds the default fallback is max-margin, and relax
+    // is warned of (p* can take an unbounded control)
+    let unbounded = BARE_CART.replace("[controller]\nu_min = [-5.0]\nu_max = [5.0]\n", "");
+    assert_ne!(unbounded, BARE_CART);
+    std::fs::write(dir.join("free.toml"), unbounded).unwrap();
+    let free = |sets: &[&str], out| {
+        let mut args = vec!["run", "free.toml", "--set", "steps=20", "--out", out];
+        for set in sets {
+            args.extend(["--set", *set]);
+        }
+        run_in(&dir, &args)
+    };
+    let r = free(&[], "f");
+    assert!(r.status.success(), "{}", r.stderr);
+    let summary = std::fs::read_to_string(dir.join("f").join("summary.json")).unwrap();
+    assert!(
+        summary.contains("\"fallback\": \"max_margin\""),
+        "{summary}"
+    );
+    assert!(
+        !r.stderr.contains("relax without input bounds"),
+        "{}",
+        r.stderr
+    );
+    let r = free(&["controller.fallback=\"relax\""], "g");
+    assert!(
+        r.stderr
+            .contains("fallback relax without input bounds (u_min, u_max)"),
+        "{}",
+        r.stderr
+    );
     let prior = r#"gp.prior_mean={"type":"expression","f":["v","0"],"g":[["0"],["1"]]}"#;
     let r = run_set(
         &[prior, "gp.known_rows=[0]", "gp.B=[[1.0,0.0],[0.0,0.01]]"],

@@ -739,7 +739,7 @@ fn quality_rows(steps: usize, size: usize) -> Result<Vec<BenchRow>> {
 /// `stage` is told what is being measured.
 pub fn run_bench(quick: bool, threads: usize, stage: &dyn Fn(&str)) -> Result<Bench> {
     if threads == 0 || threads > 256 {
-        bail!("--threads = {threads}: must be in 1..=256");
+        bail!("threads = {threads}: must be in 1..=256");
     }
     bayes_cbf::gp::set_linear_algebra_threads(threads);
 

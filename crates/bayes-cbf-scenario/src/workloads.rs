@@ -193,5 +193,5 @@ fn as_in_the_paper(sc: &mut Scenario) {
         alpha: None,
         k_alpha: Some(vec![1.0, 3.0]),
     }];
-    sc.controller.fallback = "max_margin".into();
+    sc.controller.fallback = Some("max_margin".into());
 }

@@ -373,6 +373,34 @@ fn a_step_beyond_the_truncation_of_nested_differences_is_refused() {
         .unwrap_err()
         .to_string();
     assert!(err.contains("step") && err.contains("too large"), "{err}");
+    // h defined on the lattice at the step but not on the doubled one
+    // (v > −0.05): no truncation estimate, and the step agrees with half of it
+    let edge = bayes_cbf::barrier::ExpressionBarrier::new(
+        &["p", "v", "a"],
+        &[],
+        "2 - p + 0.01*sqrt(v + 0.05)",
+        3,
+        vec![1.0, 3.0, 3.0],
+    )
+    .unwrap();
+    let at_edge = |step| {
+        let settings = McSettings {
+            samples: 500,
+            step,
+            seed: 4,
+        };
+        mc_cbc_moments(&model, &edge, &[0.5, 0.0, 0.0], &settings)
+    };
+    let (a, b) = (
+        at_edge(1e-2).unwrap().moments.e,
+        at_edge(5e-3).unwrap().moments.e,
+    );
+    assert!(
+        (a[0] - b[0]).abs() < 1e-3 * a[0].abs().max(1.0),
+        "{a:?} vs {b:?}"
+    );
+    // the failed evaluation out there is not a later call's error
+    assert!(at_edge(1e-2).is_ok());
     let (a, b) = (at(1e-2).unwrap().moments.e, at(1e-3).unwrap().moments.e);
     assert!(
         (a[0] - b[0]).abs() < 1e-3 * a[0].abs().max(1.0),

@@ -85,16 +85,16 @@ impl Default for Settings {
 }
 
 impl Settings {
-    /// Checks the sizes (errors name the command-line option).
+    /// Checks the sizes (errors name the field).
     pub fn validate(&self) -> Result<()> {
         if !(2..=20_000).contains(&self.steps) {
             bail!("steps = {} must be between 2 and 20000", self.steps);
         }
         if self.heldout > 100_000 {
-            bail!("--heldout = {} must be at most 100000", self.heldout);
+            bail!("heldout = {} must be at most 100000", self.heldout);
         }
         if !(2..=500).contains(&self.grid) {
-            bail!("--grid = {} must be between 2 and 500", self.grid);
+            bail!("grid = {} must be between 2 and 500", self.grid);
         }
         Ok(())
     }

@@ -121,6 +121,9 @@ pub struct Files {
     pub plots: [&'static str; 2],
     /// Every fit.
     pub runs: &'static str,
+    /// The training samples of the first repetition at the largest k of
+    /// each system.
+    pub samples: &'static str,
 }
 
 /// `summary.json` of `speed-test`.
@@ -494,6 +497,7 @@ pub fn run(args: &ExperimentArgs, progress: &dyn Progress) -> Result<SpeedTest> 
         files: Files {
             plots: ["speed_test.png", "speed_ratio.png"],
             runs: "runs.csv",
+            samples: "trajectory.csv",
         },
     };
     // trajectory.csv: the training samples of the first repetition at the

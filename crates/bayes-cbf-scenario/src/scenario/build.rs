@@ -267,7 +267,8 @@ pub fn build(s: &Scenario) -> Result<Built> {
     }
     settings.u_min = c.u_min.clone();
     settings.u_max = c.u_max.clone();
-    settings.fallback = Fallback::parse(&c.fallback).map_err(|e| crate::err!("controller: {e}"))?;
+    settings.fallback =
+        Fallback::parse(c.fallback_name()).map_err(|e| crate::err!("controller: {e}"))?;
     // Props. 3 and 5: one ζ, shifted barriers of relative degree ≥ 2, p̃
     let (controller, trigger) = match trigger {
         Some(ts) => {
@@ -602,7 +603,7 @@ fn warn_zero_prior(barriers: &[Arc<dyn DynBarrier>], update_every: usize) {
             b.relative_degree()
         ),
         None if update_every == 0 => "learning.update_every = 0: the model never learns how \
-            the input acts, so every step is infeasible and the fallback acts throughout"
+            the input acts, so its steps can be infeasible throughout"
             .to_string(),
         None => return,
     };
@@ -618,24 +619,33 @@ fn warn_zero_prior(barriers: &[Arc<dyn DynBarrier>], update_every: usize) {
 
 static MOSTLY_INFEASIBLE: AtomicBool = AtomicBool::new(false);
 
-/// Warns, once per process, when most steps of a run were infeasible: the
-/// fallback acted on most of it, safe or not (a robot kept still by it is
-/// safe, and goes nowhere).
+/// Warns, once per process, when the infeasible steps of a run held more
+/// than half its time: the fallback acted on most of it, safe or not (a
+/// robot kept still by it is safe, and goes nowhere). Time, not steps:
+/// self-triggered holds of infeasible steps are short.
 pub(crate) fn warn_mostly_infeasible(records: &[StepRecord], fallback: &str, seed: u64) {
     let infeasible = records
         .iter()
         .filter(|r| r.status == StepStatus::Infeasible)
         .count();
-    if 2 * infeasible > records.len() {
+    let total: f64 = records.iter().map(|r| r.hold).sum();
+    let fallen: f64 = records
+        .iter()
+        .filter(|r| r.status == StepStatus::Infeasible)
+        .map(|r| r.hold)
+        .sum();
+    if 2.0 * fallen > total {
         warn_once(
             &MOSTLY_INFEASIBLE,
             format!(
-                "seed {seed}: {infeasible} of {} steps were infeasible, so the fallback \
-                 ({fallback}) acted on most of the run and no condition was promised there: \
+                "seed {seed}: {infeasible} of {} steps were infeasible, {:.0}% of the run's \
+                 time, so the fallback ({fallback}) acted on most of the run and no \
+                 condition was promised there: \
                  a model too uncertain of the input's effect for controller.probability (a \
                  zero prior mean, a wide B), or bounds and gains in conflict (docs/robots.md, \
                  \"Infeasible steps\")",
-                records.len()
+                records.len(),
+                100.0 * fallen / total
             ),
         );
     }

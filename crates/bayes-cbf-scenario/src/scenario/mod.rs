@@ -501,11 +501,10 @@ pub struct ControllerSpec {
     /// Upper control bounds.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub u_max: Option<Vec<f64>>,
-    /// relax, max_margin, brake or hold (default relax: the largest
-    /// feasible probability, which brakes where max-margin trades the mean
-    /// for the spread of an uncertain input gain; docs/robots.md).
-    #[serde(default = "relax")]
-    pub fallback: String,
+    /// relax, max_margin, brake or hold; [`fallback_name`](Self::fallback_name)
+    /// when absent.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub fallback: Option<String>,
     /// Promise each barrier condition as realised over the step,
     /// the model's observation noise included
     /// ([`bayes_cbf::control::SafetySettings::predictive`]); on by default,
@@ -523,7 +522,8 @@ fn default_probability() -> f64 {
 
 impl Default for ControllerSpec {
     /// `p =` [`DEFAULT_PROBABILITY`], `ζ = 0`, `λ = 1`, `R = I`, no
-    /// bounds, the `relax` fallback, the predictive condition.
+    /// bounds, the fallback of [`fallback_name`](Self::fallback_name), the
+    /// predictive condition.
     fn default() -> Self {
         Self {
             probability: DEFAULT_PROBABILITY,
@@ -532,14 +532,25 @@ impl Default for ControllerSpec {
             r: None,
             u_min: None,
             u_max: None,
-            fallback: relax(),
+            fallback: None,
             predictive: true,
         }
     }
 }
 
-fn relax() -> String {
-    "relax".into()
+impl ControllerSpec {
+    /// The fallback: the one given, else `relax` (the largest feasible
+    /// probability, which brakes where max-margin trades the mean for the
+    /// spread of an uncertain input gain; docs/robots.md) with input bounds
+    /// and `max_margin` without (where relax's `p*` can be reached only by
+    /// an unbounded control).
+    pub fn fallback_name(&self) -> &str {
+        match &self.fallback {
+            Some(f) => f,
+            None if self.u_min.is_some() && self.u_max.is_some() => "relax",
+            None => "max_margin",
+        }
+    }
 }
 
 fn is_true(b: &bool) -> bool {
@@ -702,8 +713,10 @@ pub fn apply_set(table: &mut toml::Table, assignment: &str) -> Result<()> {
                     t.insert((*part).to_string(), value.clone());
                     return Ok(());
                 }
-                t.get_mut(*part)
-                    .ok_or_else(|| err!("override '{key}': '{path}' has no key '{part}'"))?
+                // a table the file leaves out (a defaulted `gp.A`): added,
+                // and judged by the typed parse
+                t.entry(*part)
+                    .or_insert_with(|| toml::Value::Table(toml::Table::new()))
             }
             toml::Value::Array(a) => {
                 let idx: usize = part.parse().map_err(|_| {
@@ -1006,9 +1019,19 @@ mod tests {
         assert_eq!((s.dt, s.steps), (DEFAULT_DT, DEFAULT_STEPS));
         assert_eq!(s.gp, GpSpec::default());
         assert_eq!(s.controller, ControllerSpec::default());
-        // a robot that learns, and relaxes p where nothing is feasible
+        // a robot that learns, and relaxes p where nothing is feasible when
+        // its inputs are bounded
         assert_eq!(s.learning.update_every, 1);
-        assert_eq!(s.controller.fallback, "relax");
+        assert_eq!(s.controller.fallback_name(), "max_margin");
+        let (bounded, _) = load(
+            file.to_str().unwrap(),
+            &[
+                "controller.u_min=[-1.0]".into(),
+                "controller.u_max=[1.0]".into(),
+            ],
+        )
+        .unwrap();
+        assert_eq!(bounded.controller.fallback_name(), "relax");
         let built = build::build(&s).unwrap();
         assert_eq!(built.start, vec![0.0, 0.0]);
         let hyper = built.model.hyper();

@@ -209,13 +209,13 @@ pub fn run_scenario_until(
     );
     super::build::warn_mostly_infeasible(
         &result.records,
-        &scenario.controller.fallback,
+        scenario.controller.fallback_name(),
         scenario.seed,
     );
     super::build::warn_crossing_in_infeasible_step(
         built.barriers.len(),
         &result.records,
-        &scenario.controller.fallback,
+        scenario.controller.fallback_name(),
         scenario.seed,
     );
     super::build::warn_crossing_in_met_step(
@@ -285,7 +285,7 @@ fn summarise(s: &Scenario, built: &Built, r: &LoopResult, wall: f64) -> RunSumma
         final_state: r.final_state.clone(),
         final_goal_distance: goal_distance,
         infeasible_steps: r.infeasible_steps,
-        fallback: s.controller.fallback.clone(),
+        fallback: s.controller.fallback_name().to_string(),
         fallback_steps,
         triggers: r.records.len(),
         self_triggered: built.loop_settings.trigger.as_ref().is_some_and(|t| t.hold),

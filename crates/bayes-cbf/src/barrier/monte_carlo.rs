@@ -454,20 +454,30 @@ pub fn mc_cbc_moments<K: Kernel>(
     }
     // the truncation of the differences, O(s²): the condition at the
     // posterior mean at steps s and 2s differ by about 3× the error at s
-    // (at 2s, not s/2, where the round-off would be 2ʳ times larger)
-    let (h2, mean2) = lattice_means(2.0 * s)?;
-    let (mut z1, mut z2) = (vec![0.0; p], vec![0.0; p]);
-    lat.condition(&mean, &h_vals, gains, s, &mut scratch, &mut z1);
-    lat.condition(&mean2, &h2, gains, 2.0 * s, &mut scratch, &mut z2);
-    let truncation = (0..p)
-        .map(|c| match (z2[c] - z1[c]).abs() / 3.0 {
-            0.0 => 0.0,
-            d => d / spread[c],
-        })
-        .fold(
-            0.0f64,
-            |a, v| if v.is_nan() { f64::INFINITY } else { a.max(v) },
-        );
+    // (at 2s, not s/2, where the round-off would be 2ʳ times larger).
+    // Where h or the mean is not finite on the doubled lattice (h's domain
+    // ends within 2·r·s of x) there is no estimate, and the lengthscale
+    // bound above is the only check; a failed evaluation out there is not
+    // this call's error
+    let doubled = lattice_means(2.0 * s).ok();
+    let _ = barrier.take_error();
+    let mut truncation = 0.0f64;
+    if let Some((h2, mean2)) = doubled {
+        let (mut z1, mut z2) = (vec![0.0; p], vec![0.0; p]);
+        lat.condition(&mean, &h_vals, gains, s, &mut scratch, &mut z1);
+        lat.condition(&mean2, &h2, gains, 2.0 * s, &mut scratch, &mut z2);
+        if z2.iter().all(|v| v.is_finite()) {
+            truncation = (0..p)
+                .map(|c| match (z2[c] - z1[c]).abs() / 3.0 {
+                    0.0 => 0.0,
+                    d => d / spread[c],
+                })
+                .fold(
+                    0.0f64,
+                    |a, v| if v.is_nan() { f64::INFINITY } else { a.max(v) },
+                );
+        }
+    }
     if truncation > 1e-2 {
         return Err(InputError::invalid(
             "step",

@@ -393,6 +393,18 @@ impl SafetyFilter {
             return Err(InputError::invalid("control_dim", 0.0, "must be ≥ 1"));
         }
         settings.validate(m)?;
+        if settings.fallback == Fallback::Relax && settings.u_min.is_none() {
+            use std::sync::atomic::{AtomicBool, Ordering};
+            static UNBOUNDED_RELAX: AtomicBool = AtomicBool::new(false);
+            if !UNBOUNDED_RELAX.swap(true, Ordering::Relaxed) {
+                log::warn!(
+                    "fallback relax without input bounds (u_min, u_max): where the conditions \
+                     are met only as the control grows, the largest feasible probability p* \
+                     is reached only by an unbounded control, and relax applies it (a control \
+                     of 2.8e5 was seen); give u_min and u_max, or use max_margin (shown once)"
+                );
+            }
+        }
         let shape = SocpShape {
             m,
             barriers,

@@ -252,7 +252,12 @@ fn pow_const<D: DualNum<Primitive = f64> + Copy>(x: D, c: f64) -> D {
     let mut out = D::from(r.powf(c));
     let (mut dk, mut coef, mut fact) = (d, c, 1.0);
     for k in 1..=D::NDERIV {
-        let f = coef * r.powf(c - k as f64) / fact;
+        // a whole c ≥ 0 has no derivatives past order c: 0, not 0 · ∞ at r = 0
+        let f = if coef == 0.0 {
+            0.0
+        } else {
+            coef * r.powf(c - k as f64) / fact
+        };
         out += if f.is_infinite() && r == 0.0 {
             dk * f64::MAX * f64::MAX * (f64::MAX * f.signum())
         } else {

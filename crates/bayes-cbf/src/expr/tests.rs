@@ -582,6 +582,16 @@ fn a_variable_power_has_powf_values_and_its_closed_form_derivatives() {
     let (v, g, hs) = derivatives(&e, [0.0, 2.5]);
     assert_eq!((v, g, hs), (0.0, [0.0; 2], [[0.0; 2]; 2]));
     assert_eq!(e.eval(&[0.0f64, 0.5]), 0.0);
+    // whole exponents at a zero base: x^0 = 1 and x^1 = x with their
+    // derivatives in x (0 · ∞ gave NaN), none in y below the order
+    assert_eq!(e.eval(&[0.0f64, 0.0]), 1.0);
+    let (v, g, hs) = derivatives(&e, [0.0, 1.0]);
+    assert_eq!((v, g[0], hs[0][0]), (0.0, 1.0, 0.0));
+    let (v, g, _) = derivatives(&e, [0.0, 2.0]);
+    assert_eq!((v, g), (0.0, [0.0, 0.0]));
+    let shifted = Expr::parse("e", "(x + 1)^(y*0 + 1) - 1", &n).unwrap();
+    let (v, g, hs) = derivatives(&shifted, [-1.0, 1.0]);
+    assert_eq!((v, g[0], hs[0][0]), (-1.0, 1.0, 0.0));
     // ∂x = 0.5 x^−0.5 is infinite at 0, and so is ∂xy at y = 1
     assert!(!derivatives(&e, [0.0, 0.5]).1[0].is_finite());
     assert!(!derivatives(&e, [0.0, 1.0]).2[0][1].is_finite());
