@@ -76,6 +76,10 @@ def test_check_derivatives_allows_for_the_rounding_of_a_large_h():
     # a gradient of zeros under an offset of 1e11 (round-off 8.9) is not passed
     wrong = bc.check_derivatives(lambda x: 1e11 + x @ x, lambda x: np.zeros(2), state_dim=2)
     assert not wrong["ok"]
+    # a linear h's zero Hessian is resolved, with atol = 0 too
+    linear = bc.check_derivatives(lambda x: 3.0 * x[0] - x[1], lambda x: np.array([3.0, -1.0]),
+                                  lambda x: np.zeros((2, 2)), state_dim=2, atol=0.0)
+    assert linear["ok"] and linear["unresolved"] == 0, linear
 
 
 def test_a_raising_callback_is_an_input_error_naming_it(model):

@@ -38,8 +38,8 @@ pub struct RunArgs {
     #[arg(long, allow_hyphen_values = true)]
     pub episodes: Option<usize>,
     /// The controllers' fallback on an infeasible step in `calibration`:
-    /// relax (default, as in scenario files), max_margin (the library's
-    /// `SafetySettings` default), brake or hold.
+    /// relax (default), max_margin (the library's `SafetySettings` default,
+    /// and a scenario's without input bounds), brake or hold.
     /// (Scenarios set theirs with `--set controller.fallback=NAME`.)
     #[arg(long, value_name = "NAME", value_parser = parse_fallback)]
     pub fallback: Option<Fallback>,

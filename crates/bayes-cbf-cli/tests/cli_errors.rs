@@ -431,7 +431,7 @@ fn bad_fit_options_are_rejected() {
         assert!(!Path::new(&out).exists(), "{opts}: no output on failure");
     }
     check(&["frobnicate"], &["frobnicate"], "unknown subcommand");
-    check(&["demo", "--grid", "1"], &["--grid"], "demo grid");
+    check(&["demo", "--grid", "1"], &["grid = 1"], "demo grid");
 }
 
 fn owned(args: Vec<&str>) -> Vec<String> {

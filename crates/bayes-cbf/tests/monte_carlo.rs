@@ -374,7 +374,9 @@ fn a_step_beyond_the_truncation_of_nested_differences_is_refused() {
         .to_string();
     assert!(err.contains("step") && err.contains("too large"), "{err}");
     // h defined on the lattice at the step but not on the doubled one
-    // (v > −0.05): no truncation estimate, and the step agrees with half of it
+    // (v > −0.05): the truncation estimated from half the step; with no
+    // acceleration the square root's terms drop out, and the step agrees
+    // with half of it
     let edge = bayes_cbf::barrier::ExpressionBarrier::new(
         &["p", "v", "a"],
         &[],
@@ -401,6 +403,37 @@ fn a_step_beyond_the_truncation_of_nested_differences_is_refused() {
     );
     // the failed evaluation out there is not a later call's error
     assert!(at_edge(1e-2).is_ok());
+    // with an acceleration the square root's curvature enters: the default
+    // step is refused (its truncation, estimated from half of it, is over
+    // 1 %; it passed unchecked before), and 1e-3 and 5e-4 agree (37.26 and
+    // 37.15)
+    let sharp = bayes_cbf::barrier::ExpressionBarrier::new(
+        &["p", "v", "a"],
+        &[],
+        "2 - p + sqrt(v + 0.05)",
+        3,
+        vec![1.0, 3.0, 3.0],
+    )
+    .unwrap();
+    let x = [0.5, -0.015, 0.3];
+    let at_sharp = |step| {
+        let settings = McSettings {
+            samples: 500,
+            step,
+            seed: 4,
+        };
+        mc_cbc_moments(&model, &sharp, &x, &settings)
+    };
+    let err = at_sharp(1e-2).unwrap_err().to_string();
+    assert!(
+        err.contains("too large") && err.contains("from half the step"),
+        "{err}"
+    );
+    let (a, b) = (
+        at_sharp(1e-3).unwrap().moments.e,
+        at_sharp(5e-4).unwrap().moments.e,
+    );
+    assert!((a[0] - b[0]).abs() < 1e-2 * a[0].abs(), "{a:?} vs {b:?}");
     let (a, b) = (at(1e-2).unwrap().moments.e, at(1e-3).unwrap().moments.e);
     assert!(
         (a[0] - b[0]).abs() < 1e-3 * a[0].abs().max(1.0),

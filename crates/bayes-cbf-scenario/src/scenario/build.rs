@@ -591,6 +591,10 @@ static ZERO_PRIOR: AtomicBool = AtomicBool::new(false);
 /// neither the rows that tie `h`'s derivatives to the state nor how the
 /// input acts), or without learning (it never learns how the input acts).
 fn warn_zero_prior(barriers: &[Arc<dyn DynBarrier>], update_every: usize) {
+    if barriers.is_empty() {
+        // no condition to meet: nothing is infeasible
+        return;
+    }
     let high = barriers
         .iter()
         .enumerate()

@@ -1172,6 +1172,37 @@ mod tests {
 
     #[test]
     fn overrides_apply_and_unknown_keys_fail() {
+        // a nested key of a table an earlier override gave, and of a table
+        // the file leaves out: created, and judged whole by the typed parse
+        let (s, _) = load(
+            "double-integrator",
+            &[
+                "gp.B={type=\"identity\", scale=1.0}".into(),
+                "gp.B.scale=3.0".into(),
+            ],
+        )
+        .unwrap();
+        assert_eq!(s.gp.b, MatrixSpec::Identity { scale: 3.0 });
+        let file = std::env::temp_dir().join(format!("bcbf-nested-{}.toml", std::process::id()));
+        std::fs::write(
+            &file,
+            "[system]\ntype = \"pendulum\"\nmass = 1.0\nlength = 1.0\ngravity = 10.0\n",
+        )
+        .unwrap();
+        let path = file.to_str().unwrap();
+        let sets = ["gp.A.type=identity".to_string(), "gp.A.scale=2.0".into()];
+        assert_eq!(
+            load(path, &sets).unwrap().0.gp.a,
+            MatrixSpec::Identity { scale: 2.0 }
+        );
+        let err = format!("{:#}", load(path, &sets[1..]).unwrap_err());
+        assert!(
+            err.contains("gp.A.scale=2.0") && err.contains("missing field `type`"),
+            "{err}"
+        );
+        let err = format!("{:#}", load(path, &["gp.Aa.scale=2".into()]).unwrap_err());
+        assert!(err.contains("unknown field `Aa`"), "{err}");
+        std::fs::remove_file(&file).unwrap();
         let (s, _) = load(
             "ackermann-bayes-cbf",
             &[

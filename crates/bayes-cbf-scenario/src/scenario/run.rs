@@ -85,7 +85,8 @@ pub struct RunSummary {
     pub final_goal_distance: Option<f64>,
     /// Steps whose SOCP was infeasible.
     pub infeasible_steps: usize,
-    /// The declared fallback.
+    /// The fallback of infeasible steps: the declared one, or the default
+    /// ([`super::ControllerSpec::fallback_name`]).
     pub fallback: String,
     /// Steps that applied the fallback.
     pub fallback_steps: usize,
