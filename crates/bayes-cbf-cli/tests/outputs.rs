@@ -348,13 +348,7 @@ fn kinks_curvature_and_clamped_holds_are_warned_of() {
     );
     let d = std::fs::read_to_string(dir.join("d").join("summary.json")).unwrap();
     assert!(d.contains("\"safe\": false"), "{d}");
-    let run_set = |scenario, sets: &[&str], out| {
-        let mut args = vec!["run", scenario, "--out", out];
-        for set in sets {
-            args.extend(["--set", *set]);
-        }
-        run_in(&dir, &args)
-    };
+    let run_set = |scenario, sets: &[&str], out| run_with(&dir, scenario, sets, out);
     let r = run_set("disc.toml", &["controller.zeta=0.5"], "e");
     assert!(!r.stderr.contains("crossed zero"), "{}", r.stderr);
     let e = std::fs::read_to_string(dir.join("e").join("summary.json")).unwrap();
@@ -372,6 +366,15 @@ fn kinks_curvature_and_clamped_holds_are_warned_of() {
         "{}",
         r.stderr
     );
+}
+
+/// `bayes-cbf run SCENARIO --out OUT --set S ...` in `dir`.
+fn run_with(dir: &std::path::Path, scenario: &str, sets: &[&str], out: &str) -> Run {
+    let mut args = vec!["run", scenario, "--out", out];
+    for set in sets {
+        args.extend(["--set", *set]);
+    }
+    run_in(dir, &args)
 }
 
 /// A cart against a wall, written with nothing but its system, barrier,
@@ -413,13 +416,8 @@ target = [0.8, 0.0]
 fn a_bare_scenario_is_told_what_its_model_lacks() {
     let dir = scratch_dir("outputs-bare");
     std::fs::write(dir.join("cart.toml"), BARE_CART).unwrap();
-    let run_set = |sets: &[&str], out| {
-        let mut args = vec!["run", "cart.toml", "--set", "steps=150", "--out", out];
-        for set in sets {
-            args.extend(["--set", *set]);
-        }
-        run_in(&dir, &args)
-    };
+    let run_set =
+        |sets: &[&str], out| run_with(&dir, "cart.toml", &[&["steps=150"], sets].concat(), out);
     let r = run_set(&[], "a");
     assert!(r.status.success(), "{}", r.stderr);
     let want = "gp.prior_mean is zero and barriers[0] has relative degree 2";
@@ -442,13 +440,8 @@ fn a_bare_scenario_is_told_what_its_model_lacks() {
     let unbounded = BARE_CART.replace("[controller]\nu_min = [-5.0]\nu_max = [5.0]\n", "");
     assert_ne!(unbounded, BARE_CART);
     std::fs::write(dir.join("free.toml"), unbounded).unwrap();
-    let free = |sets: &[&str], out| {
-        let mut args = vec!["run", "free.toml", "--set", "steps=20", "--out", out];
-        for set in sets {
-            args.extend(["--set", *set]);
-        }
-        run_in(&dir, &args)
-    };
+    let free =
+        |sets: &[&str], out| run_with(&dir, "free.toml", &[&["steps=20"], sets].concat(), out);
     let r = free(&[], "f");
     assert!(r.status.success(), "{}", r.stderr);
     let summary = std::fs::read_to_string(dir.join("f").join("summary.json")).unwrap();

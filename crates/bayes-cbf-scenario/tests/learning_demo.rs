@@ -50,5 +50,5 @@ fn small_demo_is_deterministic() {
     })
     .unwrap_err()
     .to_string()
-    .contains("--grid"));
+    .contains("grid = 1"));
 }

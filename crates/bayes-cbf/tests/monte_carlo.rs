@@ -5,8 +5,8 @@
 mod common;
 
 use bayes_cbf::barrier::{
-    cbc_moments, mc_cbc_moments, ConditionMoments, DynBarrier, HalfSpace, McSettings,
-    MomentWorkspace, PendulumSector,
+    cbc_moments, mc_cbc_moments, ConditionMoments, DynBarrier, ExpressionBarrier, HalfSpace,
+    McSettings, MomentWorkspace, PendulumSector,
 };
 use bayes_cbf::control::{ControlOutput, SafetyController, SafetySettings};
 use bayes_cbf::gp::{InputMap, Mvgp, MvgpHyper, PriorMean, Rbf};
@@ -246,6 +246,32 @@ fn bad_settings_are_rejected() {
     assert!(mc_cbc_moments(&model, &b, &[0.0], &McSettings::default()).is_err());
 }
 
+/// A relative-degree-3 barrier `h` over the triple integrator's `(p, v, a)`.
+fn rd3(h: &str, params: &[(&str, f64)], gains: [f64; 3]) -> ExpressionBarrier {
+    ExpressionBarrier::new(&["p", "v", "a"], params, h, 3, gains.to_vec()).unwrap()
+}
+
+/// Monte Carlo moments of `b` at `x` with step `step` (500 draws, seed 4).
+fn mc_at(
+    model: &Mvgp,
+    b: &ExpressionBarrier,
+    x: &[f64],
+    step: f64,
+) -> Result<bayes_cbf::barrier::McMoments, bayes_cbf::Error> {
+    let settings = McSettings {
+        samples: 500,
+        step,
+        seed: 4,
+    };
+    mc_cbc_moments(model, b, x, &settings)
+}
+
+/// Whether `a` and `b` agree in their first entry to `rel` (relative, or
+/// absolute below 1).
+fn agree(a: &[f64], b: &[f64], rel: f64) -> bool {
+    (a[0] - b[0]).abs() < rel * a[0].abs().max(1.0)
+}
+
 /// A step so small that the three nested differences amplify the rounding
 /// of `h` and of the mean of `F` past the condition's spread is refused,
 /// naming `step` (at `s = 1e-6` the mean came out −1.39 where it is
@@ -253,32 +279,13 @@ fn bad_settings_are_rejected() {
 #[test]
 fn a_step_below_the_round_off_of_nested_differences_is_refused() {
     let model = triple_integrator_model(1e-12);
-    let b = bayes_cbf::barrier::ExpressionBarrier::new(
-        &["p", "v", "a"],
-        &[],
-        "1 - p - 0.1*v^2",
-        3,
-        vec![6.0, 11.0, 6.0],
-    )
-    .unwrap();
-    let x = [0.3, 0.4, -0.2];
-    let at = |step| {
-        mc_cbc_moments(
-            &model,
-            &b,
-            &x,
-            &McSettings {
-                samples: 500,
-                step,
-                seed: 4,
-            },
-        )
-    };
+    let b = rd3("1 - p - 0.1*v^2", &[], [6.0, 11.0, 6.0]);
+    let at = |step| mc_at(&model, &b, &[0.3, 0.4, -0.2], step);
     let reference = at(1e-2).unwrap().moments.e;
     for step in [1e-3, 1e-4] {
         let e = at(step).unwrap().moments.e;
         assert!(
-            (e[0] - reference[0]).abs() < 1e-3,
+            agree(&e, &reference, 1e-3),
             "step {step}: {e:?} vs {reference:?}"
         );
     }
@@ -289,29 +296,10 @@ fn a_step_below_the_round_off_of_nested_differences_is_refused() {
     // far from the origin the lattice points round to ε·|x|: the same
     // barrier shifted by 1e5 (F does not depend on p) agrees at the
     // default step and is refused at 1e-4, where the bias was 23 %
-    let far = bayes_cbf::barrier::ExpressionBarrier::new(
-        &["p", "v", "a"],
-        &[("C", 1e5)],
-        "C + 1 - p - 0.1*v^2",
-        3,
-        vec![6.0, 11.0, 6.0],
-    )
-    .unwrap();
-    let x_far = [1e5 + 0.3, 0.4, -0.2];
-    let at_far = |step| {
-        mc_cbc_moments(
-            &model,
-            &far,
-            &x_far,
-            &McSettings {
-                samples: 500,
-                step,
-                seed: 4,
-            },
-        )
-    };
+    let far = rd3("C + 1 - p - 0.1*v^2", &[("C", 1e5)], [6.0, 11.0, 6.0]);
+    let at_far = |step| mc_at(&model, &far, &[1e5 + 0.3, 0.4, -0.2], step);
     let e = at_far(1e-2).unwrap().moments.e;
-    assert!((e[0] - reference[0]).abs() < 1e-3, "{e:?} vs {reference:?}");
+    assert!(agree(&e, &reference, 1e-3), "{e:?} vs {reference:?}");
     let err = at_far(1e-4).unwrap_err().to_string();
     assert!(err.contains("step") && err.contains("round-off"), "{err}");
 }
@@ -326,26 +314,8 @@ fn a_step_below_the_round_off_of_nested_differences_is_refused() {
 #[test]
 fn a_step_beyond_the_truncation_of_nested_differences_is_refused() {
     let model = triple_integrator_model(1e-12);
-    let wavy = bayes_cbf::barrier::ExpressionBarrier::new(
-        &["p", "v", "a"],
-        &[],
-        "2 - p - 0.1*v^2 - 0.2*sin(5*p)",
-        3,
-        vec![6.0, 11.0, 6.0],
-    )
-    .unwrap();
-    let at = |step| {
-        mc_cbc_moments(
-            &model,
-            &wavy,
-            &[0.3, 0.4, -0.2],
-            &McSettings {
-                samples: 500,
-                step,
-                seed: 4,
-            },
-        )
-    };
+    let wavy = rd3("2 - p - 0.1*v^2 - 0.2*sin(5*p)", &[], [6.0, 11.0, 6.0]);
+    let at = |step| mc_at(&model, &wavy, &[0.3, 0.4, -0.2], step);
     // beyond the kernel's lengthscale (1), and within it where h's own
     // curvature sets the truncation
     for (step, why) in [(1e3, "lengthscale"), (0.3, "truncation")] {
@@ -355,21 +325,11 @@ fn a_step_beyond_the_truncation_of_nested_differences_is_refused() {
             "{step}: {err}"
         );
     }
+    let (a, b) = (at(1e-2).unwrap().moments.e, at(1e-3).unwrap().moments.e);
+    assert!(agree(&a, &b, 1e-3), "{a:?} vs {b:?}");
     // a bounded h stays finite at any step
-    let sector = bayes_cbf::barrier::ExpressionBarrier::new(
-        &["p", "v", "a"],
-        &[],
-        "cos(0.3927) - cos(p - 0.7854)",
-        3,
-        vec![6.0, 11.0, 6.0],
-    )
-    .unwrap();
-    let settings = McSettings {
-        samples: 500,
-        step: 1e300,
-        seed: 4,
-    };
-    let err = mc_cbc_moments(&model, &sector, &[1.3, -0.5, 0.1], &settings)
+    let sector = rd3("cos(0.3927) - cos(p - 0.7854)", &[], [6.0, 11.0, 6.0]);
+    let err = mc_at(&model, &sector, &[1.3, -0.5, 0.1], 1e300)
         .unwrap_err()
         .to_string();
     assert!(err.contains("step") && err.contains("too large"), "{err}");
@@ -377,53 +337,21 @@ fn a_step_beyond_the_truncation_of_nested_differences_is_refused() {
     // (v > −0.05): the truncation estimated from half the step; with no
     // acceleration the square root's terms drop out, and the step agrees
     // with half of it
-    let edge = bayes_cbf::barrier::ExpressionBarrier::new(
-        &["p", "v", "a"],
-        &[],
-        "2 - p + 0.01*sqrt(v + 0.05)",
-        3,
-        vec![1.0, 3.0, 3.0],
-    )
-    .unwrap();
-    let at_edge = |step| {
-        let settings = McSettings {
-            samples: 500,
-            step,
-            seed: 4,
-        };
-        mc_cbc_moments(&model, &edge, &[0.5, 0.0, 0.0], &settings)
-    };
+    let edge = rd3("2 - p + 0.01*sqrt(v + 0.05)", &[], [1.0, 3.0, 3.0]);
+    let at_edge = |step| mc_at(&model, &edge, &[0.5, 0.0, 0.0], step);
     let (a, b) = (
         at_edge(1e-2).unwrap().moments.e,
         at_edge(5e-3).unwrap().moments.e,
     );
-    assert!(
-        (a[0] - b[0]).abs() < 1e-3 * a[0].abs().max(1.0),
-        "{a:?} vs {b:?}"
-    );
+    assert!(agree(&a, &b, 1e-3), "{a:?} vs {b:?}");
     // the failed evaluation out there is not a later call's error
     assert!(at_edge(1e-2).is_ok());
     // with an acceleration the square root's curvature enters: the default
     // step is refused (its truncation, estimated from half of it, is over
     // 1 %; it passed unchecked before), and 1e-3 and 5e-4 agree (37.26 and
     // 37.15)
-    let sharp = bayes_cbf::barrier::ExpressionBarrier::new(
-        &["p", "v", "a"],
-        &[],
-        "2 - p + sqrt(v + 0.05)",
-        3,
-        vec![1.0, 3.0, 3.0],
-    )
-    .unwrap();
-    let x = [0.5, -0.015, 0.3];
-    let at_sharp = |step| {
-        let settings = McSettings {
-            samples: 500,
-            step,
-            seed: 4,
-        };
-        mc_cbc_moments(&model, &sharp, &x, &settings)
-    };
+    let sharp = rd3("2 - p + sqrt(v + 0.05)", &[], [1.0, 3.0, 3.0]);
+    let at_sharp = |step| mc_at(&model, &sharp, &[0.5, -0.015, 0.3], step);
     let err = at_sharp(1e-2).unwrap_err().to_string();
     assert!(
         err.contains("too large") && err.contains("from half the step"),
@@ -433,10 +361,5 @@ fn a_step_beyond_the_truncation_of_nested_differences_is_refused() {
         at_sharp(1e-3).unwrap().moments.e,
         at_sharp(5e-4).unwrap().moments.e,
     );
-    assert!((a[0] - b[0]).abs() < 1e-2 * a[0].abs(), "{a:?} vs {b:?}");
-    let (a, b) = (at(1e-2).unwrap().moments.e, at(1e-3).unwrap().moments.e);
-    assert!(
-        (a[0] - b[0]).abs() < 1e-3 * a[0].abs().max(1.0),
-        "{a:?} vs {b:?}"
-    );
+    assert!(agree(&a, &b, 1e-2), "{a:?} vs {b:?}");
 }
