@@ -12,7 +12,7 @@ pub struct BenchArgs {
     /// Reduced sizes and repetitions (seconds instead of minutes).
     #[arg(long)]
     pub quick: bool,
-    /// Write the JSON here instead of stdout.
+    /// Write the JSON here instead of stdout (`-`: stdout).
     #[arg(long)]
     pub out: Option<PathBuf>,
     /// Threads for faer's dense linear algebra (default 1: single core).

@@ -6,7 +6,6 @@ use bayes_cbf::gp::{fit, FitReport, InputMap};
 use bayes_cbf_scenario::csv_data::{read_dataset, Layout};
 use bayes_cbf_scenario::fitting::{fit_settings, initial_model};
 use bayes_cbf_scenario::input_map_spec::{parse_input_map, to_input_map};
-use bayes_cbf_scenario::io::write_atomic;
 use bayes_cbf_scenario::model_file::ModelFile;
 use bayes_cbf_scenario::parse::{parse_indices, parse_vector, rank_name};
 use bayes_cbf_scenario::prior_spec::PriorSpec;
@@ -35,7 +34,7 @@ pub struct FitArgs {
     /// pendulum and ackermann).
     #[arg(long, value_name = "JSON", default_value = "zero")]
     pub prior_mean: String,
-    /// Output model file (written completely or not at all).
+    /// Output model file (written completely or not at all; `-`: stdout).
     #[arg(long, value_name = "MODEL.json")]
     pub out: PathBuf,
     /// Columns are t,x1..xN,u1..uM; ẋ is estimated by finite differences.
@@ -91,7 +90,7 @@ pub struct PredictArgs {
         allow_hyphen_values = true
     )]
     pub xs: Vec<String>,
-    /// Write the JSON here instead of stdout.
+    /// Write the JSON here instead of stdout (`-`: stdout).
     #[arg(long, value_name = "FILE")]
     pub out: Option<PathBuf>,
 }
@@ -153,7 +152,7 @@ pub fn run_fit(a: &FitArgs) -> Result<()> {
         log::warn!("--known-rows: {}", m.describe());
     }
     let file = ModelFile::from_model(&model, &prior);
-    write_atomic(&a.out, file.to_json()?.as_bytes())?;
+    crate::output::write_out(&a.out, file.to_json()?.as_bytes())?;
     note!(
         "fit: k = {}, log-likelihood {:.3} -> {:.3}, {} start(s), {} evaluations, rank A {} / B {}, {:.2} s, wrote {}",
         model.len(),

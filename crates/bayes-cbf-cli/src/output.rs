@@ -1,10 +1,11 @@
-//! JSON results on stdout, or in a file written completely or not at all.
+//! JSON results on stdout, or in a file written completely or not at all
+//! (`--out -` is stdout, as usual on the command line).
 
 use anyhow::{Context, Result};
 use bayes_cbf_scenario::io::write_atomic;
 use serde::Serialize;
 use std::io::Write;
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 
 /// Writes `value` as JSON (one line, or indented with `pretty`) and a final
 /// newline to `out`, or to stdout when `out` is `None`.
@@ -17,9 +18,18 @@ pub fn emit<T: Serialize + ?Sized>(value: &T, out: &Option<PathBuf>, pretty: boo
     .context("cannot serialise the output")?;
     json.push('\n');
     match out {
-        Some(p) => Ok(write_atomic(p, json.as_bytes())?),
+        Some(p) => write_out(p, json.as_bytes()),
         None => print_stdout(&json),
     }
+}
+
+/// Writes `bytes` to the file `path` completely or not at all, or to
+/// stdout when `path` is `-`.
+pub fn write_out(path: &Path, bytes: &[u8]) -> Result<()> {
+    if path == Path::new("-") {
+        return print_stdout(&String::from_utf8_lossy(bytes));
+    }
+    Ok(write_atomic(path, bytes)?)
 }
 
 /// Writes `text` to stdout; a full disk or a closed pipe is an error, not

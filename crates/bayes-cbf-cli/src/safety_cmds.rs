@@ -35,7 +35,7 @@ pub struct MomentsArgs {
     /// Seed of the Monte Carlo draws.
     #[arg(long, allow_negative_numbers = true, default_value_t = 0)]
     pub seed: u64,
-    /// Write the JSON here instead of stdout.
+    /// Write the JSON here instead of stdout (`-`: stdout).
     #[arg(long)]
     pub out: Option<PathBuf>,
 }
@@ -81,7 +81,7 @@ pub struct ControlArgs {
     /// name it).
     #[arg(long)]
     pub latent: bool,
-    /// Write the JSON here instead of stdout.
+    /// Write the JSON here instead of stdout (`-`: stdout).
     #[arg(long)]
     pub out: Option<PathBuf>,
 }

@@ -143,6 +143,26 @@ fn fit_then_predict_pendulum_matches_truth() {
     );
     assert_eq!(out, Value::Null, "nothing on stdout");
     assert_eq!(read_json(&pred_file)["predictions"][0], preds[0]);
+
+    // --out - is stdout, for predict and for fit's model file: no file
+    // named '-'
+    let m = model.to_str().unwrap();
+    let r = run_in(
+        &dir,
+        &["predict", "--model", m, "--x", "0.5,-1", "--out", "-"],
+    );
+    assert!(r.status.success(), "{}", r.stderr);
+    let v: Value = serde_json::from_str(&r.stdout).unwrap();
+    assert_eq!(v["predictions"][0], preds[0]);
+    let fit_args = "fit --state-dim 2 --control-dim 1 --max-iters 2 --out - --data";
+    let r = run_in(
+        &dir,
+        &[&words(fit_args)[..], &[csv.to_str().unwrap()]].concat(),
+    );
+    assert!(r.status.success(), "{}", r.stderr);
+    let v: Value = serde_json::from_str(&r.stdout).unwrap();
+    assert_eq!(v["state_dim"], 2);
+    assert!(!dir.join("-").exists());
 }
 
 #[test]
