@@ -29,9 +29,10 @@ def check_derivatives(
     (``eps`` the float64 machine epsilon): a large ``h`` (``1e9 + x²``)
     cannot be differenced more finely than that at this ``step``. Where that
     round-off exceeds ``atol`` plus a tenth of the largest entry of the
-    gradient (or Hessian) compared at that point, the entry is *unresolved*: the differences cannot tell a right value from a
-    wrong one there, and the check does not pass (raise ``step``, or drop a
-    large constant from ``h``).
+    gradient (or Hessian) compared at that point, the entry is
+    *unresolved*: the differences cannot tell a right value from a wrong
+    one there, and the check does not pass (raise ``step``, or drop a large
+    constant from ``h``).
 
     Returns a dict with ``ok`` (bool: every entry passed and was resolved),
     ``grad_error`` and ``hess_error`` (the largest absolute error, ``inf``
