@@ -22,6 +22,7 @@ pub mod speed_test;
 
 use crate::bail;
 use crate::error::Result;
+use crate::scenario::{Column, Trajectory};
 pub(crate) use crate::stats::quantile;
 use bayes_cbf::gp::{
     metrics, Cogp, CogpHyper, DynamicsModel, InputMap, ModelFitSettings, Mvgp, MvgpHyper,
@@ -71,36 +72,38 @@ pub struct Table {
 /// row per sample: `x1..xn`, `u1..um`, `xdot1..xdotn`, after a `system`
 /// column when there are several sets; a system with fewer states or
 /// controls than the widest leaves those cells empty.
-pub(crate) fn samples_table(sets: &[(&str, &Dataset)]) -> Table {
+pub(crate) fn samples_table(sets: &[(&'static str, &Dataset)]) -> Table {
     let n = sets.iter().map(|(_, d)| d.n).max().unwrap_or(0);
     let m = sets.iter().map(|(_, d)| d.m).max().unwrap_or(0);
-    let named = sets.len() > 1;
-    let mut header: Vec<String> = Vec::new();
-    if named {
-        header.push("system".into());
+    let mut columns: Vec<(String, Column)> = Vec::new();
+    if sets.len() > 1 {
+        let names = sets
+            .iter()
+            .flat_map(|(name, d)| std::iter::repeat_n(*name, d.len()))
+            .collect();
+        columns.push(("system".into(), Column::Words(names)));
     }
-    header.extend((1..=n).map(|i| format!("x{i}")));
-    header.extend((1..=m).map(|i| format!("u{i}")));
-    header.extend((1..=n).map(|i| format!("xdot{i}")));
-    let mut csv = header.join(",") + "\n";
-    let cells = |v: &[f64], width: usize| -> Vec<String> {
-        (0..width)
-            .map(|i| v.get(i).map_or_else(String::new, |x| x.to_string()))
-            .collect()
-    };
-    for (name, d) in sets {
-        for j in 0..d.len() {
-            let mut row: Vec<String> = Vec::new();
-            if named {
-                row.push(name.to_string());
-            }
-            row.extend(cells(&d.xs[j * d.n..(j + 1) * d.n], n));
-            row.extend(cells(&d.us[j * d.m..(j + 1) * d.m], m));
-            row.extend(cells(&d.xdot[j * d.n..(j + 1) * d.n], n));
-            csv += &(row.join(",") + "\n");
+    // entry `i` of every sample's block of `width(d)` values in `values(d)`;
+    // NaN (an empty cell) where a set's block is narrower
+    type Block = fn(&Dataset) -> (&[f64], usize);
+    let blocks: [(&str, usize, Block); 3] = [
+        ("x", n, |d| (&d.xs, d.n)),
+        ("u", m, |d| (&d.us, d.m)),
+        ("xdot", n, |d| (&d.xdot, d.n)),
+    ];
+    for (prefix, width, block) in blocks {
+        for i in 0..width {
+            let values = sets
+                .iter()
+                .flat_map(|(_, d)| {
+                    let (v, w) = block(d);
+                    (0..d.len()).map(move |j| if i < w { v[j * w + i] } else { f64::NAN })
+                })
+                .collect();
+            columns.push((format!("{prefix}{}", i + 1), Column::Numbers(values)));
         }
     }
-    Table::new("trajectory.csv", csv)
+    Table::new("trajectory.csv", Trajectory { columns }.to_csv())
 }
 
 impl Table {

@@ -342,11 +342,14 @@ pub fn mc_cbc_moments<K: Kernel>(
     }
     let lat = Lattice::new(n, r);
     let np = lat.f_points.len();
-    let point = |off: &[i64]| -> Vec<f64> { (0..n).map(|i| x[i] + s * off[i] as f64).collect() };
+    // the lattice point `x + step·off`
+    let point_at = |step: f64, off: &[i64]| -> Vec<f64> {
+        (0..n).map(|i| x[i] + step * off[i] as f64).collect()
+    };
+    let point = |off: &[i64]| point_at(s, off);
     // h on its lattice and the posterior mean of F on F's, at step `step`
     let lattice_means = |step: f64| -> Result<(Vec<f64>, DMatrix<f64>), Error> {
-        let at =
-            |off: &[i64]| -> Vec<f64> { (0..n).map(|i| x[i] + step * off[i] as f64).collect() };
+        let at = |off: &[i64]| point_at(step, off);
         let h_vals: Vec<f64> = lat.h_points.iter().map(|o| barrier.value(&at(o))).collect();
         let mut mean = DMatrix::<f64>::zeros(n, np * p);
         for (a, o) in lat.f_points.iter().enumerate() {
