@@ -332,6 +332,13 @@ fn floor_row(model: &Mvgp, k: usize, reps: usize) -> BenchRow {
     BenchRow::Floor { k, p50_us: p50 }
 }
 
+/// Runs `f` once: its value and its wall time (ms).
+fn timed_ms<T>(f: impl FnOnce() -> Result<T>) -> Result<(T, f64)> {
+    let s = Instant::now();
+    let v = f()?;
+    Ok((v, s.elapsed().as_secs_f64() * 1e3))
+}
+
 fn fit_rows(system: &str, k: usize, reps: usize, iters: u64) -> Result<Vec<BenchRow>> {
     let (n, m, d, data, map, prior) = match system {
         "ackermann" => (
@@ -362,16 +369,13 @@ fn fit_rows(system: &str, k: usize, reps: usize, iters: u64) -> Result<Vec<Bench
         };
         let mut model = Mvgp::new(n, m, hyper, prior.clone(), map.clone())?;
         model.set_data(&data.xs, &data.us, &data.xdot)?;
-        let s = Instant::now();
-        mv_evals = fit(
-            &mut model,
-            &FitSettings {
-                max_iters: iters,
-                ..FitSettings::default()
-            },
-        )?
-        .evaluations;
-        mv.push(s.elapsed().as_secs_f64() * 1e3);
+        let settings = FitSettings {
+            max_iters: iters,
+            ..FitSettings::default()
+        };
+        let (evals, ms) = timed_ms(|| Ok(fit(&mut model, &settings)?.evaluations))?;
+        mv_evals = evals;
+        mv.push(ms);
         let np = n * (m + 1);
         let ch = CogpHyper {
             kernel: Rbf::new(vec![1.0; d], 1.0)?,
@@ -380,17 +384,14 @@ fn fit_rows(system: &str, k: usize, reps: usize, iters: u64) -> Result<Vec<Bench
         };
         let mut cogp = Cogp::new(n, m, ch, prior.clone(), map.clone())?;
         cogp.set_data(&data.xs, &data.us, &data.xdot)?;
-        let s = Instant::now();
-        co_evals = fit_cogp(
-            &mut cogp,
-            &CogpFitSettings {
-                max_iters: iters,
-                prefit_diagonal: false,
-                ..CogpFitSettings::default()
-            },
-        )?
-        .evaluations;
-        co.push(s.elapsed().as_secs_f64() * 1e3);
+        let settings = CogpFitSettings {
+            max_iters: iters,
+            prefit_diagonal: false,
+            ..CogpFitSettings::default()
+        };
+        let (evals, ms) = timed_ms(|| Ok(fit_cogp(&mut cogp, &settings)?.evaluations))?;
+        co_evals = evals;
+        co.push(ms);
     }
     let (m50, c50) = (round(quantile(&mv, 0.5)), round(quantile(&co, 0.5)));
     let row = |model: &str, p50_ms, evaluations, ratio_to_mvgp| BenchRow::Fit {
@@ -459,15 +460,11 @@ fn fit_evaluation_row(k: usize, reps: usize) -> Result<BenchRow> {
 /// that box.
 fn fit_bound_rows(k: usize, iters: u64) -> Result<Vec<BenchRow>> {
     let run = |model: &mut Mvgp, settings: FitSettings| -> Result<(usize, f64)> {
-        let s = Instant::now();
-        let r = fit(
-            model,
-            &FitSettings {
-                max_iters: iters,
-                ..settings
-            },
-        )?;
-        Ok((r.evaluations, s.elapsed().as_secs_f64() * 1e3))
+        let settings = FitSettings {
+            max_iters: iters,
+            ..settings
+        };
+        timed_ms(|| Ok(fit(model, &settings)?.evaluations))
     };
     let row = |bound: &str, free: (usize, f64), bounded: (usize, f64)| BenchRow::FitBound {
         system: "pendulum".into(),

@@ -65,6 +65,38 @@ where
     }
 }
 
+/// Fills the polygon `pts` clipped to the axis box (nothing where less
+/// than a triangle is left), as one series.
+fn fill_clipped<'a, 'b, DB>(
+    ch: &'b mut Chart<'a, DB>,
+    ax: &Axes,
+    pts: &[(f64, f64)],
+    style: ShapeStyle,
+) -> Result<&'b mut SeriesAnno<'a, DB>>
+where
+    DB: DrawingBackend + 'a,
+{
+    let poly = clip_polygon(ax, pts);
+    ch.draw_series((poly.len() >= 3).then(|| Polygon::new(poly, style)))
+        .map_err(de)
+}
+
+/// Draws polylines, solid or dashed, with a legend entry of the same line
+/// when `name` is set; returns whether it added one.
+fn draw_named_lines<'a, DB>(
+    ch: &mut Chart<'a, DB>,
+    segs: Vec<Vec<(f64, f64)>>,
+    style: ShapeStyle,
+    dashed: bool,
+    name: &Option<String>,
+) -> Result<bool>
+where
+    DB: DrawingBackend + 'a,
+{
+    let anno = draw_lines(ch, segs, style, dashed)?;
+    Ok(legend(anno, name, style, if dashed { 5 } else { 0 }))
+}
+
 /// Draws one layer; returns whether it added a legend entry.
 pub(super) fn draw_layer<'a, DB>(ch: &mut Chart<'a, DB>, layer: &Layer, ax: &Axes) -> Result<bool>
 where
@@ -98,8 +130,7 @@ where
         } => {
             let pts: Vec<(f64, f64)> = xs.iter().copied().zip(ys.iter().copied()).collect();
             let style = solid(*color, (*width).max(1));
-            let anno = draw_lines(ch, segments(pts), style, *dashed)?;
-            legend(anno, name, style, if *dashed { 5 } else { 0 })
+            draw_named_lines(ch, segments(pts), style, *dashed, name)?
         }
         Layer::Scatter {
             name,
@@ -182,14 +213,7 @@ where
                 .collect();
             let mut poly: Vec<(f64, f64)> = idx.iter().map(|&i| (xs[i], hi[i])).collect();
             poly.extend(idx.iter().rev().map(|&i| (xs[i], lo[i])));
-            let poly = clip_polygon(ax, &poly);
-            if poly.len() >= 3 {
-                ch.draw_series(std::iter::once(Polygon::new(
-                    poly,
-                    palette(*color).mix(0.2).filled(),
-                )))
-                .map_err(de)?;
-            }
+            fill_clipped(ch, ax, &poly, palette(*color).mix(0.2).filled())?;
             false
         }
         Layer::HLine {
@@ -210,8 +234,7 @@ where
             } else {
                 vec![(*at, y0), (*at, y1)]
             };
-            let anno = draw_lines(ch, segments(ends), style, *dashed)?;
-            legend(anno, name, style, if *dashed { 5 } else { 0 })
+            draw_named_lines(ch, segments(ends), style, *dashed, name)?
         }
         Layer::HBand {
             lo,
@@ -220,10 +243,8 @@ where
             name,
         } => {
             let style = palette(*color).mix(0.25).filled();
-            let poly = clip_polygon(ax, &[(x0, *lo), (x1, *lo), (x1, *hi), (x0, *hi)]);
-            let anno = ch
-                .draw_series((poly.len() >= 3).then(|| Polygon::new(poly, style)))
-                .map_err(de)?;
+            let corners = [(x0, *lo), (x1, *lo), (x1, *hi), (x0, *hi)];
+            let anno = fill_clipped(ch, ax, &corners, style)?;
             legend(anno, name, style, 2)
         }
         Layer::Heatmap {
@@ -262,8 +283,7 @@ where
                     .into_iter()
                     .filter_map(|(a, b)| clip_segment(ax, a, b).map(|(a, b)| vec![a, b]))
                     .collect();
-                let anno = draw_lines(ch, segs, style, false)?;
-                legend(anno, &Some("zero level".into()), style, 0)
+                draw_named_lines(ch, segs, style, false, &Some("zero level".into()))?
             } else {
                 false
             }
@@ -284,14 +304,7 @@ where
                     (cx + r * t.cos(), cy + r * t.sin())
                 })
                 .collect();
-            let fill = clip_polygon(ax, &ring);
-            if fill.len() >= 3 {
-                ch.draw_series(std::iter::once(Polygon::new(
-                    fill,
-                    palette(*color).mix(0.25).filled(),
-                )))
-                .map_err(de)?;
-            }
+            fill_clipped(ch, ax, &ring, palette(*color).mix(0.25).filled())?;
             let style = solid(*color, 2);
             let anno = draw_lines(ch, segments(ring), style, false)?;
             legend(anno, name, palette(*color).mix(0.5).filled(), 2)

@@ -157,12 +157,7 @@ pub fn run(args: &ExperimentArgs) -> Result<AckermannTriggering> {
                 "outputs.plots=false".into(),
             ],
         )?;
-        let reps: Vec<_> = o
-            .result
-            .records
-            .iter()
-            .filter_map(|r| r.trigger.as_ref())
-            .collect();
+        let reps: Vec<_> = o.result.trigger_reports().collect();
         let tau_a = stats::median(&reps.iter().map(|t| t.tau_analytic).collect::<Vec<_>>());
         let tau_n = stats::median(
             &reps
@@ -211,12 +206,7 @@ pub fn run(args: &ExperimentArgs) -> Result<AckermannTriggering> {
     let dense: Vec<f64> = (0..=12)
         .map(|i| 1e-3 * 10f64.powf(i as f64 / 4.0))
         .collect();
-    let reps: Vec<_> = selft
-        .result
-        .records
-        .iter()
-        .filter_map(|rec| rec.trigger.as_ref())
-        .collect();
+    let reps: Vec<_> = selft.result.trigger_reports().collect();
     let curve = |numerical: bool| -> Vec<f64> {
         dense
             .iter()

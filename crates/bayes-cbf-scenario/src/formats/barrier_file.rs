@@ -12,25 +12,52 @@ use std::path::Path;
 use std::sync::atomic::AtomicBool;
 use std::sync::Arc;
 
-/// One barrier as written in a file.
-#[derive(Debug, Clone, PartialEq, Deserialize, serde::Serialize)]
-#[serde(tag = "type", rename_all = "snake_case", deny_unknown_fields)]
-pub enum BarrierSpec {
+/// Declares [`BarrierSpec`] with the fields every barrier has,
+/// `relative_degree`, `alpha` and `k_alpha`, after each variant's own, and
+/// `BarrierSpec::order`, which reads them.
+macro_rules! barrier_spec {
+    ($($(#[$meta:meta])* $variant:ident { $($field:tt)* },)*) => {
+        /// One barrier as written in a file.
+        #[derive(Debug, Clone, PartialEq, Deserialize, serde::Serialize)]
+        #[serde(tag = "type", rename_all = "snake_case", deny_unknown_fields)]
+        pub enum BarrierSpec {
+            $($(#[$meta])* $variant {
+                $($field)*
+                /// Relative degree (≥ 1).
+                #[serde(deserialize_with = "crate::parse::whole_number")]
+                relative_degree: usize,
+                /// Gain for relative degree 1.
+                #[serde(default, skip_serializing_if = "Option::is_none")]
+                alpha: Option<f64>,
+                /// Gains for relative degree ≥ 2, one per derivative order.
+                #[serde(default, skip_serializing_if = "Option::is_none")]
+                k_alpha: Option<Vec<f64>>,
+            },)*
+        }
+
+        impl BarrierSpec {
+            /// `(relative_degree, alpha, k_alpha)`, the fields every variant has.
+            fn order(&self) -> (usize, &Option<f64>, &Option<Vec<f64>>) {
+                match self {
+                    $(BarrierSpec::$variant {
+                        relative_degree,
+                        alpha,
+                        k_alpha,
+                        ..
+                    })|* => (*relative_degree, alpha, k_alpha),
+                }
+            }
+        }
+    };
+}
+
+barrier_spec! {
     /// `h = cos(delta) − cos(θ − theta_c)`.
     PendulumSector {
         /// Sector centre (rad).
         theta_c: f64,
         /// Sector half-width (rad).
         delta: f64,
-        /// Relative degree (1 or 2).
-        #[serde(deserialize_with = "crate::parse::whole_number")]
-        relative_degree: usize,
-        /// Gain for relative degree 1.
-        #[serde(default, skip_serializing_if = "Option::is_none")]
-        alpha: Option<f64>,
-        /// Gains for relative degree 2.
-        #[serde(default, skip_serializing_if = "Option::is_none")]
-        k_alpha: Option<Vec<f64>>,
     },
     /// One edge of the sector `theta_c ± delta` as a linear barrier in
     /// `φ = (θ − theta_c) mod 2π`: `h = φ − delta` (`edge = "upper"`) or
@@ -42,15 +69,6 @@ pub enum BarrierSpec {
         delta: f64,
         /// `"upper"` (`theta_c + delta`) or `"lower"` (`theta_c − delta`).
         edge: EdgeSpec,
-        /// Relative degree (1 or 2).
-        #[serde(deserialize_with = "crate::parse::whole_number")]
-        relative_degree: usize,
-        /// Gain for relative degree 1.
-        #[serde(default, skip_serializing_if = "Option::is_none")]
-        alpha: Option<f64>,
-        /// Gains for relative degree 2.
-        #[serde(default, skip_serializing_if = "Option::is_none")]
-        k_alpha: Option<Vec<f64>>,
     },
     /// Ackermann obstacle with heading term.
     CircleHeading {
@@ -62,15 +80,6 @@ pub enum BarrierSpec {
         q1: f64,
         /// Heading weight.
         q2: f64,
-        /// Relative degree.
-        #[serde(deserialize_with = "crate::parse::whole_number")]
-        relative_degree: usize,
-        /// Gain for relative degree 1.
-        #[serde(default, skip_serializing_if = "Option::is_none")]
-        alpha: Option<f64>,
-        /// Gains for relative degree 2.
-        #[serde(default, skip_serializing_if = "Option::is_none")]
-        k_alpha: Option<Vec<f64>>,
     },
     /// `h = ‖x[indices] − center‖² − radius²`.
     Disc {
@@ -83,15 +92,6 @@ pub enum BarrierSpec {
         center: [f64; 2],
         /// Radius.
         radius: f64,
-        /// Relative degree.
-        #[serde(deserialize_with = "crate::parse::whole_number")]
-        relative_degree: usize,
-        /// Gain for relative degree 1.
-        #[serde(default, skip_serializing_if = "Option::is_none")]
-        alpha: Option<f64>,
-        /// Gains for relative degree 2.
-        #[serde(default, skip_serializing_if = "Option::is_none")]
-        k_alpha: Option<Vec<f64>>,
     },
     /// `h = normalᵀx − offset`.
     HalfSpace {
@@ -99,15 +99,6 @@ pub enum BarrierSpec {
         normal: Vec<f64>,
         /// Offset.
         offset: f64,
-        /// Relative degree.
-        #[serde(deserialize_with = "crate::parse::whole_number")]
-        relative_degree: usize,
-        /// Gain for relative degree 1.
-        #[serde(default, skip_serializing_if = "Option::is_none")]
-        alpha: Option<f64>,
-        /// Gains for relative degree 2.
-        #[serde(default, skip_serializing_if = "Option::is_none")]
-        k_alpha: Option<Vec<f64>>,
     },
     /// `h` written as an expression over named states (interfaces.md,
     /// "Expressions").
@@ -120,15 +111,6 @@ pub enum BarrierSpec {
         params: Params,
         /// `h(x)`.
         h: String,
-        /// Relative degree.
-        #[serde(deserialize_with = "crate::parse::whole_number")]
-        relative_degree: usize,
-        /// Gain for relative degree 1.
-        #[serde(default, skip_serializing_if = "Option::is_none")]
-        alpha: Option<f64>,
-        /// Gains for relative degree ≥ 2.
-        #[serde(default, skip_serializing_if = "Option::is_none")]
-        k_alpha: Option<Vec<f64>>,
     },
 }
 
@@ -211,48 +193,6 @@ impl BarrierSpec {
     /// must name its states).
     pub fn build(&self) -> Result<Arc<dyn DynBarrier>> {
         self.build_in(None)
-    }
-
-    /// `(relative_degree, alpha, k_alpha)`, the fields every variant has.
-    fn order(&self) -> (usize, &Option<f64>, &Option<Vec<f64>>) {
-        match self {
-            BarrierSpec::PendulumSector {
-                relative_degree,
-                alpha,
-                k_alpha,
-                ..
-            }
-            | BarrierSpec::PendulumSectorEdge {
-                relative_degree,
-                alpha,
-                k_alpha,
-                ..
-            }
-            | BarrierSpec::CircleHeading {
-                relative_degree,
-                alpha,
-                k_alpha,
-                ..
-            }
-            | BarrierSpec::Disc {
-                relative_degree,
-                alpha,
-                k_alpha,
-                ..
-            }
-            | BarrierSpec::HalfSpace {
-                relative_degree,
-                alpha,
-                k_alpha,
-                ..
-            }
-            | BarrierSpec::Expression {
-                relative_degree,
-                alpha,
-                k_alpha,
-                ..
-            } => (*relative_degree, alpha, k_alpha),
-        }
     }
 
     /// Builds the barrier of a system whose states are named `state` (an

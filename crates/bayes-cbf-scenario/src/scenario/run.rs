@@ -329,11 +329,7 @@ fn stats(mut v: Vec<f64>) -> Option<Stats> {
 
 /// The self-triggering part of the summary.
 fn trigger_summary(ts: &TriggerSettings, r: &LoopResult) -> TriggerSummary {
-    let reps: Vec<&TriggerReport> = r
-        .records
-        .iter()
-        .filter_map(|x| x.trigger.as_ref())
-        .collect();
+    let reps: Vec<&TriggerReport> = r.trigger_reports().collect();
     let field = |f: &dyn Fn(&TriggerReport) -> Option<f64>| -> Vec<f64> {
         reps.iter().filter_map(|t| f(t)).collect()
     };

@@ -277,6 +277,14 @@ pub struct LoopResult {
     pub model: Mvgp,
 }
 
+impl LoopResult {
+    /// The self-triggering evaluations of the run's steps, in order (none
+    /// without [`LoopSettings::trigger`]).
+    pub fn trigger_reports(&self) -> impl Iterator<Item = &TriggerReport> {
+        self.records.iter().filter_map(|r| r.trigger.as_ref())
+    }
+}
+
 /// A scalar function of the state whose minimum over the fine grid is
 /// recorded (e.g. the signed distance to an obstacle).
 pub type Monitor = Arc<dyn Fn(&[f64]) -> f64 + Send + Sync>;
