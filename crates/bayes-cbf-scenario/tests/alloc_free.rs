@@ -88,22 +88,17 @@ fn ackermann_step_allocations(k: usize, recalibrate: bool, predictive: bool) -> 
     let mut out = ControlOutput::new(2, 2);
     let r = w.reference.clone().unwrap();
     let mut x = w.x.clone();
-    for i in 0..5 {
-        x[0] = -3.0 + 0.013 * i as f64;
-        w.controller
-            .step(&w.model, &x, &w.u_ref, Some((&r.0, &r.1)), &mut out)
-            .unwrap();
-        w.controller.recalibrate(&w.model).unwrap();
-    }
-    count(|| {
-        for i in 0..50 {
+    let mut steps = |count: usize| {
+        for i in 0..count {
             x[0] = -3.0 + 0.013 * i as f64;
             w.controller
                 .step(&w.model, &x, &w.u_ref, Some((&r.0, &r.1)), &mut out)
                 .unwrap();
             w.controller.recalibrate(&w.model).unwrap();
         }
-    })
+    };
+    steps(5);
+    count(|| steps(50))
 }
 
 /// The whole step allocates nothing: the posterior, the moments of every

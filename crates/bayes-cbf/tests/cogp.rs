@@ -254,28 +254,24 @@ fn likelihood_gradient_matches_finite_differences() {
             };
             (with(mat + &e) - with(mat - &e)) / (2.0 * eps)
         };
-        for a in 0..np {
-            for b in 0..=a {
-                let an = if a == b {
-                    g.Sigma[(a, a)]
-                } else {
-                    2.0 * g.Sigma[(a, b)]
-                };
-                close(
-                    sym_fd(&hyper.Sigma, a, b, true),
-                    an,
-                    &format!("Sigma[{a}][{b}]"),
-                );
-            }
-        }
-        for a in 0..n {
-            for b in 0..=a {
-                let an = if a == b {
-                    g.S[(a, a)]
-                } else {
-                    2.0 * g.S[(a, b)]
-                };
-                close(sym_fd(&hyper.S, a, b, false), an, &format!("S[{a}][{b}]"));
+        // the gradient in a symmetric entry pair (a, b) moves both entries
+        for (name, mat, grad, is_sigma) in [
+            ("Sigma", &hyper.Sigma, &g.Sigma, true),
+            ("S", &hyper.S, &g.S, false),
+        ] {
+            for a in 0..mat.nrows() {
+                for b in 0..=a {
+                    let an = if a == b {
+                        grad[(a, a)]
+                    } else {
+                        2.0 * grad[(a, b)]
+                    };
+                    close(
+                        sym_fd(mat, a, b, is_sigma),
+                        an,
+                        &format!("{name}[{a}][{b}]"),
+                    );
+                }
             }
         }
         let th = hyper.kernel.log_hyper();

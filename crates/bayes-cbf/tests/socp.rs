@@ -256,21 +256,8 @@ fn one_dimensional_problem_matches_independent_solution() {
         filter
             .solve(std::slice::from_ref(&mom), None, &[u_ref], &mut out)
             .unwrap();
-        let expected = if scbc(u_ref) >= 0.0 {
-            u_ref
-        } else {
-            // bisection between the feasible 0 and û
-            let (mut a, mut b) = (0.0, u_ref);
-            for _ in 0..200 {
-                let mid = 0.5 * (a + b);
-                if scbc(mid) >= 0.0 {
-                    a = mid;
-                } else {
-                    b = mid;
-                }
-            }
-            a
-        };
+        // û itself, or the end of the interval between the feasible 0 and û
+        let expected = feasible_end(scbc, 0.0, u_ref);
         assert!(
             (out.u[0] - expected).abs() < 1e-6 * (1.0 + expected.abs()),
             "u {} expected {expected}",
