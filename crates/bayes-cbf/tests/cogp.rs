@@ -13,7 +13,7 @@ use bayes_cbf::gp::{
 use bayes_cbf::sim::sample_uniform;
 use bayes_cbf::systems::{DynSystem, Pendulum};
 use bayes_cbf::{Error, InputError};
-use common::{random_spd, rel_diff, selection, RandomSystem};
+use common::{random_rbf, random_spd, rel_diff, selection, RandomSystem};
 use nalgebra::{DMatrix, DVector};
 use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -28,11 +28,7 @@ struct Problem {
 
 fn random_problem(n: usize, m: usize, k: usize, d: usize, rng: &mut ChaCha8Rng) -> Problem {
     Problem {
-        kernel: Rbf::new(
-            (0..d).map(|_| rng.random_range(0.5..1.5)).collect(),
-            rng.random_range(0.5..2.0),
-        )
-        .unwrap(),
+        kernel: random_rbf(d, 0.5..1.5, rng),
         xs: (0..k * n).map(|_| rng.random_range(-1.5..1.5)).collect(),
         us: (0..k * m).map(|_| rng.random_range(-2.0..2.0)).collect(),
         xdot: (0..k * n).map(|_| rng.random_range(-2.0..2.0)).collect(),

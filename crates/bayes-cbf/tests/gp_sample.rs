@@ -115,17 +115,20 @@ fn check_moments(
     eprintln!("largest deviation: {worst:.2} standard errors");
 }
 
-#[test]
-#[allow(non_snake_case)]
-fn pendulum_draws_have_the_prior_mean_and_covariance() {
-    let A = DMatrix::from_row_slice(2, 2, &[0.3, 0.1, 0.1, 0.2]);
-    let B = DMatrix::from_row_slice(2, 2, &[1.0, 0.4, 0.4, 0.5]);
-    let hyper = MvgpHyper {
+/// The hyperparameters of the pendulum draws: a periodic angle (three
+/// kernel inputs) and correlated `A` and `B`.
+fn pendulum_hyper() -> MvgpHyper {
+    MvgpHyper {
         kernel: Rbf::new(vec![0.7, 1.3, 0.9], 1.7).unwrap(),
-        A,
-        B,
+        A: DMatrix::from_row_slice(2, 2, &[0.3, 0.1, 0.1, 0.2]),
+        B: DMatrix::from_row_slice(2, 2, &[1.0, 0.4, 0.4, 0.5]),
         sigma: 0.1,
-    };
+    }
+}
+
+#[test]
+fn pendulum_draws_have_the_prior_mean_and_covariance() {
+    let hyper = pendulum_hyper();
     let map = InputMap::periodic(2, &[0]);
     let pend = Pendulum {
         mass: 1.3,
@@ -149,14 +152,8 @@ fn pendulum_draws_have_the_prior_mean_and_covariance() {
 #[test]
 #[allow(non_snake_case)]
 fn known_row_draws_have_the_structured_prior_moments() {
-    let A = DMatrix::from_row_slice(2, 2, &[0.3, 0.1, 0.1, 0.2]);
-    let B = DMatrix::from_row_slice(2, 2, &[1.0, 0.4, 0.4, 0.5]);
-    let hyper = MvgpHyper {
-        kernel: Rbf::new(vec![0.7, 1.3, 0.9], 1.7).unwrap(),
-        A: A.clone(),
-        B,
-        sigma: 0.1,
-    };
+    let hyper = pendulum_hyper();
+    let A = hyper.A.clone();
     let map = InputMap::periodic(2, &[0]);
     let pend = Pendulum::default();
     let draw = |seed| {

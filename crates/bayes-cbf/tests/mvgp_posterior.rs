@@ -6,7 +6,7 @@ mod common;
 
 use bayes_cbf::gp::{InputMap, Kernel, Mvgp, MvgpHyper, PriorMean, Rbf};
 use bayes_cbf::systems::DynSystem;
-use common::{random_spd, rel_diff, selection};
+use common::{random_rbf, random_spd, rel_diff, selection};
 use nalgebra::{DMatrix, DVector};
 use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -31,11 +31,7 @@ fn check_case(case: Case, seed: u64) {
     let p = m + 1;
     let mut rng = ChaCha8Rng::seed_from_u64(seed);
     let d = input_map.output_dim(n);
-    let kernel = Rbf::new(
-        (0..d).map(|_| rng.random_range(0.5..1.5)).collect(),
-        rng.random_range(0.5..2.0),
-    )
-    .unwrap();
+    let kernel = random_rbf(d, 0.5..1.5, &mut rng);
     #[allow(non_snake_case)]
     let (A, B) = (random_spd(n, &mut rng), random_spd(p, &mut rng));
     let sigma = rng.random_range(0.05..0.5);

@@ -93,6 +93,13 @@ fn model(ell: f64, sigma: f64) -> Mvgp {
     Mvgp::new(2, 1, hyper, prior, InputMap::periodic(2, &[0])).unwrap()
 }
 
+/// [`model`] conditioned on `data`.
+fn model_on(ell: f64, sigma: f64, (xs, us, xdot): &(Vec<f64>, Vec<f64>, Vec<f64>)) -> Mvgp {
+    let mut m = model(ell, sigma);
+    m.set_data(xs, us, xdot).unwrap();
+    m
+}
+
 /// `k` noise-free observations of the true pendulum at random states.
 fn data(k: usize, seed: u64) -> (Vec<f64>, Vec<f64>, Vec<f64>) {
     let mut rng = ChaCha8Rng::seed_from_u64(seed);
@@ -340,9 +347,9 @@ fn check_all(model: &Mvgp, label: &str) -> Vec<&'static str> {
 #[test]
 fn exact_duplicates_with_tiny_noise_need_bounded_reported_jitter() {
     capture_warnings();
-    let (xs, us, xdot) = duplicated(40, 5, 0.0);
-    let mut m = model(1.0, 1e-10);
-    m.set_data(&xs, &us, &xdot).unwrap();
+    let data = duplicated(40, 5, 0.0);
+    let m = model_on(1.0, 1e-10, &data);
+    let (xs, us, xdot) = data;
     assert_eq!(m.len(), 200);
     let jit = assert_jitter_bounded(&m, "duplicates");
     assert!(
@@ -447,9 +454,7 @@ fn extreme_lengthscales_and_noise() {
 
 #[test]
 fn states_far_outside_the_data_revert_to_the_prior() {
-    let (xs, us, xdot) = data(100, 3);
-    let mut m = model(1.0, 1e-3);
-    m.set_data(&xs, &us, &xdot).unwrap();
+    let m = model_on(1.0, 1e-3, &data(100, 3));
     for x in [[0.3, 60.0], [-0.7, 1e150], [0.0, -1e300]] {
         let p = m.posterior(&x).unwrap();
         let mut m0 = [0.0; 4];
@@ -475,9 +480,7 @@ fn states_far_outside_the_data_revert_to_the_prior() {
 #[test]
 fn fitting_duplicated_noise_free_data_is_typed_and_leaves_a_usable_model() {
     capture_warnings();
-    let (xs, us, xdot) = duplicated(25, 4, 0.0);
-    let mut m = model(1.0, 1e-6);
-    m.set_data(&xs, &us, &xdot).unwrap();
+    let mut m = model_on(1.0, 1e-6, &duplicated(25, 4, 0.0));
     let before = m.hyper().clone();
     let settings = FitSettings {
         max_iters: 30,

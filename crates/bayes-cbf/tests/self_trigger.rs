@@ -10,7 +10,7 @@ use bayes_cbf::gp::{
     factor_bounds, kernel_constants, Feature, InputMap, LipschitzSettings, Mvgp, MvgpHyper,
     PriorMean, Rbf,
 };
-use common::{random_spd, RandomSystem};
+use common::{random_rbf, random_spd, RandomSystem};
 use nalgebra::DMatrix;
 use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -22,11 +22,7 @@ fn model(map: InputMap, seed: u64, k: usize) -> Mvgp {
     let (n, m) = (2, 1);
     let mut rng = ChaCha8Rng::seed_from_u64(seed);
     let d = map.output_dim(n);
-    let kernel = Rbf::new(
-        (0..d).map(|_| rng.random_range(0.4..0.9)).collect(),
-        rng.random_range(0.5..2.0),
-    )
-    .unwrap();
+    let kernel = random_rbf(d, 0.4..0.9, &mut rng);
     let hyper = MvgpHyper {
         kernel,
         A: random_spd(n, &mut rng),

@@ -88,6 +88,17 @@ pub fn random_spd(dim: usize, rng: &mut ChaCha8Rng) -> DMatrix<f64> {
     &c * c.transpose() + DMatrix::identity(dim, dim) * 0.3
 }
 
+/// An RBF kernel on `d` inputs with lengthscales drawn from `scales` and
+/// then a variance from `[0.5, 2)`.
+pub fn random_rbf(
+    d: usize,
+    scales: std::ops::Range<f64>,
+    rng: &mut ChaCha8Rng,
+) -> bayes_cbf::gp::Rbf {
+    let ls = (0..d).map(|_| rng.random_range(scales.clone())).collect();
+    bayes_cbf::gp::Rbf::new(ls, rng.random_range(0.5..2.0)).unwrap()
+}
+
 /// Max relative difference `|a − b| / max(1, |b|)`, entrywise, scaled by the
 /// largest magnitude of `b`.
 pub fn rel_diff(a: &DMatrix<f64>, b: &DMatrix<f64>) -> f64 {
