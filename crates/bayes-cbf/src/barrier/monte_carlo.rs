@@ -14,6 +14,21 @@
 //! is `𝕄 + L_A Ξ Ĉ^{½}` with `Ξ` standard normal (`Ĉ^{½}` from a
 //! symmetric eigendecomposition, robust to the near-singularity of closely
 //! spaced points).
+//!
+//! The step is checked both ways, and a step the estimate cannot trust is
+//! an [`InputError`] naming `step`:
+//! - too large: the lattice spans more than the kernel's shortest
+//!   lengthscale, or the truncation (estimated from the condition at the
+//!   posterior mean at twice or half the step) exceeds 1 % of the
+//!   condition's spread;
+//! - too small: the rounding of `h` and of the posterior mean, amplified by
+//!   `s^{−r}`, moves the condition by over 1 % of its spread; or the modes
+//!   of `Ĉ` at its round-off floor (at or below its largest negative
+//!   eigenvalue, and at least `dim · ε · λ_max`) move the condition of the
+//!   first draws by over 10 % of its spread (root mean square), which
+//!   widens its standard deviation by up to 0.5 %. On a model without data
+//!   (lengthscale 1, relative degree 3) that floor binds below a step of
+//!   about 3e-4.
 
 use super::moments::ConditionMoments;
 use super::DynBarrier;
@@ -97,6 +112,15 @@ impl McMoments {
 /// Largest joint posterior (lattice points × `(1 + m)`) the estimate
 /// draws from: a 5000 × 5000 covariance (200 MB) and its eigendecomposition.
 const MAX_JOINT: usize = 5000;
+
+/// Draws also taken without the modes of `Ĉ` at its round-off floor.
+const FLOOR_PROBES: usize = 32;
+
+/// The largest share of the spread of `z` that the modes at the round-off
+/// floor may move it by (root mean square over the probes). Independent of
+/// the rest, such a share widens the standard deviation by at most half
+/// its square, 0.5 %.
+const MAX_UNRESOLVED: f64 = 0.1;
 
 /// Offsets of the cube lattice `{−R, …, R}ⁿ`, row-major `P × n`.
 fn lattice(n: usize, radius: usize) -> Vec<Vec<i64>> {
@@ -231,9 +255,8 @@ impl Lattice {
     /// Sixteen probes of `h(1 + εξ) + h_abs ξ'` and likewise of `M` are
     /// compared with the exact values.
     /// (The draws' own round-off, from the near-singular `Ĉ` of closely
-    /// spaced points, is not probed: it widens the spread, which the
-    /// variance shows, and, through the products of the nested Lie
-    /// derivatives, moves the mean too, at steps far below the default.)
+    /// spaced points, is checked apart: [`mc_cbc_moments`] takes the first
+    /// draws again without the modes of `Ĉ` at its round-off floor.)
     fn round_off(&self, probe: &RoundOff, gains: &[f64], s: f64, spread: &[f64]) -> Option<f64> {
         let p = spread.len();
         let eps = f64::EPSILON;
@@ -373,6 +396,21 @@ pub fn mc_cbc_moments<K: Kernel>(
     let eig = nalgebra::SymmetricEigen::new(chat);
     let sqrt_c =
         &eig.eigenvectors * DMatrix::from_diagonal(&eig.eigenvalues.map(|l| l.max(0.0).sqrt())); // Ĉ = S Sᵀ
+                                                                                                 // the round-off floor of Ĉ's eigenvalues: the largest negative one
+                                                                                                 // (rounding, not the posterior, made it negative), and at least the
+                                                                                                 // rounding of a matrix of that size and norm. The modes at or below it
+                                                                                                 // are rounding, yet the nested differences amplify them by s^{1−r}:
+                                                                                                 // the first draws are also taken without them, and their share of z
+                                                                                                 // is checked below
+    let eigenvalues = &eig.eigenvalues;
+    let floor = (-eigenvalues.min())
+        .max(eigenvalues.len() as f64 * f64::EPSILON * eigenvalues.max())
+        .max(0.0);
+    let resolved_c = &eig.eigenvectors
+        * DMatrix::from_diagonal(&eigenvalues.map(|l| if l > floor { l.sqrt() } else { 0.0 }));
+    let floor_probes = settings.samples.min(FLOOR_PROBES);
+    let mut floor_dev = vec![0.0; p];
+    let mut z_resolved = vec![0.0; p];
     let la = model.row_cov_factor()?;
     let mut rng = ChaCha8Rng::seed_from_u64(settings.seed);
     let mut zs = crate::error::reserve("samples", settings.samples.saturating_mul(p))
@@ -387,6 +425,13 @@ pub fn mc_cbc_moments<K: Kernel>(
         let draw = &mean + &la * &xi * sqrt_c.transpose();
         let z = &mut zs[t * p..(t + 1) * p];
         lat.condition(&draw, &h_vals, gains, s, &mut scratch, z);
+        if t < floor_probes {
+            let resolved = &mean + &la * &xi * resolved_c.transpose();
+            lat.condition(&resolved, &h_vals, gains, s, &mut scratch, &mut z_resolved);
+            for c in 0..p {
+                floor_dev[c] += (z[c] - z_resolved[c]).powi(2) / floor_probes as f64;
+            }
+        }
     }
     // moments and standard errors
     let nn = settings.samples as f64;
@@ -451,6 +496,26 @@ pub fn mc_cbc_moments<K: Kernel>(
                  round-off of h and of the mean of F to {}, which would bias the moments \
                  (increase step; the default is 1e-2)",
                 share(ratio)
+            ),
+        )
+        .into());
+    }
+    // the draws' modes at the round-off floor, as a share of the spread
+    let unresolved = (0..p)
+        .map(|c| floor_dev[c].sqrt() / spread[c])
+        .fold(
+            0.0f64,
+            |a, v| if v.is_nan() { f64::INFINITY } else { a.max(v) },
+        );
+    if unresolved > MAX_UNRESOLVED {
+        return Err(InputError::invalid(
+            "step",
+            s,
+            &format!(
+                "too small for relative degree {r}: its {r} nested differences amplify the \
+                 round-off of the posterior draws of F to {} (increase step; the default is \
+                 1e-2)",
+                share(unresolved)
             ),
         )
         .into());
