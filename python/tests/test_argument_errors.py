@@ -200,8 +200,7 @@ def test_string_and_date_arrays_are_refused(field, thunk, why):
 
 def test_a_kinked_barrier_is_warned_of_by_its_constructor():
     """The warning of a kink in h is issued by Barrier.expression itself,
-    not by whichever call comes next (once per process, as every warning of
-    the library's)."""
+    not by whichever call comes next."""
     import subprocess
     import sys
     code = (

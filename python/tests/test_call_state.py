@@ -36,17 +36,26 @@ def test_an_absent_reference_is_zero_whatever_an_earlier_call_gave():
 
 
 def test_warnings_are_issued_by_the_call_that_raised_them():
+    """The online-jitter warning is issued once per warning scope, which
+    each barrier or filter built opens: it comes from the update that
+    raised it, not from the next call."""
     model = bc.MVGP(2, 1, [1.0, 1.0], np.eye(2), np.eye(2), 1e-6)
+
+    def new_scope():
+        return bc.Barrier.disc(2, [0, 1], [0.0, 0.0], 1.0)
+
+    new_scope()
     with pytest.warns(UserWarning, match="jitter"):
         for _ in range(3):
             model.add_observation([0.0, 0.0], [0.0], [1.0, 1.0])
     other = bc.MVGP(2, 1, [1.0, 1.0], np.eye(2), np.eye(2), 0.1, prior_mean=PENDULUM)
-    disc = bc.Barrier.disc(2, [0, 1], [0.0, 0.0], 1.0)
+    disc = new_scope()
     with pytest.warns(UserWarning, match="jitter"):
         model.add_observation([0.0, 0.0], [0.0], [1.0, 1.0])  # in this call, not the next
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         bc.moments(other, disc, [2.0, 1.0], [0.0])
+        new_scope()
         with pytest.raises(UserWarning, match="jitter"):
             model.add_observation([0.0, 0.0], [0.0], [1.0, 1.0])
 
@@ -167,3 +176,37 @@ def test_a_monte_carlo_condition_reports_its_own_failure():
         with pytest.raises(bc.InputError, match=r"barriers\[0\]: h of barrier 'log\(x\) \+ 5'"):
             f.filter([0.0005, 0.0, 0.0], [0.0])
     assert b.value([1.0, 0.0, 0.0]) == 5.0
+
+
+def test_each_call_is_warned_of_its_own_mistakes():
+    """A warning is issued once per run, sweep or filter, not once per
+    process: a second filter, or a second run, with the same mistake is
+    warned of too."""
+    import warnings
+
+    prior = {"type": "expression", "state": ["p", "v"], "control": ["F"],
+             "f": ["v", "0"], "g": [["0"], ["1"]]}
+    model = bc.MVGP(2, 1, [2.0], np.eye(2), np.diag([0.5, 0.01]), 0.1,
+                    prior_mean=prior, input_map=[1], known_rows=[0])
+
+    def filter_warnings(h):
+        # a wall in p declared relative degree 1: the input has no mean
+        # effect on ḣ
+        b = bc.Barrier.expression(h, ["p", "v"], relative_degree=1, alpha=1.0)
+        f = bc.SafetyFilter(model, [b], u_min=[-3], u_max=[3])
+        with warnings.catch_warnings(record=True) as w:
+            warnings.simplefilter("always")
+            f.filter(np.array([1.5, 1.0]), [3.0])
+        return [str(x.message) for x in w if "no mean effect" in str(x.message)]
+
+    assert filter_warnings("2 - p"), "the first filter is warned"
+    assert filter_warnings("3 - p"), "the second filter is warned too"
+
+    def run_warnings():
+        with warnings.catch_warnings(record=True) as w:
+            warnings.simplefilter("always")
+            bc.run_scenario("ackermann-no-learning", seed=0, overrides={"steps": 30})
+        return [str(x.message) for x in w if "infeasible" in str(x.message)]
+
+    assert run_warnings(), "the first run is warned"
+    assert run_warnings(), "the second run is warned too"

@@ -311,6 +311,8 @@ impl PyBarrier {
     /// The barrier a barrier-file description builds (fields validated).
     /// Its warnings (a kink in `h`) are issued here.
     fn of_spec(spec: BarrierSpec) -> PyResult<Self> {
+        // each barrier built warns of its own kinks
+        let _warnings = bayes_cbf::warnings::Scope::enter();
         Python::attach(|py| {
             crate::warnings::after(
                 py,
@@ -614,6 +616,8 @@ impl PySafetyFilter {
         #[pyo3(from_py_with = args::clf_weight)] clf_weight: f64,
         #[pyo3(from_py_with = args::predictive)] predictive: bool,
     ) -> PyResult<Self> {
+        // a new filter warns anew of what an earlier one was warned of
+        let _warnings = bayes_cbf::warnings::Scope::enter();
         let (n, m) = {
             let mm = borrow(&model, "the model")?;
             (mm.model.state_dim(), mm.model.control_dim())

@@ -35,10 +35,11 @@ mod fuzz_tests;
 
 pub use error::{Context, Error, Result};
 
-/// Logs `message` as a warning the first time `flag` is seen in this
-/// process (a sweep builds its scenario once per seed).
-pub(crate) fn warn_once(flag: &std::sync::atomic::AtomicBool, message: String) {
-    if !flag.swap(true, std::sync::atomic::Ordering::Relaxed) {
+/// Logs `message` as a warning the first time `flag` is seen in the
+/// current scope ([`bayes_cbf::warnings`]: a run, a sweep, an experiment;
+/// a sweep builds its scenario once per seed).
+pub(crate) fn warn_once(flag: &bayes_cbf::warnings::WarnOnce, message: String) {
+    if flag.first() {
         log::warn!("{message}");
     }
 }

@@ -367,6 +367,7 @@ pub fn run_seeds_until(
     progress: &(dyn Fn(usize, usize) + Sync),
     stop: &Arc<AtomicBool>,
 ) -> Result<Vec<SweepRow>> {
+    let _warnings = bayes_cbf::warnings::Scope::enter();
     meta.shard.validate()?;
     if meta.seeds.is_empty() {
         bail!(

@@ -39,6 +39,7 @@ pub mod expr;
 pub mod gp;
 pub mod sim;
 pub mod systems;
+pub mod warnings;
 
 pub use error::{ControlError, Error, GpError, InputError};
 

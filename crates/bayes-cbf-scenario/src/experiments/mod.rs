@@ -218,6 +218,7 @@ pub fn run_sized(
     sizes: &Sizes,
     progress: &dyn Progress,
 ) -> Result<ExperimentResult> {
+    let _warnings = bayes_cbf::warnings::Scope::enter();
     let takes = |option: &str, given: bool, accepted: &[&str]| -> Result<()> {
         if given && !accepted.contains(&name) {
             bail!(

@@ -7,9 +7,9 @@ use bayes_cbf::barrier::{
     CircleHeading, Disc, DynBarrier, ExpressionBarrier, HalfSpace, PendulumSector,
     PendulumSectorEdge, SectorEdge,
 };
+use bayes_cbf::warnings::WarnOnce;
 use serde::Deserialize;
 use std::path::Path;
-use std::sync::atomic::AtomicBool;
 use std::sync::Arc;
 
 /// Declares [`BarrierSpec`] with the fields every barrier has,
@@ -378,9 +378,9 @@ impl BarrierSpec {
     }
 }
 
-static KINKS: AtomicBool = AtomicBool::new(false);
+static KINKS: WarnOnce = WarnOnce::new();
 
-/// Warns, once per process, of an expression barrier with a kink
+/// Warns, once per scope ([`bayes_cbf::warnings`]), of an expression barrier with a kink
 /// ([`ExpressionBarrier::kinks`]).
 fn warn_kinks(barrier: &ExpressionBarrier) {
     let kinks = barrier.kinks();

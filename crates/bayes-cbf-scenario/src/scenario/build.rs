@@ -20,11 +20,11 @@ use bayes_cbf::sim::{
     SimSettings, StepRecord, StepStatus, StraightLinePlanner,
 };
 use bayes_cbf::systems::DynSystem;
+use bayes_cbf::warnings::WarnOnce;
 use nalgebra::DMatrix;
 use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use rand_distr::{Distribution, StandardNormal};
-use std::sync::atomic::AtomicBool;
 use std::sync::Arc;
 
 /// Everything a run needs.
@@ -411,12 +411,12 @@ pub fn build(s: &Scenario) -> Result<Built> {
     })
 }
 
-static CLF_WITHOUT_PLANNER: AtomicBool = AtomicBool::new(false);
-static START_OUTSIDE: AtomicBool = AtomicBool::new(false);
-static START_UNSAFE: AtomicBool = AtomicBool::new(false);
-static FAST_GAINS: AtomicBool = AtomicBool::new(false);
+static CLF_WITHOUT_PLANNER: WarnOnce = WarnOnce::new();
+static START_OUTSIDE: WarnOnce = WarnOnce::new();
+static START_UNSAFE: WarnOnce = WarnOnce::new();
+static FAST_GAINS: WarnOnce = WarnOnce::new();
 
-/// Warns, once per process, when a barrier's fastest pole `λ` exceeds
+/// Warns, once per scope ([`bayes_cbf::warnings`]), when a barrier's fastest pole `λ` exceeds
 /// `1/dt`: the condition holds at each step, but the control is held over
 /// `dt`, in which `h` moves by about `−λ h dt`, past zero when `λ dt > 1`.
 fn warn_fast_gains(barriers: &[Arc<dyn DynBarrier>], dt: f64) {
@@ -441,9 +441,9 @@ fn warn_fast_gains(barriers: &[Arc<dyn DynBarrier>], dt: f64) {
         }
     }
 }
-static KNOWN_ROW_MISFIT: AtomicBool = AtomicBool::new(false);
+static KNOWN_ROW_MISFIT: WarnOnce = WarnOnce::new();
 
-/// Warns, once per process, when a run's data contradict a row declared
+/// Warns, once per scope ([`bayes_cbf::warnings`]), when a run's data contradict a row declared
 /// known (`gp.known_rows`): a misfit that follows the state and exceeds
 /// half the labels ([`Mvgp::known_row_misfit`]).
 pub(crate) fn warn_known_row_misfit(model: &Mvgp, seed: u64) {
@@ -455,7 +455,7 @@ pub(crate) fn warn_known_row_misfit(model: &Mvgp, seed: u64) {
     }
 }
 
-static LEFT_INVARIANT: AtomicBool = AtomicBool::new(false);
+static LEFT_INVARIANT: WarnOnce = WarnOnce::new();
 
 /// Where a relative-degree-2 barrier's `h` first crossed zero in a step that
 /// met its condition, from a state outside the set its gains keep safe
@@ -494,7 +494,7 @@ pub(crate) fn crossing_outside(
     })
 }
 
-/// Warns, once per process, of a [`crossing_outside`].
+/// Warns, once per scope ([`bayes_cbf::warnings`]), of a [`crossing_outside`].
 pub(crate) fn warn_crossing_outside(
     barriers: &[Arc<dyn DynBarrier>],
     truth: &dyn DynSystem,
@@ -524,9 +524,9 @@ pub(crate) fn warn_crossing_outside(
     }
 }
 
-static KNOWN_ROW_NOT_TRUE: AtomicBool = AtomicBool::new(false);
+static KNOWN_ROW_NOT_TRUE: WarnOnce = WarnOnce::new();
 
-/// Warns, once per process, when a row of `F` declared known differs from
+/// Warns, once per scope ([`bayes_cbf::warnings`]), when a row of `F` declared known differs from
 /// the system's at the start state or a unit step from it along a
 /// coordinate: a known row is the prior mean's and is never learned (a
 /// zero prior mean makes every known row zero).
@@ -584,9 +584,9 @@ fn known_rows_agree(model: &Mvgp, known: &[usize], truth: &dyn DynSystem, x: &[f
     true
 }
 
-static ZERO_PRIOR: AtomicBool = AtomicBool::new(false);
+static ZERO_PRIOR: WarnOnce = WarnOnce::new();
 
-/// Warns, once per process, of a zero prior mean where it defeats the
+/// Warns, once per scope ([`bayes_cbf::warnings`]), of a zero prior mean where it defeats the
 /// conditions: under a barrier of relative degree ≥ 2 (the model knows
 /// neither the rows that tie `h`'s derivatives to the state nor how the
 /// input acts), or without learning (it never learns how the input acts).
@@ -621,9 +621,9 @@ fn warn_zero_prior(barriers: &[Arc<dyn DynBarrier>], update_every: usize) {
     );
 }
 
-static MOSTLY_INFEASIBLE: AtomicBool = AtomicBool::new(false);
+static MOSTLY_INFEASIBLE: WarnOnce = WarnOnce::new();
 
-/// Warns, once per process, when the infeasible steps of a run held more
+/// Warns, once per scope ([`bayes_cbf::warnings`]), when the infeasible steps of a run held more
 /// than half its time: the fallback acted on most of it, safe or not (a
 /// robot kept still by it is safe, and goes nowhere). Time, not steps:
 /// self-triggered holds of infeasible steps are short.
@@ -655,7 +655,7 @@ pub(crate) fn warn_mostly_infeasible(records: &[StepRecord], fallback: &str, see
     }
 }
 
-static CROSSED_IN_INFEASIBLE_STEP: AtomicBool = AtomicBool::new(false);
+static CROSSED_IN_INFEASIBLE_STEP: WarnOnce = WarnOnce::new();
 
 /// The first step in which a barrier's `h` crossed zero (from `h ≥ 0` at
 /// the step's start) while its SOCP was infeasible: the barrier's index
@@ -671,7 +671,7 @@ pub(crate) fn crossing_in_infeasible_step(
     })
 }
 
-/// Warns, once per process, of a [`crossing_in_infeasible_step`]: no
+/// Warns, once per scope ([`bayes_cbf::warnings`]), of a [`crossing_in_infeasible_step`]: no
 /// control met the conditions at `p` there, and the fallback did not keep
 /// `h ≥ 0`. Without such a warning a run whose steps were all infeasible
 /// crossed in silence.
@@ -704,9 +704,9 @@ pub(crate) fn warn_crossing_in_infeasible_step(
     }
 }
 
-static NOISE_BELOW_LABELS: AtomicBool = AtomicBool::new(false);
+static NOISE_BELOW_LABELS: WarnOnce = WarnOnce::new();
 
-/// Warns, once per process, when the model's noise on a learned row,
+/// Warns, once per scope ([`bayes_cbf::warnings`]), when the model's noise on a learned row,
 /// `σ·√A_ii`, is below the noise that process noise `σ_w` puts on the
 /// learning labels, `σ_w/√τ` (finite differences over the hold `τ`, named
 /// `tau`: `dt`, or the median hold of a self-triggered run): the
@@ -757,9 +757,9 @@ pub(crate) fn warn_noise_below_held_labels(
     warn_noise_below_labels(model, process_noise, median, "the median hold");
 }
 
-static CLAMPED_HOLDS: AtomicBool = AtomicBool::new(false);
+static CLAMPED_HOLDS: WarnOnce = WarnOnce::new();
 
-/// Warns, once per process, when self-triggered holds were clamped up to
+/// Warns, once per scope ([`bayes_cbf::warnings`]), when self-triggered holds were clamped up to
 /// `tau_min`: there the hold that keeps the conditions (Props. 3, 5) was
 /// shorter than the one applied, which lies outside the guarantee.
 pub(crate) fn warn_clamped_holds(records: &[StepRecord], tau_min: f64, seed: u64) {
@@ -794,30 +794,50 @@ pub(crate) fn warn_clamped_holds(records: &[StepRecord], tau_min: f64, seed: u64
     );
 }
 
-static CROSSED_IN_MET_STEP: AtomicBool = AtomicBool::new(false);
+static CROSSED_IN_MET_STEP: WarnOnce = WarnOnce::new();
 
-/// Warns, once per process, when a relative-degree-1 barrier's `h` crossed
-/// zero within a held step that met its condition. The condition bounds
-/// `ḣ` at the step; over the hold `τ`, `h` also moves by
-/// `½τ²ẋᵀ∇²h ẋ` (its curvature along the motion, at the step's state and
-/// control under the true dynamics). The warning blames that term where
-/// `h + τḣ ≥ 0` and `h + τḣ + ½τ²ẋᵀ∇²h ẋ < 0`; otherwise noise, model error
-/// beyond `p` or a kink.
+/// Warns, once per scope ([`bayes_cbf::warnings`]), when a barrier's `h`
+/// crossed zero within a held step that met its condition.
+///
+/// Relative degree 1: the condition bounds `ḣ` at the step; over the hold
+/// `τ`, `h` also moves by `½τ²ẋᵀ∇²h ẋ` (its curvature along the motion, at
+/// the step's state and control under the true dynamics). The warning
+/// blames that term where `h + τḣ ≥ 0` and `h + τḣ + ½τ²ẋᵀ∇²h ẋ < 0`;
+/// otherwise noise, model error beyond `p` or a kink. Relative degree ≥ 2:
+/// noise or model error beyond `p`. Either way it names the latent
+/// condition (`predictive = false`), which leaves out the process noise.
 pub(crate) fn warn_crossing_in_met_step(
     barriers: &[Arc<dyn DynBarrier>],
     truth: &dyn DynSystem,
     records: &[StepRecord],
+    predictive: bool,
     seed: u64,
 ) {
     let n = truth.state_dim();
+    let noise = if predictive {
+        "process noise or model error beyond p"
+    } else {
+        "the process noise, which the latent condition (controller.predictive = false) leaves \
+         out, or model error beyond p (use controller.predictive = true)"
+    };
     for (i, b) in barriers.iter().enumerate() {
-        if b.relative_degree() != 1 {
-            continue;
-        }
         let found = records
             .iter()
             .find(|r| r.status != StepStatus::Infeasible && r.h[i] >= 0.0 && r.h_fine_min[i] < 0.0);
         let Some(r) = found else { continue };
+        let r_degree = b.relative_degree();
+        if r_degree >= 2 {
+            warn_once(
+                &CROSSED_IN_MET_STEP,
+                format!(
+                    "barriers[{i}] (seed {seed}): h crossed zero at t = {:.3} within a hold of \
+                     {} s that met its condition (relative degree {r_degree}): {noise} did",
+                    r.t,
+                    short(r.hold),
+                ),
+            );
+            return;
+        }
         let mut fbuf = vec![0.0; n * (1 + truth.control_dim())];
         let mut xdot = vec![0.0; n];
         truth.xdot(&r.x, &r.u, &mut fbuf, &mut xdot);
@@ -842,9 +862,9 @@ pub(crate) fn warn_crossing_in_met_step(
                 short(-drop / r.hold)
             )
         } else {
-            "its curvature along the motion does not explain it: noise, model error beyond p \
-             or a kink of h did"
-                .to_string()
+            format!(
+                "its curvature along the motion does not explain it: {noise}, or a kink of h, did"
+            )
         };
         warn_once(
             &CROSSED_IN_MET_STEP,
@@ -870,7 +890,7 @@ fn short(v: f64) -> String {
     }
 }
 
-/// Warns, once per process, when the start lies outside the set that a
+/// Warns, once per scope ([`bayes_cbf::warnings`]), when the start lies outside the set that a
 /// relative-degree-2 barrier's gains keep safe ([`start_margin`]).
 fn warn_start_margin(
     barriers: &[Arc<dyn DynBarrier>],

@@ -177,6 +177,7 @@ pub fn run_scenario_until(
     mut progress: impl FnMut(usize, usize),
     stop: Arc<AtomicBool>,
 ) -> Result<RunOutput> {
+    let _warnings = bayes_cbf::warnings::Scope::enter();
     let mut built = build(scenario)?;
     let monitors: Vec<Monitor> = built
         .obstacles
@@ -223,6 +224,7 @@ pub fn run_scenario_until(
         &built.barriers,
         built.truth.as_ref(),
         &result.records,
+        built.controller.settings().predictive,
         scenario.seed,
     );
     if let Some(t) = built.loop_settings.trigger.as_ref().filter(|t| t.hold) {

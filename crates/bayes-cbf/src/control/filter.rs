@@ -394,9 +394,8 @@ impl SafetyFilter {
         }
         settings.validate(m)?;
         if settings.fallback == Fallback::Relax && settings.u_min.is_none() {
-            use std::sync::atomic::{AtomicBool, Ordering};
-            static UNBOUNDED_RELAX: AtomicBool = AtomicBool::new(false);
-            if !UNBOUNDED_RELAX.swap(true, Ordering::Relaxed) {
+            static UNBOUNDED_RELAX: crate::warnings::WarnOnce = crate::warnings::WarnOnce::new();
+            if UNBOUNDED_RELAX.first() {
                 log::warn!(
                     "fallback relax without input bounds (u_min, u_max): where the conditions \
                      are met only as the control grows, the largest feasible probability p* \

@@ -298,9 +298,13 @@ impl CholFactor {
             let jitter = level * diag.abs().max(f64::MIN_POSITIVE);
             let square = diag + jitter - sq;
             if square > 0.0 && square.is_finite() && square > MIN_PIVOT * (diag + jitter).abs() {
-                if level > 0.0 {
+                // once per scope ([`crate::warnings`]): a run would repeat it
+                // at every update
+                static JITTER: crate::warnings::WarnOnce = crate::warnings::WarnOnce::new();
+                if level > 0.0 && JITTER.first() {
                     log::warn!(
-                        "online update (k = {}) needed jitter {jitter:.3e} on the new diagonal entry",
+                        "online update (k = {}) needed jitter {jitter:.3e} on the new diagonal \
+                         entry (later online updates that need jitter are not shown)",
                         k + 1
                     );
                 }
