@@ -233,7 +233,15 @@ class SafetyFilter:
         predictive: bool = False,
     ) -> None:
         """The control closest to u_ref in ‖R(u − u_ref)‖ (R: m × m, invertible;
-        identity by default) that meets every condition with the probability."""
+        identity by default) that meets every condition with the probability.
+
+        The default is the paper's condition on the latent F, with the
+        variance bc.moments gives. In a closed loop whose state carries
+        process noise, pass predictive=True (each condition as realised over
+        the step, the model's noise included) and, with input bounds,
+        fallback="relax": the defaults of scenario files. Held at the
+        boundary under the latent condition, the state's own noise takes h
+        below zero."""
     def filter(
         self,
         x: ArrayLike,
@@ -256,13 +264,18 @@ def moments(
 ) -> tuple[float, float]:
     """(mean, variance) of the barrier condition at (x, u); relative degree ≥ 3
     by Monte Carlo (samples, seed) with central differences of step, which is
-    refused where the rounding of h and of the mean of F would bias the mean."""
+    refused where the rounding of h, of the mean of F or of the posterior
+    draws would bias the moments, or where the truncation of the differences
+    would."""
 
 def run_scenario(
-    name: str, seed: Optional[int] = None, overrides: Optional[dict[str, Any]] = None
+    name: Path,
+    seed: Optional[int] = None,
+    overrides: Optional[dict[str, Any]] = None,
 ) -> dict[str, Any]:
-    """The summary and trajectory of a scenario run; seed from 0 to 2^63 − 1,
-    overrides as --set key=value (finite numbers, strings, lists, dicts)."""
+    """The summary and trajectory of a scenario run (a built-in name or a
+    TOML file); seed from 0 to 2^63 − 1, overrides as --set key=value (finite
+    numbers, strings, lists, dicts)."""
 def list_scenarios() -> list[str]: ...
 
 # Private: the engine of bayes_cbf.sweep (JSON and CSV text in and out).

@@ -18,6 +18,7 @@ at the start (``label_at="start"``) is exact.
 from __future__ import annotations
 
 import numbers
+import warnings
 from typing import Any, Callable, Optional, Sequence
 
 import numpy as np
@@ -163,7 +164,11 @@ class SafetyFilterWrapper(gym.Wrapper, gym.utils.RecordConstructorArgs):
         self.episode_stats: dict = {}
 
     def _state(self, obs) -> np.ndarray:
-        x = np.asarray(self.state_from_obs(obs), dtype=np.float64).reshape(-1)
+        try:
+            raw = self.state_from_obs(obs)
+        except Exception as e:  # KeyboardInterrupt and SystemExit pass through
+            raise InputError(f"state_from_obs: raised {type(e).__name__}: {e}") from e
+        x = np.asarray(raw, dtype=np.float64).reshape(-1)
         if x.shape != (self.model.state_dim,) or not np.all(np.isfinite(x)):
             raise InputError(
                 f"state_from_obs: returned {x!r}, expected {self.model.state_dim} finite values"
@@ -180,7 +185,15 @@ class SafetyFilterWrapper(gym.Wrapper, gym.utils.RecordConstructorArgs):
             "violation_steps": 0,
             "min_barrier": float("inf"),
         }
-        self._log_barriers(self._x)
+        values = self._log_barriers(self._x)
+        if values and min(values) < 0:
+            warnings.warn(
+                f"reset: the episode starts outside the safe set (barrier values "
+                f"{[round(v, 4) for v in values]}): no filter keeps a state safe that "
+                f"starts unsafe; its steps until h >= 0 count as violations",
+                UserWarning,
+                stacklevel=2,
+            )
         return obs, info
 
     def _log_barriers(self, x: np.ndarray) -> list:

@@ -25,7 +25,8 @@ from __future__ import annotations
 
 import json
 import numbers
-from typing import Any, Iterable, Optional
+import os
+from typing import Any, Iterable, Optional, Union
 
 from . import _core
 from ._core import InputError
@@ -96,7 +97,7 @@ def _seed_range(seeds: Iterable[int]) -> tuple[int, int]:
 
 
 def seeds(
-    scenario: str,
+    scenario: Union[str, os.PathLike],
     seeds: Iterable[int],
     overrides: Optional[dict] = None,
     shards: Optional[int] = None,
@@ -115,6 +116,8 @@ def seeds(
     reuse a local Ray with ``num_cpus``). With ``rows=True`` the summary
     gains ``"rows"``, the text of ``sweep.csv``.
     """
+    if isinstance(scenario, os.PathLike):
+        scenario = os.fspath(scenario)
     start, end = _seed_range(seeds)
     sets = _sets(overrides)
     # fail fast on a bad seed range, before Ray starts

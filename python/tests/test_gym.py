@@ -111,3 +111,17 @@ def test_wrapper_rejects_bad_setups():
     w2.state_from_obs = lambda o: np.array([np.nan, 0.0])
     with pytest.raises(bc.InputError, match="state_from_obs"):
         w2.reset(seed=0)
+
+
+def test_an_unsafe_start_is_warned_of_and_a_failing_state_map_is_typed():
+    """A reset outside the safe set warns (its steps count as violations);
+    an exception of state_from_obs is an InputError with it as the cause."""
+    w, _ = make(learn=False)
+    w.barriers_for_log = [bc.Barrier.half_space([0.0, -1.0], 100.0, alpha=2.0)]  # never safe
+    with pytest.warns(UserWarning, match="starts outside the safe set"):
+        w.reset(seed=0)
+    w2, _ = make(learn=False)
+    w2.state_from_obs = lambda o: 1 / 0
+    with pytest.raises(bc.InputError, match="state_from_obs: raised ZeroDivisionError") as e:
+        w2.reset(seed=0)
+    assert isinstance(e.value.__cause__, ZeroDivisionError)

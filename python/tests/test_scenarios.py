@@ -70,3 +70,17 @@ def test_an_oracle_run_learns_nothing_and_starts_where_the_learning_run_does():
     assert oracle["data_size"] == 0 and learning["data_size"] > 0
     np.testing.assert_array_equal(oracle["trajectory"]["x1"][:1], learning["trajectory"]["x1"][:1])
     assert oracle["trajectory"]["trace_cov"][0] < 1e-9 < learning["trajectory"]["trace_cov"][0]
+
+
+def test_a_scenario_file_is_a_str_or_a_path():
+    """run_scenario takes a TOML file as a str or an os.PathLike, and names
+    the argument for anything else."""
+    import pathlib
+
+    drone = pathlib.Path(__file__).resolve().parents[2] / "examples" / "drone.toml"
+    overrides = {"steps": 5}
+    a = bc.run_scenario(drone, seed=1, overrides=overrides)
+    b = bc.run_scenario(str(drone), seed=1, overrides=overrides)
+    assert a["min_barrier"] == b["min_barrier"] and a["steps"] == 5
+    with pytest.raises(bc.InputError, match="name: expected a built-in name or a path"):
+        bc.run_scenario(3)

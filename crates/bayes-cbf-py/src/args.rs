@@ -165,6 +165,21 @@ impl<'a, 'py> FromArg<'a, 'py> for PathBuf {
     }
 }
 
+/// A scenario: a built-in name (a `str`) or a TOML file (a `str` or an
+/// `os.PathLike`).
+pub struct ScenarioRef(pub String);
+
+impl<'a, 'py> FromArg<'a, 'py> for ScenarioRef {
+    fn from_arg(obj: &'a Bound<'py, PyAny>, field: &str) -> PyResult<Self> {
+        let path: PathBuf = obj
+            .extract()
+            .map_err(|_| expected(obj, field, "a built-in name or a path (str or os.PathLike)"))?;
+        path.to_str()
+            .map(|s| ScenarioRef(s.to_owned()))
+            .ok_or_else(|| input_err(format!("{field}: the path {path:?} is not valid UTF-8")))
+    }
+}
+
 /// An instance of the Python class `T` (`MVGP`, `dict`).
 impl<'a, 'py, T: PyTypeInfo> FromArg<'a, 'py> for Bound<'py, T> {
     fn from_arg(obj: &'a Bound<'py, PyAny>, field: &str) -> PyResult<Self> {

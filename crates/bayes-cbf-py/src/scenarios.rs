@@ -61,7 +61,7 @@ pub fn override_sets(
 #[pyo3(signature = (name, seed=None, overrides=None))]
 pub fn run_scenario<'py>(
     py: Python<'py>,
-    #[pyo3(from_py_with = args::name)] name: &str,
+    #[pyo3(from_py_with = args::name)] name: args::ScenarioRef,
     #[pyo3(from_py_with = args::seed)] seed: Option<i64>,
     #[pyo3(from_py_with = args::overrides)] overrides: Option<Bound<'py, PyDict>>,
 ) -> PyResult<Bound<'py, PyDict>> {
@@ -72,7 +72,7 @@ pub fn run_scenario<'py>(
     // Ctrl-C ends the run before its next step (KeyboardInterrupt)
     let (result, signal) =
         crate::interrupt::interruptible(py, |stop| -> bayes_cbf_scenario::Result<_> {
-            let (sc, _) = scenario::load(name, &sets)?;
+            let (sc, _) = scenario::load(&name.0, &sets)?;
             let out = run_scenario_until(&sc, |_, _| {}, stop.clone())?;
             let json = serde_json::to_string(&out.summary)?;
             Ok((Trajectory::of(&out), json))
