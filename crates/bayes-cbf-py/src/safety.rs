@@ -311,8 +311,6 @@ impl PyBarrier {
     /// The barrier a barrier-file description builds (fields validated).
     /// Its warnings (a kink in `h`) are issued here.
     fn of_spec(spec: BarrierSpec) -> PyResult<Self> {
-        // each barrier built warns of its own kinks
-        let _warnings = bayes_cbf::warnings::Scope::enter();
         Python::attach(|py| {
             crate::warnings::after(
                 py,

@@ -6,14 +6,20 @@
 //! scenario crate enters one for each run, sweep and experiment it is asked
 //! for, and the Python package for each filter it builds, so that a second
 //! run with the same mistake is warned of too. A scope entered while another
-//! is open (a sweep's runs, on any thread) is part of it.
+//! is open (a sweep's runs, on any thread) is part of it. A scope that closes
+//! leaves its sites as they are until the next one opens: the steps of a
+//! filter after its constructor returned warn in the scope it opened, or in
+//! a later one (a program that builds a filter at every step is warned at
+//! every step).
 
-use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::Mutex;
 
 /// The current scope; sites remember the scope they last warned in.
 static SCOPE: AtomicU64 = AtomicU64::new(1);
-/// Scopes open now (nested or on other threads).
-static OPEN: AtomicUsize = AtomicUsize::new(0);
+/// Scopes open now (nested or on other threads); entering the first one
+/// and advancing [`SCOPE`] happen under the lock, as one step.
+static OPEN: Mutex<usize> = Mutex::new(0);
 
 /// Opens a new scope now, whatever is open: every [`WarnOnce`] site may
 /// warn again.
@@ -30,16 +36,19 @@ pub struct Scope(());
 impl Scope {
     /// Enters a scope ([module docs](self)).
     pub fn enter() -> Self {
-        if OPEN.fetch_add(1, Ordering::AcqRel) == 0 {
+        let mut open = OPEN.lock().unwrap_or_else(|e| e.into_inner());
+        if *open == 0 {
             new_scope();
         }
+        *open += 1;
         Scope(())
     }
 }
 
 impl Drop for Scope {
     fn drop(&mut self) {
-        OPEN.fetch_sub(1, Ordering::AcqRel);
+        let mut open = OPEN.lock().unwrap_or_else(|e| e.into_inner());
+        *open = open.saturating_sub(1);
     }
 }
 

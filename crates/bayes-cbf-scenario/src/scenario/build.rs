@@ -803,22 +803,32 @@ static CROSSED_IN_MET_STEP: WarnOnce = WarnOnce::new();
 /// `τ`, `h` also moves by `½τ²ẋᵀ∇²h ẋ` (its curvature along the motion, at
 /// the step's state and control under the true dynamics). The warning
 /// blames that term where `h + τḣ ≥ 0` and `h + τḣ + ½τ²ẋᵀ∇²h ẋ < 0`;
-/// otherwise noise, model error beyond `p` or a kink. Relative degree ≥ 2:
-/// noise or model error beyond `p`. Either way it names the latent
-/// condition (`predictive = false`), which leaves out the process noise.
+/// otherwise noise, model error beyond `p` or a kink. Relative degree ≥ 2,
+/// from within the set the gains keep (outside it, [`warn_crossing_outside`]
+/// speaks): noise or model error beyond `p`. The noise is named only where
+/// the run has process noise, and a latent condition (the paper's, or Monte
+/// Carlo's at relative degree ≥ 3), which leaves it out, is named as such.
 pub(crate) fn warn_crossing_in_met_step(
     barriers: &[Arc<dyn DynBarrier>],
     truth: &dyn DynSystem,
     records: &[StepRecord],
-    predictive: bool,
+    (predictive, process_noise): (bool, f64),
     seed: u64,
 ) {
     let n = truth.state_dim();
-    let noise = if predictive {
-        "process noise or model error beyond p"
-    } else {
-        "the process noise, which the latent condition (controller.predictive = false) leaves \
-         out, or model error beyond p (use controller.predictive = true)"
+    let cause = |r_degree: usize| -> &'static str {
+        match (process_noise > 0.0, predictive, r_degree) {
+            (false, _, _) => "model error beyond p",
+            (true, _, 3..) => {
+                "the process noise, which the Monte Carlo condition of relative degree ≥ 3 \
+                 leaves out, or model error beyond p"
+            }
+            (true, false, _) => {
+                "the process noise, which the latent condition (controller.predictive = false) \
+                 leaves out, or model error beyond p (use controller.predictive = true)"
+            }
+            (true, true, _) => "process noise or model error beyond p",
+        }
     };
     for (i, b) in barriers.iter().enumerate() {
         let found = records
@@ -826,7 +836,15 @@ pub(crate) fn warn_crossing_in_met_step(
             .find(|r| r.status != StepStatus::Infeasible && r.h[i] >= 0.0 && r.h_fine_min[i] < 0.0);
         let Some(r) = found else { continue };
         let r_degree = b.relative_degree();
+        let noise = cause(r_degree);
         if r_degree >= 2 {
+            let outside = start_margin(truth, b.as_ref(), &r.x)
+                .ok()
+                .flatten()
+                .is_some_and(|psi| psi < 0.0);
+            if outside {
+                continue;
+            }
             warn_once(
                 &CROSSED_IN_MET_STEP,
                 format!(

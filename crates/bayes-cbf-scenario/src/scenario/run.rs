@@ -224,7 +224,10 @@ pub fn run_scenario_until(
         &built.barriers,
         built.truth.as_ref(),
         &result.records,
-        built.controller.settings().predictive,
+        (
+            built.controller.settings().predictive,
+            scenario.sim.process_noise,
+        ),
         scenario.seed,
     );
     if let Some(t) = built.loop_settings.trigger.as_ref().filter(|t| t.hold) {

@@ -24,9 +24,8 @@
 //! - too small: the rounding of `h` and of the posterior mean, amplified by
 //!   `s^{−r}`, moves the condition by over 1 % of its spread; or the modes
 //!   of `Ĉ` at its round-off floor (at or below its largest negative
-//!   eigenvalue, and at least `dim · ε · λ_max`) move the condition of the
-//!   first draws by over 10 % of its spread (root mean square), which
-//!   widens its standard deviation by up to 0.5 %. On a model without data
+//!   eigenvalue, and at least `dim · ε · λ_max`) widen the margin `3·std`
+//!   of the first draws' condition by over 1 % of its spread. On a model without data
 //!   (lengthscale 1, relative degree 3) that floor binds below a step of
 //!   about 3e-4.
 
@@ -110,17 +109,19 @@ impl McMoments {
 }
 
 /// Largest joint posterior (lattice points × `(1 + m)`) the estimate
-/// draws from: a 5000 × 5000 covariance (200 MB) and its eigendecomposition.
+/// draws from: a 5000 × 5000 covariance (200 MB), its eigendecomposition
+/// and two square-root factors of the same size.
 const MAX_JOINT: usize = 5000;
 
 /// Draws also taken without the modes of `Ĉ` at its round-off floor.
 const FLOOR_PROBES: usize = 32;
 
-/// The largest share of the spread of `z` that the modes at the round-off
-/// floor may move it by (root mean square over the probes). Independent of
-/// the rest, such a share widens the standard deviation by at most half
-/// its square, 0.5 %.
-const MAX_UNRESOLVED: f64 = 0.1;
+/// The largest share of the spread of each entry of `z` (standard
+/// deviation plus `|mean|`) by which the modes at the round-off floor may
+/// widen its margin `c·std` (`c = 3`). Moving `z` by `d` (root mean square
+/// over the probes) independently of the rest widens its standard deviation
+/// `σ` by `d²/(2σ)`, so the margin by `1.5 d²/σ`.
+const MAX_UNRESOLVED: f64 = 0.01;
 
 /// Offsets of the cube lattice `{−R, …, R}ⁿ`, row-major `P × n`.
 fn lattice(n: usize, radius: usize) -> Vec<Vec<i64>> {
@@ -394,20 +395,22 @@ pub fn mc_cbc_moments<K: Kernel>(
         }
     }
     let eig = nalgebra::SymmetricEigen::new(chat);
-    let sqrt_c =
-        &eig.eigenvectors * DMatrix::from_diagonal(&eig.eigenvalues.map(|l| l.max(0.0).sqrt())); // Ĉ = S Sᵀ
-                                                                                                 // the round-off floor of Ĉ's eigenvalues: the largest negative one
-                                                                                                 // (rounding, not the posterior, made it negative), and at least the
-                                                                                                 // rounding of a matrix of that size and norm. The modes at or below it
-                                                                                                 // are rounding, yet the nested differences amplify them by s^{1−r}:
-                                                                                                 // the first draws are also taken without them, and their share of z
-                                                                                                 // is checked below
+    // Ĉ = S Sᵀ, S = V Λ^{½}; the draws use Sᵀ
     let eigenvalues = &eig.eigenvalues;
+    let factor_t = |keep: &dyn Fn(f64) -> f64| -> DMatrix<f64> {
+        (&eig.eigenvectors * DMatrix::from_diagonal(&eigenvalues.map(keep))).transpose()
+    };
+    let sqrt_t = factor_t(&|l| l.max(0.0).sqrt());
+    // the round-off floor of Ĉ's eigenvalues: the largest negative one
+    // (rounding, not the posterior, made it negative), and at least the
+    // rounding of a matrix of that size and norm. The modes at or below it
+    // are rounding, yet the nested differences amplify them by s^{1−r}:
+    // the first draws are also taken without them, and their share of z
+    // is checked below
     let floor = (-eigenvalues.min())
         .max(eigenvalues.len() as f64 * f64::EPSILON * eigenvalues.max())
         .max(0.0);
-    let resolved_c = &eig.eigenvectors
-        * DMatrix::from_diagonal(&eigenvalues.map(|l| if l > floor { l.sqrt() } else { 0.0 }));
+    let resolved_t = factor_t(&|l| if l > floor { l.sqrt() } else { 0.0 });
     let floor_probes = settings.samples.min(FLOOR_PROBES);
     let mut floor_dev = vec![0.0; p];
     let mut z_resolved = vec![0.0; p];
@@ -422,11 +425,11 @@ pub fn mc_cbc_moments<K: Kernel>(
         for v in xi.iter_mut() {
             *v = StandardNormal.sample(&mut rng);
         }
-        let draw = &mean + &la * &xi * sqrt_c.transpose();
+        let draw = &mean + &la * &xi * &sqrt_t;
         let z = &mut zs[t * p..(t + 1) * p];
         lat.condition(&draw, &h_vals, gains, s, &mut scratch, z);
         if t < floor_probes {
-            let resolved = &mean + &la * &xi * resolved_c.transpose();
+            let resolved = &mean + &la * &xi * &resolved_t;
             lat.condition(&resolved, &h_vals, gains, s, &mut scratch, &mut z_resolved);
             for c in 0..p {
                 floor_dev[c] += (z[c] - z_resolved[c]).powi(2) / floor_probes as f64;
@@ -500,9 +503,14 @@ pub fn mc_cbc_moments<K: Kernel>(
         )
         .into());
     }
-    // the draws' modes at the round-off floor, as a share of the spread
+    // the margin the draws' modes at the round-off floor add, as a share of
+    // the spread (an entry that no draw moves is not refused for the
+    // rounding of zero)
     let unresolved = (0..p)
-        .map(|c| floor_dev[c].sqrt() / spread[c])
+        .map(|c| match floor_dev[c] {
+            0.0 => 0.0,
+            d2 => 1.5 * d2 / (cov[(c, c)].sqrt() * spread[c]),
+        })
         .fold(
             0.0f64,
             |a, v| if v.is_nan() { f64::INFINITY } else { a.max(v) },
@@ -513,8 +521,8 @@ pub fn mc_cbc_moments<K: Kernel>(
             s,
             &format!(
                 "too small for relative degree {r}: its {r} nested differences amplify the \
-                 round-off of the posterior draws of F to {} (increase step; the default is \
-                 1e-2)",
+                 round-off of the posterior draws of F, which can widen the margin 3·std by \
+                 {} (increase step; the default is 1e-2)",
                 share(unresolved)
             ),
         )
