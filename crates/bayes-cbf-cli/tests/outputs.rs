@@ -4,7 +4,7 @@
 
 mod common;
 
-use common::{run_in, scratch_dir, Run};
+use common::{run_in, scratch_dir, Run, BARE_CART};
 use std::process::{Command, Stdio};
 
 /// A short run of the double integrator, extra arguments appended.
@@ -376,37 +376,6 @@ fn run_with(dir: &std::path::Path, scenario: &str, sets: &[&str], out: &str) -> 
     }
     run_in(dir, &args)
 }
-
-/// A cart against a wall, written with nothing but its system, barrier,
-/// bounds and reference: the defaults (a zero prior mean) leave the model
-/// ignorant of `p' = v` and of the input, which the run warns of.
-const BARE_CART: &str = r#"
-start = [-0.5, 0.0]
-
-[system]
-type = "expression"
-state = ["p", "v"]
-control = ["F"]
-params = { m = 1.5, c = 0.8 }
-f = ["v", "-c/m*v"]
-g = [["0"], ["1/m"]]
-
-[[barriers]]
-type = "expression"
-h = "1 - p"
-relative_degree = 2
-k_alpha = [4.0, 4.0]
-
-[controller]
-u_min = [-5.0]
-u_max = [5.0]
-
-[reference]
-type = "feedback"
-u0 = [0.0]
-gain = [[4.0, 3.0]]
-target = [0.8, 0.0]
-"#;
 
 /// What a file left at its defaults is warned of: a zero prior mean under
 /// a barrier of relative degree 2, a row declared known that the prior

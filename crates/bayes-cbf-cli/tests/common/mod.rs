@@ -124,3 +124,34 @@ pub fn assert_fails(r: &Run, expect: &[&str], case: &str) {
         );
     }
 }
+
+/// A cart against a wall, written with nothing but its system, barrier,
+/// bounds and reference: the defaults (a zero prior mean) leave the model
+/// ignorant of `p' = v` and of the input, which the run warns of.
+pub const BARE_CART: &str = r#"
+start = [-0.5, 0.0]
+
+[system]
+type = "expression"
+state = ["p", "v"]
+control = ["F"]
+params = { m = 1.5, c = 0.8 }
+f = ["v", "-c/m*v"]
+g = [["0"], ["1/m"]]
+
+[[barriers]]
+type = "expression"
+h = "1 - p"
+relative_degree = 2
+k_alpha = [4.0, 4.0]
+
+[controller]
+u_min = [-5.0]
+u_max = [5.0]
+
+[reference]
+type = "feedback"
+u0 = [0.0]
+gain = [[4.0, 3.0]]
+target = [0.8, 0.0]
+"#;

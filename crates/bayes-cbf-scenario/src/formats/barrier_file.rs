@@ -380,7 +380,7 @@ impl BarrierSpec {
 
 static KINKS: WarnOnce = WarnOnce::new();
 
-/// Warns, once per scope ([`bayes_cbf::warnings`]), of an expression barrier with a kink
+/// Warns, once per scope, of an expression barrier with a kink
 /// ([`ExpressionBarrier::kinks`]).
 fn warn_kinks(barrier: &ExpressionBarrier) {
     let kinks = barrier.kinks();

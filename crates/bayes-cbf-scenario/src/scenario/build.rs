@@ -416,7 +416,7 @@ static START_OUTSIDE: WarnOnce = WarnOnce::new();
 static START_UNSAFE: WarnOnce = WarnOnce::new();
 static FAST_GAINS: WarnOnce = WarnOnce::new();
 
-/// Warns, once per scope ([`bayes_cbf::warnings`]), when a barrier's fastest pole `λ` exceeds
+/// Warns, once per scope, when a barrier's fastest pole `λ` exceeds
 /// `1/dt`: the condition holds at each step, but the control is held over
 /// `dt`, in which `h` moves by about `−λ h dt`, past zero when `λ dt > 1`.
 fn warn_fast_gains(barriers: &[Arc<dyn DynBarrier>], dt: f64) {
@@ -443,7 +443,7 @@ fn warn_fast_gains(barriers: &[Arc<dyn DynBarrier>], dt: f64) {
 }
 static KNOWN_ROW_MISFIT: WarnOnce = WarnOnce::new();
 
-/// Warns, once per scope ([`bayes_cbf::warnings`]), when a run's data contradict a row declared
+/// Warns, once per scope, when a run's data contradict a row declared
 /// known (`gp.known_rows`): a misfit that follows the state and exceeds
 /// half the labels ([`Mvgp::known_row_misfit`]).
 pub(crate) fn warn_known_row_misfit(model: &Mvgp, seed: u64) {
@@ -494,7 +494,7 @@ pub(crate) fn crossing_outside(
     })
 }
 
-/// Warns, once per scope ([`bayes_cbf::warnings`]), of a [`crossing_outside`].
+/// Warns, once per scope, of a [`crossing_outside`].
 pub(crate) fn warn_crossing_outside(
     barriers: &[Arc<dyn DynBarrier>],
     truth: &dyn DynSystem,
@@ -526,7 +526,7 @@ pub(crate) fn warn_crossing_outside(
 
 static KNOWN_ROW_NOT_TRUE: WarnOnce = WarnOnce::new();
 
-/// Warns, once per scope ([`bayes_cbf::warnings`]), when a row of `F` declared known differs from
+/// Warns, once per scope, when a row of `F` declared known differs from
 /// the system's at the start state or a unit step from it along a
 /// coordinate: a known row is the prior mean's and is never learned (a
 /// zero prior mean makes every known row zero).
@@ -586,7 +586,7 @@ fn known_rows_agree(model: &Mvgp, known: &[usize], truth: &dyn DynSystem, x: &[f
 
 static ZERO_PRIOR: WarnOnce = WarnOnce::new();
 
-/// Warns, once per scope ([`bayes_cbf::warnings`]), of a zero prior mean where it defeats the
+/// Warns, once per scope, of a zero prior mean where it defeats the
 /// conditions: under a barrier of relative degree ≥ 2 (the model knows
 /// neither the rows that tie `h`'s derivatives to the state nor how the
 /// input acts), or without learning (it never learns how the input acts).
@@ -623,7 +623,7 @@ fn warn_zero_prior(barriers: &[Arc<dyn DynBarrier>], update_every: usize) {
 
 static MOSTLY_INFEASIBLE: WarnOnce = WarnOnce::new();
 
-/// Warns, once per scope ([`bayes_cbf::warnings`]), when the infeasible steps of a run held more
+/// Warns, once per scope, when the infeasible steps of a run held more
 /// than half its time: the fallback acted on most of it, safe or not (a
 /// robot kept still by it is safe, and goes nowhere). Time, not steps:
 /// self-triggered holds of infeasible steps are short.
@@ -671,7 +671,7 @@ pub(crate) fn crossing_in_infeasible_step(
     })
 }
 
-/// Warns, once per scope ([`bayes_cbf::warnings`]), of a [`crossing_in_infeasible_step`]: no
+/// Warns, once per scope, of a [`crossing_in_infeasible_step`]: no
 /// control met the conditions at `p` there, and the fallback did not keep
 /// `h ≥ 0`. Without such a warning a run whose steps were all infeasible
 /// crossed in silence.
@@ -706,7 +706,7 @@ pub(crate) fn warn_crossing_in_infeasible_step(
 
 static NOISE_BELOW_LABELS: WarnOnce = WarnOnce::new();
 
-/// Warns, once per scope ([`bayes_cbf::warnings`]), when the model's noise on a learned row,
+/// Warns, once per scope, when the model's noise on a learned row,
 /// `σ·√A_ii`, is below the noise that process noise `σ_w` puts on the
 /// learning labels, `σ_w/√τ` (finite differences over the hold `τ`, named
 /// `tau`: `dt`, or the median hold of a self-triggered run): the
@@ -759,7 +759,7 @@ pub(crate) fn warn_noise_below_held_labels(
 
 static CLAMPED_HOLDS: WarnOnce = WarnOnce::new();
 
-/// Warns, once per scope ([`bayes_cbf::warnings`]), when self-triggered holds were clamped up to
+/// Warns, once per scope, when self-triggered holds were clamped up to
 /// `tau_min`: there the hold that keeps the conditions (Props. 3, 5) was
 /// shorter than the one applied, which lies outside the guarantee.
 pub(crate) fn warn_clamped_holds(records: &[StepRecord], tau_min: f64, seed: u64) {
@@ -796,8 +796,8 @@ pub(crate) fn warn_clamped_holds(records: &[StepRecord], tau_min: f64, seed: u64
 
 static CROSSED_IN_MET_STEP: WarnOnce = WarnOnce::new();
 
-/// Warns, once per scope ([`bayes_cbf::warnings`]), when a barrier's `h`
-/// crossed zero within a held step that met its condition.
+/// Warns, once per scope, when a barrier's `h` crossed zero within a held
+/// step that met its condition.
 ///
 /// Relative degree 1: the condition bounds `ḣ` at the step; over the hold
 /// `τ`, `h` also moves by `½τ²ẋᵀ∇²h ẋ` (its curvature along the motion, at
@@ -908,7 +908,7 @@ fn short(v: f64) -> String {
     }
 }
 
-/// Warns, once per scope ([`bayes_cbf::warnings`]), when the start lies outside the set that a
+/// Warns, once per scope, when the start lies outside the set that a
 /// relative-degree-2 barrier's gains keep safe ([`start_margin`]).
 fn warn_start_margin(
     barriers: &[Arc<dyn DynBarrier>],
