@@ -123,6 +123,16 @@ const FLOOR_PROBES: usize = 32;
 /// `σ` by `d²/(2σ)`, so the margin by `1.5 d²/σ`.
 const MAX_UNRESOLVED: f64 = 0.01;
 
+/// The larger of two shares of the spread, a NaN share counting as
+/// infinite (a fold's step).
+fn worst(a: f64, v: f64) -> f64 {
+    if v.is_nan() {
+        f64::INFINITY
+    } else {
+        a.max(v)
+    }
+}
+
 /// Offsets of the cube lattice `{−R, …, R}ⁿ`, row-major `P × n`.
 fn lattice(n: usize, radius: usize) -> Vec<Vec<i64>> {
     let side = 2 * radius + 1;
@@ -511,10 +521,7 @@ pub fn mc_cbc_moments<K: Kernel>(
             0.0 => 0.0,
             d2 => 1.5 * d2 / (cov[(c, c)].sqrt() * spread[c]),
         })
-        .fold(
-            0.0f64,
-            |a, v| if v.is_nan() { f64::INFINITY } else { a.max(v) },
-        );
+        .fold(0.0, worst);
     if unresolved > MAX_UNRESOLVED {
         return Err(InputError::invalid(
             "step",
@@ -570,10 +577,7 @@ pub fn mc_cbc_moments<K: Kernel>(
             0.0 => 0.0,
             d => d / spread[c],
         })
-        .fold(
-            0.0f64,
-            |a, v| if v.is_nan() { f64::INFINITY } else { a.max(v) },
-        );
+        .fold(0.0, worst);
     if truncation > 1e-2 {
         return Err(InputError::invalid(
             "step",
