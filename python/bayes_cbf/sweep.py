@@ -126,7 +126,7 @@ def seeds(
     n = _shard_count(ray, shards, end - start)
     metas = [_core.sweep_meta(scenario, start, end, sets, i, n) for i in range(n)]
     # fail fast on a bad scenario or override, before any task runs
-    _core.check_scenario(scenario, sets)
+    _core.check_scenario(scenario, sets + [f"seed={start}"])
     task = ray.remote(num_cpus=1)(_sweep_task).options(runtime_env=_ENV)
     csvs = ray.get([task.remote(m) for m in metas])
     summary_json, csv = _core.sweep_merge(list(zip(metas, csvs)))

@@ -166,6 +166,8 @@ pub fn run_merge(a: &MergeArgs) -> Result<()> {
             let p = d.join("part.json");
             let part: CalibrationPart = serde_json::from_str(&read(&p)?)
                 .with_context(|| format!("'{}' is not a calibration shard", p.display()))?;
+            part.check()
+                .with_context(|| format!("merge: '{}'", p.display()))?;
             parts.push(part);
         }
         let result = ExperimentResult::Calibration(calibration::merge(parts)?);

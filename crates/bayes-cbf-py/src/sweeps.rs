@@ -44,13 +44,13 @@ fn parse_meta(text: &str) -> PyResult<SweepMeta> {
     serde_json::from_str(text).map_err(|e| input_err(format!("sweep shard description: {e}")))
 }
 
-/// Loads scenario `name` with `sets` (`key=value`), raising `InputError`
-/// if it or an override is bad.
+/// Loads and validates scenario `name` with `sets` (`key=value`) at the
+/// seed they give (`scenario::check`), raising `InputError` if it, an
+/// override or a setting is bad.
 #[pyfunction]
-pub fn check_scenario(name: &str, sets: Vec<String>) -> PyResult<()> {
-    bayes_cbf_scenario::scenario::load(name, &sets)
-        .map(|_| ())
-        .map_err(scenario_err)
+pub fn check_scenario(py: Python<'_>, name: &str, sets: Vec<String>) -> PyResult<()> {
+    let checked = bayes_cbf_scenario::scenario::check(name, &sets);
+    crate::warnings::after(py, checked.map_err(scenario_err))
 }
 
 /// Runs the shard described by `meta` (JSON) and returns its rows as CSV

@@ -314,11 +314,21 @@ pub fn parse_rows_csv(text: &str, name: &str) -> Result<Vec<SweepRow>> {
                 _ => Err(err!("{}: field {} = '{}' is not 0 or 1", at(), j + 1, f[j])),
             }
         };
+        let (safe, min_barrier) = (flag(1)?, num(3)?);
+        // a run is safe exactly when its smallest h is ≥ 0 (+inf: no barrier)
+        if safe != (min_barrier >= 0.0) {
+            bail!(
+                "{}: field 2 (safe) = {} disagrees with field 4 (min_barrier) = {}",
+                at(),
+                f[1],
+                f[3]
+            );
+        }
         rows.push(SweepRow {
             seed: int(0)?,
-            safe: flag(1)?,
+            safe,
             collided: flag(2)?,
-            min_barrier: num(3)?,
+            min_barrier,
             infeasible_steps: int(4)? as usize,
             goal_distance: if f[5].is_empty() { f64::NAN } else { num(5)? },
             control_step_us: num(6)?,
@@ -384,8 +394,13 @@ pub fn run_seeds_until(
             .filter(|(i, _)| meta.shard.owns(*i))
             .map(|(_, s)| s),
     );
-    // check the scenario once before fanning out
-    scenario::load(&meta.scenario, &meta.sets)?;
+    // check the scenario once before fanning out, at the first seed
+    let mut sets = meta.sets.clone();
+    sets.push(format!(
+        "seed={}",
+        seeds.first().unwrap_or(&meta.seeds.start)
+    ));
+    scenario::check(&meta.scenario, &sets)?;
     let done = AtomicUsize::new(0);
     let total = seeds.len();
     seeds
@@ -654,17 +669,7 @@ pub fn merge_sweeps(parts: Vec<(SweepMeta, Vec<SweepRow>)>) -> Result<(SweepMeta
     }
     let mut rows: Vec<SweepRow> = bayes_cbf::error::reserve("seeds", whole.seeds.len())?;
     for (m, r) in parts {
-        for row in &r {
-            let pos = row.seed.checked_sub(m.seeds.start).map(|p| p as usize);
-            if row.seed >= m.seeds.end || !pos.is_some_and(|p| m.shard.owns(p)) {
-                bail!(
-                    "merge: shard {}/{} holds seed {}, which is not one of its seeds",
-                    m.shard.index,
-                    m.shard.count,
-                    row.seed
-                );
-            }
-        }
+        check_shard_seeds(&m, &r)?;
         rows.extend(r);
     }
     rows.sort_by_key(|r| r.seed);
@@ -677,6 +682,42 @@ pub fn merge_sweeps(parts: Vec<(SweepMeta, Vec<SweepRow>)>) -> Result<(SweepMeta
     }
     check_ran(&rows)?;
     Ok((whole, rows))
+}
+
+/// Checks that shard `m`'s rows `r` are its seeds, each once: names a seed
+/// that is not its own, one given twice, and the first one missing.
+fn check_shard_seeds(m: &SweepMeta, r: &[SweepRow]) -> Result<()> {
+    let (index, count) = (m.shard.index, m.shard.count);
+    for row in r {
+        let pos = row.seed.checked_sub(m.seeds.start).map(|p| p as usize);
+        if row.seed >= m.seeds.end || !pos.is_some_and(|p| m.shard.owns(p)) {
+            bail!(
+                "merge: shard {index}/{count} holds seed {}, which is not one of its seeds",
+                row.seed
+            );
+        }
+    }
+    let mut seeds: Vec<u64> = r.iter().map(|row| row.seed).collect();
+    seeds.sort_unstable();
+    if let Some(w) = seeds.windows(2).find(|w| w[0] == w[1]) {
+        bail!("merge: shard {index}/{count} holds seed {} twice", w[0]);
+    }
+    // its own seeds, in order: the first that the sorted rows skip
+    let own = (index..m.seeds.len())
+        .step_by(count.max(1))
+        .map(|p| m.seeds.start + p as u64);
+    let mut held = seeds.iter().peekable();
+    for seed in own {
+        if held.next_if_eq(&&seed).is_none() {
+            bail!(
+                "merge: shard {index}/{count} holds {} of its {} seeds: seed {seed} is missing \
+                 (its run was interrupted, or its sweep.csv cut short)",
+                seeds.len(),
+                (index..m.seeds.len()).step_by(count.max(1)).len()
+            );
+        }
+    }
+    Ok(())
 }
 
 #[cfg(test)]

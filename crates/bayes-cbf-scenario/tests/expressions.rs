@@ -98,6 +98,27 @@ fn expression_barriers_name_the_states_of_a_built_in_system() {
     );
 }
 
+/// The check of the known rows before the run evaluates the system a unit
+/// step off the start along each coordinate; a system that is not finite
+/// there (here at p = −1.5, never visited) still runs.
+#[test]
+fn a_system_not_finite_off_the_start_runs() {
+    for f in [
+        "-c/mass*v - 0.01*log(p + 0.9)",
+        "-c/mass*v - 0.01*sqrt(v + 0.5)",
+    ] {
+        let sets = [
+            format!("system.f=['v', '{f}']"),
+            "steps=20".into(),
+            "start_spread=[0.0, 0.0]".into(),
+        ];
+        let (sc, _) = scenario::load("double-integrator", &sets).unwrap();
+        let out = scenario::run_scenario(&sc, |_, _| {});
+        let out = out.unwrap_or_else(|e| panic!("{f}: {e:#}"));
+        assert_eq!(out.result.records.len(), 20, "{f}");
+    }
+}
+
 #[test]
 fn bad_expressions_in_scenarios_name_the_field() {
     let file = data("pendulum-safe-expression.toml");

@@ -111,6 +111,46 @@ fn calibration_shards_merge_into_the_unsharded_run() {
     v.as_object_mut().unwrap().remove("fallback");
     let old: CalibrationPart = serde_json::from_value(v).unwrap();
     assert_eq!(old.fallback, Fallback::MaxMargin);
+    // counts that contradict each other (more violations than steps, a sum
+    // that is not finite) are refused, naming the field
+    for (field, value, want) in [
+        (
+            "steps_h_violated",
+            serde_json::json!(1_000_000),
+            "steps_h_violated = 1000000 exceeds steps",
+        ),
+        (
+            "solved_steps",
+            serde_json::json!(1_000_000),
+            "solved_steps + infeasible_steps",
+        ),
+        (
+            "cbc_violations",
+            serde_json::json!(1_000_000),
+            "cbc_violations = 1000000 exceeds solved_steps",
+        ),
+    ] {
+        let mut v = serde_json::to_value(&parts[0]).unwrap();
+        v["results"][0][1][field] = value;
+        let bad: CalibrationPart = serde_json::from_value(v).unwrap();
+        let e = bad.check().unwrap_err().to_string();
+        assert!(
+            e.contains(want) && e.contains("shard 2/3, episode"),
+            "{field}: {e}"
+        );
+        let e = calibration::merge(vec![bad, parts[1].clone(), parts[2].clone()])
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains(want), "{field}: {e}");
+    }
+    let mut v = serde_json::to_value(&parts[0]).unwrap();
+    v["results"][0][1]["z"][0]["sum"] = "NaN".into();
+    let bad: CalibrationPart = serde_json::from_value(v).unwrap();
+    let e = bad.check().unwrap_err().to_string();
+    assert!(e.contains("z[0]: sum = NaN"), "{e}");
+    for p in &parts {
+        p.check().unwrap();
+    }
     assert!(calibration::merge(vec![]).is_err());
 }
 
@@ -182,6 +222,34 @@ fn sweep_shards_merge_into_the_unsharded_sweep() {
         .unwrap_err()
         .to_string();
     assert!(e.contains("not one of its seeds"), "{e}");
+    // a seed of its own given twice in place of another, and one left out:
+    // each names the shard and the seed
+    let mut swapped = parts[1].clone();
+    swapped.1[1].seed = 3; // shard 0/2 holds 3, 3, 7
+    let e = merge_sweeps(vec![parts[0].clone(), swapped])
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("shard 0/2 holds seed 3 twice"), "{e}");
+    let mut cut = parts[1].clone();
+    cut.1.remove(1);
+    let e = merge_sweeps(vec![parts[0].clone(), cut])
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.contains("shard 0/2 holds 2 of its 3 seeds: seed 5 is missing"),
+        "{e}"
+    );
+    // a row whose safe flag contradicts its smallest h
+    let text = rows_csv(&parts[0].1);
+    let line = text.lines().nth(1).unwrap();
+    let mut f: Vec<String> = line.split(',').map(String::from).collect();
+    f[3] = if f[1] == "1" { "-1e999" } else { "inf" }.into();
+    let bad = text.replacen(line, &f.join(","), 1);
+    let e = parse_rows_csv(&bad, "sweep.csv").unwrap_err().to_string();
+    assert!(
+        e.contains("sweep.csv line 2: field 2 (safe)") && e.contains("field 4 (min_barrier)"),
+        "{e}"
+    );
 }
 
 #[test]
@@ -201,12 +269,14 @@ fn sweep_rows_do_not_depend_on_the_thread_count() {
 }
 
 /// The double integrator with a kernel variance of `kernel_variance`, 60
-/// steps of seeds `seeds`.
+/// steps of seeds `seeds` (and the model noise 0.05 it had when the
+/// variances below were found).
 fn stopping_meta(kernel_variance: f64, seeds: &str, shard: Shard) -> SweepMeta {
     SweepMeta {
         scenario: "double-integrator".into(),
         sets: vec![
             format!("gp.kernel_variance={kernel_variance}"),
+            "gp.noise_sigma=0.05".into(),
             "steps=60".into(),
         ],
         seeds: seeds.parse().unwrap(),
@@ -291,6 +361,24 @@ fn a_seed_that_stops_is_a_row_and_every_seed_stopping_is_an_error() {
         .collect();
     let e = merge_sweeps(parts).unwrap_err().to_string();
     assert!(e.contains("every one of the 4 seeds stopped"), "{e}");
+}
+
+/// A bad setting is one error before any seed runs (not a row per seed,
+/// nor "every seed stopped"), in a shard that owns no seed too.
+#[test]
+fn a_bad_setting_stops_the_sweep_before_its_runs() {
+    for (set, want) in [
+        ("dt=-1", "dt = -1: must be finite and > 0"),
+        ("controller.probability=2", "invalid probability = 2"),
+        ("start=[1.0]", "start has 1 entries, expected 2"),
+    ] {
+        for shard in [Shard::WHOLE, Shard { index: 4, count: 5 }] {
+            let mut m = stopping_meta(1.0, "0..3", shard);
+            m.sets.push(set.into());
+            let e = run_seeds(&m, &|_, _| {}).unwrap_err().to_string();
+            assert!(e.contains(want) && !e.contains("stopped"), "{set}: {e}");
+        }
+    }
 }
 
 /// `work(stop)` with `stop` set by another thread after `delay`: its

@@ -530,7 +530,14 @@ static KNOWN_ROW_NOT_TRUE: WarnOnce = WarnOnce::new();
 /// the system's at the start state or a unit step from it along a
 /// coordinate: a known row is the prior mean's and is never learned (a
 /// zero prior mean makes every known row zero).
+///
+/// The unit steps are states the run may never visit: an evaluation that
+/// fails there (an expression not finite off the start) is discarded, so
+/// that the run does not stop on it.
 fn warn_known_rows_at_start(model: &Mvgp, known: &[usize], truth: &dyn DynSystem, start: &[f64]) {
+    if known.is_empty() {
+        return;
+    }
     let n = truth.state_dim();
     let mut points = vec![start.to_vec()];
     for j in 0..n {
@@ -540,11 +547,11 @@ fn warn_known_rows_at_start(model: &Mvgp, known: &[usize], truth: &dyn DynSystem
             points.push(x);
         }
     }
-    for x in &points {
-        if !known_rows_agree(model, known, truth, x) {
-            return;
-        }
-    }
+    // stops at the first state that warns
+    let _ = points
+        .iter()
+        .all(|x| known_rows_agree(model, known, truth, x));
+    let _ = (truth.take_error(), model.prior().take_error());
 }
 
 /// [`warn_known_rows_at_start`] at one state `x`: whether every known row

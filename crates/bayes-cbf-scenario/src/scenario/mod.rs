@@ -667,6 +667,32 @@ pub fn validate(s: &Scenario) -> Result<()> {
     build::build(s).map(|_| ())
 }
 
+/// Checks scenario `name` with overrides `sets` as a sweep does before its
+/// runs: it [`load`]s and [`validate`]s at the seed the overrides give,
+/// so that a bad setting (`dt = -1`, a probability of 2, a start of the
+/// wrong length) is one error, not every seed's. A failure that belongs to
+/// that seed (an expression not finite at its start, a numerical failure)
+/// passes: it is the outcome of that seed's run, and other seeds may run.
+pub fn check(name: &str, sets: &[String]) -> Result<()> {
+    let _warnings = bayes_cbf::warnings::Scope::enter();
+    let (s, _) = load(name, sets)?;
+    match validate(&s) {
+        Err(e) if !seed_specific(&e) => Err(e),
+        _ => Ok(()),
+    }
+}
+
+/// An error that a run can meet at one seed and not at another: a user
+/// function that fails at a state, or a numerical failure.
+fn seed_specific(e: &crate::Error) -> bool {
+    use crate::Error;
+    use bayes_cbf::{Error as Core, InputError};
+    matches!(
+        e.root(),
+        Error::Core(Core::Input(InputError::Evaluation(_)) | Core::Gp(_) | Core::Control(_))
+    )
+}
+
 /// Applies `key=value` to a TOML table; `key` is a dotted path whose numeric
 /// segments index arrays; `value` is a TOML literal (strings may be bare)
 /// or a JSON object (as Python's `json.dumps` writes a dict).

@@ -479,6 +479,125 @@ pub(crate) struct EpisodeStats {
     pub error: Option<String>,
 }
 
+impl EpisodeStats {
+    /// Checks the counts against each other as [`run_episode`] writes them
+    /// (each a subset of the one it is counted among, the sums finite), so
+    /// that a shard edited or written by another program is refused rather
+    /// than merged into rates above 1. Returns the first field that breaks
+    /// a relation.
+    pub(crate) fn check(&self) -> std::result::Result<(), String> {
+        let at_most = |field: &str, v: usize, bound: &str, b: usize| {
+            if v > b {
+                Err(format!("{field} = {v} exceeds {bound} = {b}"))
+            } else {
+                Ok(())
+            }
+        };
+        let solved_or_not = self.solved_steps.checked_add(self.infeasible_steps);
+        if solved_or_not != Some(self.steps) {
+            return Err(format!(
+                "solved_steps + infeasible_steps = {} + {} is not steps = {}",
+                self.solved_steps, self.infeasible_steps, self.steps
+            ));
+        }
+        at_most(
+            "steps_h_violated",
+            self.steps_h_violated,
+            "steps",
+            self.steps,
+        )?;
+        at_most("non_finite", self.non_finite, "steps", self.steps)?;
+        at_most(
+            "cbc_violations",
+            self.cbc_violations,
+            "solved_steps",
+            self.solved_steps,
+        )?;
+        at_most(
+            "active_steps",
+            self.active_steps,
+            "solved_steps",
+            self.solved_steps,
+        )?;
+        at_most(
+            "active_violations",
+            self.active_violations,
+            "active_steps",
+            self.active_steps,
+        )?;
+        at_most(
+            "active_violations",
+            self.active_violations,
+            "cbc_violations",
+            self.cbc_violations,
+        )?;
+        at_most(
+            "active_steps_late",
+            self.active_steps_late,
+            "active_steps",
+            self.active_steps,
+        )?;
+        at_most(
+            "active_violations_late",
+            self.active_violations_late,
+            "active_violations",
+            self.active_violations,
+        )?;
+        at_most(
+            "active_violations_late",
+            self.active_violations_late,
+            "active_steps_late",
+            self.active_steps_late,
+        )?;
+        at_most(
+            "realised_active_steps",
+            self.realised_active_steps,
+            "active_steps",
+            self.active_steps,
+        )?;
+        at_most(
+            "realised_active_violations",
+            self.realised_active_violations,
+            "realised_active_steps",
+            self.realised_active_steps,
+        )?;
+        at_most("z[0].n", self.z[0].n, "solved_steps", self.solved_steps)?;
+        at_most("z[1].n", self.z[1].n, "active_steps", self.active_steps)?;
+        for (i, z) in self.z.iter().enumerate() {
+            for (j, b) in z.below.iter().enumerate() {
+                at_most(&format!("z[{i}].below[{j}]"), *b, &format!("z[{i}].n"), z.n)?;
+            }
+            let expected_ok = (0.0..=z.n as f64).contains(&z.expected);
+            if !(z.sum.is_finite() && z.sum2.is_finite() && z.sum2 >= 0.0 && expected_ok) {
+                return Err(format!(
+                    "z[{i}]: sum = {}, sum2 = {}, expected = {}: the sums must be finite, sum2 ≥ 0 \
+                     and expected between 0 and n = {}",
+                    z.sum, z.sum2, z.expected, z.n
+                ));
+            }
+        }
+        if self.error.is_some() && self.steps > 0 {
+            return Err(format!(
+                "steps = {}: an episode that failed has no steps",
+                self.steps
+            ));
+        }
+        if self.steps > 0 && self.min_h.is_nan() {
+            return Err("min_h is not a number in an episode that ran".into());
+        }
+        if self.steps_h_violated > 0 && !(self.min_h < 0.0) {
+            return Err(format!(
+                "steps_h_violated = {} with min_h = {} ≥ 0",
+                self.steps_h_violated, self.min_h
+            ));
+        }
+        if let Some(d) = self.min_distance.filter(|d| d.is_nan()) {
+            return Err(format!("min_distance = {d}"));
+        }
+        Ok(())
+    }
+}
+
 /// The condition as realised over the step from `x` to `x_next`
 /// ([`realised_condition`] at the rate `(x_next − x)/τ`, angle differences
 /// wrapped): what the predictive condition promises

@@ -282,6 +282,26 @@ pub struct CalibrationPart {
     results: Vec<(Task, EpisodeStats)>,
 }
 
+impl CalibrationPart {
+    /// Checks each episode's counts against each other (solved and
+    /// infeasible steps add up to the steps, violations are among the steps
+    /// they count, the sums are finite): a shard that another program wrote
+    /// or edited is refused, naming the task and the field, rather than
+    /// merged into rates above 1. [`merge`] checks every part.
+    pub fn check(&self) -> Result<()> {
+        for (t, s) in &self.results {
+            s.check().map_err(|e| {
+                crate::err!(
+                    "shard {}/{}, episode {t:?}: {e}; the file is not a shard this program wrote",
+                    self.shard.index,
+                    self.shard.count
+                )
+            })?;
+        }
+        Ok(())
+    }
+}
+
 /// Runs shard `shard` of the experiment (every task whose position in the
 /// task order belongs to it).
 pub fn run_shard(
@@ -348,6 +368,9 @@ pub fn merge(parts: Vec<CalibrationPart>) -> Result<Calibration> {
         }
     }
     let count = check_shard_set(parts.iter().map(|p| p.shard))?;
+    for p in &parts {
+        p.check().map_err(|e| crate::err!("merge: {e}"))?;
+    }
     let plan = Plan::new(quick, Some(episodes), Some(fallback))?;
     let order = tasks(&plan);
     let mut slots: Vec<Option<EpisodeStats>> = vec![None; order.len()];
