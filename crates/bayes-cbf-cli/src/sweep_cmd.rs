@@ -36,16 +36,17 @@ pub fn run_sweep(
     shard: Option<&str>,
     out: &Path,
 ) -> Result<()> {
-    let meta = SweepMeta {
-        scenario: scenario.to_string(),
-        sets: sets.to_vec(),
-        seeds: seeds.parse::<SeedRange>()?,
-        shard: shard
-            .map(str::parse::<Shard>)
-            .transpose()?
-            .unwrap_or(Shard::WHOLE),
-        goal_tolerance: GOAL_TOLERANCE,
-    };
+    let shard = shard
+        .map(str::parse::<Shard>)
+        .transpose()?
+        .unwrap_or(Shard::WHOLE);
+    let meta = SweepMeta::new(
+        scenario,
+        sets,
+        seeds.parse::<SeedRange>()?,
+        shard,
+        GOAL_TOLERANCE,
+    )?;
     let staged = StagedDir::new(out)?;
     let bar = progress_bar(&format!("{scenario} seeds"), "runs");
     let rows = run_seeds(&meta, &|done, total| {

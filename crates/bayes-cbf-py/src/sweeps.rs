@@ -30,13 +30,14 @@ pub fn sweep_meta(
     goal_tolerance: f64,
 ) -> PyResult<String> {
     let seeds: SeedRange = format!("{start}..{end}").parse().map_err(scenario_err)?;
-    let meta = SweepMeta {
-        scenario,
-        sets,
+    let meta = SweepMeta::new(
+        &scenario,
+        &sets,
         seeds,
-        shard: shard(index, count)?,
+        shard(index, count)?,
         goal_tolerance,
-    };
+    )
+    .map_err(scenario_err)?;
     serde_json::to_string(&meta).map_err(|e| input_err(e.to_string()))
 }
 

@@ -354,6 +354,46 @@ pub struct SweepMeta {
     pub shard: Shard,
     /// Goal tolerance of the `goal_reached` count (m).
     pub goal_tolerance: f64,
+    /// [`scenario::digest`] of the scenario with its overrides when the
+    /// sweep was described: each shard checks that it runs that scenario,
+    /// and [`merge_sweeps`] that the shards ran the same one (files
+    /// written before it existed: `None`, and the path is compared).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub scenario_digest: Option<String>,
+}
+
+impl SweepMeta {
+    /// The sweep of `scenario` with overrides `sets` over `seeds`, shard
+    /// `shard`, with the scenario's digest ([`scenario::digest`]).
+    pub fn new(
+        scenario: &str,
+        sets: &[String],
+        seeds: SeedRange,
+        shard: Shard,
+        goal_tolerance: f64,
+    ) -> Result<Self> {
+        Ok(SweepMeta {
+            scenario: scenario.into(),
+            sets: sets.to_vec(),
+            seeds,
+            shard,
+            goal_tolerance,
+            scenario_digest: Some(scenario::digest(scenario, sets)?),
+        })
+    }
+
+    /// Whether `self` and `other` describe one sweep, whatever their
+    /// shards: the same overrides, seeds and tolerance, and the same
+    /// scenario (by digest where both have one, else by path).
+    fn same_sweep(&self, other: &SweepMeta) -> bool {
+        let same_scenario = match (&self.scenario_digest, &other.scenario_digest) {
+            (Some(a), Some(b)) => a == b,
+            _ => self.scenario == other.scenario,
+        };
+        same_scenario
+            && (&self.sets, &self.seeds, self.goal_tolerance)
+                == (&other.sets, &other.seeds, other.goal_tolerance)
+    }
 }
 
 /// Runs the seeds of `meta.shard` (in parallel) and returns their rows in
@@ -394,6 +434,18 @@ pub fn run_seeds_until(
             .filter(|(i, _)| meta.shard.owns(*i))
             .map(|(_, s)| s),
     );
+    // the scenario the sweep was described with (another machine may have
+    // another copy of the file)
+    if let Some(want) = &meta.scenario_digest {
+        let now = scenario::digest(&meta.scenario, &meta.sets)?;
+        if &now != want {
+            bail!(
+                "scenario '{}' is not the one the sweep was described with (digest {now}, \
+                 expected {want}): the file changed since, or this machine has another copy",
+                meta.scenario
+            );
+        }
+    }
     // check the scenario once before fanning out, at the first seed
     let mut sets = meta.sets.clone();
     sets.push(format!(
@@ -647,15 +699,17 @@ pub fn merge_sweeps(parts: Vec<(SweepMeta, Vec<SweepRow>)>) -> Result<(SweepMeta
         ..first.clone()
     };
     for (m, _) in &parts {
-        let same = SweepMeta {
-            shard: Shard::WHOLE,
-            ..m.clone()
-        };
-        if same != whole {
+        if !m.same_sweep(first) {
+            let digest = |m: &SweepMeta| {
+                m.scenario_digest
+                    .as_ref()
+                    .map(|d| format!(" digest {d}"))
+                    .unwrap_or_default()
+            };
             bail!(
-                "merge: shard {}/{} is of another sweep ({} {:?} seeds {}..{}) than shard {}/{} ({} {:?} seeds {}..{})",
-                m.shard.index, m.shard.count, m.scenario, m.sets, m.seeds.start, m.seeds.end,
-                first.shard.index, first.shard.count, first.scenario, first.sets, first.seeds.start, first.seeds.end
+                "merge: shard {}/{} is of another sweep ({}{} {:?} seeds {}..{}) than shard {}/{} ({}{} {:?} seeds {}..{})",
+                m.shard.index, m.shard.count, m.scenario, digest(m), m.sets, m.seeds.start, m.seeds.end,
+                first.shard.index, first.shard.count, first.scenario, digest(first), first.sets, first.seeds.start, first.seeds.end
             );
         }
     }
@@ -755,6 +809,7 @@ mod tests {
             seeds: "0..2".parse().unwrap(),
             shard: Shard { index: 3, count: 2 },
             goal_tolerance: 1.0,
+            scenario_digest: None,
         };
         assert!(run_seeds(&bad, &|_, _| {}).is_err());
         bad.shard = Shard::WHOLE;

@@ -26,17 +26,12 @@ fn sweep_seeds(name: &str, start: u64, end: u64) -> Vec<SweepRow> {
 
 /// [`sweep_seeds`] with `--set` overrides.
 fn sweep_with(name: &str, sets: &[&str], start: u64, end: u64) -> Vec<SweepRow> {
-    let meta = SweepMeta {
-        scenario: name.into(),
-        sets: ["outputs.plots=false", "outputs.animation=false"]
-            .iter()
-            .chain(sets)
-            .map(|s| s.to_string())
-            .collect(),
-        seeds: SeedRange { start, end },
-        shard: Shard { index: 0, count: 1 },
-        goal_tolerance: 0.5,
-    };
+    let sets: Vec<String> = ["outputs.plots=false", "outputs.animation=false"]
+        .iter()
+        .chain(sets)
+        .map(|s| s.to_string())
+        .collect();
+    let meta = SweepMeta::new(name, &sets, SeedRange { start, end }, Shard::WHOLE, 0.5).unwrap();
     let rows = run_seeds(&meta, &|_, _| {}).unwrap();
     assert_eq!(rows.len() as u64, end - start);
     rows

@@ -155,13 +155,8 @@ fn calibration_shards_merge_into_the_unsharded_run() {
 }
 
 fn meta(shard: Shard) -> SweepMeta {
-    SweepMeta {
-        scenario: "pendulum-safe".into(),
-        sets: vec!["steps=40".into()],
-        seeds: "3..8".parse().unwrap(),
-        shard,
-        goal_tolerance: 1.0,
-    }
+    let sets = ["steps=40".to_string()];
+    SweepMeta::new("pendulum-safe", &sets, "3..8".parse().unwrap(), shard, 1.0).unwrap()
 }
 
 fn strip(rows: &[SweepRow]) -> Vec<(u64, bool, bool, u64, usize)> {
@@ -272,17 +267,19 @@ fn sweep_rows_do_not_depend_on_the_thread_count() {
 /// steps of seeds `seeds` (and the model noise 0.05 it had when the
 /// variances below were found).
 fn stopping_meta(kernel_variance: f64, seeds: &str, shard: Shard) -> SweepMeta {
-    SweepMeta {
-        scenario: "double-integrator".into(),
-        sets: vec![
-            format!("gp.kernel_variance={kernel_variance}"),
-            "gp.noise_sigma=0.05".into(),
-            "steps=60".into(),
-        ],
-        seeds: seeds.parse().unwrap(),
+    let sets = [
+        format!("gp.kernel_variance={kernel_variance}"),
+        "gp.noise_sigma=0.05".into(),
+        "steps=60".into(),
+    ];
+    SweepMeta::new(
+        "double-integrator",
+        &sets,
+        seeds.parse().unwrap(),
         shard,
-        goal_tolerance: 1.0,
-    }
+        1.0,
+    )
+    .unwrap()
 }
 
 /// A seed whose run stops with an error is a row of the sweep, not its
@@ -363,6 +360,62 @@ fn a_seed_that_stops_is_a_row_and_every_seed_stopping_is_an_error() {
     assert!(e.contains("every one of the 4 seeds stopped"), "{e}");
 }
 
+/// Shards of one scenario file merge whatever the spelling of its path;
+/// a file edited between shards is refused, by the shard that runs it
+/// (the sweep's description holds the scenario's digest) and by `merge`.
+#[test]
+fn shards_of_an_edited_scenario_file_do_not_merge() {
+    let dir = std::env::temp_dir().join(format!("sharding-digest-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let file = dir.join("cart.toml");
+    let (_, text) = bayes_cbf_scenario::scenario::scenario_text("double-integrator").unwrap();
+    std::fs::write(&file, &text).unwrap();
+    let plain = file.to_str().unwrap().to_string();
+    let dotted = dir
+        .join(".")
+        .join("cart.toml")
+        .to_str()
+        .unwrap()
+        .to_string();
+    let sets = ["steps=10".to_string()];
+    let shard = |path: &str, index| {
+        let m = SweepMeta::new(
+            path,
+            &sets,
+            "0..4".parse().unwrap(),
+            Shard { index, count: 2 },
+            1.0,
+        )
+        .unwrap();
+        let rows = run_seeds(&m, &|_, _| {}).unwrap();
+        (m, rows)
+    };
+    let (a, b) = (shard(&plain, 0), shard(&dotted, 1));
+    assert_ne!(a.0.scenario, b.0.scenario);
+    merge_sweeps(vec![a.clone(), b]).unwrap();
+    // described, then edited: the shard refuses to run it
+    let described = SweepMeta::new(
+        &plain,
+        &sets,
+        "0..4".parse().unwrap(),
+        Shard { index: 1, count: 2 },
+        1.0,
+    )
+    .unwrap();
+    std::fs::write(&file, text.replace("mass = 2.0", "mass = 3.0")).unwrap();
+    let e = run_seeds(&described, &|_, _| {}).unwrap_err().to_string();
+    assert!(
+        e.contains("is not the one the sweep was described with"),
+        "{e}"
+    );
+    // described and run after the edit: merge refuses it beside the first
+    let e = merge_sweeps(vec![a, shard(&plain, 1)])
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("another sweep") && e.contains("digest"), "{e}");
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
 /// A bad setting is one error before any seed runs (not a row per seed,
 /// nor "every seed stopped"), in a shard that owns no seed too.
 #[test]
@@ -373,8 +426,15 @@ fn a_bad_setting_stops_the_sweep_before_its_runs() {
         ("start=[1.0]", "start has 1 entries, expected 2"),
     ] {
         for shard in [Shard::WHOLE, Shard { index: 4, count: 5 }] {
-            let mut m = stopping_meta(1.0, "0..3", shard);
-            m.sets.push(set.into());
+            let sets = ["steps=10".to_string(), set.to_string()];
+            let m = SweepMeta::new(
+                "double-integrator",
+                &sets,
+                "0..3".parse().unwrap(),
+                shard,
+                1.0,
+            )
+            .unwrap();
             let e = run_seeds(&m, &|_, _| {}).unwrap_err().to_string();
             assert!(e.contains(want) && !e.contains("stopped"), "{set}: {e}");
         }

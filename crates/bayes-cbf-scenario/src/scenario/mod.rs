@@ -824,16 +824,7 @@ fn toml_error(source: &str, text: &str, e: &toml::de::Error) -> crate::error::Er
 /// Loads a scenario by built-in name or path, applies the overrides, and
 /// parses it strictly. Returns the scenario and its merged TOML text.
 pub fn load(name: &str, sets: &[String]) -> Result<(Scenario, String)> {
-    let (source, text) = scenario_text(name)?;
-    if text.trim().is_empty() {
-        bail!("scenario '{source}' is empty");
-    }
-    let mut table: toml::Table = text
-        .parse()
-        .map_err(|e: toml::de::Error| toml_error(&source, &text, &e))?;
-    for s in sets {
-        apply_set(&mut table, s)?;
-    }
+    let (source, text, table) = table_with(name, sets)?;
     let merged = if sets.is_empty() {
         text.clone()
     } else {
@@ -852,6 +843,37 @@ pub fn load(name: &str, sets: &[String]) -> Result<(Scenario, String)> {
             .unwrap_or_default();
     }
     Ok((scenario, merged))
+}
+
+/// The text of scenario `name` (built-in or file), its source and its
+/// TOML table with the overrides `sets` applied.
+fn table_with(name: &str, sets: &[String]) -> Result<(String, String, toml::Table)> {
+    let (source, text) = scenario_text(name)?;
+    if text.trim().is_empty() {
+        bail!("scenario '{source}' is empty");
+    }
+    let mut table: toml::Table = text
+        .parse()
+        .map_err(|e: toml::de::Error| toml_error(&source, &text, &e))?;
+    for s in sets {
+        apply_set(&mut table, s)?;
+    }
+    Ok((source, text, table))
+}
+
+/// A digest of what scenario `name` with overrides `sets` says: 64-bit
+/// FNV-1a of its table rendered as TOML (comments, layout and the order of
+/// keys left out), in hex. Two spellings of one file's path give the same
+/// digest; a file edited in a field gives another. A sweep records it so
+/// that its shards are known to have run the same scenario
+/// ([`crate::sweep::SweepMeta`]).
+pub fn digest(name: &str, sets: &[String]) -> Result<String> {
+    let (_, _, table) = table_with(name, sets)?;
+    let text = toml::to_string(&table).context("cannot render the scenario")?;
+    let hash = text.bytes().fold(0xcbf2_9ce4_8422_2325u64, |h, b| {
+        (h ^ u64::from(b)).wrapping_mul(0x0100_0000_01b3)
+    });
+    Ok(format!("{hash:016x}"))
 }
 
 /// The default output directory of a scenario named `name`:
