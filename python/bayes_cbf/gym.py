@@ -138,6 +138,10 @@ class SafetyFilterWrapper(gym.Wrapper, gym.utils.RecordConstructorArgs):
                 raise InputError("dt: give the control period (the environment has no positive dt)")
         self.dt = float(dt)
         n = self.model.state_dim
+        if isinstance(angle_indices, (str, bytes)) or not hasattr(angle_indices, "__iter__"):
+            raise InputError(
+                f"angle_indices: {angle_indices!r}, expected a sequence of state indices"
+            )
         self.angle_indices = [count("angle_indices", i, 0) for i in angle_indices]
         for i in self.angle_indices:
             if i >= n:
@@ -160,6 +164,9 @@ class SafetyFilterWrapper(gym.Wrapper, gym.utils.RecordConstructorArgs):
         self._low = np.asarray(env.action_space.low, dtype=np.float64)
         self._high = np.asarray(env.action_space.high, dtype=np.float64)
         self._x: Optional[np.ndarray] = None
+        # why step needs a reset: never reset, or a step failed after the
+        # environment moved (its state is then unknown to the filter)
+        self._needs_reset = "call reset() first"
         self._steps = 0
         self.episode_stats: dict = {}
 
@@ -168,7 +175,12 @@ class SafetyFilterWrapper(gym.Wrapper, gym.utils.RecordConstructorArgs):
             raw = self.state_from_obs(obs)
         except Exception as e:  # KeyboardInterrupt and SystemExit pass through
             raise InputError(f"state_from_obs: raised {type(e).__name__}: {e}") from e
-        x = np.asarray(raw, dtype=np.float64).reshape(-1)
+        try:
+            x = np.asarray(raw, dtype=np.float64).reshape(-1)
+        except (TypeError, ValueError) as e:
+            raise InputError(
+                f"state_from_obs: returned {raw!r}, expected {self.model.state_dim} finite values"
+            ) from e
         if x.shape != (self.model.state_dim,) or not np.all(np.isfinite(x)):
             raise InputError(
                 f"state_from_obs: returned {x!r}, expected {self.model.state_dim} finite values"
@@ -176,6 +188,7 @@ class SafetyFilterWrapper(gym.Wrapper, gym.utils.RecordConstructorArgs):
         return x
 
     def reset(self, **kwargs):
+        self._x = None
         obs, info = self.env.reset(**kwargs)
         self._x = self._state(obs)
         self.episode_stats = {
@@ -204,18 +217,25 @@ class SafetyFilterWrapper(gym.Wrapper, gym.utils.RecordConstructorArgs):
 
     def step(self, action):
         if self._x is None:
-            raise InputError("step: call reset() first")
+            raise InputError(f"step: {self._needs_reset}")
         kind = np.asarray(action).dtype.kind
         if kind not in "fiu":
             raise InputError(f"action: {action!r}, expected numbers (got dtype kind {kind!r})")
         u_ref = np.asarray(action, dtype=np.float64).reshape(-1)
         res = self.filter.filter(self._x, u_ref)
         u = np.clip(res.u, self._low, self._high)
+        # from here the environment may move: until its new state is known,
+        # no state is the filter's (a transition over two steps would be
+        # learned as one)
+        x, self._x = self._x, None
+        self._needs_reset = (
+            "the last step failed after the environment moved; call reset() first"
+        )
         obs, reward, terminated, truncated, info = self.env.step(u.astype(self.action_space.dtype))
         x_new = self._state(obs)
-        if self.learn:
-            self._observe(self._x, u, x_new)
         self._x = x_new
+        if self.learn:
+            self._observe(x, u, x_new)
         values = self._log_barriers(x_new)
         st = self.episode_stats
         st["steps"] += 1

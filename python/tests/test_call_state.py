@@ -212,3 +212,18 @@ def test_each_call_is_warned_of_its_own_mistakes():
 
     assert run_warnings(), "the first run is warned"
     assert run_warnings(), "the second run is warned too"
+
+
+def test_a_filter_constructor_issues_its_own_warnings():
+    """What building a filter warns of (relax without input bounds) is
+    issued by the constructor, not by the next call into the library."""
+    model = bc.MVGP(2, 1, [1.0, 1.0], np.eye(2), np.eye(2), 0.1, prior_mean=PENDULUM)
+    wall = bc.Barrier.expression("1.2 - q", ["q", "w"], relative_degree=2, k_alpha=[1.0, 2.0])
+    with warnings.catch_warnings(record=True) as built:
+        warnings.simplefilter("always")
+        f = bc.SafetyFilter(model, [wall], fallback="relax")
+    assert any("relax without input bounds" in str(w.message) for w in built), built
+    with warnings.catch_warnings(record=True) as stepped:
+        warnings.simplefilter("always")
+        f.filter([0.0, 0.0], [1.0])
+    assert not any("relax without input bounds" in str(w.message) for w in stepped)

@@ -125,3 +125,34 @@ def test_an_unsafe_start_is_warned_of_and_a_failing_state_map_is_typed():
     with pytest.raises(bc.InputError, match="state_from_obs: raised ZeroDivisionError") as e:
         w2.reset(seed=0)
     assert isinstance(e.value.__cause__, ZeroDivisionError)
+
+
+def test_a_step_that_fails_after_the_environment_moved_needs_a_reset():
+    """A state map that fails in a step (the environment has moved) leaves
+    no state to the filter: the next step asks for a reset instead of
+    learning the two steps' motion as one; a reset goes on learning from
+    single steps. A map that returns no numbers, and angle indices that
+    are not a sequence, are InputErrors."""
+    w, model = make()
+    w.reset(seed=0)
+    w.step(np.array([0.5]))
+    good = w.state_from_obs
+    w.state_from_obs = lambda o: 1 / 0
+    with pytest.raises(bc.InputError, match="state_from_obs"):
+        w.step(np.array([0.5]))
+    w.state_from_obs = good
+    k = len(model)
+    with pytest.raises(bc.InputError, match="the last step failed after the environment moved"):
+        w.step(np.array([0.5]))
+    assert len(model) == k, "nothing learned from the step over the failure"
+    w.reset(seed=1)
+    w.step(np.array([0.5]))
+    assert len(model) == k + 1
+    for bad in ["ab", {"a": 1.0}]:
+        w.state_from_obs = lambda o, bad=bad: bad
+        with pytest.raises(bc.InputError, match="state_from_obs: returned"):
+            w.reset(seed=0)
+    model2 = bc.MVGP(2, 1, [1.0, 1.0], np.eye(2), np.eye(2), 0.1)
+    filt = bc.SafetyFilter(model2, [bc.Barrier.half_space([1.0, 0.0], 0.0, alpha=1.0)])
+    with pytest.raises(bc.InputError, match="angle_indices: 0, expected a sequence"):
+        SafetyFilterWrapper(gym.make("Pendulum-v1"), filt, lambda o: o[:2], angle_indices=0)

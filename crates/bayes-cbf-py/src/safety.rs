@@ -614,71 +614,76 @@ impl PySafetyFilter {
         #[pyo3(from_py_with = args::clf_weight)] clf_weight: f64,
         #[pyo3(from_py_with = args::predictive)] predictive: bool,
     ) -> PyResult<Self> {
-        // a new filter warns anew of what an earlier one was warned of
+        // a new filter warns anew of what an earlier one was warned of, and
+        // its constructor issues what it warns of
         let _warnings = bayes_cbf::warnings::Scope::enter();
-        let (n, m) = {
-            let mm = borrow(&model, "the model")?;
-            (mm.model.state_dim(), mm.model.control_dim())
-        };
-        let mut bs: Vec<Arc<dyn DynBarrier>> = Vec::new();
-        let mut labels = Vec::new();
-        {
-            let mm = borrow(&model, "the model")?;
-            for (i, b) in barriers.iter().enumerate() {
-                let b = b.get();
-                check_barrier(
-                    &mm.model,
-                    b.barrier.as_ref(),
-                    &format!("barriers[{i}] ('{}')", b.label),
-                )
-                .map_err(scenario_err)?;
-                bs.push(b.barrier.clone());
-                labels.push(b.label.clone());
-            }
-        }
-        let clf: Option<Arc<dyn DynLyapunov>> = match clf {
-            None => None,
-            Some(c) => {
-                let c = c.get();
-                let names = c
-                    .state
-                    .clone()
-                    .unwrap_or_else(|| (0..n).map(|i| format!("x{i}")).collect());
-                if names.len() != n {
-                    return Err(input_err(format!(
-                        "clf: {} state names, the model has {n} states",
-                        names.len()
-                    )));
+        let py = model.py();
+        let built = move || -> PyResult<Self> {
+            let (n, m) = {
+                let mm = borrow(&model, "the model")?;
+                (mm.model.state_dim(), mm.model.control_dim())
+            };
+            let mut bs: Vec<Arc<dyn DynBarrier>> = Vec::new();
+            let mut labels = Vec::new();
+            {
+                let mm = borrow(&model, "the model")?;
+                for (i, b) in barriers.iter().enumerate() {
+                    let b = b.get();
+                    check_barrier(
+                        &mm.model,
+                        b.barrier.as_ref(),
+                        &format!("barriers[{i}] ('{}')", b.label),
+                    )
+                    .map_err(scenario_err)?;
+                    bs.push(b.barrier.clone());
+                    labels.push(b.label.clone());
                 }
-                Some(c.spec.build(&names).map_err(scenario_err)?)
             }
+            let clf: Option<Arc<dyn DynLyapunov>> = match clf {
+                None => None,
+                Some(c) => {
+                    let c = c.get();
+                    let names = c
+                        .state
+                        .clone()
+                        .unwrap_or_else(|| (0..n).map(|i| format!("x{i}")).collect());
+                    if names.len() != n {
+                        return Err(input_err(format!(
+                            "clf: {} state names, the model has {n} states",
+                            names.len()
+                        )));
+                    }
+                    Some(c.spec.build(&names).map_err(scenario_err)?)
+                }
+            };
+            let mut settings = SafetySettings::new(m);
+            settings.probability = probability;
+            settings.zeta = zeta;
+            settings.lambda = clf_weight;
+            settings.predictive = predictive;
+            settings.u_min = u_min.map(|v| vector(v, "u_min", Some(m))).transpose()?;
+            settings.u_max = u_max.map(|v| vector(v, "u_max", Some(m))).transpose()?;
+            if let Some(r) = R {
+                settings.r = square(r, "R", m)?;
+            }
+            settings.fallback = Fallback::parse(fallback).map_err(core_err)?;
+            let degrees = bs.iter().map(|b| b.relative_degree()).collect();
+            let nb = bs.len();
+            let ctrl = SafetyController::new(n, m, bs, clf, settings)
+                .map_err(|e| core_err(argument_names(e)))?;
+            Ok(Self {
+                model: model.unbind(),
+                ctrl,
+                out: ControlOutput::new(m, nb),
+                labels,
+                degrees,
+                x: vec![0.0; n],
+                u_ref: vec![0.0; m],
+                xd: vec![0.0; n],
+                xd_dot: vec![0.0; n],
+            })
         };
-        let mut settings = SafetySettings::new(m);
-        settings.probability = probability;
-        settings.zeta = zeta;
-        settings.lambda = clf_weight;
-        settings.predictive = predictive;
-        settings.u_min = u_min.map(|v| vector(v, "u_min", Some(m))).transpose()?;
-        settings.u_max = u_max.map(|v| vector(v, "u_max", Some(m))).transpose()?;
-        if let Some(r) = R {
-            settings.r = square(r, "R", m)?;
-        }
-        settings.fallback = Fallback::parse(fallback).map_err(core_err)?;
-        let degrees = bs.iter().map(|b| b.relative_degree()).collect();
-        let nb = bs.len();
-        let ctrl = SafetyController::new(n, m, bs, clf, settings)
-            .map_err(|e| core_err(argument_names(e)))?;
-        Ok(Self {
-            model: model.unbind(),
-            ctrl,
-            out: ControlOutput::new(m, nb),
-            labels,
-            degrees,
-            x: vec![0.0; n],
-            u_ref: vec![0.0; m],
-            xd: vec![0.0; n],
-            xd_dot: vec![0.0; n],
-        })
+        crate::warnings::after(py, built())
     }
 
     /// One filter step at state `x` around the reference control `u_ref`;

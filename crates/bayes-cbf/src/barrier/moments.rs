@@ -448,7 +448,7 @@ pub fn cbc_moments(
     let nrm: f64 = out.e[1..].iter().map(|v| v * v).sum::<f64>().sqrt();
     let scale = out.e[0].abs().max(1.0);
     if nrm < 1e-9 * scale && NO_INPUT_WARNED.first() {
-        log::warn!("barrier '{}': the model's mean of L_g L_f^(r-1) h is ≈ 0 at x = {:?} (|e_u| = {nrm:.2e}): the input has no mean effect on the condition there, because the prior mean gives it none (a zero prior mean, before data) or because relative degree {r} is wrong (shown once)", barrier.name(), ws.x);
+        log::warn!("barrier '{}': the model's mean of L_g L_f^(r-1) h is ≈ 0 at x = {:?} (|e_u| = {nrm:.2e}): the input has no mean effect on the condition there, because the prior mean gives it none (a zero prior mean, before data) or because relative degree {r} is wrong (shown once per run or filter)", barrier.name(), ws.x);
     }
     Ok(())
 }

@@ -399,8 +399,9 @@ impl SafetyFilter {
                 log::warn!(
                     "fallback relax without input bounds (u_min, u_max): where the conditions \
                      are met only as the control grows, the largest feasible probability p* \
-                     is reached only by an unbounded control, and relax applies it (a control \
-                     of 2.8e5 was seen); give u_min and u_max, or use max_margin (shown once)"
+                     is reached only by an unbounded control, and relax applies it \
+                     (docs/calibration.md, \"Which fallback\"); give u_min and u_max, or use \
+                     max_margin (shown once per run or filter)"
                 );
             }
         }
