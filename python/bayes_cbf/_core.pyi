@@ -49,7 +49,8 @@ class MVGP:
         """Learns the hyperparameters on (X, U, Xdot), which replace the data;
         sigma_min floors noise_sigma * sqrt(A[0, 0])."""
     def predict(self, Xq: ArrayLike) -> tuple[F64, F64]:
-        """Means (q, n, 1+m) and B_k(x, x) (q, 1+m, 1+m); Cov(vec F(x)) = B_k ⊗ A."""
+        """Means (q, n, 1+m) and B_k(x, x) (q, 1+m, 1+m); Cov(vec F(x)) = B_k ⊗ row_cov
+        (row_cov is A with the known rows' rows and columns zero)."""
     def rust_predict_time_s(self, Xq: ArrayLike, repeats: int = 5) -> float: ...
     def add_observation(self, x: ArrayLike, u: ArrayLike, xdot: ArrayLike) -> None: ...
     def add_observation_within_budget(

@@ -29,9 +29,10 @@ pub struct FitArgs {
     pub control_dim: usize,
     /// Prior mean: "zero", a JSON object such as
     /// '{"type":"pendulum","mass":1,"length":1,"gravity":10}' or
-    /// '{"type":"ackermann","wheelbase":1}', or a file holding that JSON.
-    /// Keys left out take the values shown (also for the bare names
-    /// pendulum and ackermann).
+    /// '{"type":"ackermann","wheelbase":1}', an expression prior
+    /// '{"type":"expression","state":[..],"control":[..],"f":[..],"g":[[..]]}'
+    /// (docs/formats.md), or a file holding that JSON. Keys left out take
+    /// the values shown (also for the bare names pendulum and ackermann).
     #[arg(long, value_name = "JSON", default_value = "zero")]
     pub prior_mean: String,
     /// Output model file (written completely or not at all; `-`: stdout).

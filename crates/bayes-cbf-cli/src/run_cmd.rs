@@ -50,8 +50,9 @@ pub struct RunArgs {
     #[arg(long, allow_hyphen_values = true)]
     pub window: Option<usize>,
     /// Run the scenario once per seed, A..B (B excluded) or A..=B, in
-    /// parallel: writes sweep.csv (one row per seed) and
-    /// sweep_summary.json (outcome counts with Wilson intervals).
+    /// parallel: writes sweep.csv (one row per seed),
+    /// sweep_summary.json (outcome counts with Wilson intervals) and
+    /// shard.json (what was run).
     #[arg(long, value_name = "A..B", allow_hyphen_values = true)]
     pub seeds: Option<String>,
     /// Run only shard I of N (from 0) of a seed sweep or of calibration;

@@ -327,7 +327,8 @@ impl PyMvgp {
 
     /// Posterior at the rows of `Xq (q, n)`: the means `M_k(x)` as
     /// `(q, n, 1+m)` and `B_k(x, x)` as `(q, 1+m, 1+m)`, with
-    /// `Cov(vec F(x)) = B_k(x, x) ⊗ A` (paper, Prop. 1).
+    /// `Cov(vec F(x)) = B_k(x, x) ⊗ row_cov` (paper, Prop. 1; `row_cov` is
+    /// `A` with the known rows' rows and columns zero).
     #[allow(non_snake_case)]
     fn predict<'py>(&self, Xq: &Bound<'py, PyAny>) -> PyResult<ArrayPair<'py>> {
         let model = &self.model;

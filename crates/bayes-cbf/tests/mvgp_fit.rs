@@ -295,7 +295,7 @@ fn active_bounds_cost_at_most_twice_the_evaluations() {
 }
 
 /// Each check of `FitSettings::validate` at its boundary: `warm_range ≥ 1`
-/// (1 itself allowed, NaN rejected), `σ_min ≥ 0`.
+/// (1 itself allowed, NaN rejected), `0 ≤ σ_min ≤ 1e150`.
 #[test]
 fn fit_settings_boundaries() {
     let ok = |warm_range: f64, sigma_min: f64| {
@@ -310,6 +310,7 @@ fn fit_settings_boundaries() {
     assert!(ok(1.0, 0.0) && ok(f64::INFINITY, 0.5));
     assert!(!ok(1.0 - 1e-12, 0.0) && !ok(f64::NAN, 0.0) && !ok(0.0, 0.0));
     assert!(!ok(2.0, -1e-300) && !ok(2.0, f64::NAN));
+    assert!(ok(2.0, 1e150) && !ok(2.0, 1e151) && !ok(2.0, f64::INFINITY));
     let e = FitSettings {
         warm_range: 0.5,
         ..FitSettings::default()

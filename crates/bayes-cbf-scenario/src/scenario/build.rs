@@ -150,9 +150,19 @@ pub fn build(s: &Scenario) -> Result<Built> {
         b = DMatrix::identity(m + 1, m + 1) * super::ORACLE_VARIANCE;
     }
     let input_map = to_input_map(s.gp.input_map.as_deref());
+    let inputs = input_map.output_dim(n);
     let lengthscales = match &s.gp.lengthscales {
+        Some(l) if l.len() != inputs => bail!(
+            "gp.lengthscales has {} entries, expected {inputs}, one per kernel input ({})",
+            l.len(),
+            if s.gp.input_map.is_some() {
+                "the entries of gp.input_map"
+            } else {
+                "the states"
+            }
+        ),
         Some(l) => l.clone(),
-        None => vec![1.0; input_map.output_dim(n)],
+        None => vec![1.0; inputs],
     };
     let kernel =
         Rbf::new(lengthscales, s.gp.kernel_variance).map_err(|e| crate::err!("gp: {e}"))?;
@@ -378,9 +388,16 @@ pub fn build(s: &Scenario) -> Result<Built> {
             ..RecalibrationSettings::default()
         }),
     };
-    loop_settings
-        .validate()
-        .map_err(|e| crate::err!("run settings: {e}"))?;
+    loop_settings.validate().map_err(|e| {
+        // the library's names of the learning settings, as the file has them
+        let mut msg = e.to_string();
+        for key in ["window", "budget", "refit_background", "xdot_noise"] {
+            if msg.starts_with(&format!("invalid {key} = ")) {
+                msg = msg.replacen(key, &format!("learning.{key}"), 1);
+            }
+        }
+        crate::err!("run settings: {msg}")
+    })?;
     warn_start_margin(&barriers, truth.as_ref(), &start, s.seed);
     if !s.gp.oracle {
         warn_known_rows_at_start(&model, &s.gp.known_rows, truth.as_ref(), &start);

@@ -798,9 +798,26 @@ pub fn scenario_text(name: &str) -> Result<(String, String)> {
     )
 }
 
+/// The message of a TOML parse error on one line, with the Rust types that
+/// serde names in it (`expected usize`) in words.
+fn message(e: &toml::de::Error) -> String {
+    let mut msg = e.message().replace('\n', " ");
+    for (rust, words) in [
+        ("expected usize", "expected a non-negative whole number"),
+        ("expected u64", "expected a non-negative whole number"),
+        ("expected u32", "expected a non-negative whole number"),
+        ("expected i64", "expected a whole number"),
+        ("expected f64", "expected a number"),
+        ("expected bool", "expected true or false"),
+    ] {
+        msg = msg.replace(rust, words);
+    }
+    msg
+}
+
 /// One-line rendering of a TOML parse error, with the line it points at.
 fn toml_error(source: &str, text: &str, e: &toml::de::Error) -> crate::error::Error {
-    let msg = e.message().replace('\n', " ");
+    let msg = message(e);
     match e.span() {
         // a field missing at the top level: the span is the whole file
         Some(span) if span.start == 0 && msg.starts_with("missing field") => {
@@ -907,10 +924,7 @@ fn blame(
         return toml_error(source, text, &e);
     }
     let Ok(mut table) = text.parse::<toml::Table>() else {
-        return err!(
-            "scenario '{source}': {}",
-            merged.message().replace('\n', " ")
-        );
+        return err!("scenario '{source}': {}", message(merged));
     };
     let mut culprit: Option<(&String, toml::de::Error)> = None;
     for s in sets {
@@ -925,14 +939,8 @@ fn blame(
         }
     }
     match culprit {
-        Some((s, e)) => err!(
-            "scenario '{source}', override `{s}`: {}",
-            e.message().replace('\n', " ")
-        ),
-        None => err!(
-            "scenario '{source}': {}",
-            merged.message().replace('\n', " ")
-        ),
+        Some((s, e)) => err!("scenario '{source}', override `{s}`: {}", message(&e)),
+        None => err!("scenario '{source}': {}", message(merged)),
     }
 }
 
@@ -1250,6 +1258,32 @@ mod tests {
         );
         let err = format!("{:#}", load(path, &["gp.Aa.scale=2".into()]).unwrap_err());
         assert!(err.contains("unknown field `Aa`"), "{err}");
+        // a negative count and a string for a number are told in words
+        for (set, want) in [
+            ("trigger.samples=-5", "expected a non-negative whole number"),
+            ("dt='fast'", "expected a number"),
+        ] {
+            let err = format!(
+                "{:#}",
+                load("ackermann-self-triggered", &[set.into()]).unwrap_err()
+            );
+            assert!(
+                err.contains(want) && !err.contains("usize") && !err.contains("f64"),
+                "{set}: {err}"
+            );
+        }
+        // settings checked when the run is built name the file's keys
+        for (set, want) in [
+            (
+                "gp.lengthscales=[1.0, 2.0]",
+                "gp.lengthscales has 2 entries, expected 1, one per kernel input (the entries of gp.input_map)",
+            ),
+            ("learning.window=1", "invalid learning.window = 1: must be ≥ 2"),
+        ] {
+            let (s, _) = load("double-integrator", &[set.into()]).unwrap();
+            let err = format!("{:#}", validate(&s).unwrap_err());
+            assert!(err.contains(want), "{set}: {err}");
+        }
         std::fs::remove_file(&file).unwrap();
         let (s, _) = load(
             "ackermann-bayes-cbf",

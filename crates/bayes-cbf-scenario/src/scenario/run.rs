@@ -48,7 +48,8 @@ pub struct Stats {
     pub max: f64,
 }
 
-/// `tr(B_k(x, x) ⊗ A)` at the first and the last step.
+/// `tr(B_k(x, x) ⊗ A_row)` at the first and the last step (`A_row`: the
+/// model's row covariance, `A` with the known rows zero).
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct TraceCov {
     /// At the first step.
@@ -81,7 +82,8 @@ pub struct RunSummary {
     pub min_obstacle_distance: Option<f64>,
     /// State after the last step.
     pub final_state: Vec<f64>,
-    /// Distance to the goal at the end (position only for vehicles).
+    /// Distance to the goal at the end (of the position only, in scenarios
+    /// with obstacles).
     pub final_goal_distance: Option<f64>,
     /// Steps whose SOCP was infeasible.
     pub infeasible_steps: usize,

@@ -153,6 +153,13 @@ impl FitSettings {
     pub fn validate(&self) -> Result<(), InputError> {
         super::optimise::check_run_settings(self.max_iters, self.restarts)?;
         check_nonnegative("sigma_min", self.sigma_min)?;
+        if self.sigma_min > super::MAX_DATA_MAGNITUDE {
+            return Err(InputError::invalid(
+                "sigma_min",
+                self.sigma_min,
+                "must be at most 1e150 (the noise variance σ² it floors must be finite)",
+            ));
+        }
         if self.warm_range.is_nan() || self.warm_range < 1.0 {
             return Err(InputError::invalid(
                 "warm_range",

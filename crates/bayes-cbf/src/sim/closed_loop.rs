@@ -221,7 +221,8 @@ pub struct StepRecord {
     pub scbc: Vec<f64>,
     /// Stochastic CLC slack `δ − E − c·std`, if a CLF is used.
     pub sclc: Option<f64>,
-    /// `tr(B_k(x, x) ⊗ A) = tr B_k · tr A`.
+    /// `tr(B_k(x, x) ⊗ A_row) = tr B_k · tr A_row`, `A_row` the model's row
+    /// covariance ([`Mvgp::row_cov`]: `A` with the known rows zero).
     pub trace_cov: f64,
     /// Solver outcome.
     pub status: StepStatus,

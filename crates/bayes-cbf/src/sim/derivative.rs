@@ -60,6 +60,23 @@ pub fn finite_difference_xdot(
             };
         }
     }
+    // a quotient beyond what the model takes comes from samples too close
+    // in time for the change of the state: named by its times
+    let limit = crate::gp::MAX_DATA_MAGNITUDE;
+    if let Some(p) = out.iter().position(|v| !(v.abs() <= limit)) {
+        let (i, j) = (p / n, p % n);
+        let (a, b) = (i.saturating_sub(1), (i + 1).min(k - 1));
+        return Err(InputError::invalid_shown(
+            &format!("t[{a}..={b}]"),
+            format!("{:e} to {:e}", t[a], t[b]),
+            &format!(
+                "the difference quotient of x[{j}] at sample {i} is {:e}, beyond the \
+                 {limit:e} the model takes: samples too close in time for the change of \
+                 the state (check the units of t)",
+                out[p]
+            ),
+        ));
+    }
     Ok(out)
 }
 
@@ -82,6 +99,17 @@ mod tests {
             let tol = if i == 0 || i == 99 { 0.011 } else { 1e-9 };
             assert!((d[2 * i + 1] - exact).abs() < tol);
         }
+    }
+
+    #[test]
+    fn a_quotient_beyond_the_data_limit_names_the_times() {
+        let e = finite_difference_xdot(&[0.0, 5e-302, 1e-301], &[0.2, -0.9, 0.6], 1, &[])
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("t[0..=1]") && e.contains("difference quotient of x[0] at sample 0"),
+            "{e}"
+        );
     }
 
     #[test]
