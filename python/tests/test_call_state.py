@@ -227,3 +227,29 @@ def test_a_filter_constructor_issues_its_own_warnings():
         warnings.simplefilter("always")
         f.filter([0.0, 0.0], [1.0])
     assert not any("relax without input bounds" in str(w.message) for w in stepped)
+
+
+def test_a_callback_that_changes_the_model_it_serves_is_told_so():
+    """A barrier callback that adds data to the model its filter is
+    stepping gets an error saying the model is in use, not pyo3's bare
+    "Already borrowed"; a callback that calls itself gets a message of
+    bounded length, the whole exception as its cause."""
+    model = bc.MVGP(2, 1, [1.0, 1.0], np.eye(2), np.eye(2), 0.1, prior_mean=PENDULUM)
+
+    def h(x):
+        model.add_observation(x, [0.0], [0.0, 0.0])
+        return 1.0 - x[0] ** 2
+
+    b = bc.Barrier.callback(h, lambda x: np.array([-2 * x[0], 0.0]))
+    f = bc.SafetyFilter(model, [b])
+    with pytest.raises(bc.InputError, match="this MVGP is in use by a call that has not returned") as e:
+        f.filter([0.3, 0.0], [0.0])
+    assert isinstance(e.value.__cause__, RuntimeError)
+    assert len(model) == 0
+
+    holder = {}
+    selfish = bc.Barrier.callback(lambda x: holder["b"].value(x), lambda x: np.zeros(2))
+    holder["b"] = selfish
+    with pytest.raises(bc.InputError) as e:
+        selfish.value([0.3, 0.0])
+    assert len(str(e.value)) < 1000, len(str(e.value))

@@ -24,16 +24,32 @@ pyo3::create_exception!(
     "A numerical failure: a Gram matrix that cannot be factorised, an optimiser that fails."
 );
 
-/// Borrows `obj`, or raises `RuntimeError` when another thread holds it
-/// mutably (a `fit` in progress releases the GIL); pyo3 raises the same
-/// for a method called meanwhile.
+/// Borrows `obj`, or raises `RuntimeError` ([`in_use`]) when a call that
+/// has not returned holds it mutably.
 pub fn borrow<'py, T: pyo3::PyClass>(obj: &Bound<'py, T>, what: &str) -> PyResult<PyRef<'py, T>> {
-    obj.try_borrow().map_err(|_| {
-        pyo3::exceptions::PyRuntimeError::new_err(format!(
-            "{what} is in use by another thread (a fit in progress): \
-             call this after that call returns"
-        ))
-    })
+    obj.try_borrow().map_err(|_| in_use(what))
+}
+
+/// Borrows `obj` mutably (the methods that change a model or step a
+/// filter), or raises `RuntimeError` ([`in_use`]) when a call that has not
+/// returned holds it; pyo3's own message would be "Already borrowed".
+pub fn borrow_mut<'py, T: pyo3::PyClass<Frozen = pyo3::pyclass::boolean_struct::False>>(
+    obj: &Bound<'py, T>,
+    what: &str,
+) -> PyResult<PyRefMut<'py, T>> {
+    obj.try_borrow_mut().map_err(|_| in_use(what))
+}
+
+/// The `RuntimeError` of an object in use: by another thread's call (a
+/// call releases the GIL while it computes), or by the call whose callback
+/// made this one.
+fn in_use(what: &str) -> PyErr {
+    pyo3::exceptions::PyRuntimeError::new_err(format!(
+        "{what} is in use by a call that has not returned: another thread's, or the \
+         call whose callback (a barrier's h, grad or hess) made this one; call this \
+         after that call returns (a callback must not change or step the model or \
+         filter it serves)"
+    ))
 }
 
 /// An [`InputError`] with `msg` (caused by the callback exception it

@@ -3,8 +3,8 @@
 
 use crate::args;
 use crate::convert::{
-    core_err, extend_rows, input_err, json_of, matrix, matrix_to_numpy, rows, scenario_err, square,
-    to_numpy, vector, with_matrix, NdArray, NumericalError,
+    borrow_mut, core_err, extend_rows, input_err, json_of, matrix, matrix_to_numpy, rows,
+    scenario_err, square, to_numpy, vector, with_matrix, NdArray, NumericalError,
 };
 use bayes_cbf::gp::{
     fit_cogp_until, fit_until, Cogp, CogpFitSettings, CogpHyper, FitReport, FitSettings, Mvgp,
@@ -157,7 +157,7 @@ macro_rules! gp_methods {
             ))]
             #[allow(non_snake_case, clippy::too_many_arguments)]
             fn fit<'py>(
-                mut slf: PyRefMut<'py, Self>,
+                obj: &Bound<'py, Self>,
                 X: &Bound<'py, PyAny>,
                 U: &Bound<'py, PyAny>,
                 Xdot: &Bound<'py, PyAny>,
@@ -167,8 +167,9 @@ macro_rules! gp_methods {
                 #[pyo3(from_py_with = args::seed)] seed: u64,
                 #[pyo3(from_py_with = args::restarts)] restarts: usize,
                 $(#[pyo3(from_py_with = args::$extra)] $extra: $ty,)*
-            ) -> PyResult<PyRefMut<'py, Self>> {
+            ) -> PyResult<Bound<'py, Self>> {
                 let py = X.py();
+                let mut slf = crate::convert::borrow_mut(obj, "this model")?;
                 let (n, m) = (slf.model.state_dim(), slf.model.control_dim());
                 let (xs, us, xd) = data_of(X, U, Xdot, n, m)?;
                 let settings = $settings {
@@ -201,7 +202,7 @@ macro_rules! gp_methods {
                     let category = py.get_type::<pyo3::exceptions::PyUserWarning>();
                     PyErr::warn(py, &category, &msg, 1)?;
                 }
-                Ok(slf)
+                Ok(obj.clone())
             }
 
             /// Report of the last `fit` (`initial_log_likelihood`,
@@ -378,16 +379,17 @@ impl PyMvgp {
     /// Adds one observation `(x, u, ẋ)`: a rank-one extension of the factor,
     /// O(k²).
     fn add_observation(
-        &mut self,
+        slf: &Bound<'_, Self>,
         x: &Bound<'_, PyAny>,
         u: &Bound<'_, PyAny>,
         xdot: &Bound<'_, PyAny>,
     ) -> PyResult<()> {
-        let (n, m) = (self.model.state_dim(), self.model.control_dim());
+        let mut this = borrow_mut(slf, "this MVGP")?;
+        let (n, m) = (this.model.state_dim(), this.model.control_dim());
         let x = vector(x, "x", Some(n))?;
         let u = vector(u, "u", Some(m))?;
         let xd = vector(xdot, "xdot", Some(n))?;
-        let added = self.model.add_observation(&x, &u, &xd).map_err(core_err);
+        let added = this.model.add_observation(&x, &u, &xd).map_err(core_err);
         crate::warnings::after(xdot.py(), added)
     }
 
@@ -397,17 +399,18 @@ impl PyMvgp {
     /// index dropped among the `k + 1` (`k`: the new point was not
     /// stored), `None` below the budget.
     fn add_observation_within_budget(
-        &mut self,
+        slf: &Bound<'_, Self>,
         x: &Bound<'_, PyAny>,
         u: &Bound<'_, PyAny>,
         xdot: &Bound<'_, PyAny>,
         #[pyo3(from_py_with = args::budget)] budget: usize,
     ) -> PyResult<Option<usize>> {
-        let (n, m) = (self.model.state_dim(), self.model.control_dim());
+        let mut this = borrow_mut(slf, "this MVGP")?;
+        let (n, m) = (this.model.state_dim(), this.model.control_dim());
         let x = vector(x, "x", Some(n))?;
         let u = vector(u, "u", Some(m))?;
         let xd = vector(xdot, "xdot", Some(n))?;
-        let added = self
+        let added = this
             .model
             .add_observation_within_budget(&x, &u, &xd, budget)
             .map_err(core_err);
@@ -415,12 +418,13 @@ impl PyMvgp {
     }
 
     /// Drops the oldest observation (sliding window), O(k²).
-    fn remove_oldest(&mut self, py: Python<'_>) -> PyResult<()> {
-        if self.model.is_empty() {
+    fn remove_oldest(slf: &Bound<'_, Self>) -> PyResult<()> {
+        let mut this = borrow_mut(slf, "this MVGP")?;
+        if this.model.is_empty() {
             return Err(input_err("remove_oldest: the model has no observations"));
         }
-        self.model.remove_oldest();
-        crate::warnings::after(py, Ok(()))
+        this.model.remove_oldest();
+        crate::warnings::after(slf.py(), Ok(()))
     }
 
     /// Writes the model file (`model.json`, the CLI's format) completely or

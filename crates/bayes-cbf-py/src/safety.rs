@@ -4,7 +4,8 @@
 
 use crate::args;
 use crate::convert::{
-    borrow, copy_into, core_err, input_err, scenario_err, square, to_numpy, vector, NdArray,
+    borrow, borrow_mut, copy_into, core_err, input_err, scenario_err, square, to_numpy, vector,
+    NdArray,
 };
 use crate::models::PyMvgp;
 use bayes_cbf::barrier::{ArrayFn, CallbackBarrier, DynBarrier, DynLyapunov, McSettings, ValueFn};
@@ -60,11 +61,18 @@ fn default_alpha(
 /// becomes the message the library carries, and is kept
 /// ([`crate::convert::keep_callback_error`]) to be raised again, as the
 /// cause of the library's error or as itself, when the error reaches Python.
+/// The message quotes the exception's first 300 characters (a callback that
+/// calls itself would nest every level's message); the cause is whole.
 fn call_py<'py>(py: Python<'py>, f: &Py<PyAny>, x: &[f64]) -> Result<Bound<'py, PyAny>, String> {
+    const QUOTED: usize = 300;
     f.bind(py)
         .call1((PyArray1::from_slice(py, x),))
         .map_err(|e| {
-            let text = e.to_string();
+            let mut text = e.to_string();
+            if let Some((cut, _)) = text.char_indices().nth(QUOTED) {
+                text.truncate(cut);
+                text.push_str(" …");
+            }
             crate::convert::keep_callback_error(text.clone(), e);
             text
         })
@@ -691,46 +699,13 @@ impl PySafetyFilter {
     /// (zeros if absent). Infeasibility is a status, never an exception.
     #[pyo3(signature = (x, u_ref, x_d=None, xdot_d=None))]
     fn filter(
-        &mut self,
-        py: Python<'_>,
+        slf: &Bound<'_, Self>,
         x: &Bound<'_, PyAny>,
         u_ref: &Bound<'_, PyAny>,
         x_d: Option<&Bound<'_, PyAny>>,
         xdot_d: Option<&Bound<'_, PyAny>>,
     ) -> PyResult<PyFilterResult> {
-        let started = Instant::now();
-        if self.ctrl.clf().is_none() && (x_d.is_some() || xdot_d.is_some()) {
-            let given = if x_d.is_some() { "x_d" } else { "xdot_d" };
-            return Err(input_err(format!(
-                "{given}: a reference for a CLF, but this filter has none (give clf=...)"
-            )));
-        }
-        let stepped = self.with_step((x, u_ref, x_d, xdot_d), |step| step());
-        crate::warnings::emit(py)?;
-        stepped?;
-        let (status, fallback, p_star, violated) = status_parts(&self.out);
-        let reports = self
-            .labels
-            .iter()
-            .zip(&self.degrees)
-            .zip(&self.out.constraints)
-            .map(|((l, r), c)| (l.clone(), *r, *c))
-            .collect();
-        let u = PyArray1::from_slice(py, &self.out.u);
-        // the result is frozen: its control too
-        let kw = PyDict::new(py);
-        kw.set_item("write", false)?;
-        u.call_method("setflags", (), Some(&kw))?;
-        let u = u.unbind();
-        Ok(PyFilterResult {
-            u,
-            status,
-            p_star,
-            fallback,
-            violated,
-            reports,
-            solve_time_us: started.elapsed().as_secs_f64() * 1e6,
-        })
+        borrow_mut(slf, "this SafetyFilter")?.filter_step(slf.py(), x, u_ref, x_d, xdot_d)
     }
 
     /// Median wall time (µs) of the library's filter step at `(x, u_ref)`,
@@ -738,22 +713,12 @@ impl PySafetyFilter {
     /// reference for the binding's overhead (`benchmarks/overhead.py`).
     #[pyo3(signature = (x, u_ref, repeats=1000))]
     fn rust_step_time_us(
-        &mut self,
+        slf: &Bound<'_, Self>,
         x: &Bound<'_, PyAny>,
         u_ref: &Bound<'_, PyAny>,
         #[pyo3(from_py_with = args::repeats)] repeats: usize,
     ) -> PyResult<f64> {
-        let repeats = args::check_repeats(repeats)?;
-        self.with_step((x, u_ref, None, None), |step| {
-            let mut times = Vec::with_capacity(repeats);
-            for _ in 0..repeats {
-                let t = Instant::now();
-                step()?;
-                times.push(t.elapsed().as_secs_f64() * 1e6);
-            }
-            times.sort_by(f64::total_cmp);
-            Ok(times[times.len() / 2])
-        })
+        borrow_mut(slf, "this SafetyFilter")?.time_steps(x, u_ref, repeats)
     }
 
     /// The model the filter reads at every step.
@@ -826,6 +791,70 @@ type StepInputs<'a, 'py> = (
 );
 
 impl PySafetyFilter {
+    /// [`filter`](Self::filter) on the borrowed filter.
+    fn filter_step(
+        &mut self,
+        py: Python<'_>,
+        x: &Bound<'_, PyAny>,
+        u_ref: &Bound<'_, PyAny>,
+        x_d: Option<&Bound<'_, PyAny>>,
+        xdot_d: Option<&Bound<'_, PyAny>>,
+    ) -> PyResult<PyFilterResult> {
+        let started = Instant::now();
+        if self.ctrl.clf().is_none() && (x_d.is_some() || xdot_d.is_some()) {
+            let given = if x_d.is_some() { "x_d" } else { "xdot_d" };
+            return Err(input_err(format!(
+                "{given}: a reference for a CLF, but this filter has none (give clf=...)"
+            )));
+        }
+        let stepped = self.with_step((x, u_ref, x_d, xdot_d), |step| step());
+        crate::warnings::emit(py)?;
+        stepped?;
+        let (status, fallback, p_star, violated) = status_parts(&self.out);
+        let reports = self
+            .labels
+            .iter()
+            .zip(&self.degrees)
+            .zip(&self.out.constraints)
+            .map(|((l, r), c)| (l.clone(), *r, *c))
+            .collect();
+        let u = PyArray1::from_slice(py, &self.out.u);
+        // the result is frozen: its control too
+        let kw = PyDict::new(py);
+        kw.set_item("write", false)?;
+        u.call_method("setflags", (), Some(&kw))?;
+        let u = u.unbind();
+        Ok(PyFilterResult {
+            u,
+            status,
+            p_star,
+            fallback,
+            violated,
+            reports,
+            solve_time_us: started.elapsed().as_secs_f64() * 1e6,
+        })
+    }
+
+    /// [`rust_step_time_us`](Self::rust_step_time_us) on the borrowed filter.
+    fn time_steps(
+        &mut self,
+        x: &Bound<'_, PyAny>,
+        u_ref: &Bound<'_, PyAny>,
+        repeats: usize,
+    ) -> PyResult<f64> {
+        let repeats = args::check_repeats(repeats)?;
+        self.with_step((x, u_ref, None, None), |step| {
+            let mut times = Vec::with_capacity(repeats);
+            for _ in 0..repeats {
+                let t = Instant::now();
+                step()?;
+                times.push(t.elapsed().as_secs_f64() * 1e6);
+            }
+            times.sort_by(f64::total_cmp);
+            Ok(times[times.len() / 2])
+        })
+    }
+
     /// Copies `x`, `u_ref` and the CLF reference `x_d`, `xdot_d` (zeros
     /// when not given) into the filter's buffers, then calls `run(step)` with the GIL
     /// released, where `step()` is one step of the controller on them into

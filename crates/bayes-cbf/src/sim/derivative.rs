@@ -63,7 +63,7 @@ pub fn finite_difference_xdot(
     // a quotient beyond what the model takes comes from samples too close
     // in time for the change of the state: named by its times
     let limit = crate::gp::MAX_DATA_MAGNITUDE;
-    if let Some(p) = out.iter().position(|v| !(v.abs() <= limit)) {
+    if let Some(p) = out.iter().position(|v| v.is_nan() || v.abs() > limit) {
         let (i, j) = (p / n, p % n);
         let (a, b) = (i.saturating_sub(1), (i + 1).min(k - 1));
         return Err(InputError::invalid_shown(
