@@ -441,3 +441,74 @@ fn a_bare_scenario_is_told_what_its_model_lacks() {
         assert!(!r.stderr.contains(unwanted), "{unwanted}: {}", r.stderr);
     }
 }
+
+/// An arm joint against two limits whose kinematic row is known and right
+/// (`q' = w`), with gravity and friction its prior gets wrong.
+const ARM: &str = r#"
+dt = 0.01
+steps = 600
+start = [0.0, 0.0]
+start_spread = [0.2, 0.5]
+[system]
+type = "expression"
+state = ["q", "w"]
+control = ["tau"]
+params = { I = 0.4, mgl = 2.0, b = 0.3, fc = 0.5 }
+f = ["w", "(-mgl*sin(q) - b*w - fc*tanh(w/0.1))/I"]
+g = [["0"], ["1/I"]]
+[gp]
+prior_mean = { type = "expression", params = { I = 0.2, mgl = 1.0 }, f = ["w", "-mgl*sin(q)/I"], g = [["0"], ["1/I"]] }
+known_rows = [0]
+lengthscales = [1.0, 2.0]
+B = [[1.0, 0.0], [0.0, 0.05]]
+noise_sigma = 0.1
+[learning]
+window = 300
+[[barriers]]
+type = "expression"
+params = { q_max = 1.2 }
+h = "q_max - q"
+relative_degree = 2
+k_alpha = [6.0, 5.0]
+[[barriers]]
+type = "expression"
+params = { q_min = -0.6 }
+h = "q - q_min"
+relative_degree = 2
+k_alpha = [6.0, 5.0]
+[controller]
+u_min = [-6.0]
+u_max = [6.0]
+[reference]
+type = "feedback"
+u0 = [0.0]
+gain = [[8.0, 2.0]]
+target = [2.0, 0.0]
+[sim]
+process_noise = 0.01
+[outputs]
+plots = false
+animation = false
+"#;
+
+/// A known row that the labels contradict only because gains beyond 1/dt
+/// move the state faster than the labels' step: the warning names the
+/// labels, not only the prior; at the file's gains it says nothing.
+#[test]
+fn a_known_row_misfit_under_fast_gains_names_the_labels() {
+    let dir = scratch_dir("outputs-known-row-labels");
+    std::fs::write(dir.join("arm.toml"), ARM).unwrap();
+    let r = run_in(&dir, &["run", "arm.toml", "--out", "slow"]);
+    assert!(r.status.success(), "{}", r.stderr);
+    assert!(!r.stderr.contains("gp.known_rows"), "{}", r.stderr);
+    let fast = "barriers.0.k_alpha=[15000.0,250.0]";
+    let r = run_in(&dir, &["run", "arm.toml", "--out", "fast", "--set", fast]);
+    assert!(r.status.success(), "{}", r.stderr);
+    assert!(
+        r.stderr.contains("row 0 of F is declared known")
+            && r.stderr.contains("unless the labels are what is off")
+            && r.stderr.contains("a pole of 150.000 /s"),
+        "{}",
+        r.stderr
+    );
+}

@@ -462,12 +462,35 @@ static KNOWN_ROW_MISFIT: WarnOnce = WarnOnce::new();
 
 /// Warns, once per scope, when a run's data contradict a row declared
 /// known (`gp.known_rows`): a misfit that follows the state and exceeds
-/// half the labels ([`Mvgp::known_row_misfit`]).
-pub(crate) fn warn_known_row_misfit(model: &Mvgp, seed: u64) {
+/// half the labels ([`Mvgp::known_row_misfit`]). Under gains with a pole
+/// beyond `1/dt` ([`warn_fast_gains`]) the labels, differences of the
+/// states over `dt`, miss motion faster than the step, which alone can
+/// make such a misfit: the warning then says so.
+pub(crate) fn warn_known_row_misfit(
+    model: &Mvgp,
+    barriers: &[Arc<dyn DynBarrier>],
+    dt: f64,
+    seed: u64,
+) {
     if let Some(m) = model.known_row_misfit().filter(|m| m.is_large()) {
+        let fast = barriers
+            .iter()
+            .filter_map(|b| fastest_pole(b.as_ref()))
+            .fold(0.0f64, f64::max);
+        let labels = if fast * dt > 1.0 {
+            format!(
+                "; unless the labels are what is off: they are differences of the \
+                 states over dt = {} s, and the barriers' gains (a pole of {} /s, beyond \
+                 1/dt) move the state faster than that",
+                short(dt),
+                short(fast)
+            )
+        } else {
+            String::new()
+        };
         warn_once(
             &KNOWN_ROW_MISFIT,
-            format!("gp.known_rows (seed {seed}): {}", m.describe()),
+            format!("gp.known_rows (seed {seed}): {}{labels}", m.describe()),
         );
     }
 }
