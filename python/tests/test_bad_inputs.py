@@ -125,6 +125,7 @@ def model_cases(model, barrier):
         ("step timing repeats", lambda: bc.SafetyFilter(model, [barrier]).rust_step_time_us(
             np.zeros(2), [0.0], repeats=2**62), "repeats"),
         ("predict timing repeats", lambda: model.rust_predict_time_s(np.zeros((1, 2)), repeats=10**11), "repeats"),
+        ("no timing repeats", lambda: model.rust_predict_time_s(np.zeros((1, 2)), repeats=0), "repeats = 0"),
     ]
 
 

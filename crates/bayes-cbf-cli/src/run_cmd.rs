@@ -156,6 +156,8 @@ pub fn run(a: &RunArgs) -> Result<()> {
     }
     let (sc, merged) = scenario::load(&a.scenario, &sets)?;
     if a.print_config {
+        // what is printed is a scenario that runs (or fails at its seed only)
+        scenario::check(&a.scenario, &sets)?;
         return print_stdout(&merged);
     }
     let out = a

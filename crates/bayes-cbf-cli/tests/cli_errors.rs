@@ -569,6 +569,15 @@ fn run_numbers_name_their_option() {
             "run calibration --episodes 18446744073709551615",
             &["episodes = ", "too large"],
         ),
+        (
+            "run double-integrator --seeds 18446744073709551615..=18446744073709551615",
+            &["seeds are at most 9223372036854775807"],
+        ),
+        // the printed scenario is one that runs
+        (
+            "run double-integrator --print-config --set dt=-1",
+            &["dt = -1: must be finite and > 0"],
+        ),
     ] {
         check(&words(args), expect, args);
     }

@@ -330,5 +330,10 @@ pub fn check_repeats(repeats: usize) -> PyResult<usize> {
             ),
         ));
     }
-    Ok(repeats.max(1))
+    if repeats == 0 {
+        return Err(crate::convert::core_err(
+            bayes_cbf::InputError::invalid_shown("repeats", 0, "must be ≥ 1"),
+        ));
+    }
+    Ok(repeats)
 }

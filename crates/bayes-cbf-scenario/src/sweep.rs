@@ -52,10 +52,20 @@ impl FromStr for SeedRange {
         } else {
             return Err(bad());
         };
-        let a: u64 = a.trim().parse().map_err(|_| bad())?;
-        let b: u64 = b.trim().parse().map_err(|_| bad())?;
+        let too_large = || err!("seeds '{s}': seeds are at most {} (2^63 − 1)", i64::MAX);
+        let seed = |v: &str| -> Result<u64> {
+            let v = v.trim();
+            match v.parse::<u64>() {
+                Ok(n) => Ok(n),
+                Err(_) if !v.is_empty() && v.bytes().all(|c| c.is_ascii_digit()) => {
+                    Err(too_large())
+                }
+                Err(_) => Err(bad()),
+            }
+        };
+        let (a, b) = (seed(a)?, seed(b)?);
         let end = if inclusive {
-            b.checked_add(1).ok_or_else(bad)?
+            b.checked_add(1).ok_or_else(too_large)?
         } else {
             b
         };
@@ -787,6 +797,14 @@ mod tests {
         assert_eq!("3..=7".parse::<SeedRange>().unwrap().len(), 5);
         let last = "9223372036854775807..=9223372036854775807".parse::<SeedRange>();
         assert_eq!(last.unwrap().len(), 1);
+        for big in [
+            "0..=9223372036854775808",
+            "18446744073709551615..=18446744073709551615",
+            "0..99999999999999999999",
+        ] {
+            let e = big.parse::<SeedRange>().unwrap_err().to_string();
+            assert!(e.contains("seeds are at most"), "{big}: {e}");
+        }
         for bad in ["7..3", "3..3", "a..4", "5", "", "0..=9223372036854775808"] {
             let e = bad.parse::<SeedRange>().unwrap_err().to_string();
             assert!(e.contains("seeds '"), "{bad}: {e}");

@@ -368,6 +368,15 @@ impl PriorSpec {
         }
         let path = std::path::Path::new(t);
         if !path.is_file() {
+            if let Ok(v) = serde_json::from_str::<Value>(t) {
+                let kind = match v {
+                    Value::Array(_) => "an array",
+                    Value::Number(_) => "a number",
+                    Value::Bool(_) => "a boolean",
+                    _ => "null",
+                };
+                bail!("--prior-mean '{arg}' is JSON of another kind ({kind}): expected a prior name (zero, pendulum, ackermann) or an object such as {{\"type\": \"pendulum\", \"mass\": 1, \"length\": 1, \"gravity\": 10}}");
+            }
             bail!("--prior-mean '{arg}' is neither JSON, a known prior name (zero, pendulum, ackermann) nor an existing file");
         }
         let text = std::fs::read_to_string(path)
@@ -427,5 +436,7 @@ mod tests {
             PriorSpec::Ackermann { wheelbase: 8.0 }
         );
         assert!(PriorSpec::from_arg("/no/such/file.json").is_err());
+        let e = PriorSpec::from_arg("[1,2]").unwrap_err().to_string();
+        assert!(e.contains("JSON of another kind (an array)"), "{e}");
     }
 }

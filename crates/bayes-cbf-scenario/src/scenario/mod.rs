@@ -1202,7 +1202,7 @@ mod tests {
                 "gp.A={type = \"wishart\"}",
                 "expected one of `identity`, `random`, `rows`",
             ),
-            ("gp.A=[[1.0, \"a\"]]", "expected f64"),
+            ("gp.A=[[1.0, \"a\"]]", "expected a number"),
         ] {
             let err = format!(
                 "{:#}",

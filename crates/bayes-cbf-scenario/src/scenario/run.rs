@@ -204,12 +204,7 @@ pub fn run_scenario_until(
     .and_then(|l| l.run(&mut |k, _: &_| progress(k, steps)))
     .with_context(|| format!("scenario '{}'", scenario.name))?;
     let wall = started.elapsed().as_secs_f64();
-    super::build::warn_known_row_misfit(
-        &result.model,
-        &built.barriers,
-        scenario.dt,
-        scenario.seed,
-    );
+    super::build::warn_known_row_misfit(&result.model, &built.barriers, scenario.dt, scenario.seed);
     super::build::warn_crossing_outside(
         &built.barriers,
         built.truth.as_ref(),
