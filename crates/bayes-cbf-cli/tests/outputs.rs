@@ -444,52 +444,7 @@ fn a_bare_scenario_is_told_what_its_model_lacks() {
 
 /// An arm joint against two limits whose kinematic row is known and right
 /// (`q' = w`), with gravity and friction its prior gets wrong.
-const ARM: &str = r#"
-dt = 0.01
-steps = 600
-start = [0.0, 0.0]
-start_spread = [0.2, 0.5]
-[system]
-type = "expression"
-state = ["q", "w"]
-control = ["tau"]
-params = { I = 0.4, mgl = 2.0, b = 0.3, fc = 0.5 }
-f = ["w", "(-mgl*sin(q) - b*w - fc*tanh(w/0.1))/I"]
-g = [["0"], ["1/I"]]
-[gp]
-prior_mean = { type = "expression", params = { I = 0.2, mgl = 1.0 }, f = ["w", "-mgl*sin(q)/I"], g = [["0"], ["1/I"]] }
-known_rows = [0]
-lengthscales = [1.0, 2.0]
-B = [[1.0, 0.0], [0.0, 0.05]]
-noise_sigma = 0.1
-[learning]
-window = 300
-[[barriers]]
-type = "expression"
-params = { q_max = 1.2 }
-h = "q_max - q"
-relative_degree = 2
-k_alpha = [6.0, 5.0]
-[[barriers]]
-type = "expression"
-params = { q_min = -0.6 }
-h = "q - q_min"
-relative_degree = 2
-k_alpha = [6.0, 5.0]
-[controller]
-u_min = [-6.0]
-u_max = [6.0]
-[reference]
-type = "feedback"
-u0 = [0.0]
-gain = [[8.0, 2.0]]
-target = [2.0, 0.0]
-[sim]
-process_noise = 0.01
-[outputs]
-plots = false
-animation = false
-"#;
+const ARM: &str = include_str!("data/arm-joint.toml");
 
 /// A known row that the labels contradict only because gains beyond 1/dt
 /// move the state faster than the labels' step: the warning names the

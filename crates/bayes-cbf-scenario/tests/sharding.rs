@@ -154,6 +154,9 @@ fn calibration_shards_merge_into_the_unsharded_run() {
     assert!(calibration::merge(vec![]).is_err());
 }
 
+/// A shard: its description and its rows.
+type Part = (SweepMeta, Vec<SweepRow>);
+
 fn meta(shard: Shard) -> SweepMeta {
     let sets = ["steps=40".to_string()];
     SweepMeta::new("pendulum-safe", &sets, "3..8".parse().unwrap(), shard, 1.0).unwrap()
@@ -205,31 +208,26 @@ fn sweep_shards_merge_into_the_unsharded_sweep() {
         .unwrap_err()
         .to_string();
     assert!(e.contains("given twice"), "{e}");
-    let mut foreign = parts[1].clone();
-    foreign.0.sets = vec!["steps=41".into()];
-    let e = merge_sweeps(vec![parts[0].clone(), foreign])
-        .unwrap_err()
-        .to_string();
+    // shard 1/2 with shard 0/2 (parts[1]) changed by `edit`: the error
+    let refused = |edit: &dyn Fn(&mut Part)| {
+        let mut part = parts[1].clone();
+        edit(&mut part);
+        merge_sweeps(vec![parts[0].clone(), part])
+            .unwrap_err()
+            .to_string()
+    };
+    let e = refused(&|p| p.0.sets = vec!["steps=41".into()]);
     assert!(e.contains("another sweep"), "{e}");
-    let mut wrong = parts[1].clone();
-    wrong.1[0].seed = 4; // shard 0/2 owns 3, 5, 7
-    let e = merge_sweeps(vec![parts[0].clone(), wrong])
-        .unwrap_err()
-        .to_string();
+    // shard 0/2 owns 3, 5, 7
+    let e = refused(&|p| p.1[0].seed = 4);
     assert!(e.contains("not one of its seeds"), "{e}");
-    // a seed of its own given twice in place of another, and one left out:
-    // each names the shard and the seed
-    let mut swapped = parts[1].clone();
-    swapped.1[1].seed = 3; // shard 0/2 holds 3, 3, 7
-    let e = merge_sweeps(vec![parts[0].clone(), swapped])
-        .unwrap_err()
-        .to_string();
+    // a seed of its own given twice in place of another (3, 3, 7), and one
+    // left out: each names the shard and the seed
+    let e = refused(&|p| p.1[1].seed = 3);
     assert!(e.contains("shard 0/2 holds seed 3 twice"), "{e}");
-    let mut cut = parts[1].clone();
-    cut.1.remove(1);
-    let e = merge_sweeps(vec![parts[0].clone(), cut])
-        .unwrap_err()
-        .to_string();
+    let e = refused(&|p| {
+        p.1.remove(1);
+    });
     assert!(
         e.contains("shard 0/2 holds 2 of its 3 seeds: seed 5 is missing"),
         "{e}"

@@ -585,7 +585,7 @@ impl EpisodeStats {
         if self.steps > 0 && self.min_h.is_nan() {
             return Err("min_h is not a number in an episode that ran".into());
         }
-        if self.steps_h_violated > 0 && !(self.min_h < 0.0) {
+        if self.steps_h_violated > 0 && (self.min_h.is_nan() || self.min_h >= 0.0) {
             return Err(format!(
                 "steps_h_violated = {} with min_h = {} ≥ 0",
                 self.steps_h_violated, self.min_h
