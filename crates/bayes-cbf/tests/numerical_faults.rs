@@ -484,6 +484,42 @@ fn states_far_outside_the_data_revert_to_the_prior() {
     }
 }
 
+/// A fit that cannot set a lengthscale from the data warns: an input that
+/// is the same in every row (ω held at 0.7) keeps its lengthscale's start,
+/// and the model reverts to the prior away from that value. A fit on data
+/// that vary in every input says nothing.
+#[test]
+fn a_fit_that_cannot_learn_a_lengthscale_warns() {
+    let settings = FitSettings {
+        max_iters: 30,
+        ..FitSettings::default()
+    };
+    let fitted = |(xs, us, xdot): (Vec<f64>, Vec<f64>, Vec<f64>)| {
+        capture_warnings();
+        bayes_cbf::warnings::new_scope();
+        let mut m = model_on(1.0, 0.1, &(xs, us, xdot));
+        fit(&mut m, &settings).unwrap();
+        warnings()
+            .into_iter()
+            .filter(|w| w.contains("kernel input"))
+            .collect::<Vec<_>>()
+    };
+    assert!(fitted(data(40, 3)).is_empty());
+    let (mut xs, us, mut xdot) = data(40, 3);
+    for j in 0..40 {
+        xs[2 * j + 1] = 0.7;
+        let mut f = [0.0; 4];
+        TRUTH.eval_f64(&xs[2 * j..2 * j + 2], &mut f);
+        xdot[2 * j..2 * j + 2].copy_from_slice(&[f[0] + f[2] * us[j], f[1] + f[3] * us[j]]);
+    }
+    let w = fitted((xs, us, xdot));
+    // the kernel sees (cos θ, sin θ, ω): ω is input 2
+    assert!(
+        w.len() == 1 && w[0].contains("kernel input 2 does not vary in the data"),
+        "{w:?}"
+    );
+}
+
 #[test]
 fn fitting_duplicated_noise_free_data_is_typed_and_leaves_a_usable_model() {
     capture_warnings();

@@ -325,6 +325,8 @@ pub struct MvgpLikelihood<'a, K: Kernel = Rbf> {
     lower: Vec<f64>,
     upper: Vec<f64>,
     start: Vec<f64>,
+    /// Standard deviations of the kernel inputs ([`input_spreads`]).
+    spreads: Vec<f64>,
     /// The model's `A` (all rows) and its learned rows, for [`hyper`](Self::hyper).
     full_a: DMatrix<f64>,
     rows: Vec<usize>,
@@ -487,6 +489,7 @@ impl<'a, K: Kernel> MvgpLikelihood<'a, K> {
             lower,
             upper,
             start,
+            spreads,
             full_a: model.hyper().A.clone(),
             rows,
             work,
@@ -796,6 +799,7 @@ pub fn fit_until<K: Kernel>(
 ) -> Result<FitReport, Error> {
     let initial_ll = model.log_marginal_likelihood();
     let likelihood = MvgpLikelihood::new(model, settings)?;
+    let spreads = likelihood.spreads.clone();
     let mut th0 = likelihood.start.clone();
     let off_sigma = likelihood.layout.off_sigma();
     let sigma_max = likelihood.upper[off_sigma];
@@ -854,6 +858,7 @@ pub fn fit_until<K: Kernel>(
     if hypers.len() == 1 {
         // one start: no comparison, no copy of the model
         model.set_hyper(hypers.swap_remove(0)?)?;
+        warn_collapsed_lengthscales(model, &spreads);
         return Ok(FitReport {
             initial_log_likelihood: initial_ll,
             log_likelihood: model.log_marginal_likelihood(),
@@ -883,12 +888,63 @@ pub fn fit_until<K: Kernel>(
         }
     };
     *model = fitted;
+    warn_collapsed_lengthscales(model, &spreads);
     Ok(FitReport {
         initial_log_likelihood: initial_ll,
         log_likelihood,
         evaluations,
         starts,
     })
+}
+
+static LENGTHSCALE_UNFIT: crate::warnings::WarnOnce = crate::warnings::WarnOnce::new();
+
+/// Warns, once per scope, when the fit could not set a lengthscale from the
+/// data: its input does not vary in them (a standard deviation below
+/// `10⁻³`, the floor of [`input_spreads`]: the likelihood does not depend
+/// on that lengthscale, which keeps its start), or the lengthscale ended at
+/// the floor of its range (a thousandth of the input's spread,
+/// [`kernel_bounds`]: the kernel treats the input as white noise). Either
+/// way the posterior away from the training inputs falls back to the prior
+/// mean.
+fn warn_collapsed_lengthscales<K: Kernel>(model: &Mvgp<K>, spreads: &[f64]) {
+    let kernel = &model.hyper().kernel;
+    let scale_idx = kernel.scale_index();
+    let all = kernel.log_hyper();
+    let mut free = vec![0.0; all.len() - usize::from(scale_idx.is_some())];
+    pack_free(&all, scale_idx, &mut free);
+    let floor = |s: f64| (s / super::theta::LENGTHSCALE_RANGE).ln();
+    let why = free
+        .iter()
+        .zip(spreads)
+        .enumerate()
+        .find_map(|(i, (&t, &s))| {
+            if s <= 1e-3 {
+                Some((
+                    i,
+                    "does not vary in the data (a standard deviation below 1e-3): the fit \
+                       cannot learn its lengthscale, which keeps its start",
+                ))
+            } else if t <= floor(s) + 0.01 {
+                Some((
+                    i,
+                    "has its lengthscale at the floor of its range, a thousandth of the \
+                       input's spread: the kernel treats the input as noise",
+                ))
+            } else {
+                None
+            }
+        });
+    if let (Some((i, why)), true) = (why, LENGTHSCALE_UNFIT.first()) {
+        log::warn!(
+            "fit: kernel input {i} {why} (lengthscale {:.3e}, spread {:.3e}); the model's \
+             prediction away from the {} training inputs falls back to the prior mean \
+             (a constant input, repeated rows or too few rows)",
+            free[i].exp(),
+            spreads[i],
+            model.len()
+        );
+    }
 }
 
 fn symmetrise(m: &DMatrix<f64>) -> DMatrix<f64> {
