@@ -60,7 +60,9 @@ class MVGP:
         informative of the stored points and the new one, and returns its index
         among the k + 1 (k: the new point was not stored); None below the budget."""
     def remove_oldest(self) -> None: ...
-    def save(self, path: Path) -> None: ...
+    def save(self, path: Path) -> None:
+        """Writes the model file (model.json) completely or not at all,
+        creating its directory if it is missing."""
     @staticmethod
     def load(path: Path) -> "MVGP": ...
     @staticmethod

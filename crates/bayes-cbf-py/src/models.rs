@@ -428,7 +428,8 @@ impl PyMvgp {
     }
 
     /// Writes the model file (`model.json`, the CLI's format) completely or
-    /// not at all.
+    /// not at all, creating its directory if it is missing (as the CLI's
+    /// `--out` does).
     fn save(
         &self,
         py: Python<'_>,
