@@ -189,6 +189,7 @@ class SafetyFilterWrapper(gym.Wrapper, gym.utils.RecordConstructorArgs):
 
     def reset(self, **kwargs):
         self._x = None
+        self._needs_reset = "the last reset failed; call reset() again"
         obs, info = self.env.reset(**kwargs)
         self._x = self._state(obs)
         self.episode_stats = {
@@ -234,6 +235,7 @@ class SafetyFilterWrapper(gym.Wrapper, gym.utils.RecordConstructorArgs):
         obs, reward, terminated, truncated, info = self.env.step(u.astype(self.action_space.dtype))
         x_new = self._state(obs)
         self._x = x_new
+        self._needs_reset = "call reset() first"
         if self.learn:
             self._observe(x, u, x_new)
         values = self._log_barriers(x_new)

@@ -148,6 +148,13 @@ def test_a_step_that_fails_after_the_environment_moved_needs_a_reset():
     w.reset(seed=1)
     w.step(np.array([0.5]))
     assert len(model) == k + 1
+    # a reset that fails is named as such, not as a failed step
+    w.state_from_obs = lambda o: 1 / 0
+    with pytest.raises(bc.InputError, match="state_from_obs"):
+        w.reset(seed=2)
+    w.state_from_obs = good
+    with pytest.raises(bc.InputError, match="the last reset failed"):
+        w.step(np.array([0.5]))
     for bad in ["ab", {"a": 1.0}]:
         w.state_from_obs = lambda o, bad=bad: bad
         with pytest.raises(bc.InputError, match="state_from_obs: returned"):

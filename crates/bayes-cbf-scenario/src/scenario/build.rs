@@ -465,11 +465,12 @@ static KNOWN_ROW_MISFIT: WarnOnce = WarnOnce::new();
 /// half the labels ([`Mvgp::known_row_misfit`]). Under gains with a pole
 /// beyond `1/dt` ([`warn_fast_gains`]) the labels, differences of the
 /// states over `dt`, miss motion faster than the step, which alone can
-/// make such a misfit: the warning then says so.
+/// make such a misfit: the warning then says so (`dt`: `None` when the
+/// labels are differences over self-triggered holds).
 pub(crate) fn warn_known_row_misfit(
     model: &Mvgp,
     barriers: &[Arc<dyn DynBarrier>],
-    dt: f64,
+    dt: Option<f64>,
     seed: u64,
 ) {
     if let Some(m) = model.known_row_misfit().filter(|m| m.is_large()) {
@@ -477,7 +478,7 @@ pub(crate) fn warn_known_row_misfit(
             .iter()
             .filter_map(|b| fastest_pole(b.as_ref()))
             .fold(0.0f64, f64::max);
-        let labels = if fast * dt > 1.0 {
+        let labels = if let Some(dt) = dt.filter(|dt| fast * dt > 1.0) {
             format!(
                 "; unless the labels are what is off: they are differences of the \
                  states over dt = {} s, and the barriers' gains (a pole of {} /s, beyond \

@@ -204,7 +204,10 @@ pub fn run_scenario_until(
     .and_then(|l| l.run(&mut |k, _: &_| progress(k, steps)))
     .with_context(|| format!("scenario '{}'", scenario.name))?;
     let wall = started.elapsed().as_secs_f64();
-    super::build::warn_known_row_misfit(&result.model, &built.barriers, scenario.dt, scenario.seed);
+    // labels over dt (self-triggered: over the holds)
+    let holding = built.loop_settings.trigger.as_ref().is_some_and(|t| t.hold);
+    let dt = (!holding).then_some(scenario.dt);
+    super::build::warn_known_row_misfit(&result.model, &built.barriers, dt, scenario.seed);
     super::build::warn_crossing_outside(
         &built.barriers,
         built.truth.as_ref(),
