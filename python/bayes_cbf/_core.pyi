@@ -38,7 +38,7 @@ class MVGP:
     def __init__(
         self, state_dim: int, control_dim: int, lengthscales: ArrayLike,
         A: ArrayLike, B: ArrayLike, noise_sigma: float,
-        prior_mean: Optional[dict[str, Any]] = None, input_map: Optional[list[Any]] = None,
+        prior_mean: Optional[Union[str, dict[str, Any]]] = None, input_map: Optional[list[Any]] = None,
         variance: float = 1.0, known_rows: Optional[Sequence[int]] = None,
     ) -> None: ...
     def fit(
@@ -106,7 +106,7 @@ class CoGP:
     def __init__(
         self, state_dim: int, control_dim: int, lengthscales: ArrayLike,
         Sigma: Optional[ArrayLike] = None, S: Optional[ArrayLike] = None,
-        prior_mean: Optional[dict[str, Any]] = None, input_map: Optional[list[Any]] = None,
+        prior_mean: Optional[Union[str, dict[str, Any]]] = None, input_map: Optional[list[Any]] = None,
         variance: float = 1.0,
     ) -> None: ...
     def fit(
