@@ -253,3 +253,14 @@ def test_a_callback_that_changes_the_model_it_serves_is_told_so():
     with pytest.raises(bc.InputError) as e:
         selfish.value([0.3, 0.0])
     assert len(str(e.value)) < 1000, len(str(e.value))
+
+
+def test_known_rows_under_a_zero_prior_mean_are_warned_of():
+    """Known rows come from the prior mean: with none given they are
+    declared exactly zero, which the constructor says; with a prior mean
+    that has them it says nothing."""
+    with pytest.warns(UserWarning, match=r"rows \[0\] of F are taken from prior_mean, which is zero"):
+        bc.MVGP(2, 1, [1.0, 1.0], np.eye(2), np.eye(2), 0.1, known_rows=[0])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        bc.MVGP(2, 1, [1.0, 1.0], np.eye(2), np.eye(2), 0.1, prior_mean=PENDULUM, known_rows=[0])

@@ -223,6 +223,14 @@ impl ModelFile {
         let mut model = Mvgp::new(n, m, hyper, self.prior_mean.to_prior()?, input_map)?;
         if !self.known_rows.is_empty() {
             model = model.with_known_rows(&self.known_rows)?;
+            if self.prior_mean == PriorSpec::Zero {
+                log::warn!(
+                    "known_rows: rows {:?} of F are taken from prior_mean, which is zero \
+                     (none given): they are declared exactly 0 and never learned; give a \
+                     prior_mean that has those rows (as p' = v)",
+                    self.known_rows
+                );
+            }
         }
         let (xs, us, xdot) = self.flat_data()?;
         if !xs.is_empty() {
