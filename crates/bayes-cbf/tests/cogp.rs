@@ -13,7 +13,9 @@ use bayes_cbf::gp::{
 use bayes_cbf::sim::sample_uniform;
 use bayes_cbf::systems::{DynSystem, Pendulum};
 use bayes_cbf::{Error, InputError};
-use common::{random_rbf, random_spd, rel_diff, selection, RandomSystem};
+use common::{
+    condition, joint_prior, observation_map, random_rbf, random_spd, rel_diff, RandomSystem,
+};
 use nalgebra::{DMatrix, DVector};
 use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -64,42 +66,10 @@ fn check_case(n: usize, m: usize, k: usize, prior: PriorMean, input_map: InputMa
         input_map.apply(x, &mut zz);
         zz
     };
-    let tot = k + 2;
-    let mut cov_f = DMatrix::zeros(tot * np, tot * np);
-    let mut mean_f = DVector::zeros(tot * np);
-    let mut m0 = vec![0.0; np];
-    for i in 0..tot {
-        for j in 0..tot {
-            let kv = pr.kernel.value(&z(&pts[i]), &z(&pts[j]));
-            cov_f
-                .view_mut((i * np, j * np), (np, np))
-                .copy_from(&(&Sigma * kv));
-        }
-        prior.eval(&pts[i], &mut m0);
-        mean_f.rows_mut(i * np, np).copy_from_slice(&m0);
-    }
-    let mut h = DMatrix::zeros(k * n, tot * np);
-    for j in 0..k {
-        let mut ub = vec![1.0];
-        ub.extend_from_slice(&pr.us[j * m..(j + 1) * m]);
-        h.view_mut((j * n, j * np), (n, np))
-            .copy_from(&selection(&ub, n));
-    }
-    let mut cov_y = &h * &cov_f * h.transpose();
-    for j in 0..k {
-        let mut blk = cov_y.view_mut((j * n, j * n), (n, n));
-        blk += &S;
-    }
-    let cov_fy = &cov_f * h.transpose();
-    let resid = DVector::from_column_slice(&pr.xdot) - &h * &mean_f;
-    let chol = cov_y.clone().cholesky().expect("joint covariance is PD");
-    let post_mean = &mean_f + &cov_fy * chol.solve(&resid);
-    let post_cov = &cov_f - &cov_fy * chol.solve(&cov_fy.transpose());
-    let logdet = 2.0 * chol.l().diagonal().iter().map(|v| v.ln()).sum::<f64>();
-    let ll_bf = -0.5
-        * (resid.dot(&chol.solve(&resid))
-            + logdet
-            + (k * n) as f64 * (2.0 * std::f64::consts::PI).ln());
+    let joint = joint_prior(&pts, &Sigma, |a, b| pr.kernel.value(&z(a), &z(b)), &prior);
+    let h = observation_map(&pr.us, m, n, k + 2);
+    let y = DVector::from_column_slice(&pr.xdot);
+    let (post_mean, post_cov, ll_bf) = condition((&joint.0, &joint.1), &h, &S, &y);
 
     for (t, x) in tests.iter().enumerate() {
         let off = (k + t) * np;

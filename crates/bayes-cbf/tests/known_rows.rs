@@ -6,7 +6,7 @@ mod common;
 
 use bayes_cbf::gp::{fit, FitSettings, InputMap, Kernel, Mvgp, MvgpHyper, PriorMean, Rbf};
 use bayes_cbf::systems::DynSystem;
-use common::{random_spd, rel_diff};
+use common::{condition, joint_prior, random_spd, rel_diff};
 use nalgebra::{DMatrix, DVector};
 use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -102,19 +102,7 @@ fn brute_force(s: &Setup, known: &[usize], xq: &[f64]) -> (DMatrix<f64>, DMatrix
         .chain(std::iter::once(xq.to_vec()))
         .collect();
     let tot = K + 1;
-    let mut cov_f = DMatrix::zeros(tot * np, tot * np);
-    let mut mean_f = DVector::zeros(tot * np);
-    let mut m0 = vec![0.0; np];
-    for i in 0..tot {
-        for j in 0..tot {
-            let kv = s.kernel.value(&pts[i], &pts[j]);
-            cov_f
-                .view_mut((i * np, j * np), (np, np))
-                .copy_from(&(&ba * kv));
-        }
-        s.prior.eval(&pts[i], &mut m0);
-        mean_f.rows_mut(i * np, np).copy_from_slice(&m0);
-    }
+    let prior = joint_prior(&pts, &ba, |a, b| s.kernel.value(a, b), &s.prior);
     // y_j = rows L of F(x_j) u̲_j + w_j, w_j ~ N(0, σ² A_LL)
     let mut h = DMatrix::zeros(K * r, tot * np);
     for j in 0..K {
@@ -126,26 +114,13 @@ fn brute_force(s: &Setup, known: &[usize], xq: &[f64]) -> (DMatrix<f64>, DMatrix
         }
     }
     let a_ll = DMatrix::from_fn(r, r, |i, j| s.a[(learned[i], learned[j])]);
-    let mut cov_y = &h * &cov_f * h.transpose();
-    for j in 0..K {
-        let mut blk = cov_y.view_mut((j * r, j * r), (r, r));
-        blk += &a_ll * (s.sigma * s.sigma);
-    }
     let y = DVector::from_iterator(
         K * r,
         (0..K).flat_map(|j| learned.iter().map(move |&i| s.xdot[j * N + i])),
     );
-    let resid = &y - &h * &mean_f;
-    let chol = cov_y.clone().cholesky().unwrap();
-    let cov_fy = &cov_f * h.transpose();
-    let post_mean = &mean_f + &cov_fy * chol.solve(&resid);
-    let post_cov = &cov_f - &cov_fy * chol.solve(&cov_fy.transpose());
+    let noise = &a_ll * (s.sigma * s.sigma);
+    let (post_mean, post_cov, ll) = condition((&prior.0, &prior.1), &h, &noise, &y);
     let off = K * np;
-    let logdet = 2.0 * chol.l().diagonal().iter().map(|v| v.ln()).sum::<f64>();
-    let ll = -0.5
-        * (resid.dot(&chol.solve(&resid))
-            + logdet
-            + (K * r) as f64 * (2.0 * std::f64::consts::PI).ln());
     (
         DMatrix::from_column_slice(N, p, post_mean.rows(off, np).as_slice()),
         post_cov.view((off, off), (np, np)).into_owned(),

@@ -6,7 +6,7 @@ mod common;
 
 use bayes_cbf::gp::{InputMap, Kernel, Mvgp, MvgpHyper, PriorMean, Rbf};
 use bayes_cbf::systems::DynSystem;
-use common::{random_rbf, random_spd, rel_diff, selection};
+use common::{condition, joint_prior, observation_map, random_rbf, random_spd, rel_diff};
 use nalgebra::{DMatrix, DVector};
 use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -63,41 +63,12 @@ fn check_case(case: Case, seed: u64) {
     };
     let np = n * p;
     let ba = B.kronecker(&A);
-    let tot = k + 2;
-    let mut cov_f = DMatrix::zeros(tot * np, tot * np);
-    for i in 0..tot {
-        for j in 0..tot {
-            let kv = kernel.value(&z(&pts[i]), &z(&pts[j]));
-            cov_f
-                .view_mut((i * np, j * np), (np, np))
-                .copy_from(&(&ba * kv));
-        }
-    }
-    let mut mean_f = DVector::zeros(tot * np);
-    let mut m0 = vec![0.0; np];
-    for (i, x) in pts.iter().enumerate() {
-        prior.eval(x, &mut m0);
-        mean_f.rows_mut(i * np, np).copy_from_slice(&m0);
-    }
+    let joint = joint_prior(&pts, &ba, |a, b| kernel.value(&z(a), &z(b)), &prior);
     // observation map: y = H vec F(all) + w, only the first k points observed
-    let mut h = DMatrix::zeros(k * n, tot * np);
-    for j in 0..k {
-        let mut ub = vec![1.0];
-        ub.extend_from_slice(&us[j * m..(j + 1) * m]);
-        h.view_mut((j * n, j * np), (n, np))
-            .copy_from(&selection(&ub, n));
-    }
-    let mut cov_y = &h * &cov_f * h.transpose();
-    for j in 0..k {
-        let mut blk = cov_y.view_mut((j * n, j * n), (n, n));
-        blk += &A * (sigma * sigma);
-    }
-    let cov_fy = &cov_f * h.transpose();
+    let h = observation_map(&us, m, n, k + 2);
     let y = DVector::from_column_slice(&xdot);
-    let mu_y = &h * &mean_f;
-    let chol = cov_y.cholesky().expect("joint covariance is PD");
-    let post_mean = &mean_f + &cov_fy * chol.solve(&(y - mu_y));
-    let post_cov = &cov_f - &cov_fy * chol.solve(&cov_fy.transpose());
+    let noise = &A * (sigma * sigma);
+    let (post_mean, post_cov, _) = condition((&joint.0, &joint.1), &h, &noise, &y);
 
     for (t, x) in tests.iter().enumerate() {
         let off = (k + t) * np;

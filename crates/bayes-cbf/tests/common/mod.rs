@@ -247,3 +247,73 @@ impl bayes_cbf::gp::Kernel for Quadratic2 {
         self.value(x, y)
     }
 }
+
+/// The joint Gaussian of `vec F` at the points `pts`, built entry by entry:
+/// the brute-force reference for the Kronecker shortcuts. Mean: the prior
+/// means `vec M0(x_i)` stacked; covariance: `block · k(x_i, x_j)`, with
+/// `block` the covariance of one point's `vec F` (`B ⊗ A` for the MVGP,
+/// `Σ` for the CoGP) and `k` the kernel on the points as given.
+pub fn joint_prior(
+    pts: &[Vec<f64>],
+    block: &DMatrix<f64>,
+    k: impl Fn(&[f64], &[f64]) -> f64,
+    prior: &bayes_cbf::gp::PriorMean,
+) -> (nalgebra::DVector<f64>, DMatrix<f64>) {
+    let (tot, np) = (pts.len(), block.nrows());
+    let mut cov = DMatrix::zeros(tot * np, tot * np);
+    let mut mean = nalgebra::DVector::zeros(tot * np);
+    let mut m0 = vec![0.0; np];
+    for i in 0..tot {
+        for j in 0..tot {
+            cov.view_mut((i * np, j * np), (np, np))
+                .copy_from(&(block * k(&pts[i], &pts[j])));
+        }
+        prior.eval(&pts[i], &mut m0);
+        mean.rows_mut(i * np, np).copy_from_slice(&m0);
+    }
+    (mean, cov)
+}
+
+/// `(mean, cov)` of a Gaussian conditioned on `y = H x + w`, `w ~ N(0,
+/// noise)` (each observation's block `noise` on the diagonal, `H` with
+/// `noise.nrows()` rows per observation), by a dense Cholesky factor:
+/// the posterior mean, the posterior covariance and `log p(y)`.
+pub fn condition(
+    (mean, cov): (&nalgebra::DVector<f64>, &DMatrix<f64>),
+    h: &DMatrix<f64>,
+    noise: &DMatrix<f64>,
+    y: &nalgebra::DVector<f64>,
+) -> (nalgebra::DVector<f64>, DMatrix<f64>, f64) {
+    let r = noise.nrows();
+    let mut cov_y = h * cov * h.transpose();
+    for j in 0..h.nrows() / r {
+        let mut blk = cov_y.view_mut((j * r, j * r), (r, r));
+        blk += noise;
+    }
+    let cov_xy = cov * h.transpose();
+    let resid = y - h * mean;
+    let chol = cov_y.cholesky().expect("joint covariance is PD");
+    let post_mean = mean + &cov_xy * chol.solve(&resid);
+    let post_cov = cov - &cov_xy * chol.solve(&cov_xy.transpose());
+    let logdet = 2.0 * chol.l().diagonal().iter().map(|v| v.ln()).sum::<f64>();
+    let ll = -0.5
+        * (resid.dot(&chol.solve(&resid))
+            + logdet
+            + h.nrows() as f64 * (2.0 * std::f64::consts::PI).ln());
+    (post_mean, post_cov, ll)
+}
+
+/// The map `H` from `vec F` at `tot` points to the `n`-vectors
+/// `F(x_j) u̲_j` of the first `us.len() / m` of them (`u̲_j = [1, u_j]`,
+/// `u_j` the `m` controls of row `j` of `us`), so that `y = H vec F + w`.
+pub fn observation_map(us: &[f64], m: usize, n: usize, tot: usize) -> DMatrix<f64> {
+    let (k, np) = (us.len() / m, n * (m + 1));
+    let mut h = DMatrix::zeros(k * n, tot * np);
+    for j in 0..k {
+        let mut ub = vec![1.0];
+        ub.extend_from_slice(&us[j * m..(j + 1) * m]);
+        h.view_mut((j * n, j * np), (n, np))
+            .copy_from(&selection(&ub, n));
+    }
+    h
+}
