@@ -14,7 +14,8 @@ use bayes_cbf::sim::sample_uniform;
 use bayes_cbf::systems::{DynSystem, Pendulum};
 use bayes_cbf::{Error, InputError};
 use common::{
-    condition, joint_prior, observation_map, random_rbf, random_spd, rel_diff, RandomSystem,
+    condition, joint_prior, observation_map, point_block, random_rbf, random_spd, rel_diff,
+    RandomSystem,
 };
 use nalgebra::{DMatrix, DVector};
 use rand::{RngExt, SeedableRng};
@@ -72,10 +73,8 @@ fn check_case(n: usize, m: usize, k: usize, prior: PriorMean, input_map: InputMa
     let (post_mean, post_cov, ll_bf) = condition((&joint.0, &joint.1), &h, &S, &y);
 
     for (t, x) in tests.iter().enumerate() {
-        let off = (k + t) * np;
         let post = model.posterior(x).unwrap();
-        let mean_bf = DMatrix::from_column_slice(n, p, post_mean.rows(off, np).as_slice());
-        let cov_bf = post_cov.view((off, off), (np, np)).into_owned();
+        let (mean_bf, cov_bf) = point_block(&post_mean, &post_cov, k + t, n, p);
         let tag = format!("n={n} m={m} {prior:?}");
         assert!(rel_diff(&post.mean, &mean_bf) < 1e-9, "mean {tag}");
         assert!(rel_diff(&post.cov, &cov_bf) < 1e-9, "cov {tag}");

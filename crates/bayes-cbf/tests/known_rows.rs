@@ -6,7 +6,7 @@ mod common;
 
 use bayes_cbf::gp::{fit, FitSettings, InputMap, Kernel, Mvgp, MvgpHyper, PriorMean, Rbf};
 use bayes_cbf::systems::DynSystem;
-use common::{condition, joint_prior, random_spd, rel_diff};
+use common::{condition, joint_prior, point_block, random_spd, rel_diff};
 use nalgebra::{DMatrix, DVector};
 use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -120,12 +120,8 @@ fn brute_force(s: &Setup, known: &[usize], xq: &[f64]) -> (DMatrix<f64>, DMatrix
     );
     let noise = &a_ll * (s.sigma * s.sigma);
     let (post_mean, post_cov, ll) = condition((&prior.0, &prior.1), &h, &noise, &y);
-    let off = K * np;
-    (
-        DMatrix::from_column_slice(N, p, post_mean.rows(off, np).as_slice()),
-        post_cov.view((off, off), (np, np)).into_owned(),
-        ll,
-    )
+    let (mean, cov) = point_block(&post_mean, &post_cov, K, N, p);
+    (mean, cov, ll)
 }
 
 #[test]

@@ -6,8 +6,10 @@ mod common;
 
 use bayes_cbf::gp::{InputMap, Kernel, Mvgp, MvgpHyper, PriorMean, Rbf};
 use bayes_cbf::systems::DynSystem;
-use common::{condition, joint_prior, observation_map, random_rbf, random_spd, rel_diff};
-use nalgebra::{DMatrix, DVector};
+use common::{
+    condition, joint_prior, observation_map, point_block, random_rbf, random_spd, rel_diff,
+};
+use nalgebra::DVector;
 use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use std::sync::Arc;
@@ -71,10 +73,8 @@ fn check_case(case: Case, seed: u64) {
     let (post_mean, post_cov, _) = condition((&joint.0, &joint.1), &h, &noise, &y);
 
     for (t, x) in tests.iter().enumerate() {
-        let off = (k + t) * np;
         let post = model.posterior(x).unwrap();
-        let mean_bf = DMatrix::from_column_slice(n, p, post_mean.rows(off, np).as_slice());
-        let cov_bf = post_cov.view((off, off), (np, np)).into_owned();
+        let (mean_bf, cov_bf) = point_block(&post_mean, &post_cov, k + t, n, p);
         let cov_mvgp = post.B.kronecker(&A);
         assert!(
             rel_diff(&post.mean, &mean_bf) < 1e-9,

@@ -317,3 +317,21 @@ pub fn observation_map(us: &[f64], m: usize, n: usize, tot: usize) -> DMatrix<f6
     }
     h
 }
+
+/// Point `i`'s posterior from [`condition`]'s mean and covariance over all
+/// the points: the mean as the `n × p` matrix `M` and the `np × np`
+/// covariance of `vec F(x_i)`.
+pub fn point_block(
+    mean: &nalgebra::DVector<f64>,
+    cov: &DMatrix<f64>,
+    i: usize,
+    n: usize,
+    p: usize,
+) -> (DMatrix<f64>, DMatrix<f64>) {
+    let np = n * p;
+    let off = i * np;
+    (
+        DMatrix::from_column_slice(n, p, mean.rows(off, np).as_slice()),
+        cov.view((off, off), (np, np)).into_owned(),
+    )
+}
