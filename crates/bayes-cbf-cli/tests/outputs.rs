@@ -447,17 +447,25 @@ fn a_bare_scenario_is_told_what_its_model_lacks() {
 const ARM: &str = include_str!("data/arm-joint.toml");
 
 /// A known row that the labels contradict only because gains beyond 1/dt
-/// move the state faster than the labels' step: the warning names the
-/// labels, not only the prior; at the file's gains it says nothing.
+/// move the state faster than the labels' step (without process noise):
+/// the warning names the labels, not only the prior. At the file's gains
+/// it says nothing, nor with the fast gains under the file's process
+/// noise, whose σ_w/√dt = 0.1 on the labels is the misfit (rms 0.097).
 #[test]
 fn a_known_row_misfit_under_fast_gains_names_the_labels() {
     let dir = scratch_dir("outputs-known-row-labels");
     std::fs::write(dir.join("arm.toml"), ARM).unwrap();
-    let r = run_in(&dir, &["run", "arm.toml", "--out", "slow"]);
-    assert!(r.status.success(), "{}", r.stderr);
-    assert!(!r.stderr.contains("gp.known_rows"), "{}", r.stderr);
     let fast = "barriers.0.k_alpha=[15000.0,250.0]";
-    let r = run_in(&dir, &["run", "arm.toml", "--out", "fast", "--set", fast]);
+    for sets in [&[][..], &["--set", fast]] {
+        let mut args = vec!["run", "arm.toml", "--out", "quiet"];
+        args.extend(sets);
+        let r = run_in(&dir, &args);
+        assert!(r.status.success(), "{}", r.stderr);
+        assert!(!r.stderr.contains("gp.known_rows"), "{sets:?}: {}", r.stderr);
+    }
+    let quiet = "sim.process_noise=0.0";
+    let args = ["run", "arm.toml", "--out", "fast", "--set", fast, "--set", quiet];
+    let r = run_in(&dir, &args);
     assert!(r.status.success(), "{}", r.stderr);
     assert!(
         r.stderr.contains("row 0 of F is declared known")
@@ -466,4 +474,36 @@ fn a_known_row_misfit_under_fast_gains_names_the_labels() {
         "{}",
         r.stderr
     );
+}
+
+/// Two barriers that cross in steps that met their conditions (fast gains
+/// against the process noise on the known row): the warning names each
+/// barrier's first crossing, the velocity limit's (t = 1.24) as well as
+/// the position limit's (t = 3.76).
+#[test]
+fn every_barrier_that_crossed_in_a_met_step_is_named() {
+    let dir = scratch_dir("outputs-two-crossings");
+    std::fs::write(dir.join("msd.toml"), include_str!("data/msd.toml")).unwrap();
+    let r = run_in(
+        &dir,
+        &[
+            "run",
+            "msd.toml",
+            "--seed",
+            "960007",
+            "--set",
+            "barriers.1.alpha=50.0",
+            "--set",
+            "barriers.0.k_alpha=[100.0,20.0]",
+            "--out",
+            "r",
+        ],
+    );
+    assert!(r.status.success(), "{}", r.stderr);
+    for crossed in [
+        "barriers[1] (seed 960007): h crossed zero at t = 1.240",
+        "barriers[0] (seed 960007): h crossed zero at t = 3.760",
+    ] {
+        assert!(r.stderr.contains(crossed), "{crossed}: {}", r.stderr);
+    }
 }

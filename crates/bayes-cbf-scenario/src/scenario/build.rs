@@ -466,14 +466,19 @@ static KNOWN_ROW_MISFIT: WarnOnce = WarnOnce::new();
 /// beyond `1/dt` ([`warn_fast_gains`]) the labels, differences of the
 /// states over `dt`, miss motion faster than the step, which alone can
 /// make such a misfit: the warning then says so (`dt`: `None` when the
-/// labels are differences over self-triggered holds).
+/// labels are differences over self-triggered holds). A misfit within
+/// twice `label_noise`, the noise that process noise puts on every label
+/// (`σ_w/√τ`, known rows included), is that noise: no warning.
 pub(crate) fn warn_known_row_misfit(
     model: &Mvgp,
     barriers: &[Arc<dyn DynBarrier>],
-    dt: Option<f64>,
+    (dt, label_noise): (Option<f64>, f64),
     seed: u64,
 ) {
-    if let Some(m) = model.known_row_misfit().filter(|m| m.is_large()) {
+    let misfit = model
+        .known_row_misfit()
+        .filter(|m| m.is_large() && m.rms_misfit > 2.0 * label_noise);
+    if let Some(m) = misfit {
         let fast = barriers
             .iter()
             .filter_map(|b| fastest_pole(b.as_ref()))
@@ -792,17 +797,20 @@ pub(crate) fn warn_noise_below_held_labels(
     process_noise: f64,
     records: &[StepRecord],
 ) {
+    if let Some(median) = median_hold(records) {
+        warn_noise_below_labels(model, process_noise, median, "the median hold");
+    }
+}
+
+/// The median of the run's positive holds (`None` without any).
+pub(crate) fn median_hold(records: &[StepRecord]) -> Option<f64> {
     let mut holds: Vec<f64> = records
         .iter()
         .map(|r| r.hold)
         .filter(|h| *h > 0.0)
         .collect();
-    if holds.is_empty() {
-        return;
-    }
     holds.sort_by(f64::total_cmp);
-    let median = holds[holds.len() / 2];
-    warn_noise_below_labels(model, process_noise, median, "the median hold");
+    holds.get(holds.len() / 2).copied()
 }
 
 static CLAMPED_HOLDS: WarnOnce = WarnOnce::new();
@@ -845,7 +853,8 @@ pub(crate) fn warn_clamped_holds(records: &[StepRecord], tau_min: f64, seed: u64
 static CROSSED_IN_MET_STEP: WarnOnce = WarnOnce::new();
 
 /// Warns, once per scope, when a barrier's `h` crossed zero within a held
-/// step that met its condition.
+/// step that met its condition: one warning naming each barrier's first
+/// such crossing.
 ///
 /// Relative degree 1: the condition bounds `ḣ` at the step; over the hold
 /// `τ`, `h` also moves by `½τ²ẋᵀ∇²h ẋ` (its curvature along the motion, at
@@ -878,6 +887,8 @@ pub(crate) fn warn_crossing_in_met_step(
             (true, true, _) => "process noise or model error beyond p",
         }
     };
+    // each barrier's first such crossing, in one warning
+    let mut crossings = Vec::new();
     for (i, b) in barriers.iter().enumerate() {
         let found = records
             .iter()
@@ -893,16 +904,13 @@ pub(crate) fn warn_crossing_in_met_step(
             if outside {
                 continue;
             }
-            warn_once(
-                &CROSSED_IN_MET_STEP,
-                format!(
-                    "barriers[{i}] (seed {seed}): h crossed zero at t = {:.3} within a hold of \
-                     {} s that met its condition (relative degree {r_degree}): {noise} did",
-                    r.t,
-                    short(r.hold),
-                ),
-            );
-            return;
+            crossings.push(format!(
+                "barriers[{i}] (seed {seed}): h crossed zero at t = {:.3} within a hold of {} s \
+                 that met its condition (relative degree {r_degree}): {noise} did",
+                r.t,
+                short(r.hold),
+            ));
+            continue;
         }
         let mut fbuf = vec![0.0; n * (1 + truth.control_dim())];
         let mut xdot = vec![0.0; n];
@@ -932,17 +940,16 @@ pub(crate) fn warn_crossing_in_met_step(
                 "its curvature along the motion does not explain it: {noise}, or a kink of h, did"
             )
         };
-        warn_once(
-            &CROSSED_IN_MET_STEP,
-            format!(
-                "barriers[{i}] (seed {seed}): h crossed zero at t = {:.3} within a hold of {} s \
-                 that met its condition: {cause} (docs/robots.md, \"Curved barriers over the \
-                 hold\")",
-                r.t,
-                short(r.hold),
-            ),
-        );
-        return;
+        crossings.push(format!(
+            "barriers[{i}] (seed {seed}): h crossed zero at t = {:.3} within a hold of {} s \
+             that met its condition: {cause} (docs/robots.md, \"Curved barriers over the \
+             hold\")",
+            r.t,
+            short(r.hold),
+        ));
+    }
+    if !crossings.is_empty() {
+        warn_once(&CROSSED_IN_MET_STEP, crossings.join("; and "));
     }
 }
 

@@ -204,10 +204,18 @@ pub fn run_scenario_until(
     .and_then(|l| l.run(&mut |k, _: &_| progress(k, steps)))
     .with_context(|| format!("scenario '{}'", scenario.name))?;
     let wall = started.elapsed().as_secs_f64();
-    // labels over dt (self-triggered: over the holds)
+    // labels over dt (self-triggered: over the holds), each with the noise
+    // σ_w/√τ of the process noise
     let holding = built.loop_settings.trigger.as_ref().is_some_and(|t| t.hold);
     let dt = (!holding).then_some(scenario.dt);
-    super::build::warn_known_row_misfit(&result.model, &built.barriers, dt, scenario.seed);
+    let hold = dt.or_else(|| super::build::median_hold(&result.records));
+    let label_noise = scenario.sim.process_noise / hold.unwrap_or(scenario.dt).sqrt();
+    super::build::warn_known_row_misfit(
+        &result.model,
+        &built.barriers,
+        (dt, label_noise),
+        scenario.seed,
+    );
     super::build::warn_crossing_outside(
         &built.barriers,
         built.truth.as_ref(),
