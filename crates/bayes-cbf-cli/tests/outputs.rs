@@ -461,10 +461,16 @@ fn a_known_row_misfit_under_fast_gains_names_the_labels() {
         args.extend(sets);
         let r = run_in(&dir, &args);
         assert!(r.status.success(), "{}", r.stderr);
-        assert!(!r.stderr.contains("gp.known_rows"), "{sets:?}: {}", r.stderr);
+        assert!(
+            !r.stderr.contains("gp.known_rows"),
+            "{sets:?}: {}",
+            r.stderr
+        );
     }
     let quiet = "sim.process_noise=0.0";
-    let args = ["run", "arm.toml", "--out", "fast", "--set", fast, "--set", quiet];
+    let args = [
+        "run", "arm.toml", "--out", "fast", "--set", fast, "--set", quiet,
+    ];
     let r = run_in(&dir, &args);
     assert!(r.status.success(), "{}", r.stderr);
     assert!(
