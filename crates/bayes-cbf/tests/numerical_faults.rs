@@ -515,7 +515,7 @@ fn a_fit_that_cannot_learn_a_lengthscale_warns() {
     let w = fitted((xs, us, xdot));
     // the kernel sees (cos θ, sin θ, ω): ω is input 2
     assert!(
-        w.len() == 1 && w[0].contains("kernel input 2 does not vary in the data"),
+        w.len() == 1 && w[0].contains("kernel input 2 takes one value in every row"),
         "{w:?}"
     );
 }

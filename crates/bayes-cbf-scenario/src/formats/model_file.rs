@@ -225,9 +225,9 @@ impl ModelFile {
             model = model.with_known_rows(&self.known_rows)?;
             if self.prior_mean == PriorSpec::Zero {
                 log::warn!(
-                    "known_rows: rows {:?} of F are taken from prior_mean, which is zero \
-                     (none given): they are declared exactly 0 and never learned; give a \
-                     prior_mean that has those rows (as p' = v)",
+                    "known_rows: rows {:?} of F are taken from prior_mean, which is zero: \
+                     they are declared exactly 0 and never learned; give a prior_mean that \
+                     has those rows (as p' = v)",
                     self.known_rows
                 );
             }

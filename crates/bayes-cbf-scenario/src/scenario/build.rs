@@ -503,51 +503,56 @@ pub(crate) fn warn_known_row_misfit(
 
 static LEFT_INVARIANT: WarnOnce = WarnOnce::new();
 
-/// Where a relative-degree-2 barrier's `h` first crossed zero in a step that
-/// met its condition, from a state outside the set its gains keep safe
+/// Where each relative-degree-2 barrier's `h` first crossed zero in a step
+/// that met its condition, from a state outside the set its gains keep safe
 /// (`ψ₁ < 0`, [`start_margin`] with the true dynamics): the barrier's
 /// index, the step's time, `ψ₁` there and the infeasible steps of the
-/// stretch with `ψ₁ < 0` that led to it and of the step that left the set.
-/// An infeasible stretch left that set, and the condition alone does not
-/// bring the state back before `h` crosses.
-pub(crate) fn crossing_outside(
+/// stretch with `ψ₁ < 0` that led to it and of the step that left the set,
+/// one entry per barrier that did. An infeasible stretch left that set, and
+/// the condition alone does not bring the state back before `h` crosses.
+pub(crate) fn crossings_outside(
     barriers: &[Arc<dyn DynBarrier>],
     truth: &dyn DynSystem,
     records: &[StepRecord],
-) -> Option<(usize, f64, f64, usize)> {
-    barriers.iter().enumerate().find_map(|(i, b)| {
-        records.iter().enumerate().find_map(|(k, r)| {
-            let crossed =
-                r.status != StepStatus::Infeasible && r.h[i] >= 0.0 && r.h_fine_min[i] < 0.0;
-            if !crossed {
-                return None;
-            }
-            let psi_at = |x: &[f64]| start_margin(truth, b.as_ref(), x).ok().flatten();
-            let psi = psi_at(&r.x)?;
-            // the infeasible steps of the stretch outside the set that led
-            // here and of the step that left it, not those of the whole run
-            let outside = records[..k]
-                .iter()
-                .rev()
-                .take_while(|r| psi_at(&r.x).is_some_and(|p| p < 0.0))
-                .count();
-            let infeasible = records[k.saturating_sub(outside + 1)..k]
-                .iter()
-                .filter(|r| r.status == StepStatus::Infeasible)
-                .count();
-            (psi < 0.0).then_some((i, r.t, psi, infeasible))
+) -> Vec<(usize, f64, f64, usize)> {
+    let barriers = barriers.iter().enumerate();
+    barriers
+        .filter_map(|(i, b)| {
+            records.iter().enumerate().find_map(|(k, r)| {
+                let crossed =
+                    r.status != StepStatus::Infeasible && r.h[i] >= 0.0 && r.h_fine_min[i] < 0.0;
+                if !crossed {
+                    return None;
+                }
+                let psi_at = |x: &[f64]| start_margin(truth, b.as_ref(), x).ok().flatten();
+                let psi = psi_at(&r.x)?;
+                // the infeasible steps of the stretch outside the set that led
+                // here and of the step that left it, not those of the whole run
+                let outside = records[..k]
+                    .iter()
+                    .rev()
+                    .take_while(|r| psi_at(&r.x).is_some_and(|p| p < 0.0))
+                    .count();
+                let infeasible = records[k.saturating_sub(outside + 1)..k]
+                    .iter()
+                    .filter(|r| r.status == StepStatus::Infeasible)
+                    .count();
+                (psi < 0.0).then_some((i, r.t, psi, infeasible))
+            })
         })
-    })
+        .collect()
 }
 
-/// Warns, once per scope, of a [`crossing_outside`].
+/// Warns, once per scope, of the [`crossings_outside`]: one warning naming
+/// each barrier's.
 pub(crate) fn warn_crossing_outside(
     barriers: &[Arc<dyn DynBarrier>],
     truth: &dyn DynSystem,
     records: &[StepRecord],
     seed: u64,
 ) {
-    if let Some((i, t, psi, infeasible)) = crossing_outside(barriers, truth, records) {
+    let mut found = Vec::new();
+    for (i, t, psi, infeasible) in crossings_outside(barriers, truth, records) {
         let how = if infeasible > 0 {
             format!(
                 "the stretch outside it held {infeasible} infeasible step(s) \
@@ -558,15 +563,15 @@ pub(crate) fn warn_crossing_outside(
              noise or model error beyond p (docs/robots.md, \"Noise and starts\")"
                 .to_string()
         };
-        warn_once(
-            &LEFT_INVARIANT,
-            format!(
-                "barriers[{i}] (seed {seed}): h crossed zero at t = {t:.3} in a step that met \
-                 its condition, from a state outside the set its gains keep safe \
-                 (ψ₁ = ḣ + λh = {} < 0); {how}",
-                short(psi)
-            ),
-        );
+        found.push(format!(
+            "barriers[{i}] (seed {seed}): h crossed zero at t = {t:.3} in a step that met its \
+             condition, from a state outside the set its gains keep safe (ψ₁ = ḣ + λh = {} < \
+             0); {how}",
+            short(psi)
+        ));
+    }
+    if !found.is_empty() {
+        warn_once(&LEFT_INVARIANT, found.join("; and "));
     }
 }
 

@@ -1013,7 +1013,9 @@ mod tests {
             inflation: vec![],
         };
         let find = |records: &[StepRecord]| {
-            build::crossing_outside(&built.barriers, built.truth.as_ref(), records)
+            build::crossings_outside(&built.barriers, built.truth.as_ref(), records)
+                .into_iter()
+                .next()
         };
         let infeasible = step(0.0, [0.0, 0.5], 0.9, StepStatus::Infeasible);
         // fast towards the wall, 1 mm short of it: ψ₁ = −2 + 0.001 < 0
@@ -1050,10 +1052,22 @@ mod tests {
             in_infeasible(&[infeasible.clone(), fallback]),
             Some((0, 0.01))
         );
-        assert_eq!(in_infeasible(&[infeasible.clone(), fast]), None);
+        assert_eq!(in_infeasible(&[infeasible.clone(), fast.clone()]), None);
         // an infeasible step that starts below zero did not cross
         let below = step(0.01, [1.1, 0.0], -0.2, StepStatus::Infeasible);
-        assert_eq!(in_infeasible(&[infeasible, below]), None);
+        assert_eq!(in_infeasible(&[infeasible.clone(), below]), None);
+        // two barriers that both crossed from outside: both are found
+        let twice = |r: &StepRecord| StepRecord {
+            h: vec![r.h[0]; 2],
+            h_fine_min: vec![r.h_fine_min[0]; 2],
+            scbc: vec![0.0; 2],
+            ..r.clone()
+        };
+        let barriers = [built.barriers[0].clone(), built.barriers[0].clone()];
+        let records = [twice(&infeasible), twice(&fast)];
+        let found = build::crossings_outside(&barriers, built.truth.as_ref(), &records);
+        let which: Vec<(usize, f64)> = found.iter().map(|f| (f.0, f.1)).collect();
+        assert_eq!(which, [(0, 0.01), (1, 0.01)]);
     }
 
     /// Only `[system]` is required: the name is the file's stem, and the

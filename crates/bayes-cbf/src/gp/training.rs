@@ -900,9 +900,8 @@ pub fn fit_until<K: Kernel>(
 static LENGTHSCALE_UNFIT: crate::warnings::WarnOnce = crate::warnings::WarnOnce::new();
 
 /// Warns, once per scope, when the fit could not set a lengthscale from the
-/// data: its input does not vary in them (a standard deviation below
-/// `10⁻³`, the floor of [`input_spreads`]: the likelihood does not depend
-/// on that lengthscale, which keeps its start), or the lengthscale ended at
+/// data: its input takes one value in every row (the likelihood does not
+/// depend on that lengthscale, which keeps its start), or the lengthscale ended at
 /// the floor of its range (a thousandth of the input's spread,
 /// [`kernel_bounds`]: the kernel treats the input as white noise). Either
 /// way the posterior away from the training inputs falls back to the prior
@@ -914,22 +913,25 @@ fn warn_collapsed_lengthscales<K: Kernel>(model: &Mvgp<K>, spreads: &[f64]) {
     let mut free = vec![0.0; all.len() - usize::from(scale_idx.is_some())];
     pack_free(&all, scale_idx, &mut free);
     let floor = |s: f64| (s / super::theta::LENGTHSCALE_RANGE).ln();
+    let (zs, k, d) = (model.mapped_inputs(), model.len(), spreads.len());
+    // an input with one value in every row (its spread floored, and no
+    // variation at all)
+    let constant = |j: usize| (1..k).all(|i| zs[i * d + j] == zs[j]);
     let why = free
         .iter()
         .zip(spreads)
         .enumerate()
         .find_map(|(i, (&t, &s))| {
-            if s <= 1e-3 {
+            if constant(i) {
                 Some((
                     i,
-                    "does not vary in the data (a standard deviation below 1e-3): the fit \
-                       cannot learn its lengthscale, which keeps its start",
+                    "takes one value in every row: the fit cannot learn its lengthscale",
                 ))
             } else if t <= floor(s) + 0.01 {
                 Some((
                     i,
                     "has its lengthscale at the floor of its range, a thousandth of the \
-                       input's spread: the kernel treats the input as noise",
+                     input's spread: the kernel treats the input as noise",
                 ))
             } else {
                 None
@@ -938,11 +940,10 @@ fn warn_collapsed_lengthscales<K: Kernel>(model: &Mvgp<K>, spreads: &[f64]) {
     if let (Some((i, why)), true) = (why, LENGTHSCALE_UNFIT.first()) {
         log::warn!(
             "fit: kernel input {i} {why} (lengthscale {:.3e}, spread {:.3e}); the model's \
-             prediction away from the {} training inputs falls back to the prior mean \
+             prediction away from the {k} training inputs falls back to the prior mean \
              (a constant input, repeated rows or too few rows)",
             free[i].exp(),
             spreads[i],
-            model.len()
         );
     }
 }
