@@ -490,21 +490,9 @@ fn a_known_row_misfit_under_fast_gains_names_the_labels() {
 fn every_barrier_that_crossed_in_a_met_step_is_named() {
     let dir = scratch_dir("outputs-two-crossings");
     std::fs::write(dir.join("msd.toml"), include_str!("data/msd.toml")).unwrap();
-    let r = run_in(
-        &dir,
-        &[
-            "run",
-            "msd.toml",
-            "--seed",
-            "960007",
-            "--set",
-            "barriers.1.alpha=50.0",
-            "--set",
-            "barriers.0.k_alpha=[100.0,20.0]",
-            "--out",
-            "r",
-        ],
-    );
+    let args = "run msd.toml --seed 960007 --set barriers.1.alpha=50.0 \
+                --set barriers.0.k_alpha=[100.0,20.0] --out r";
+    let r = run_in(&dir, &args.split_whitespace().collect::<Vec<_>>());
     assert!(r.status.success(), "{}", r.stderr);
     for crossed in [
         "barriers[1] (seed 960007): h crossed zero at t = 1.240",
