@@ -767,17 +767,16 @@ fn check_shard_seeds(m: &SweepMeta, r: &[SweepRow]) -> Result<()> {
         bail!("merge: shard {index}/{count} holds seed {} twice", w[0]);
     }
     // its own seeds, in order: the first that the sorted rows skip
-    let own = (index..m.seeds.len())
-        .step_by(count.max(1))
-        .map(|p| m.seeds.start + p as u64);
+    let positions = (index..m.seeds.len()).step_by(count.max(1));
+    let owned = positions.len();
     let mut held = seeds.iter().peekable();
-    for seed in own {
+    for seed in positions.map(|p| m.seeds.start + p as u64) {
         if held.next_if_eq(&&seed).is_none() {
             bail!(
                 "merge: shard {index}/{count} holds {} of its {} seeds: seed {seed} is missing \
                  (its run was interrupted, or its sweep.csv cut short)",
                 seeds.len(),
-                (index..m.seeds.len()).step_by(count.max(1)).len()
+                owned
             );
         }
     }

@@ -922,16 +922,22 @@ fn warn_collapsed_lengthscales<K: Kernel>(model: &Mvgp<K>, spreads: &[f64]) {
         .zip(spreads)
         .enumerate()
         .find_map(|(i, (&t, &s))| {
+            let l = t.exp();
             if constant(i) {
                 Some((
                     i,
-                    "takes one value in every row: the fit cannot learn its lengthscale",
+                    format!(
+                        "takes one value in every row: the fit cannot learn its lengthscale \
+                         ({l:.3e})"
+                    ),
                 ))
             } else if t <= floor(s) + 0.01 {
                 Some((
                     i,
-                    "has its lengthscale at the floor of its range, a thousandth of the \
-                     input's spread: the kernel treats the input as noise",
+                    format!(
+                        "has its lengthscale at the floor of its range ({l:.3e}, a thousandth \
+                         of the input's spread {s:.3e}): the kernel treats the input as noise"
+                    ),
                 ))
             } else {
                 None
@@ -939,11 +945,9 @@ fn warn_collapsed_lengthscales<K: Kernel>(model: &Mvgp<K>, spreads: &[f64]) {
         });
     if let (Some((i, why)), true) = (why, LENGTHSCALE_UNFIT.first()) {
         log::warn!(
-            "fit: kernel input {i} {why} (lengthscale {:.3e}, spread {:.3e}); the model's \
-             prediction away from the {k} training inputs falls back to the prior mean \
-             (a constant input, repeated rows or too few rows)",
-            free[i].exp(),
-            spreads[i],
+            "fit: kernel input {i} {why}; the model's prediction away from the {k} training \
+             inputs falls back to the prior mean (a constant input, repeated rows or too few \
+             rows)"
         );
     }
 }
