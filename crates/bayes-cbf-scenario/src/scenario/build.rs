@@ -11,8 +11,8 @@ use crate::prior_spec::{PriorSpec, SystemNames};
 use crate::warn_once;
 use bayes_cbf::barrier::{fastest_pole, start_margin, DynBarrier};
 use bayes_cbf::control::{
-    Fallback, RecalibrationSettings, SafetyController, SafetySettings, SelfTriggered, TauSource,
-    TriggerSettings,
+    ControlOutput, ControlStatus, Fallback, RecalibrationSettings, SafetyController,
+    SafetySettings, SelfTriggered, TauSource, TriggerSettings,
 };
 use bayes_cbf::gp::{FitSettings, LipschitzSettings, Mvgp, MvgpHyper, PriorMean, Rbf};
 use bayes_cbf::sim::{
@@ -685,7 +685,17 @@ static MOSTLY_INFEASIBLE: WarnOnce = WarnOnce::new();
 /// than half its time: the fallback acted on most of it, safe or not (a
 /// robot kept still by it is safe, and goes nowhere). Time, not steps:
 /// self-triggered holds of infeasible steps are short.
-pub(crate) fn warn_mostly_infeasible(records: &[StepRecord], fallback: &str, seed: u64) {
+///
+/// `noise` gives [`noise_above_labels`] of a predictive controller (its
+/// conditions carry the model's noise, which then exceeds what the labels
+/// carry), which the warning names among the causes; it is called only
+/// when the warning is due.
+pub(crate) fn warn_mostly_infeasible(
+    records: &[StepRecord],
+    fallback: &str,
+    seed: u64,
+    noise: impl FnOnce() -> Option<String>,
+) {
     let infeasible = records
         .iter()
         .filter(|r| r.status == StepStatus::Infeasible)
@@ -697,6 +707,7 @@ pub(crate) fn warn_mostly_infeasible(records: &[StepRecord], fallback: &str, see
         .map(|r| r.hold)
         .sum();
     if 2.0 * fallen > total {
+        let noise = noise();
         warn_once(
             &MOSTLY_INFEASIBLE,
             format!(
@@ -704,10 +715,12 @@ pub(crate) fn warn_mostly_infeasible(records: &[StepRecord], fallback: &str, see
                  time, so the fallback ({fallback}) acted on most of the run and no \
                  condition was promised there: \
                  a model too uncertain of the input's effect for controller.probability (a \
-                 zero prior mean, a wide B), or bounds and gains in conflict (docs/robots.md, \
+                 zero prior mean, a wide B), {}bounds and gains in conflict{} (docs/robots.md, \
                  \"Infeasible steps\")",
                 records.len(),
-                100.0 * fallen / total
+                100.0 * fallen / total,
+                if noise.is_some() { "" } else { "or " },
+                noise.map_or_else(String::new, |n| format!(", or {n}"))
             ),
         );
     }
@@ -760,6 +773,80 @@ pub(crate) fn warn_crossing_in_infeasible_step(
             ),
         );
     }
+}
+
+/// Infeasible steps re-solved by [`noise_above_labels`], at most.
+const NOISE_PROBES: usize = 20;
+
+/// The clause of [`warn_mostly_infeasible`] for a predictive controller
+/// whose model's noise on a learned row, `σ·√A_ii`, is more than twice the
+/// noise of the labels, `label_noise` (`σ_w/√τ`; 0 without process noise),
+/// and blocks the steps: each predictive condition carries `c·σ·√A_ii`
+/// times the gradient's weight on that row, a spread no amount of data
+/// removes. Up to [`NOISE_PROBES`] infeasible steps, spread over the run,
+/// are solved again with the run's final `model` (its data and noise),
+/// with and without the noise in the conditions (no CLF: it is soft); the
+/// clause is given when more than half of them are infeasible with it and
+/// feasible without. Not for barriers of relative degree above 2, whose
+/// moments are Monte Carlo estimates.
+pub(crate) fn noise_above_labels(
+    controller: &SafetyController,
+    model: &Mvgp,
+    records: &[StepRecord],
+    label_noise: f64,
+) -> Option<String> {
+    let (sigma, a) = (model.hyper().sigma, &model.hyper().A);
+    let (i, noise) = model
+        .learned_rows()
+        .into_iter()
+        .map(|i| (i, sigma * a[(i, i)].sqrt()))
+        .find(|(_, noise)| *noise > 2.0 * label_noise)?;
+    let barriers = controller.barriers().to_vec();
+    if barriers.iter().any(|b| b.relative_degree() > 2) {
+        return None;
+    }
+    let infeasible: Vec<&StepRecord> = records
+        .iter()
+        .filter(|r| r.status == StepStatus::Infeasible)
+        .collect();
+    let probes: Vec<&StepRecord> = (0..NOISE_PROBES.min(infeasible.len()))
+        .map(|j| infeasible[j * infeasible.len() / NOISE_PROBES.min(infeasible.len())])
+        .collect();
+    let (n, m, nb) = (model.state_dim(), model.control_dim(), barriers.len());
+    let solver = |predictive: bool| {
+        let mut settings = controller.settings().clone();
+        settings.predictive = predictive;
+        SafetyController::new(n, m, barriers.clone(), None, settings).ok()
+    };
+    let (mut with, mut without) = (solver(true)?, solver(false)?);
+    let mut out = ControlOutput::new(m, nb);
+    let mut feasible = |c: &mut SafetyController, r: &StepRecord| {
+        c.step(model, &r.x, &r.u_ref, None, &mut out).is_ok()
+            && !matches!(out.status, ControlStatus::Infeasible(_))
+    };
+    let blocked = probes
+        .iter()
+        .filter(|r| !feasible(&mut with, r) && feasible(&mut without, r))
+        .count();
+    if 2 * blocked <= probes.len() {
+        return None;
+    }
+    let labels = if label_noise > 0.0 {
+        format!(
+            "sim.process_noise puts {} on the labels",
+            short(label_noise)
+        )
+    } else {
+        "the labels carry no process noise".to_string()
+    };
+    Some(format!(
+        "gp.noise_sigma too large for controller.predictive, whose conditions carry the \
+         model's noise: σ·√A_ii = {} on row {i}, where {labels}; with the run's final model, \
+         {blocked} of {} infeasible steps are feasible without it (lower gp.noise_sigma \
+         towards the labels' noise, or let refits learn it)",
+        short(noise),
+        probes.len()
+    ))
 }
 
 static NOISE_BELOW_LABELS: WarnOnce = WarnOnce::new();

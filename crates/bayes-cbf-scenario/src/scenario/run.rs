@@ -222,10 +222,23 @@ pub fn run_scenario_until(
         &result.records,
         scenario.seed,
     );
+    let predictive = built.controller.settings().predictive;
     super::build::warn_mostly_infeasible(
         &result.records,
         scenario.controller.fallback_name(),
         scenario.seed,
+        || {
+            predictive
+                .then(|| {
+                    super::build::noise_above_labels(
+                        &built.controller,
+                        &result.model,
+                        &result.records,
+                        label_noise,
+                    )
+                })
+                .flatten()
+        },
     );
     super::build::warn_crossing_in_infeasible_step(
         built.barriers.len(),
@@ -237,10 +250,7 @@ pub fn run_scenario_until(
         &built.barriers,
         built.truth.as_ref(),
         &result.records,
-        (
-            built.controller.settings().predictive,
-            scenario.sim.process_noise,
-        ),
+        (predictive, scenario.sim.process_noise),
         scenario.seed,
     );
     if let Some(t) = built.loop_settings.trigger.as_ref().filter(|t| t.hold) {
