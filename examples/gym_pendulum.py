@@ -37,6 +37,11 @@ filter on the posterior mean, p = 0.5) and the Bayes CBF (p = 0.99), both
 from the wrong prior, and the Bayes CBF from a zero prior.
 
     python examples/gym_pendulum.py --episodes 100 --seed 1000 --out docs/gym_pendulum.json
+
+--u-max U bounds the filters' torque to [-U, U] (the environment's is 2),
+and --fallback NAME sets their fallback on infeasible steps (the library's
+default is max_margin): with bounds tighter than the policy's torque, the
+fallback decides (docs/python.md, "Input bounds and the fallback").
 """
 
 from __future__ import annotations
@@ -122,7 +127,11 @@ def policy(kind: str, rng: np.random.Generator, obs) -> np.ndarray:
     return np.array([np.clip(2.0 * np.sign(thdot) + 0.3 * rng.standard_normal(), -2, 2)])
 
 
-def episode(variant: str, kind: str, seed: int, zeta: float, trace: list | None = None) -> dict:
+VARIANTS = ["unfiltered", "mean-cbf", "bayes-cbf", "bayes-cbf-zero-prior"]
+
+
+def episode(variant: str, kind: str, seed: int, zeta: float, trace: list | None = None,
+            u_max: float = 2.0, fallback: str | None = None) -> dict:
     env = HangingStart(gym.make("Pendulum-v1"))
     rng = np.random.default_rng(seed)
     barrier = energy_barrier()
@@ -143,8 +152,9 @@ def episode(variant: str, kind: str, seed: int, zeta: float, trace: list | None 
         return stats
     p = {"mean-cbf": 0.5, "bayes-cbf": 0.99, "bayes-cbf-zero-prior": 0.99}[variant]
     prior = None if variant.endswith("zero-prior") else WRONG_PRIOR
+    options = {} if fallback is None else {"fallback": fallback}
     filt = bc.SafetyFilter(new_model(prior), [barrier], probability=p, zeta=zeta,
-                           u_min=[-2.0], u_max=[2.0], predictive=True)
+                           u_min=[-u_max], u_max=[u_max], predictive=True, **options)
     wrapped = SafetyFilterWrapper(env, filt, state_from_obs, learn=True, angle_indices=[0],
                                   max_data=200, label_at="start", barriers_for_log=[barrier])
     obs, _ = wrapped.reset(seed=seed)
@@ -164,8 +174,8 @@ def plot(path: str, seed: int, zeta: float) -> None:
     import matplotlib.pyplot as plt
 
     fig, ax = plt.subplots(figsize=(8, 3.6))
-    for variant, colour in [("unfiltered", "tab:gray"), ("mean-cbf", "tab:orange"),
-                            ("bayes-cbf", "tab:blue"), ("bayes-cbf-zero-prior", "tab:purple")]:
+    colours = ["tab:gray", "tab:orange", "tab:blue", "tab:purple"]
+    for variant, colour in zip(VARIANTS, colours):
         trace: list = []
         episode(variant, "swing-up", seed, zeta, trace)
         t = 0.05 * np.arange(1, len(trace) + 1)
@@ -189,7 +199,14 @@ def main() -> None:
     ap.add_argument("--out", help="write the table as JSON here")
     ap.add_argument("--figure", help="plot h(t) of one swing-up episode per controller here "
                     "(PNG; needs matplotlib)")
+    ap.add_argument("--controllers", choices=VARIANTS, nargs="+", default=VARIANTS)
+    ap.add_argument("--u-max", type=float, default=2.0,
+                    help="the filters' torque bound (the environment's is 2)")
+    ap.add_argument("--fallback", choices=["max_margin", "relax", "brake", "hold"],
+                    help="the filters' fallback (default: the library's, max_margin)")
     a = ap.parse_args()
+    if not 0.0 < a.u_max <= 2.0:
+        ap.error(f"--u-max {a.u_max}: must be in (0, 2], within the environment's bound")
     # the CBF condition is continuous-time; the environment's integrator
     # lifts the energy by up to `rise` on its own, so the filters demand the
     # margin zeta = alpha * rise (a state where the condition binds then
@@ -199,12 +216,16 @@ def main() -> None:
     print(json.dumps({"integrator_energy_rise": rise, "zeta": zeta}))
     table = []
     for kind in a.policy:
-        for variant in ["unfiltered", "mean-cbf", "bayes-cbf", "bayes-cbf-zero-prior"]:
+        for variant in a.controllers:
             t0 = time.perf_counter()
-            eps = [episode(variant, kind, a.seed + i, zeta) for i in range(a.episodes)]
+            eps = [episode(variant, kind, a.seed + i, zeta, u_max=a.u_max, fallback=a.fallback)
+                   for i in range(a.episodes)]
             row = {
                 "policy": kind,
                 "controller": variant,
+                # the filters' bound and fallback (the unfiltered policy has neither)
+                "u_max": None if variant == "unfiltered" else a.u_max,
+                "fallback": None if variant == "unfiltered" else a.fallback or "max_margin",
                 "episodes": a.episodes,
                 "episodes_with_h_below_0": int(sum(e["violation_steps"] > 0 for e in eps)),
                 "violation_steps": int(sum(e["violation_steps"] for e in eps)),

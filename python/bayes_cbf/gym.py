@@ -66,12 +66,35 @@ class SafetyFilterWrapper(gym.Wrapper, gym.utils.RecordConstructorArgs):
         Barriers whose values are logged; default: none (``info`` then has
         only the filter's outcome). Pass the filter's barriers to record
         violations.
+    learn_if:
+        ``learn_if(x, u, x_next, info) -> bool``, called before each
+        transition is learned (with ``learn=True``): a false value skips
+        it. For transitions the dynamics ``F(x)u`` do not make: a clip of
+        the state at a limit, a contact, a reset inside the environment
+        (MountainCarContinuous-v0 sets the velocity to 0 at its left end: a
+        label ten times anything its dynamics give, which a model learns as
+        an input gain of the wrong size). ``info`` is the environment's.
 
-    ``info`` of each step gains ``filter_status``, ``p_star``, ``u_ref``,
-    ``u_applied``, ``barrier_values`` (the logged barriers at the new state;
-    empty without ``barriers_for_log``) and ``violation`` (a logged barrier
-    below 0; ``False`` without any). :attr:`episode_stats` sums them over
-    the episode.
+    ``info`` of each step gains:
+
+    - ``filter_status``: ``"optimal"`` or ``"infeasible"``;
+    - ``p_star``: on an infeasible step, the largest probability at which
+      the conditions could be met, or ``None`` if none could (the mean
+      conditions cannot be met within the bounds); ``None`` on an optimal
+      step;
+    - ``u_ref``: the policy's action; ``u_filtered``: the filter's control;
+      ``u_applied``: the control sent to the environment, ``u_filtered``
+      clipped to the action space (a filter whose bounds are wider than the
+      action space is warned of once, at the first step where the clip
+      changes its control);
+    - ``learned``: whether the transition was added to the model;
+    - ``barrier_values``: the logged barriers at the new state (empty
+      without ``barriers_for_log``), and ``violation``: a logged barrier
+      below 0 (``False`` without any).
+
+    :attr:`episode_stats` sums them over the episode (``steps``,
+    ``return``, ``infeasible_steps``, ``violation_steps``,
+    ``unlearned_steps``, ``min_barrier``).
 
     With ``learn=True`` the model keeps what it learned across ``reset``:
     that is the point of learning online, and it makes the wrapped
@@ -92,6 +115,7 @@ class SafetyFilterWrapper(gym.Wrapper, gym.utils.RecordConstructorArgs):
         refit_every: int = 0,
         label_at: str = "midpoint",
         barriers_for_log: Sequence[Any] = (),
+        learn_if: Optional[Callable[..., Any]] = None,
     ):
         # recorded for env.spec; not copied: a wrapper made again from the
         # spec shares this filter and its model
@@ -107,6 +131,7 @@ class SafetyFilterWrapper(gym.Wrapper, gym.utils.RecordConstructorArgs):
             refit_every=refit_every,
             label_at=label_at,
             barriers_for_log=barriers_for_log,
+            learn_if=learn_if,
         )
         super().__init__(env)
         if not isinstance(filter, SafetyFilter):
@@ -161,6 +186,13 @@ class SafetyFilterWrapper(gym.Wrapper, gym.utils.RecordConstructorArgs):
                 raise InputError(
                     f"barriers_for_log[{i}]: a barrier on {b.state_dim} states, the model has {n}"
                 )
+        if learn_if is not None and not callable(learn_if):
+            raise InputError(
+                f"learn_if: {type(learn_if).__name__}, expected a function "
+                f"(x, u, x_next, info) -> bool"
+            )
+        self.learn_if = learn_if
+        self._clip_warned = False
         self._low = np.asarray(env.action_space.low, dtype=np.float64)
         self._high = np.asarray(env.action_space.high, dtype=np.float64)
         self._x: Optional[np.ndarray] = None
@@ -197,6 +229,7 @@ class SafetyFilterWrapper(gym.Wrapper, gym.utils.RecordConstructorArgs):
             "return": 0.0,
             "infeasible_steps": 0,
             "violation_steps": 0,
+            "unlearned_steps": 0,
             "min_barrier": float("inf"),
         }
         values = self._log_barriers(self._x)
@@ -225,6 +258,7 @@ class SafetyFilterWrapper(gym.Wrapper, gym.utils.RecordConstructorArgs):
         u_ref = np.asarray(action, dtype=np.float64).reshape(-1)
         res = self.filter.filter(self._x, u_ref)
         u = np.clip(res.u, self._low, self._high)
+        self._warn_clip(res.u, u)
         # from here the environment may move: until its new state is known,
         # no state is the filter's (a transition over two steps would be
         # learned as one)
@@ -236,13 +270,15 @@ class SafetyFilterWrapper(gym.Wrapper, gym.utils.RecordConstructorArgs):
         x_new = self._state(obs)
         self._x = x_new
         self._needs_reset = "call reset() first"
-        if self.learn:
+        learned = self.learn and self._wanted(x, u, x_new, info)
+        if learned:
             self._observe(x, u, x_new)
         values = self._log_barriers(x_new)
         st = self.episode_stats
         st["steps"] += 1
         st["return"] += float(reward)
         st["infeasible_steps"] += res.status == "infeasible"
+        st["unlearned_steps"] += self.learn and not learned
         violated = bool(values) and min(values) < 0
         st["violation_steps"] += violated
         info = dict(info)
@@ -250,11 +286,36 @@ class SafetyFilterWrapper(gym.Wrapper, gym.utils.RecordConstructorArgs):
             filter_status=res.status,
             p_star=res.p_star,
             u_ref=u_ref,
+            u_filtered=np.asarray(res.u, dtype=np.float64),
             u_applied=u,
+            learned=learned,
             barrier_values=values,
             violation=violated,
         )
         return obs, reward, terminated, truncated, info
+
+    def _wanted(self, x: np.ndarray, u: np.ndarray, x_new: np.ndarray, info: dict) -> bool:
+        if self.learn_if is None:
+            return True
+        try:
+            return bool(self.learn_if(x.copy(), u.copy(), x_new.copy(), info))
+        except Exception as e:  # KeyboardInterrupt and SystemExit pass through
+            raise InputError(f"learn_if: raised {type(e).__name__}: {e}") from e
+
+    def _warn_clip(self, u_filtered: np.ndarray, u: np.ndarray) -> None:
+        # the solver meets a bound to its tolerance, not to the last bit
+        scale = 1.0 + np.maximum(np.abs(self._low), np.abs(self._high))
+        if self._clip_warned or np.all(np.abs(u_filtered - u) <= 1e-6 * scale):
+            return
+        self._clip_warned = True
+        warnings.warn(
+            f"step: the filter's control {np.round(u_filtered, 6).tolist()} lies outside the "
+            f"action space [{self._low.tolist()}, {self._high.tolist()}] and was clipped to "
+            f"{np.round(u, 6).tolist()}, which its conditions did not account for: give the "
+            f"SafetyFilter u_min and u_max within the action space (shown once per wrapper)",
+            UserWarning,
+            stacklevel=3,
+        )
 
     def _observe(self, x: np.ndarray, u: np.ndarray, x_new: np.ndarray) -> None:
         dx = x_new - x

@@ -27,3 +27,14 @@ def test_gym_pendulum_runs(tmp_path):
     assert set(rows) == {"unfiltered", "mean-cbf", "bayes-cbf", "bayes-cbf-zero-prior"}
     assert rows["unfiltered"]["episodes_with_h_below_0"] == 2
     assert 1.0 < result["integrator_energy_rise"] < 3.0
+
+
+def test_gym_mountaincar_runs(tmp_path):
+    out = tmp_path / "mc.json"
+    subprocess.run([sys.executable, str(ROOT / "examples" / "gym_mountaincar.py"), "--episodes",
+                    "2", "--seed", "11", "--out", str(out)], check=True, capture_output=True)
+    rows = {r["controller"]: r for r in json.loads(out.read_text())["rows"]}
+    assert set(rows) == {"unfiltered", "bayes-cbf-learn-all", "bayes-cbf-skip-clips"}
+    assert rows["unfiltered"]["episodes_with_h_below_0"] == 2
+    skip = rows["bayes-cbf-skip-clips"]
+    assert skip["unlearned_steps"] > 0 and rows["bayes-cbf-learn-all"]["unlearned_steps"] == 0

@@ -163,3 +163,60 @@ def test_a_step_that_fails_after_the_environment_moved_needs_a_reset():
     filt = bc.SafetyFilter(model2, [bc.Barrier.half_space([1.0, 0.0], 0.0, alpha=1.0)])
     with pytest.raises(bc.InputError, match="angle_indices: 0, expected a sequence"):
         SafetyFilterWrapper(gym.make("Pendulum-v1"), filt, lambda o: o[:2], angle_indices=0)
+
+
+def test_learn_if_skips_the_transitions_it_refuses():
+    """learn_if sees (x, u, x_next, info) of each transition; one it refuses
+    is not learned, is marked in info and counted in episode_stats; a
+    learn_if that is not a function, or that raises, is an InputError."""
+    w, model = make()
+    seen = []
+
+    def every_other(x, u, x_next, info):
+        seen.append((x.shape, u.shape, x_next.shape, isinstance(info, dict)))
+        return len(seen) % 2 == 0
+
+    w.learn_if = every_other
+    infos = run(w, seed=3, steps=20)
+    assert len(model) == 10
+    assert [i["learned"] for i in infos] == [k % 2 == 1 for k in range(20)]
+    assert w.episode_stats["unlearned_steps"] == 10
+    assert set(seen) == {((2,), (1,), (2,), True)}
+    w2, _ = make(learn=False)
+    assert all(not i["learned"] for i in run(w2, seed=3, steps=3))
+    assert w2.episode_stats["unlearned_steps"] == 0, "nothing is refused without learning"
+    w3, model3 = make()
+    w3.learn_if = lambda *a: 1 / 0
+    w3.reset(seed=0)
+    with pytest.raises(bc.InputError, match="learn_if: raised ZeroDivisionError") as e:
+        w3.step(np.array([0.5]))
+    assert isinstance(e.value.__cause__, ZeroDivisionError) and len(model3) == 0
+    w3.learn_if = None
+    w3.step(np.array([0.5]))  # the environment moved on and the state is known
+    assert len(model3) == 1
+    filt = bc.SafetyFilter(bc.MVGP(2, 1, [1.0, 1.0], np.eye(2), np.eye(2), 0.1),
+                           [bc.Barrier.half_space([1.0, 0.0], 0.0, alpha=1.0)])
+    with pytest.raises(bc.InputError, match="learn_if: bool, expected a function"):
+        SafetyFilterWrapper(gym.make("Pendulum-v1"), filt, lambda o: o[:2], learn_if=True)
+
+
+def test_a_control_outside_the_action_space_is_warned_of_once():
+    """A filter without bounds passes an action beyond the environment's
+    through: the wrapper clips it, reports both controls and warns once;
+    a control at its bound to the solver's tolerance is not warned of."""
+    model = bc.MVGP(2, 1, [1.0, 1.0], np.eye(2), np.eye(2), 0.1, prior_mean="pendulum")
+    b = bc.Barrier.half_space([0.0, -1.0], -1e6, alpha=1.0)  # never binds
+    w = SafetyFilterWrapper(gym.make("Pendulum-v1"), bc.SafetyFilter(model, [b]),
+                            lambda o: np.array([np.arctan2(-o[1], -o[0]), o[2]]), learn=False)
+    w.reset(seed=0)
+    with pytest.warns(UserWarning, match=r"the filter's control \[5.0\] lies outside the action"):
+        _, _, _, _, info = w.step(np.array([5.0]))
+    assert info["u_filtered"][0] == pytest.approx(5.0) and info["u_applied"][0] == 2.0
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        w.step(np.array([7.0]))  # shown once per wrapper
+        w2, _ = make(learn=False)
+        infos = run(w2, seed=4, steps=30)  # a bounded filter within the action space
+    assert all(np.all(np.abs(i["u_applied"] - i["u_filtered"]) <= 1e-5) for i in infos)
