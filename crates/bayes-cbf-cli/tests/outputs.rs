@@ -537,3 +537,35 @@ fn infeasible_steps_blocked_by_the_model_noise_name_it() {
     let summary = std::fs::read_to_string(dir.join("b").join("summary.json")).unwrap();
     assert!(summary.contains("\"infeasible_steps\": 1,"), "{summary}");
 }
+
+/// The self-triggered double integrator under max-margin drives into its
+/// wall through a stretch of infeasible steps whose `p*` is about 0.95:
+/// the warning says that max-margin applied the control of least spread
+/// where relax would have met the conditions at `p*`; under the
+/// built-in's own `relax` the same seed stays clear.
+#[test]
+fn a_crossing_under_max_margin_names_relax() {
+    let dir = scratch_dir("outputs-max-margin-crossing");
+    let args = "run double-integrator --seed 52009 --set trigger.self_triggered=true \
+                --set trigger.cuboid=[0.2,0.2] --set trigger.delta_l=1e-4 --set trigger.grid=10 \
+                --set trigger.samples=10 --set trigger.tau_min=0.01 --set trigger.tau_max=0.1 \
+                --set trigger.tau_from=analytic --set controller.zeta=0.01";
+    let args: Vec<&str> = args.split_whitespace().collect();
+    let mm = [
+        &args[..],
+        &["--set", "controller.fallback=max_margin", "--out", "mm"],
+    ]
+    .concat();
+    let r = run_in(&dir, &mm);
+    assert!(r.status.success(), "{}", r.stderr);
+    let want = "(p* = 0.953; fallback max_margin), 264 of 477 steps were infeasible";
+    assert!(r.stderr.contains(want), "{}", r.stderr);
+    let want = "max_margin, at the c(p) of controller.probability, applies the control of least \
+                spread, which can brake too little: relax would have met the conditions at p*";
+    assert!(r.stderr.contains(want), "{}", r.stderr);
+    let r = run_in(&dir, &[&args[..], &["--out", "relax"]].concat());
+    assert!(r.status.success(), "{}", r.stderr);
+    assert!(!r.stderr.contains("crossed zero"), "{}", r.stderr);
+    let summary = std::fs::read_to_string(dir.join("relax").join("summary.json")).unwrap();
+    assert!(summary.contains("\"safe\": true"), "{summary}");
+}

@@ -760,14 +760,25 @@ pub(crate) fn warn_crossing_in_infeasible_step(
         let p_star = r
             .p_star
             .map_or_else(|| "none, no probability was feasible".to_string(), short);
+        // max-margin at c(p) favours the control of least variance, which
+        // can brake too little where relax would have met the conditions
+        // at p*
+        let max_margin = if fallback == Fallback::MaxMargin.name() && r.p_star.is_some() {
+            "; max_margin, at the c(p) of controller.probability, applies the control of \
+             least spread, which can brake too little: relax would have met the conditions at \
+             p* (docs/calibration.md, \"Which fallback\")"
+                .to_string()
+        } else {
+            String::new()
+        };
         warn_once(
             &CROSSED_IN_INFEASIBLE_STEP,
             format!(
                 "barriers[{i}] (seed {seed}): h crossed zero at t = {:.3} in an infeasible step \
                  (p* = {p_star}; fallback {fallback}), {infeasible} of {} steps were \
                  infeasible: the model's spread at controller.probability, the input bounds \
-                 or the gains left no control that meets the conditions (docs/robots.md, \
-                 \"Infeasible steps\")",
+                 or the gains left no control that meets the conditions{max_margin} \
+                 (docs/robots.md, \"Infeasible steps\")",
                 r.t,
                 records.len()
             ),
