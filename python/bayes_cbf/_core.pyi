@@ -236,7 +236,10 @@ class SafetyFilter:
         predictive: bool = False,
     ) -> None:
         """The control closest to u_ref in ‖R(u − u_ref)‖ (R: m × m, invertible;
-        identity by default) that meets every condition with the probability.
+        identity by default; weights more than 1e6 apart are refused, and
+        more than 100 apart warned of: the solver resolves the lightly
+        weighted controls only roughly) that meets every condition with the
+        probability. A bounded control lies within u_min and u_max exactly.
 
         The default is the paper's condition on the latent F, with the
         variance bc.moments gives. In a closed loop whose state carries

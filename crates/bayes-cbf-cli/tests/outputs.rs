@@ -569,3 +569,30 @@ fn a_crossing_under_max_margin_names_relax() {
     let summary = std::fs::read_to_string(dir.join("relax").join("summary.json")).unwrap();
     assert!(summary.contains("\"safe\": true"), "{summary}");
 }
+
+/// Objective weights 10³ apart run, with a warning of how roughly the
+/// solver resolves the lightly weighted control; 10⁷ apart are refused.
+#[test]
+fn weights_far_apart_are_warned_of_or_refused() {
+    let dir = scratch_dir("outputs-weights-apart");
+    let r = run_with(
+        &dir,
+        "unicycle-obstacles",
+        &["steps=5", "controller.r=[1.0,1000.0]"],
+        "a",
+    );
+    assert!(r.status.success(), "{}", r.stderr);
+    let want = "warning: R: its weights are 1.0e3 apart";
+    assert!(r.stderr.contains(want), "{}", r.stderr);
+    let r = run_with(
+        &dir,
+        "unicycle-obstacles",
+        &["steps=5", "controller.r=[1.0,1e7]"],
+        "b",
+    );
+    assert!(!r.status.success());
+    let want = "error: controller: invalid R = weights 1.0e7 apart";
+    assert!(r.stderr.contains(want), "{}", r.stderr);
+    let r = run_with(&dir, "unicycle-obstacles", &["steps=5"], "c");
+    assert!(!r.stderr.contains("apart"), "{}", r.stderr);
+}

@@ -222,8 +222,62 @@ fn solution_satisfies_constraints_and_kkt() {
         }
         assert!(!out.is_infeasible());
         assert!(out.clf.unwrap().slack >= -1e-6);
-        assert!(out.u.iter().all(|u| (-3.0 - 1e-7..=3.0 + 1e-7).contains(u)));
+        // within the bounds as set, not to the solver's tolerance
+        assert!(out.u.iter().all(|u| (-3.0..=3.0).contains(u)));
     });
+}
+
+/// The objective `‖R(u − û)‖² + λδ²` and `‖cR(u − û)‖² + c²λδ²` have one
+/// minimiser: scaling the weights by `c` (here 10⁻⁶ to 10⁴, on random
+/// invertible `R`) leaves the control as it is. Before the objective was
+/// normalised, `R = 10⁻⁵` gave objective values of 10⁻¹⁰ that met the
+/// solver's absolute gap tolerance at once, and a control far from the
+/// minimiser reported optimal. Equal bounds give the bound exactly.
+#[test]
+fn the_scale_of_the_weights_does_not_move_the_control() {
+    let mut rng = ChaCha8Rng::seed_from_u64(21);
+    for trial in 0..24 {
+        let (cbcs, clc, filter, u_ref) = feasible_program(trial, &mut rng);
+        let (m, nb) = (u_ref.len(), cbcs.len());
+        let r = DMatrix::from_fn(m, m, |i, j| {
+            f64::from(u8::from(i == j)) + 0.3 * rng.random_range(-1.0..1.0)
+        });
+        let lambda = rng.random_range(0.2..5.0);
+        let solve = |c: f64| {
+            let mut settings = filter.settings().clone();
+            settings.r = &r * c;
+            settings.lambda = lambda * c * c;
+            let mut f = SafetyFilter::new(m, nb, true, settings).unwrap();
+            let mut out = ControlOutput::new(m, nb);
+            f.solve(&cbcs, Some(&clc), &u_ref, &mut out).unwrap();
+            assert_eq!(out.status, ControlStatus::Optimal, "trial {trial}, c = {c}");
+            out.u
+        };
+        let base = solve(1.0);
+        for c in [1e-6, 1e-3, 1e2, 1e4] {
+            let u = solve(c);
+            for (a, b) in u.iter().zip(&base) {
+                assert!(
+                    (a - b).abs() <= 1e-6 * (1.0 + b.abs()),
+                    "trial {trial}, c = {c}: u {u:?} vs {base:?}"
+                );
+            }
+        }
+    }
+    // a control pinned by equal bounds is the bound, to the last bit
+    let mom = ConditionMoments::from_parts(vec![1.0, 1.0, -0.5], DMatrix::identity(3, 3) * 0.01, 1)
+        .unwrap();
+    let mut settings = SafetySettings::new(2);
+    settings.u_min = Some(vec![-2.0, 0.5]);
+    settings.u_max = Some(vec![2.0, 0.5]);
+    let mut filter = SafetyFilter::new(2, 1, false, settings).unwrap();
+    let mut out = ControlOutput::new(2, 1);
+    filter
+        .solve(std::slice::from_ref(&mom), None, &[3.0, 3.0], &mut out)
+        .unwrap();
+    assert_eq!(out.status, ControlStatus::Optimal);
+    assert_eq!(out.u[1], 0.5);
+    assert!((-2.0..=2.0).contains(&out.u[0]));
 }
 
 /// Random moments of one barrier condition on one control, of relative
@@ -874,6 +928,16 @@ fn safety_settings_defaults_and_boundaries() {
     assert!(ok(&with(
         &|s| s.r = DMatrix::from_diagonal_element(m, m, 1e-3)
     )));
+    // weights 10³ apart are solved (with a warning), 10⁷ apart refused by
+    // how far apart they are, not as an indefinite matrix
+    let spread = |w: f64| with(&move |s| s.r = DMatrix::from_row_slice(2, 2, &[1.0, 0.0, 0.0, w]));
+    assert!(ok(&spread(1e3)));
+    let e = spread(1e7).validate(m).unwrap_err().to_string();
+    assert!(e.starts_with("invalid R = weights 1.0e7 apart: "), "{e}");
+    let e = with(&|s| s.r = DMatrix::zeros(m, m))
+        .validate(m)
+        .unwrap_err();
+    assert!(e.to_string().starts_with("invalid R = singular: "), "{e}");
     // equal bounds pin the control; crossed ones are an error
     let bounds = |lo: f64, hi: f64| {
         with(&move |s: &mut SafetySettings| {
