@@ -947,6 +947,12 @@ fn safety_settings_defaults_and_boundaries() {
     };
     assert!(ok(&bounds(1.0, 1.0)));
     assert!(!ok(&bounds(1.0, 1.0 - 1e-12)));
+    // a control free on one side is told to take a large finite bound
+    let e = bounds(f64::NEG_INFINITY, 1.0)
+        .validate(m)
+        .unwrap_err()
+        .to_string();
+    assert!(e.starts_with("invalid u_min[0] = -inf: must be finite: bounds are given for every control, and a control free on one side takes a large finite bound"), "{e}");
     // p*'s tolerance in (0, 0.1)
     for (tol, good) in [
         (0.0, false),

@@ -193,8 +193,17 @@ impl SafetySettings {
             if hi.len() != m {
                 return Err(InputError::shape("u_max", m, hi.len()));
             }
-            check_finite("u_min", lo)?;
-            check_finite("u_max", hi)?;
+            for (field, bound) in [("u_min", lo), ("u_max", hi)] {
+                if let Some(j) = bound.iter().position(|b| !b.is_finite()) {
+                    return Err(InputError::invalid(
+                        &format!("{field}[{j}]"),
+                        bound[j],
+                        "must be finite: bounds are given for every control, and a control \
+                         free on one side takes a large finite bound there (such as ±1e6: \
+                         an inactive bound leaves the control as it is)",
+                    ));
+                }
+            }
             for j in 0..m {
                 if lo[j] > hi[j] {
                     return Err(InputError::invalid(
