@@ -347,12 +347,12 @@ fn kinks_curvature_and_clamped_holds_are_warned_of() {
         "{}",
         r.stderr
     );
-    let d = std::fs::read_to_string(dir.join("d").join("summary.json")).unwrap();
+    let d = summary_in(&dir, "d");
     assert!(d.contains("\"safe\": false"), "{d}");
     let run_set = |scenario, sets: &[&str], out| run_with(&dir, scenario, sets, out);
     let r = run_set("disc.toml", &["controller.zeta=0.5"], "e");
     assert!(!r.stderr.contains("crossed zero"), "{}", r.stderr);
-    let e = std::fs::read_to_string(dir.join("e").join("summary.json")).unwrap();
+    let e = summary_in(&dir, "e");
     assert!(e.contains("\"safe\": true"), "{e}");
     let r = run_set(
         "ackermann-self-triggered",
@@ -367,6 +367,11 @@ fn kinks_curvature_and_clamped_holds_are_warned_of() {
         "{}",
         r.stderr
     );
+}
+
+/// The `summary.json` a run wrote to `dir/out`.
+fn summary_in(dir: &std::path::Path, out: &str) -> String {
+    std::fs::read_to_string(dir.join(out).join("summary.json")).unwrap()
 }
 
 /// `bayes-cbf run SCENARIO --out OUT --set S ...` in `dir`.
@@ -392,7 +397,7 @@ fn a_bare_scenario_is_told_what_its_model_lacks() {
     assert!(r.status.success(), "{}", r.stderr);
     let want = "gp.prior_mean is zero and barriers[0] has relative degree 2";
     assert!(r.stderr.contains(want), "{}", r.stderr);
-    let summary = std::fs::read_to_string(dir.join("a").join("summary.json")).unwrap();
+    let summary = summary_in(&dir, "a");
     assert!(summary.contains("\"fallback\": \"relax\""), "{summary}");
     // without learning it never learns how the input acts: every step
     // falls back
@@ -417,7 +422,7 @@ fn a_bare_scenario_is_told_what_its_model_lacks() {
         |sets: &[&str], out| run_with(&dir, "free.toml", &[&["steps=20"], sets].concat(), out);
     let r = free(&[], "f");
     assert!(r.status.success(), "{}", r.stderr);
-    let summary = std::fs::read_to_string(dir.join("f").join("summary.json")).unwrap();
+    let summary = summary_in(&dir, "f");
     assert!(
         summary.contains("\"fallback\": \"max_margin\""),
         "{summary}"
@@ -534,7 +539,7 @@ fn infeasible_steps_blocked_by_the_model_noise_name_it() {
     );
     assert!(r.status.success(), "{}", r.stderr);
     assert!(!r.stderr.contains("steps were infeasible"), "{}", r.stderr);
-    let summary = std::fs::read_to_string(dir.join("b").join("summary.json")).unwrap();
+    let summary = summary_in(&dir, "b");
     assert!(summary.contains("\"infeasible_steps\": 1,"), "{summary}");
 }
 
@@ -566,7 +571,7 @@ fn a_crossing_under_max_margin_names_relax() {
     let r = run_in(&dir, &[&args[..], &["--out", "relax"]].concat());
     assert!(r.status.success(), "{}", r.stderr);
     assert!(!r.stderr.contains("crossed zero"), "{}", r.stderr);
-    let summary = std::fs::read_to_string(dir.join("relax").join("summary.json")).unwrap();
+    let summary = summary_in(&dir, "relax");
     assert!(summary.contains("\"safe\": true"), "{summary}");
 }
 
