@@ -236,7 +236,7 @@ class SafetyFilter:
         predictive: bool = False,
     ) -> None:
         """The control closest to u_ref in ‖R(u − u_ref)‖ (R: m × m, invertible;
-        identity by default; weights more than 1e6 apart are refused, and
+        identity by default; weights more than 1e3 apart are refused, and
         more than 100 apart warned of: the solver resolves the lightly
         weighted controls only roughly) that meets every condition with the
         probability. A bounded control lies within u_min and u_max exactly.

@@ -80,8 +80,8 @@ class SafetyFilterWrapper(gym.Wrapper, gym.utils.RecordConstructorArgs):
     - ``filter_status``: ``"optimal"`` or ``"infeasible"``;
     - ``p_star``: on an infeasible step, the largest probability at which
       the conditions could be met, or ``None`` if none could (the mean
-      conditions cannot be met within the bounds); ``None`` on an optimal
-      step;
+      conditions cannot be met within the bounds) or the solver found none;
+      ``None`` on an optimal step;
     - ``u_ref``: the policy's action; ``u_filtered``: the filter's control;
       ``u_applied``: the control sent to the environment, ``u_filtered``
       clipped to the action space (a filter whose bounds are wider than the
@@ -237,7 +237,7 @@ class SafetyFilterWrapper(gym.Wrapper, gym.utils.RecordConstructorArgs):
             warnings.warn(
                 f"reset: the episode starts outside the safe set (barrier values "
                 f"{[round(v, 4) for v in values]}): no filter keeps a state safe that "
-                f"starts unsafe; its steps until h >= 0 count as violations",
+                f"starts unsafe; its steps count as violations while h < 0",
                 UserWarning,
                 stacklevel=2,
             )
@@ -270,7 +270,16 @@ class SafetyFilterWrapper(gym.Wrapper, gym.utils.RecordConstructorArgs):
         x_new = self._state(obs)
         self._x = x_new
         self._needs_reset = "call reset() first"
-        learned = self.learn and self._wanted(x, u, x_new, info)
+        if self.learn:
+            # a learn_if that raises leaves the step unreported to the
+            # caller: as after a failed state_from_obs, a reset follows
+            self._x = None
+            self._needs_reset = "learn_if failed after the environment moved; call reset() first"
+            learned = self._wanted(x, u, x_new, info)
+            self._x = x_new
+            self._needs_reset = "call reset() first"
+        else:
+            learned = False
         if learned:
             self._observe(x, u, x_new)
         values = self._log_barriers(x_new)

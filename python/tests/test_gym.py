@@ -192,7 +192,11 @@ def test_learn_if_skips_the_transitions_it_refuses():
         w3.step(np.array([0.5]))
     assert isinstance(e.value.__cause__, ZeroDivisionError) and len(model3) == 0
     w3.learn_if = None
-    w3.step(np.array([0.5]))  # the environment moved on and the state is known
+    # the failed step's outcome never reached the caller: a reset follows
+    with pytest.raises(bc.InputError, match="learn_if failed after the environment moved"):
+        w3.step(np.array([0.5]))
+    w3.reset(seed=1)
+    w3.step(np.array([0.5]))
     assert len(model3) == 1
     filt = bc.SafetyFilter(bc.MVGP(2, 1, [1.0, 1.0], np.eye(2), np.eye(2), 0.1),
                            [bc.Barrier.half_space([1.0, 0.0], 0.0, alpha=1.0)])

@@ -928,7 +928,7 @@ fn safety_settings_defaults_and_boundaries() {
     assert!(ok(&with(
         &|s| s.r = DMatrix::from_diagonal_element(m, m, 1e-3)
     )));
-    // weights 10³ apart are solved (with a warning), 10⁷ apart refused by
+    // weights 10³ apart are solved (with a warning), 3×10³ and 10⁷ apart refused by
     // how far apart they are, not as an indefinite matrix
     let spread = |w: f64| with(&move |s| s.r = DMatrix::from_row_slice(2, 2, &[1.0, 0.0, 0.0, w]));
     assert!(ok(&spread(1e3)));
@@ -938,6 +938,14 @@ fn safety_settings_defaults_and_boundaries() {
         .validate(m)
         .unwrap_err();
     assert!(e.to_string().starts_with("invalid R = singular: "), "{e}");
+    assert!(!ok(&spread(3e3)), "3e3 apart: 38% off on random programs");
+    // the objective is divided by max diag RᵀR: λ over it must stay finite
+    let tiny = with(&|s| s.r = DMatrix::from_diagonal_element(m, m, 1e-155));
+    let e = tiny.validate(m).unwrap_err().to_string();
+    assert!(
+        e.contains("its scale against lambda is beyond the range of f64"),
+        "{e}"
+    );
     // equal bounds pin the control; crossed ones are an error
     let bounds = |lo: f64, hi: f64| {
         with(&move |s: &mut SafetySettings| {
@@ -947,12 +955,12 @@ fn safety_settings_defaults_and_boundaries() {
     };
     assert!(ok(&bounds(1.0, 1.0)));
     assert!(!ok(&bounds(1.0, 1.0 - 1e-12)));
-    // a control free on one side is told to take a large finite bound
+    // a control free on one side is told to take a finite bound
     let e = bounds(f64::NEG_INFINITY, 1.0)
         .validate(m)
         .unwrap_err()
         .to_string();
-    assert!(e.starts_with("invalid u_min[0] = -inf: must be finite: bounds are given for every control, and a control free on one side takes a large finite bound"), "{e}");
+    assert!(e.starts_with("invalid u_min[0] = -inf: must be finite: bounds are given for every control, and a control free on one side takes a finite bound there, such as its actuator's limit"), "{e}");
     // p*'s tolerance in (0, 0.1)
     for (tol, good) in [
         (0.0, false),

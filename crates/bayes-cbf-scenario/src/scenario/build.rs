@@ -706,7 +706,8 @@ pub(crate) fn warn_mostly_infeasible(
         .filter(|r| r.status == StepStatus::Infeasible)
         .map(|r| r.hold)
         .sum();
-    if 2.0 * fallen > total {
+    // the probes of `noise` cost solves: none once the warning was given
+    if 2.0 * fallen > total && !MOSTLY_INFEASIBLE.warned() {
         let noise = noise();
         warn_once(
             &MOSTLY_INFEASIBLE,
@@ -746,10 +747,14 @@ pub(crate) fn crossing_in_infeasible_step(
 /// control met the conditions at `p` there, and the fallback did not keep
 /// `h ≥ 0`. Without such a warning a run whose steps were all infeasible
 /// crossed in silence.
+///
+/// Under max-margin with input bounds, the warning adds that relax would
+/// have met the conditions at `p*` (without bounds relax is no better: its
+/// `p*` can take an unbounded control).
 pub(crate) fn warn_crossing_in_infeasible_step(
     barriers: usize,
     records: &[StepRecord],
-    fallback: &str,
+    (fallback, bounded): (&str, bool),
     seed: u64,
 ) {
     if let Some((i, r)) = crossing_in_infeasible_step(barriers, records) {
@@ -763,13 +768,13 @@ pub(crate) fn warn_crossing_in_infeasible_step(
         // max-margin at c(p) favours the control of least variance, which
         // can brake too little where relax would have met the conditions
         // at p*
-        let max_margin = if fallback == Fallback::MaxMargin.name() && r.p_star.is_some() {
+        let max_margin = if fallback == Fallback::MaxMargin.name() && bounded && r.p_star.is_some()
+        {
             "; max_margin, at the c(p) of controller.probability, applies the control of \
-             least spread, which can brake too little: relax would have met the conditions at \
-             p* (docs/calibration.md, \"Which fallback\")"
-                .to_string()
+                 least spread, which can brake too little: relax would have met the conditions \
+                 at p* (docs/calibration.md, \"Which fallback\"; docs/robots.md, "
         } else {
-            String::new()
+            " (docs/robots.md, "
         };
         warn_once(
             &CROSSED_IN_INFEASIBLE_STEP,
@@ -777,8 +782,8 @@ pub(crate) fn warn_crossing_in_infeasible_step(
                 "barriers[{i}] (seed {seed}): h crossed zero at t = {:.3} in an infeasible step \
                  (p* = {p_star}; fallback {fallback}), {infeasible} of {} steps were \
                  infeasible: the model's spread at controller.probability, the input bounds \
-                 or the gains left no control that meets the conditions{max_margin} \
-                 (docs/robots.md, \"Infeasible steps\")",
+                 or the gains left no control that meets the conditions{max_margin}\
+                 \"Infeasible steps\")",
                 r.t,
                 records.len()
             ),

@@ -243,7 +243,10 @@ pub fn run_scenario_until(
     super::build::warn_crossing_in_infeasible_step(
         built.barriers.len(),
         &result.records,
-        scenario.controller.fallback_name(),
+        (
+            scenario.controller.fallback_name(),
+            built.controller.settings().u_min.is_some(),
+        ),
         scenario.seed,
     );
     super::build::warn_crossing_in_met_step(

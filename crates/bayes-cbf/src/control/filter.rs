@@ -83,11 +83,12 @@ pub struct SafetySettings {
     /// Weight `λ > 0` of the CLF slack.
     pub lambda: f64,
     /// Objective weight `R` (`m × m`, invertible); identity by default.
-    /// Its weights may be up to 10⁶ apart (the square root of the
+    /// Its weights may be up to 10³ apart (the square root of the
     /// condition number of `RᵀR`); a filter warns beyond 100, where the
     /// solver's 10⁻⁸ relative accuracy resolves the minimiser along the
-    /// lightly weighted controls only roughly. Its scale does not matter:
-    /// the objective is normalised by the largest diagonal entry of `RᵀR`.
+    /// lightly weighted controls only roughly. `(cR, c²λ)` give the control
+    /// of `(R, λ)` for any `c`: the objective is normalised by the largest
+    /// diagonal entry of `RᵀR`.
     pub r: DMatrix<f64>,
     /// Lower control bounds.
     pub u_min: Option<Vec<f64>>,
@@ -166,13 +167,26 @@ impl SafetySettings {
                     format!("weights {spread:.1e} apart"),
                     &format!(
                         "R is singular to rounding, or its weights are more than \
-                         {MAX_WEIGHT_SPREAD:.0e} apart, beyond what the solver resolves (the \
-                         square root of RᵀR's largest diagonal entry over its smallest squared \
-                         Cholesky pivot); scale the controls so that their weights are closer"
+                         {MAX_WEIGHT_SPREAD:.0e} apart (the square root of RᵀR's largest \
+                         diagonal entry over its smallest squared Cholesky pivot), where the \
+                         solver no longer resolves the minimiser along the lightly weighted \
+                         controls (a control 38% further from u_ref than the closest safe one \
+                         at 3e3 apart); express the controls in units whose weights are closer"
                     ),
                 ))
             }
             Some(_) => {}
+        }
+        // the objective is divided by w = max diag RᵀR: λ/w must stay finite
+        let w = (0..m).fold(0.0_f64, |a, i| a.max(self.r.column(i).norm_squared()));
+        if !(w.is_normal() && (self.lambda / w).is_finite()) {
+            return Err(InputError::invalid(
+                "R",
+                self.r.amax(),
+                "its scale against lambda is beyond the range of f64 (the objective is \
+                 divided by the largest diagonal entry of RᵀR, which must be a normal number, \
+                 with lambda / it finite): scale R and lambda together",
+            ));
         }
         if self.u_min.is_some() != self.u_max.is_some() {
             let given = if self.u_min.is_some() {
@@ -199,8 +213,8 @@ impl SafetySettings {
                         &format!("{field}[{j}]"),
                         bound[j],
                         "must be finite: bounds are given for every control, and a control \
-                         free on one side takes a large finite bound there (such as ±1e6: \
-                         an inactive bound leaves the control as it is)",
+                         free on one side takes a finite bound there, such as its actuator's \
+                         limit (an inactive bound leaves the control as it is)",
                     ));
                 }
             }
@@ -407,11 +421,11 @@ impl std::fmt::Debug for SafetyFilter {
 
 /// [`weight_spread`] beyond which `R` is refused: singular to rounding, or
 /// weights beyond what the solver resolves.
-const MAX_WEIGHT_SPREAD: f64 = 1e6;
+const MAX_WEIGHT_SPREAD: f64 = 1e3;
 
 /// [`weight_spread`] beyond which a filter warns: weights 100 apart, where
 /// the minimiser along the light one is off by 10⁻⁴ of the distance (0.55%
-/// at 10³ apart).
+/// at 10³ apart, 38% at 3×10³, on random programs).
 const WARN_WEIGHT_SPREAD: f64 = 100.0;
 
 /// How far apart the weights of `R` are: the square root of the largest
@@ -596,6 +610,7 @@ impl SafetyFilter {
         if status.is_solved() {
             let x = self.program.x();
             out.u.copy_from_slice(&x[..m]);
+            self.clamp_to_bounds(&mut out.u);
             out.delta = if self.shape.clf { x[m] } else { 0.0 };
             let solved = if status == SolveStatus::Optimal {
                 ControlStatus::Optimal
@@ -610,13 +625,6 @@ impl SafetyFilter {
             out.delta = 0.0;
             let info = self.infeasible(cbcs, clc, status, out)?;
             out.status = ControlStatus::Infeasible(info);
-        }
-        // the solvers meet a bound to their tolerance (a few 1e-9 beyond it):
-        // the control applied lies within the bounds as set
-        if let (Some(lo), Some(hi)) = (&self.settings.u_min, &self.settings.u_max) {
-            for ((u, lo), hi) in out.u.iter_mut().zip(lo).zip(hi) {
-                *u = u.clamp(*lo, *hi);
-            }
         }
         for (k, mom) in cbcs.iter().enumerate() {
             let c = quantile_factor(p, mom.relative_degree)?;
@@ -932,6 +940,7 @@ impl SafetyFilter {
                 }
             }
         }
+        self.clamp_to_bounds(&mut out.u);
         // the list of the last infeasible step, refilled
         let mut violated = match &mut out.status {
             ControlStatus::Infeasible(info) => std::mem::take(&mut info.violated),
@@ -953,6 +962,17 @@ impl SafetyFilter {
             fallback,
             solver: status,
         })
+    }
+
+    /// Clamps `u` into the bounds, if any. The solvers meet a bound to their
+    /// tolerance (a few 1e-9 beyond it); the control applied lies within the
+    /// bounds as set.
+    fn clamp_to_bounds(&self, u: &mut [f64]) {
+        if let (Some(lo), Some(hi)) = (&self.settings.u_min, &self.settings.u_max) {
+            for ((u, lo), hi) in u.iter_mut().zip(lo).zip(hi) {
+                *u = u.clamp(*lo, *hi);
+            }
+        }
     }
 
     /// The last control SOCP with its solution, for verifying the KKT
@@ -994,7 +1014,9 @@ pub struct KktData {
     pub q: Vec<f64>,
     /// The cones `K`, in the row order of `A`.
     pub cones: Vec<clarabel::solver::SupportedConeT<f64>>,
-    /// Primal solution `x`.
+    /// Primal solution `x`, as solved: a bounded control can lie beyond
+    /// its bound by the solver's tolerance, where the applied `u` is
+    /// clamped.
     pub x: Vec<f64>,
     /// Primal slack `s = b − Ax`.
     pub s: Vec<f64>,
