@@ -16,8 +16,8 @@ a wrong prior (no gravity term, an input gain of 0.001 where the car's is
 
 The left-end reset is not the car's dynamics: a transition into it has a
 velocity label of up to 0.07 per step, ten times anything the force and
-the slope give, and a model that learns it takes it for a large input
-gain. The Bayes CBF is run twice: learning every transition, and with
+the slope give (at most 0.004), and a model that learns it gets the drift
+and the input gain wrong. The Bayes CBF is run twice: learning every transition, and with
 learn_if skipping the transitions that end at a clip (the left end, the
 speed limit).
 

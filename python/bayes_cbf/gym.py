@@ -72,8 +72,9 @@ class SafetyFilterWrapper(gym.Wrapper, gym.utils.RecordConstructorArgs):
         it. For transitions the dynamics ``F(x)u`` do not make: a clip of
         the state at a limit, a contact, a reset inside the environment
         (MountainCarContinuous-v0 sets the velocity to 0 at its left end: a
-        label ten times anything its dynamics give, which a model learns as
-        an input gain of the wrong size). ``info`` is the environment's.
+        label ten times anything its dynamics give, which leaves a model
+        that learns it with the wrong drift and input gain). ``info`` is the
+        environment's.
 
     ``info`` of each step gains:
 
