@@ -791,6 +791,15 @@ pub(crate) fn warn_crossing_in_infeasible_step(
     }
 }
 
+/// The model's noise on each learned row `i`, `σ·√A_ii`.
+fn row_noise(model: &Mvgp) -> impl Iterator<Item = (usize, f64)> + '_ {
+    let (sigma, a) = (model.hyper().sigma, &model.hyper().A);
+    model
+        .learned_rows()
+        .into_iter()
+        .map(move |i| (i, sigma * a[(i, i)].sqrt()))
+}
+
 /// Infeasible steps re-solved by [`noise_above_labels`], at most.
 const NOISE_PROBES: usize = 20;
 
@@ -811,12 +820,7 @@ pub(crate) fn noise_above_labels(
     records: &[StepRecord],
     label_noise: f64,
 ) -> Option<String> {
-    let (sigma, a) = (model.hyper().sigma, &model.hyper().A);
-    let (i, noise) = model
-        .learned_rows()
-        .into_iter()
-        .map(|i| (i, sigma * a[(i, i)].sqrt()))
-        .find(|(_, noise)| *noise > 2.0 * label_noise)?;
+    let (i, noise) = row_noise(model).find(|(_, noise)| *noise > 2.0 * label_noise)?;
     let barriers = controller.barriers().to_vec();
     if barriers.iter().any(|b| b.relative_degree() > 2) {
         return None;
@@ -874,12 +878,7 @@ static NOISE_BELOW_LABELS: WarnOnce = WarnOnce::new();
 /// conditions then take the labels for more exact than they are.
 fn warn_noise_below_labels(model: &Mvgp, process_noise: f64, hold: f64, tau: &str) {
     let label = process_noise / hold.sqrt();
-    let (sigma, a) = (model.hyper().sigma, &model.hyper().A);
-    let low = model
-        .learned_rows()
-        .into_iter()
-        .map(|i| (i, sigma * a[(i, i)].sqrt()))
-        .find(|(_, noise)| *noise < label);
+    let low = row_noise(model).find(|(_, noise)| *noise < label);
     if let Some((i, noise)) = low {
         warn_once(
             &NOISE_BELOW_LABELS,
