@@ -221,9 +221,13 @@ pub struct MomentWorkspace {
     hess: Vec<f64>,
     sd: Vec<Dual64>,
     sh: Vec<HyperDual64>,
-    /// Coefficients of the linear functionals (N × R) and their moments.
-    w: DMatrix<f64>,
-    sw: DMatrix<f64>,
+    /// `A ∇²h` (column `i` is `A H_i`) and `∇²h A ∇²h` (rd2's `AH`, `HAH`).
+    ah: DMatrix<f64>,
+    hah: DMatrix<f64>,
+    /// `A ∇h` and `∇²h A ∇h` (rd2's `Ag`, `HAg`).
+    ag: Vec<f64>,
+    hag: Vec<f64>,
+    /// Covariance (R × R) and means of the linear functionals.
     s: DMatrix<f64>,
     mu: Vec<f64>,
     a_mat: DMatrix<f64>,
@@ -236,8 +240,6 @@ impl MomentWorkspace {
     pub fn new<K: Kernel>(model: &Mvgp<K>) -> Self {
         let (n, m) = (model.state_dim(), model.control_dim());
         let p = m + 1;
-        let pp = p * (1 + n);
-        let big_n = n * pp;
         let r = n + n * p + 1;
         Self {
             post: Posterior {
@@ -253,8 +255,10 @@ impl MomentWorkspace {
             hess: vec![0.0; n * n],
             sd: vec![Dual64::from(0.0); 2 * n],
             sh: vec![HyperDual64::from(0.0); n],
-            w: DMatrix::zeros(big_n, r),
-            sw: DMatrix::zeros(big_n, r),
+            ah: DMatrix::zeros(n, n),
+            hah: DMatrix::zeros(n, n),
+            ag: vec![0.0; n],
+            hag: vec![0.0; n],
             s: DMatrix::zeros(r, r),
             mu: vec![0.0; r],
             a_mat: DMatrix::zeros(n, n),
@@ -570,70 +574,105 @@ fn rd1(ws: &MomentWorkspace, value: f64, gain: f64, out: &mut ConditionMoments) 
 }
 
 /// Exact relative-degree-2 moments (module docs).
+///
+/// The functionals are `a_i` (`i < n`), `y_{c,l}` (`c ≤ m`, `l < n`) and
+/// `b = ∇hᵀf`; each is a sum of terms `vᵀ 𝕄 e_q` (a vector `v` against one
+/// column `q` of `𝕄 = [F ∂_1F … ∂_nF]`): `a_i = H_iᵀ 𝕄 e_0 + gᵀ 𝕄 e_{q_i}`
+/// with `H_i` the `i`-th row of `∇²h`, `g = ∇h`, `q_i = (i+1)(1+m)` (the
+/// drift column of `∂_iF`); `y_{c,l} = e_lᵀ 𝕄 e_c`; `b = gᵀ 𝕄 e_0`. Under
+/// `Cov(vec 𝕄) = Ĉ ⊗ A` two such terms covary by `(vᵀAw) Ĉ_{qq'}`, so
+/// every entry of `S` follows from `AH`, `HAH`, `Ag`, `HAg` and `gᵀAg`:
+/// `O(n³ + n²(1+m)²)` in all, where forming `Wᵀ(Ĉ ⊗ A)W` for the
+/// coefficient matrix `W` of the functionals costs `O(n⁵(1+m)³)` (the
+/// brute-force construction the tests check this against).
 fn rd2(ws: &mut MomentWorkspace, h: f64, k0: f64, k1: f64, out: &mut ConditionMoments) {
     let n = ws.x.len();
     let p = out.e.len();
-    let pp = p * (1 + n);
-    let big_n = n * pp;
     // functionals: r = 0..n → a_i; n + c n + l → y_{c,l}; n + np → b = ∇hᵀ f
     let ia = |i: usize| i;
     let iy = |c: usize, l: usize| n + c * n + l;
     let ib = n + n * p;
-    let idx = |l: usize, q: usize| l + n * q;
-    ws.w.fill(0.0);
+    let qd = |i: usize| (i + 1) * p;
+    let (g, hess, a, cm, mean) = (&ws.grad, &ws.hess, &ws.a_mat, &ws.joint.c, &ws.joint.mean);
+    // AH (column i = A H_i), Ag, HAH, HAg, gᵀAg
     for i in 0..n {
+        let mut sg = 0.0;
         for l in 0..n {
-            ws.w[(idx(l, 0), ia(i))] += ws.hess[i * n + l];
-            ws.w[(idx(l, (i + 1) * p), ia(i))] += ws.grad[l];
+            let mut s = 0.0;
+            for j in 0..n {
+                s += a[(l, j)] * hess[i * n + j];
+            }
+            ws.ah[(l, i)] = s;
+            sg += a[(i, l)] * g[l];
         }
+        ws.ag[i] = sg;
+    }
+    let mut gag = 0.0;
+    for i in 0..n {
+        gag += g[i] * ws.ag[i];
+        let mut s = 0.0;
+        for l in 0..n {
+            s += hess[i * n + l] * ws.ag[l];
+        }
+        ws.hag[i] = s;
+        for j in 0..=i {
+            let mut s = 0.0;
+            for l in 0..n {
+                s += hess[i * n + l] * ws.ah[(l, j)];
+            }
+            ws.hah[(i, j)] = s;
+            ws.hah[(j, i)] = s;
+        }
+    }
+    // means μ_r = w_rᵀ vec 𝕄
+    for i in 0..n {
+        let mut s = 0.0;
+        for l in 0..n {
+            s += hess[i * n + l] * mean[(l, 0)] + g[l] * mean[(l, qd(i))];
+        }
+        ws.mu[ia(i)] = s;
     }
     for c in 0..p {
         for l in 0..n {
-            ws.w[(idx(l, c), iy(c, l))] = 1.0;
+            ws.mu[iy(c, l)] = mean[(l, c)];
         }
     }
-    for l in 0..n {
-        ws.w[(idx(l, 0), ib)] = ws.grad[l];
-    }
-    // means μ_r = w_rᵀ vec 𝕄
-    let rr = ws.w.ncols();
-    for r in 0..rr {
-        let mut s = 0.0;
-        for q in 0..pp {
+    ws.mu[ib] = (0..n).map(|l| g[l] * mean[(l, 0)]).sum();
+    // S = Cov of the functionals, entry by entry
+    let sm = &mut ws.s;
+    for i in 0..n {
+        for j in 0..=i {
+            let v = ws.hah[(i, j)] * cm[(0, 0)]
+                + ws.hag[i] * cm[(0, qd(j))]
+                + ws.hag[j] * cm[(qd(i), 0)]
+                + gag * cm[(qd(i), qd(j))];
+            sm[(ia(i), ia(j))] = v;
+            sm[(ia(j), ia(i))] = v;
+        }
+        for c in 0..p {
             for l in 0..n {
-                s += ws.w[(idx(l, q), r)] * ws.joint.mean[(l, q)];
+                let v = ws.ah[(l, i)] * cm[(0, c)] + ws.ag[l] * cm[(qd(i), c)];
+                sm[(ia(i), iy(c, l))] = v;
+                sm[(iy(c, l), ia(i))] = v;
             }
         }
-        ws.mu[r] = s;
+        let v = ws.hag[i] * cm[(0, 0)] + gag * cm[(qd(i), 0)];
+        sm[(ia(i), ib)] = v;
+        sm[(ib, ia(i))] = v;
     }
-    // S = Wᵀ (Ĉ ⊗ A) W, via SW = (Ĉ ⊗ A) W
-    for r in 0..rr {
-        for q in 0..pp {
-            for l in 0..n {
-                let mut s = 0.0;
-                for q2 in 0..pp {
-                    let cq = ws.joint.c[(q, q2)];
-                    if cq == 0.0 {
-                        continue;
-                    }
-                    for l2 in 0..n {
-                        s += cq * ws.a_mat[(l, l2)] * ws.w[(idx(l2, q2), r)];
-                    }
+    for c in 0..p {
+        for l in 0..n {
+            for d in 0..p {
+                for j in 0..n {
+                    sm[(iy(c, l), iy(d, j))] = a[(l, j)] * cm[(c, d)];
                 }
-                ws.sw[(idx(l, q), r)] = s;
             }
+            let v = ws.ag[l] * cm[(c, 0)];
+            sm[(iy(c, l), ib)] = v;
+            sm[(ib, iy(c, l))] = v;
         }
     }
-    for r in 0..rr {
-        for s2 in 0..=r {
-            let mut v = 0.0;
-            for t in 0..big_n {
-                v += ws.w[(t, r)] * ws.sw[(t, s2)];
-            }
-            ws.s[(r, s2)] = v;
-            ws.s[(s2, r)] = v;
-        }
-    }
+    sm[(ib, ib)] = gag * cm[(0, 0)];
     let s = &ws.s;
     let mu = &ws.mu;
     for c in 0..p {
@@ -680,4 +719,129 @@ fn rd2(ws: &mut MomentWorkspace, h: f64, k0: f64, k1: f64, out: &mut ConditionMo
         }
     }
     psd_factor(&out.cov, &mut out.v);
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::barrier::Barrier;
+    use crate::gp::{InputMap, MvgpHyper, PriorMean, Rbf};
+    use num_dual::DualNum;
+    use rand::{RngExt, SeedableRng};
+    use rand_chacha::ChaCha8Rng;
+
+    /// `h(x) = xᵀQx + bᵀx + 1`, relative degree 2: a full Hessian.
+    struct Quadratic {
+        q: DMatrix<f64>,
+        b: Vec<f64>,
+    }
+
+    impl Barrier for Quadratic {
+        fn state_dim(&self) -> usize {
+            self.b.len()
+        }
+        fn h<D: DualNum<Primitive = f64> + Copy>(&self, x: &[D]) -> D {
+            let n = self.b.len();
+            let mut s = D::from(1.0);
+            for i in 0..n {
+                s += x[i] * self.b[i];
+                for j in 0..n {
+                    s += x[i] * x[j] * self.q[(i, j)];
+                }
+            }
+            s
+        }
+        fn relative_degree(&self) -> usize {
+            2
+        }
+        fn gains(&self) -> &[f64] {
+            &[1.0, 2.0]
+        }
+    }
+
+    fn random_matrix(r: usize, c: usize, rng: &mut ChaCha8Rng) -> DMatrix<f64> {
+        DMatrix::from_fn(r, c, |_, _| rng.random_range(-1.0..1.0))
+    }
+
+    /// The functionals' means and covariance the brute-force way: the
+    /// coefficient matrix `W` (`n(1+m)(1+n) × R`) written column by column
+    /// from the definitions of `a_i`, `y_{c,l}` and `b`, then
+    /// `μ = Wᵀ vec 𝕄` and `S = Wᵀ (Ĉ ⊗ A) W` with the Kronecker product
+    /// built in full.
+    fn brute_force(ws: &MomentWorkspace, p: usize) -> (Vec<f64>, DMatrix<f64>) {
+        let n = ws.x.len();
+        let pp = p * (1 + n);
+        let rr = n + n * p + 1;
+        let idx = |l: usize, q: usize| l + n * q;
+        let mut w = DMatrix::zeros(n * pp, rr);
+        for i in 0..n {
+            for l in 0..n {
+                w[(idx(l, 0), i)] += ws.hess[i * n + l];
+                w[(idx(l, (i + 1) * p), i)] += ws.grad[l];
+            }
+        }
+        for c in 0..p {
+            for l in 0..n {
+                w[(idx(l, c), n + c * n + l)] = 1.0;
+            }
+        }
+        for l in 0..n {
+            w[(idx(l, 0), n + n * p)] = ws.grad[l];
+        }
+        let vec_m = DMatrix::from_column_slice(n * pp, 1, ws.joint.mean.as_slice());
+        let mu = (w.transpose() * vec_m).as_slice().to_vec();
+        let s = w.transpose() * ws.joint.c.kronecker(&ws.a_mat) * &w;
+        (mu, s)
+    }
+
+    #[test]
+    fn rd2_functionals_equal_the_full_kronecker_construction() {
+        let mut rng = ChaCha8Rng::seed_from_u64(7);
+        for (n, m) in [(1, 1), (2, 1), (3, 2), (4, 3), (5, 1), (2, 4)] {
+            let g = random_matrix(n, n, &mut rng);
+            let gb = random_matrix(m + 1, m + 1, &mut rng);
+            let hyper = MvgpHyper {
+                kernel: Rbf::new(vec![1.1; n], 0.8).unwrap(),
+                A: &g * g.transpose() + DMatrix::identity(n, n) * 0.1,
+                B: &gb * gb.transpose() + DMatrix::identity(m + 1, m + 1) * 0.1,
+                sigma: 0.2,
+            };
+            let mut model = Mvgp::new(n, m, hyper, PriorMean::Zero, InputMap::Identity).unwrap();
+            let k = 9;
+            let xs: Vec<f64> = (0..k * n).map(|_| rng.random_range(-1.5..1.5)).collect();
+            let us: Vec<f64> = (0..k * m).map(|_| rng.random_range(-1.0..1.0)).collect();
+            let xd: Vec<f64> = (0..k * n).map(|_| rng.random_range(-1.0..1.0)).collect();
+            model.set_data(&xs, &us, &xd).unwrap();
+            let q = random_matrix(n, n, &mut rng);
+            let barrier = Quadratic {
+                q: &q + q.transpose(),
+                b: (0..n).map(|_| rng.random_range(-1.0..1.0)).collect(),
+            };
+            let x: Vec<f64> = (0..n).map(|_| rng.random_range(-1.0..1.0)).collect();
+            let mut ws = MomentWorkspace::new(&model);
+            ws.update(&model, &x, 2).unwrap();
+            let mut out = ConditionMoments::zeros(m);
+            cbc_moments(&mut ws, &barrier, &mut out).unwrap();
+            let (mu, s) = brute_force(&ws, m + 1);
+            let scale = s.amax().max(1.0);
+            for (r, (a, b)) in ws.mu.iter().zip(&mu).enumerate() {
+                assert!(
+                    (a - b).abs() <= 1e-12 * scale,
+                    "n={n} m={m} μ[{r}]: {a} vs {b}"
+                );
+            }
+            assert_eq!(ws.s.shape(), s.shape());
+            for ((r, c), a) in s
+                .iter()
+                .enumerate()
+                .map(|(t, a)| ((t % s.nrows(), t / s.nrows()), a))
+            {
+                let b = ws.s[(r, c)];
+                assert!(
+                    (a - b).abs() <= 1e-12 * scale,
+                    "n={n} m={m} S[{r},{c}]: {b} vs {a}"
+                );
+            }
+        }
+    }
 }
