@@ -247,7 +247,11 @@ impl MomentWorkspace {
                 B: DMatrix::zeros(p, p),
             },
             post_ws: model.workspace(),
-            joint: JointPosterior::zeros(n, m),
+            // the columns of F and ∂_i f ([`Mvgp::drift_joint_posterior_into`])
+            joint: JointPosterior {
+                mean: DMatrix::zeros(n, p + n),
+                c: DMatrix::zeros(p + n, p + n),
+            },
             joint_ws: model.joint_workspace(),
             level: 0,
             x: vec![0.0; n],
@@ -280,7 +284,7 @@ impl MomentWorkspace {
             *self = Self::new(model);
         }
         if max_degree >= 2 {
-            model.joint_posterior_into(x, &mut self.joint_ws, &mut self.joint)?;
+            model.drift_joint_posterior_into(x, &mut self.joint_ws, &mut self.joint)?;
             for c in 0..p {
                 for i in 0..n {
                     self.post.mean[(i, c)] = self.joint.mean[(i, c)];
@@ -578,8 +582,11 @@ fn rd1(ws: &MomentWorkspace, value: f64, gain: f64, out: &mut ConditionMoments) 
 /// The functionals are `a_i` (`i < n`), `y_{c,l}` (`c ≤ m`, `l < n`) and
 /// `b = ∇hᵀf`; each is a sum of terms `vᵀ 𝕄 e_q` (a vector `v` against one
 /// column `q` of `𝕄 = [F ∂_1F … ∂_nF]`): `a_i = H_iᵀ 𝕄 e_0 + gᵀ 𝕄 e_{q_i}`
-/// with `H_i` the `i`-th row of `∇²h`, `g = ∇h`, `q_i = (i+1)(1+m)` (the
-/// drift column of `∂_iF`); `y_{c,l} = e_lᵀ 𝕄 e_c`; `b = gᵀ 𝕄 e_0`. Under
+/// with `H_i` the `i`-th row of `∇²h`, `g = ∇h`, `q_i` the drift column of
+/// `∂_iF` (column `1 + m + i` of the workspace's joint posterior, which
+/// keeps only `F` and the drift columns:
+/// [`Mvgp::drift_joint_posterior_into`]); `y_{c,l} = e_lᵀ 𝕄 e_c`;
+/// `b = gᵀ 𝕄 e_0`. Under
 /// `Cov(vec 𝕄) = Ĉ ⊗ A` two such terms covary by `(vᵀAw) Ĉ_{qq'}`, so
 /// every entry of `S` follows from `AH`, `HAH`, `Ag`, `HAg` and `gᵀAg`:
 /// `O(n³ + n²(1+m)²)` in all, where forming `Wᵀ(Ĉ ⊗ A)W` for the
@@ -592,7 +599,7 @@ fn rd2(ws: &mut MomentWorkspace, h: f64, k0: f64, k1: f64, out: &mut ConditionMo
     let ia = |i: usize| i;
     let iy = |c: usize, l: usize| n + c * n + l;
     let ib = n + n * p;
-    let qd = |i: usize| (i + 1) * p;
+    let qd = |i: usize| p + i;
     let (g, hess, a, cm, mean) = (&ws.grad, &ws.hess, &ws.a_mat, &ws.joint.c, &ws.joint.mean);
     // AH (column i = A H_i), Ag, HAH, HAg, gᵀAg
     for i in 0..n {
@@ -767,8 +774,12 @@ mod tests {
     /// coefficient matrix `W` (`n(1+m)(1+n) × R`) written column by column
     /// from the definitions of `a_i`, `y_{c,l}` and `b`, then
     /// `μ = Wᵀ vec 𝕄` and `S = Wᵀ (Ĉ ⊗ A) W` with the Kronecker product
-    /// built in full.
-    fn brute_force(ws: &MomentWorkspace, p: usize) -> (Vec<f64>, DMatrix<f64>) {
+    /// built in full, from the full joint posterior of `F` and its Jacobian.
+    fn brute_force(
+        ws: &MomentWorkspace,
+        joint: &JointPosterior,
+        p: usize,
+    ) -> (Vec<f64>, DMatrix<f64>) {
         let n = ws.x.len();
         let pp = p * (1 + n);
         let rr = n + n * p + 1;
@@ -788,9 +799,9 @@ mod tests {
         for l in 0..n {
             w[(idx(l, 0), n + n * p)] = ws.grad[l];
         }
-        let vec_m = DMatrix::from_column_slice(n * pp, 1, ws.joint.mean.as_slice());
+        let vec_m = DMatrix::from_column_slice(n * pp, 1, joint.mean.as_slice());
         let mu = (w.transpose() * vec_m).as_slice().to_vec();
-        let s = w.transpose() * ws.joint.c.kronecker(&ws.a_mat) * &w;
+        let s = w.transpose() * joint.c.kronecker(&ws.a_mat) * &w;
         (mu, s)
     }
 
@@ -822,7 +833,7 @@ mod tests {
             ws.update(&model, &x, 2).unwrap();
             let mut out = ConditionMoments::zeros(m);
             cbc_moments(&mut ws, &barrier, &mut out).unwrap();
-            let (mu, s) = brute_force(&ws, m + 1);
+            let (mu, s) = brute_force(&ws, &model.joint_posterior(&x).unwrap(), m + 1);
             let scale = s.amax().max(1.0);
             for (r, (a, b)) in ws.mu.iter().zip(&mu).enumerate() {
                 assert!(

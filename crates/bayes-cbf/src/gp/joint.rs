@@ -41,6 +41,41 @@ impl JointPosterior {
     }
 }
 
+/// Which columns of `𝔽` a joint posterior keeps.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Columns {
+    /// All `(1+m)(1+n)`: column `a(1+m) + c` is column `c` of block `a`.
+    All,
+    /// `F` and the drift column of each `∂_iF` (`1 + m + n`): column `c`
+    /// of `F`, then `∂_i f` at `1 + m + (i − 1)` for block `i ≥ 1`.
+    Drift,
+}
+
+impl Columns {
+    /// How many columns of block `a` are kept (the first ones).
+    fn in_block(self, a: usize, p: usize) -> usize {
+        match (self, a) {
+            (Self::All, _) | (Self::Drift, 0) => p,
+            (Self::Drift, _) => 1,
+        }
+    }
+    /// The output index of column `c` of block `a`.
+    fn index(self, a: usize, c: usize, p: usize) -> usize {
+        match (self, a) {
+            (Self::All, _) => a * p + c,
+            (Self::Drift, 0) => c,
+            (Self::Drift, _) => p + a - 1,
+        }
+    }
+    /// How many columns are kept in all.
+    fn width(self, n: usize, p: usize) -> usize {
+        match self {
+            Self::All => p * (1 + n),
+            Self::Drift => p + n,
+        }
+    }
+}
+
 /// Buffers for [`Mvgp::joint_posterior_into`].
 #[derive(Debug, Clone)]
 pub struct JointWorkspace {
@@ -83,12 +118,40 @@ impl<K: Kernel> Mvgp<K> {
         ws: &mut JointWorkspace,
         out: &mut JointPosterior,
     ) -> Result<(), InputError> {
+        self.joint_columns_into(x, Columns::All, ws, out)
+    }
+
+    /// The joint posterior of `F(x)` and the drift column `∂_i f` of each
+    /// `∂_iF`, all that the relative-degree-2 moments read: `out.mean` is
+    /// `n × (1+m+n)` and `out.c` `(1+m+n)` square, column `c ≤ m` that of
+    /// `F`, column `1 + m + i` that of `∂_{i+1} f`, each entry equal to the
+    /// full posterior's ([`joint_posterior_into`](Self::joint_posterior_into))
+    /// at that pair of columns. The data part solves for `1 + m + n` columns
+    /// instead of `(1+m)(1+n)`.
+    pub(crate) fn drift_joint_posterior_into(
+        &self,
+        x: &[f64],
+        ws: &mut JointWorkspace,
+        out: &mut JointPosterior,
+    ) -> Result<(), InputError> {
+        self.joint_columns_into(x, Columns::Drift, ws, out)
+    }
+
+    fn joint_columns_into(
+        &self,
+        x: &[f64],
+        cols: Columns,
+        ws: &mut JointWorkspace,
+        out: &mut JointPosterior,
+    ) -> Result<(), InputError> {
         let (n, m) = (self.state_dim(), self.control_dim());
         let p = m + 1;
         let pp = p * (1 + n);
+        let width = cols.width(n, p);
         self.check_x(x)?;
-        if out.mean.shape() != (n, pp) || out.c.shape() != (pp, pp) {
-            *out = JointPosterior::zeros(n, m);
+        if out.mean.shape() != (n, width) || out.c.shape() != (width, width) {
+            out.mean = DMatrix::zeros(n, width);
+            out.c = DMatrix::zeros(width, width);
         }
         let k = self.len();
         // a workspace of a model of another shape is remade
@@ -142,9 +205,9 @@ impl<K: Kernel> Mvgp<K> {
         for a in 0..=n {
             for bb in 0..=n {
                 let kab = kk(a, bb, ws);
-                for c in 0..p {
-                    for c2 in 0..p {
-                        out.c[(a * p + c, bb * p + c2)] = kab * b[(c, c2)];
+                for c in 0..cols.in_block(a, p) {
+                    for c2 in 0..cols.in_block(bb, p) {
+                        out.c[(cols.index(a, c, p), cols.index(bb, c2, p))] = kab * b[(c, c2)];
                     }
                 }
             }
@@ -158,8 +221,8 @@ impl<K: Kernel> Mvgp<K> {
         for c in 0..p {
             for i in 0..n {
                 out.mean[(i, c)] = ws.m0[i + n * c];
-                for a in 1..=n {
-                    out.mean[(i, a * p + c)] = ws.jac0[(i + n * c) + rows * (a - 1)];
+                for a in (1..=n).filter(|&a| c < cols.in_block(a, p)) {
+                    out.mean[(i, cols.index(a, c, p))] = ws.jac0[(i + n * c) + rows * (a - 1)];
                 }
             }
         }
@@ -178,12 +241,12 @@ impl<K: Kernel> Mvgp<K> {
             for c in 0..p {
                 let buc = bu[j * p + c];
                 ws.omega[(j, c)] = kv * buc;
-                for i in 0..n {
-                    ws.omega[(j, (i + 1) * p + c)] = ws.gx[i] * buc;
+                for i in (0..n).filter(|&i| c < cols.in_block(i + 1, p)) {
+                    ws.omega[(j, cols.index(i + 1, c, p))] = ws.gx[i] * buc;
                 }
             }
         }
-        let mut v = ws.omega.as_mut().submatrix_mut(0, 0, k, pp);
+        let mut v = ws.omega.as_mut().submatrix_mut(0, 0, k, width);
         self.factor().solve_l(v.as_mut());
         add_data_part(v.as_ref(), self.beta_mat(), &mut out.mean, &mut out.c);
         Ok(())
@@ -247,5 +310,68 @@ mod tests {
             model.joint_posterior_into(&x, &mut ws, &mut bad).unwrap();
             assert_eq!(bad, want, "mean {mean:?}, c {c:?}");
         }
+    }
+}
+
+#[cfg(test)]
+mod drift_tests {
+    use super::*;
+    use crate::gp::input_map::Feature;
+    use crate::gp::{InputMap, MvgpHyper, PriorMean, Rbf};
+    use crate::systems::Pendulum;
+    use std::sync::Arc;
+
+    /// The drift joint posterior is the full one's block at the columns of
+    /// `F` and of each `∂_i f`, entry for entry (a prior mean with a
+    /// Jacobian, a trigonometric input map, data), and keeps its buffers.
+    #[test]
+    fn drift_columns_are_the_full_posteriors_block() {
+        let hyper = MvgpHyper {
+            kernel: Rbf::new(vec![0.9, 1.3, 1.1], 1.2).unwrap(),
+            A: DMatrix::from_row_slice(2, 2, &[1.0, 0.3, 0.3, 0.7]),
+            B: DMatrix::from_row_slice(2, 2, &[1.1, -0.2, -0.2, 0.8]),
+            sigma: 0.2,
+        };
+        let map = InputMap::Features(vec![Feature::Cos(0), Feature::Sin(0), Feature::Coord(1)]);
+        let prior = PriorMean::System(Arc::new(Pendulum::default()));
+        let mut model = Mvgp::new(2, 1, hyper, prior, map).unwrap();
+        for j in 0..12 {
+            let t = 0.37 * j as f64 - 2.0;
+            model
+                .add_observation(&[t, 0.5 * t.sin()], &[0.3 * t], &[t.cos(), -0.4 * t])
+                .unwrap();
+        }
+        let (n, p) = (2, 2);
+        let x = [0.4, -0.7];
+        let full = model.joint_posterior(&x).unwrap();
+        let mut ws = model.joint_workspace();
+        let mut drift = JointPosterior::zeros(0, 0);
+        model
+            .drift_joint_posterior_into(&x, &mut ws, &mut drift)
+            .unwrap();
+        assert_eq!(drift.mean.shape(), (n, p + n));
+        // reduced column → full column
+        let col = |j: usize| if j < p { j } else { (j - p + 1) * p };
+        for a in 0..p + n {
+            for i in 0..n {
+                assert_eq!(
+                    drift.mean[(i, a)],
+                    full.mean[(i, col(a))],
+                    "mean ({i}, {a})"
+                );
+            }
+            for b in 0..p + n {
+                let (got, want) = (drift.c[(a, b)], full.c[(col(a), col(b))]);
+                assert!(
+                    (got - want).abs() <= 1e-14 * want.abs().max(1.0),
+                    "c ({a}, {b})"
+                );
+            }
+        }
+        let ptrs = (drift.mean.as_ptr(), drift.c.as_ptr());
+        model
+            .drift_joint_posterior_into(&[0.1, 0.2], &mut ws, &mut drift)
+            .unwrap();
+        assert_eq!((drift.mean.as_ptr(), drift.c.as_ptr()), ptrs);
     }
 }
