@@ -125,7 +125,8 @@ pub fn run_calibration_shard(
 }
 
 fn read(path: &Path) -> Result<String> {
-    std::fs::read_to_string(path).with_context(|| format!("cannot read '{}'", path.display()))
+    bayes_cbf_scenario::io::read_input_text(path)
+        .with_context(|| format!("cannot read '{}'", path.display()))
 }
 
 /// Runs `bayes-cbf merge`.

@@ -1,11 +1,48 @@
 //! All-or-nothing file output: a file is written completely or not at all,
-//! and a run's directory receives all of its files or none.
+//! and a run's directory receives all of its files or none. And input
+//! files read whole, up to a bound.
 
 use crate::error::{Context, Result};
 use crate::{bail, err};
 use std::io::Write;
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicU64, Ordering};
+
+/// The most an input file (a model, data, barrier, prior-mean or sweep
+/// file) may hold: 1 GiB. A larger one, or an endless stream such as
+/// `/dev/zero`, is refused rather than read into memory without end.
+pub const MAX_INPUT_BYTES: u64 = 1 << 30;
+
+/// Reads an input file whole, up to [`MAX_INPUT_BYTES`].
+pub fn read_input(path: &Path) -> std::io::Result<Vec<u8>> {
+    read_bounded(path, MAX_INPUT_BYTES)
+}
+
+/// Reads `path` whole if it holds at most `limit` bytes.
+fn read_bounded(path: &Path, limit: u64) -> std::io::Result<Vec<u8>> {
+    use std::io::Read;
+    let mut bytes = Vec::new();
+    std::fs::File::open(path)?
+        .take(limit + 1)
+        .read_to_end(&mut bytes)?;
+    if bytes.len() as u64 > limit {
+        return Err(std::io::Error::new(
+            std::io::ErrorKind::InvalidData,
+            format!("it holds more than {limit} bytes, the most an input file may hold"),
+        ));
+    }
+    Ok(bytes)
+}
+
+/// [`read_input`] as UTF-8 text.
+pub fn read_input_text(path: &Path) -> std::io::Result<String> {
+    String::from_utf8(read_input(path)?).map_err(|e| {
+        std::io::Error::new(
+            std::io::ErrorKind::InvalidData,
+            format!("it is not UTF-8 text: {e}"),
+        )
+    })
+}
 
 /// Where the bytes meant for a path go.
 enum Destination {
@@ -437,6 +474,24 @@ mod tests {
         let dir = std::env::temp_dir().join(format!("bayes-cbf-io-{}-{name}", std::process::id()));
         let _ = std::fs::remove_dir_all(&dir);
         dir
+    }
+
+    /// An endless stream is refused at the bound, not read without end; a
+    /// file of exactly the bound is read whole; a message names the cause.
+    #[test]
+    fn input_files_are_read_up_to_a_bound() {
+        let e = read_bounded(Path::new("/dev/zero"), 4096).unwrap_err();
+        assert!(e.to_string().contains("more than 4096 bytes"), "{e}");
+        let dir = scratch("bounded");
+        std::fs::create_dir_all(&dir).unwrap();
+        let p = dir.join("in.json");
+        std::fs::write(&p, [b'x'; 4096]).unwrap();
+        assert_eq!(read_bounded(&p, 4096).unwrap().len(), 4096);
+        assert!(read_bounded(&p, 4095).is_err());
+        std::fs::write(&p, [0xff, 0xfe]).unwrap();
+        let e = read_input_text(&p).unwrap_err();
+        assert!(e.to_string().contains("not UTF-8"), "{e}");
+        let _ = std::fs::remove_dir_all(&dir);
     }
 
     #[test]

@@ -58,11 +58,19 @@ impl InputError {
         Self::invalid_shown(field, number(value), reason)
     }
 
-    /// `Invalid` with a value shown as `value` (a list, a pair of settings).
+    /// `Invalid` with a value shown as `value` (a list, a pair of settings);
+    /// a value longer than 300 characters is cut there, with its length.
     pub fn invalid_shown(field: &str, value: impl std::fmt::Display, reason: &str) -> Self {
+        const SHOWN: usize = 300;
+        let mut value = value.to_string();
+        if let Some((cut, _)) = value.char_indices().nth(SHOWN) {
+            let total = value.chars().count();
+            value.truncate(cut);
+            value.push_str(&format!(" … ({total} characters)"));
+        }
         Self::Invalid {
             field: field.to_string(),
-            value: value.to_string(),
+            value,
             reason: reason.to_string(),
         }
     }
@@ -255,6 +263,21 @@ pub enum Error {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A value of a million characters is shown cut to 300, with its
+    /// length; a short one whole; a cut never splits a character.
+    #[test]
+    fn long_values_are_cut_in_messages() {
+        let long = "é".repeat(1_000_000);
+        let text = InputError::invalid_shown("k", &long, "why").to_string();
+        assert!(text.len() < 1000, "{} bytes", text.len());
+        assert!(text.contains(&"é".repeat(300)) && text.contains("(1000000 characters)"));
+        let short = InputError::invalid_shown("k", "[1, 2]", "why").to_string();
+        assert!(
+            short.contains("[1, 2]") && !short.contains("characters"),
+            "{short}"
+        );
+    }
 
     #[test]
     fn scalar_checks_name_the_field_and_reject_nan_infinity_and_the_boundary() {

@@ -368,7 +368,7 @@ impl BarrierSpec {
     /// Loads and validates a barrier file.
     pub fn load(path: &Path) -> Result<(Self, Arc<dyn DynBarrier>)> {
         let name = path.display().to_string();
-        let text = std::fs::read_to_string(path)
+        let text = crate::io::read_input_text(path)
             .with_context(|| format!("cannot read barrier file '{name}'"))?;
         let spec = Self::parse(&text, &name)?;
         let b = spec

@@ -135,7 +135,8 @@ pub fn read_dataset(
 ) -> Result<Dataset> {
     let header = expected_header(layout, n, m)?;
     let name = path.display().to_string();
-    let bytes = std::fs::read(path).with_context(|| format!("cannot read data file '{name}'"))?;
+    let bytes =
+        crate::io::read_input(path).with_context(|| format!("cannot read data file '{name}'"))?;
     let text =
         String::from_utf8(bytes).map_err(|e| err!("data file '{name}' is not UTF-8 text: {e}"))?;
     let rows = parse_table(&text, &name, &header)?;

@@ -166,7 +166,7 @@ impl ModelFile {
 
     /// Reads and parses a model file.
     pub fn load(path: &Path) -> Result<Self> {
-        let text = std::fs::read_to_string(path)
+        let text = crate::io::read_input_text(path)
             .with_context(|| format!("cannot read model file '{}'", path.display()))?;
         Self::parse(&text, &path.display().to_string())
     }

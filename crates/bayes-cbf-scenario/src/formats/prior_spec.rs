@@ -379,7 +379,7 @@ impl PriorSpec {
             }
             bail!("--prior-mean '{arg}' is neither JSON, a known prior name (zero, pendulum, ackermann) nor an existing file");
         }
-        let text = std::fs::read_to_string(path)
+        let text = crate::io::read_input_text(path)
             .with_context(|| format!("--prior-mean: cannot read '{}'", path.display()))?;
         Self::from_json_text(&text)
             .with_context(|| format!("--prior-mean file '{}'", path.display()))

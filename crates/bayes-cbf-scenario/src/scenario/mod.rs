@@ -773,7 +773,7 @@ pub fn scenario_text(name: &str) -> Result<(String, String)> {
     }
     let path = Path::new(name);
     if path.is_file() {
-        let text = std::fs::read_to_string(path)
+        let text = crate::io::read_input_text(path)
             .with_context(|| format!("cannot read scenario file '{name}'"))?;
         return Ok((name.to_string(), crate::parse::strip_bom(&text).to_string()));
     }

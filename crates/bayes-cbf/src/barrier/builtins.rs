@@ -225,6 +225,7 @@ impl Disc {
         relative_degree: usize,
         gains: Vec<f64>,
     ) -> Result<Self, InputError> {
+        super::check_state_dim("state_dim", n)?;
         for (j, &i) in indices.iter().enumerate() {
             check_index(&format!("indices[{j}]"), i, n)?;
         }
@@ -283,9 +284,7 @@ impl HalfSpace {
         relative_degree: usize,
         gains: Vec<f64>,
     ) -> Result<Self, InputError> {
-        if normal.is_empty() {
-            return Err(InputError::shape("normal", "≥ 1 entry", 0));
-        }
+        super::check_state_dim("normal", normal.len())?;
         check_finite("normal", &normal)?;
         if normal.iter().all(|v| *v == 0.0) {
             return Err(InputError::invalid("normal", 0.0, "must not be zero"));

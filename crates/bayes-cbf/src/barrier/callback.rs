@@ -71,9 +71,7 @@ impl CallbackBarrier {
         grad: ArrayFn,
         hess: Option<ArrayFn>,
     ) -> Result<Self, crate::InputError> {
-        if state_dim == 0 {
-            return Err(crate::InputError::invalid("state_dim", 0.0, "must be ≥ 1"));
-        }
+        super::check_state_dim("state_dim", state_dim)?;
         super::validate_gains(relative_degree, &gains)?;
         if relative_degree >= 2 && hess.is_none() {
             return Err(crate::InputError::Invalid {

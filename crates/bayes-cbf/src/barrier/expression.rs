@@ -62,6 +62,7 @@ impl ExpressionBarrier {
         relative_degree: usize,
         gains: Vec<f64>,
     ) -> Result<Self, InputError> {
+        super::check_state_dim("state", state.len())?;
         let names = names(state, params)?;
         let text = h.trim().to_string();
         let h = Expr::parse("h", h, &names)?;

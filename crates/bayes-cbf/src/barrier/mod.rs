@@ -241,6 +241,16 @@ pub fn validate_gains(r: usize, gains: &[f64]) -> Result<(), InputError> {
     if r == 0 {
         return Err(InputError::invalid("relative_degree", 0.0, "must be ≥ 1"));
     }
+    if r > MAX_RELATIVE_DEGREE {
+        return Err(InputError::invalid_shown(
+            "relative_degree",
+            r,
+            &format!(
+                "must be at most {MAX_RELATIVE_DEGREE} (the gains' real poles are told from \
+                 complex ones only that far in floating point)"
+            ),
+        ));
+    }
     let want = r.max(1);
     if gains.len() != want {
         let field = if r == 1 { "alpha" } else { "k_alpha" };
@@ -292,13 +302,41 @@ pub fn validate_gains(r: usize, gains: &[f64]) -> Result<(), InputError> {
     Ok(())
 }
 
+/// Checks a barrier's state dimension `n` given as `field`: `1 ≤ n ≤`
+/// [`MAX_DIMENSION`](crate::gp::MAX_DIMENSION), the models' bound (its
+/// Hessian holds `n²` entries).
+pub(crate) fn check_state_dim(field: &str, n: usize) -> Result<(), InputError> {
+    if n == 0 {
+        return Err(InputError::shape(field, "≥ 1 state", 0));
+    }
+    if n > crate::gp::MAX_DIMENSION {
+        return Err(InputError::invalid_shown(
+            field,
+            format!("{n} states"),
+            &format!(
+                "too large: a barrier's state dimension is at most {} (the models' bound)",
+                crate::gp::MAX_DIMENSION
+            ),
+        ));
+    }
+    Ok(())
+}
+
+/// The largest relative degree a barrier may declare: up to it,
+/// [`has_real_roots`] tells a multiple real root from a complex pair whose
+/// overshoot matters.
+pub const MAX_RELATIVE_DEGREE: usize = 10;
+
 /// Whether every root of `sʳ + k[r−1] sʳ⁻¹ + … + k[0]` (monic, `r =
 /// k.len()`) is real, a multiple root included: for `r ≤ 3` by the
 /// discriminant (`≥ 0` to a relative `1e-9` of its terms); above, from the
-/// companion matrix's eigenvalues, whose imaginary parts must be within
-/// 1 % of their modulus (the eigenvalues of a multiple root spread by
-/// `ε^(1/multiplicity)`; a pair that near the real axis, damping ratio
-/// above 0.99995, overshoots by `e^(−πζ/√(1−ζ²)) < e^(−300)`).
+/// eigenvalues of the companion matrix of the polynomial scaled to roots of
+/// unit geometric mean (`s = k[0]^(1/r) t`), whose imaginary parts must be
+/// within `max(1 %, 4 (rε)^(1/r))` of their modulus: the eigenvalues of an
+/// `r`-fold root spread by about `(rε)^(1/r)` (3.4 % at `r = 10`). A pair
+/// that near the real axis (within 1 %: damping ratio above 0.99995;
+/// within 14 % at `r = 10`: above 0.99) overshoots by
+/// `e^(−πζ/√(1−ζ²))`, below `e^(−300)` and `e^(−22)`.
 pub fn has_real_roots(k: &[f64]) -> bool {
     match *k {
         [] | [_] => true,
@@ -319,19 +357,25 @@ pub fn has_real_roots(k: &[f64]) -> bool {
         }
         _ => {
             let r = k.len();
+            // roots scaled by 1/ρ: coefficient k[i] by ρ^(i − r)
+            let rho = match k[0].abs().powf(1.0 / r as f64) {
+                v if v.is_normal() => v,
+                _ => 1.0,
+            };
             let companion = nalgebra::DMatrix::from_fn(r, r, |i, j| {
                 if i == 0 {
-                    -k[r - 1 - j]
+                    -k[r - 1 - j] / rho.powi(j as i32 + 1)
                 } else if j + 1 == i {
                     1.0
                 } else {
                     0.0
                 }
             });
+            let tol = (4.0 * (r as f64 * f64::EPSILON).powf(1.0 / r as f64)).max(1e-2);
             companion
                 .complex_eigenvalues()
                 .iter()
-                .all(|z| z.im.abs() <= 1e-2 * z.norm())
+                .all(|z| z.im.abs() <= tol * z.norm())
         }
     }
 }
@@ -500,6 +544,26 @@ mod tests {
                 assert!(!has_real_roots(&k), "{roots:?} ± {b}i: {k:?}");
             }
         }
+        // r-fold roots up to the largest relative degree, at every scale;
+        // a pair of damping ratio 0.9 beside r − 2 of them is refused
+        for r in 2..=MAX_RELATIVE_DEGREE {
+            for p in [0.05, 1.0, 20.0] {
+                let k = monic(&vec![p; r], None);
+                assert!(has_real_roots(&k), "(s + {p})^{r}: {k:?}");
+                assert!(validate_gains(r, &k).is_ok(), "(s + {p})^{r}");
+                let k = monic(&vec![p; r - 2], Some((0.9 * p, 0.436 * p)));
+                assert!(
+                    !has_real_roots(&k),
+                    "(s + {p})^{} with a pair: {k:?}",
+                    r - 2
+                );
+            }
+        }
+        let e = validate_gains(11, &[1.0; 11]).unwrap_err().to_string();
+        assert!(
+            e.contains("relative_degree") && e.contains("at most 10"),
+            "{e}"
+        );
     }
 
     /// Gains whose square overflows name the gain (a run with

@@ -236,35 +236,33 @@ pub struct MomentWorkspace {
 }
 
 impl MomentWorkspace {
-    /// A workspace for `model`.
+    /// A workspace for `model`. The buffers of relative degree 2 (the joint
+    /// posterior of `F` and its Jacobian, and the functionals' covariance,
+    /// `O(n²(1+m)²)` entries) are made at the first
+    /// [`update`](Self::update) that needs them.
     pub fn new<K: Kernel>(model: &Mvgp<K>) -> Self {
         let (n, m) = (model.state_dim(), model.control_dim());
         let p = m + 1;
-        let r = n + n * p + 1;
         Self {
             post: Posterior {
                 mean: DMatrix::zeros(n, p),
                 B: DMatrix::zeros(p, p),
             },
             post_ws: model.workspace(),
-            // the columns of F and ∂_i f ([`Mvgp::drift_joint_posterior_into`])
-            joint: JointPosterior {
-                mean: DMatrix::zeros(n, p + n),
-                c: DMatrix::zeros(p + n, p + n),
-            },
-            joint_ws: model.joint_workspace(),
+            joint: JointPosterior::zeros(0, 0),
+            joint_ws: JointWorkspace::default(),
             level: 0,
             x: vec![0.0; n],
             grad: vec![0.0; n],
-            hess: vec![0.0; n * n],
+            hess: Vec::new(),
             sd: vec![Dual64::from(0.0); 2 * n],
-            sh: vec![HyperDual64::from(0.0); n],
-            ah: DMatrix::zeros(n, n),
-            hah: DMatrix::zeros(n, n),
-            ag: vec![0.0; n],
-            hag: vec![0.0; n],
-            s: DMatrix::zeros(r, r),
-            mu: vec![0.0; r],
+            sh: Vec::new(),
+            ah: DMatrix::zeros(0, 0),
+            hah: DMatrix::zeros(0, 0),
+            ag: Vec::new(),
+            hag: Vec::new(),
+            s: DMatrix::zeros(0, 0),
+            mu: Vec::new(),
             a_mat: DMatrix::zeros(n, n),
             noise: 0.0,
         }
@@ -284,6 +282,9 @@ impl MomentWorkspace {
             *self = Self::new(model);
         }
         if max_degree >= 2 {
+            if self.s.nrows() != n * (1 + p) + 1 {
+                self.make_second_order(model)?;
+            }
             model.drift_joint_posterior_into(x, &mut self.joint_ws, &mut self.joint)?;
             for c in 0..p {
                 for i in 0..n {
@@ -301,6 +302,51 @@ impl MomentWorkspace {
         self.x.copy_from_slice(x);
         self.a_mat.copy_from(model.row_cov());
         self.noise = model.hyper().sigma * model.hyper().sigma;
+        Ok(())
+    }
+
+    /// Sizes the buffers of relative degree 2 for `model`, or says that
+    /// they cannot be allocated (a model of thousands of states), rather
+    /// than abort the process.
+    fn make_second_order<K: Kernel>(&mut self, model: &Mvgp<K>) -> Result<(), InputError> {
+        let (n, p) = (model.state_dim(), model.control_dim() + 1);
+        let r = n * (1 + p) + 1;
+        // joint posterior (p + n columns), its workspace, ∇²h and its duals
+        // (4 each), AH, HAH, Ag, HAg, S and μ
+        let entries = [
+            n * (p + n) + (p + n) * (p + n),
+            model.joint_workspace_len(),
+            n * n + 4 * n,
+            2 * n * n + 2 * n,
+            r * r + r,
+        ]
+        .into_iter()
+        .fold(0usize, usize::saturating_add);
+        let bytes = entries.saturating_mul(std::mem::size_of::<f64>());
+        if Vec::<u8>::new().try_reserve_exact(bytes).is_err() {
+            return Err(InputError::invalid_shown(
+                "state_dim",
+                n,
+                &format!(
+                    "relative-degree-2 moments at {n} states and {} controls need {:.1} GB of                      buffers (the joint posterior of F and its Jacobian, and the covariance of                      {r} linear functionals), more than can be allocated",
+                    p - 1,
+                    bytes as f64 / 1e9
+                ),
+            ));
+        }
+        self.joint = JointPosterior {
+            mean: DMatrix::zeros(n, p + n),
+            c: DMatrix::zeros(p + n, p + n),
+        };
+        self.joint_ws = model.joint_workspace();
+        self.hess = vec![0.0; n * n];
+        self.sh = vec![HyperDual64::from(0.0); n];
+        self.ah = DMatrix::zeros(n, n);
+        self.hah = DMatrix::zeros(n, n);
+        self.ag = vec![0.0; n];
+        self.hag = vec![0.0; n];
+        self.s = DMatrix::zeros(r, r);
+        self.mu = vec![0.0; r];
         Ok(())
     }
 
@@ -854,5 +900,32 @@ mod tests {
                 );
             }
         }
+    }
+}
+
+#[cfg(test)]
+mod size_tests {
+    use super::*;
+    use crate::gp::{InputMap, MvgpHyper, PriorMean, Rbf};
+
+    /// A model of 2000 states and 1999 controls (allowed) asks the
+    /// relative-degree-2 buffers for about 10¹⁴ bytes: an error naming
+    /// `state_dim`, not an abort; relative degree 1 needs none of them.
+    #[test]
+    fn second_order_buffers_too_large_are_an_error() {
+        let (n, m) = (2000, 1999);
+        let hyper = MvgpHyper {
+            kernel: Rbf::new(vec![1.0; n], 1.0).unwrap(),
+            A: DMatrix::identity(n, n),
+            B: DMatrix::identity(m + 1, m + 1),
+            sigma: 0.1,
+        };
+        let model = Mvgp::new(n, m, hyper, PriorMean::Zero, InputMap::Identity).unwrap();
+        let x = vec![0.0; n];
+        let mut ws = MomentWorkspace::new(&model);
+        ws.update(&model, &x, 1).unwrap();
+        assert_eq!(ws.s.nrows(), 0);
+        let err = ws.update(&model, &x, 2).unwrap_err().to_string();
+        assert!(err.contains("state_dim") && err.contains("GB"), "{err}");
     }
 }

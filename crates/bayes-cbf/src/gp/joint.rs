@@ -76,7 +76,8 @@ impl Columns {
     }
 }
 
-/// Buffers for [`Mvgp::joint_posterior_into`].
+/// Buffers for [`Mvgp::joint_posterior_into`]; the default is empty, sized
+/// at its first use.
 #[derive(Debug, Clone)]
 pub struct JointWorkspace {
     z: Vec<f64>,
@@ -89,6 +90,23 @@ pub struct JointWorkspace {
     jac0: Vec<f64>,
     sx: Vec<Dual64>,
     so: Vec<Dual64>,
+}
+
+impl Default for JointWorkspace {
+    fn default() -> Self {
+        Self {
+            z: Vec::new(),
+            dz: Vec::new(),
+            gk: Vec::new(),
+            hk: Vec::new(),
+            gx: Vec::new(),
+            omega: Mat::zeros(0, 0),
+            m0: Vec::new(),
+            jac0: Vec::new(),
+            sx: Vec::new(),
+            so: Vec::new(),
+        }
+    }
 }
 
 impl<K: Kernel> Mvgp<K> {
@@ -108,6 +126,29 @@ impl<K: Kernel> Mvgp<K> {
             sx: vec![Dual64::from(0.0); n],
             so: vec![Dual64::from(0.0); n * p],
         }
+    }
+
+    /// How many `f64`-sized entries [`joint_workspace`](Self::joint_workspace)
+    /// holds: what a caller checks before it asks for one of a large model.
+    pub(crate) fn joint_workspace_len(&self) -> usize {
+        let (n, p) = (self.state_dim(), self.control_dim() + 1);
+        let d = self.input_map().output_dim(n);
+        // z, dz, gk, hk, gx, omega, m0, jac0, sx and so (duals: 2 each)
+        let pp = p.saturating_mul(1 + n);
+        [
+            4 * d,
+            d.saturating_mul(d),
+            n,
+            self.capacity().saturating_mul(pp),
+        ]
+        .into_iter()
+        .chain([
+            n * p,
+            n.saturating_mul(n).saturating_mul(p),
+            2 * n,
+            2 * n * p,
+        ])
+        .fold(0usize, usize::saturating_add)
     }
 
     /// Joint posterior of `F(x)` and `∂F/∂x_i` (module docs), written into

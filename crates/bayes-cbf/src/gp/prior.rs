@@ -38,12 +38,15 @@ pub fn check_dims(n: usize, m: usize) -> Result<(), crate::error::InputError> {
             return Err(InputError::invalid(field, 0.0, "must be ≥ 1"));
         }
     }
-    for (field, v) in [("state_dim", n), ("control_dim", m.saturating_add(1))] {
-        if v > MAX_DIMENSION {
+    for (field, v, big) in [
+        ("state_dim", n, n > MAX_DIMENSION),
+        ("control_dim", m, m >= MAX_DIMENSION),
+    ] {
+        if big {
             return Err(InputError::invalid_shown(
                 field,
                 v,
-                &format!("too large: dimensions (state_dim, 1 + control_dim) are at most {MAX_DIMENSION}"),
+                &format!("too large: state_dim and 1 + control_dim are at most {MAX_DIMENSION}"),
             ));
         }
     }
