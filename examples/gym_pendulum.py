@@ -236,11 +236,12 @@ def main() -> None:
             }
             table.append(row)
             print(json.dumps(row))
-    if a.figure:
-        plot(a.figure, a.seed, zeta)
+    # the table first: a figure that fails (no matplotlib) does not lose it
     if a.out:
         with open(a.out, "w") as f:
             json.dump({"integrator_energy_rise": rise, "zeta": zeta, "rows": table}, f, indent=1)
+    if a.figure:
+        plot(a.figure, a.seed, zeta)
 
 
 if __name__ == "__main__":

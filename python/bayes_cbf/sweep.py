@@ -43,6 +43,10 @@ def _ray():
 
 
 def _init(address: Optional[str], num_cpus: Optional[int]):
+    if num_cpus is not None and (
+        not isinstance(num_cpus, numbers.Integral) or isinstance(num_cpus, bool) or num_cpus < 1
+    ):
+        raise InputError(f"num_cpus: {num_cpus!r}, must be an integer >= 1")
     ray = _ray()
     if not ray.is_initialized():
         kw: dict[str, Any] = {"ignore_reinit_error": True, "log_to_driver": False}
@@ -81,19 +85,29 @@ def _sets(overrides: Optional[dict]) -> list[str]:
     return _core.override_sets(overrides)
 
 
+_MAX_SEED = 2**63 - 1
+
+
 def _seed_range(seeds: Iterable[int]) -> tuple[int, int]:
     if isinstance(seeds, range):
-        if seeds.step != 1 or len(seeds) == 0:
+        # range's own len() overflows beyond sys.maxsize
+        if seeds.step != 1 or seeds.stop <= seeds.start:
             raise InputError("seeds: expected a non-empty range with step 1, e.g. range(0, 100)")
-        return seeds.start, seeds.stop
-    seeds = list(seeds)
-    for x in seeds:
-        if not isinstance(x, numbers.Integral) or isinstance(x, bool):
-            raise InputError(f"seeds: {x!r} is not an integer seed")
-    s = sorted(int(x) for x in seeds)
-    if not s or s != list(range(s[0], s[-1] + 1)):
-        raise InputError("seeds: expected consecutive seeds, e.g. range(0, 100)")
-    return s[0], s[-1] + 1
+        start, stop = seeds.start, seeds.stop
+    else:
+        seeds = list(seeds)
+        for x in seeds:
+            if not isinstance(x, numbers.Integral) or isinstance(x, bool):
+                raise InputError(f"seeds: {x!r} is not an integer seed")
+        s = sorted(int(x) for x in seeds)
+        # consecutive: distinct, and as many as the span (no list of the span)
+        if not s or len(set(s)) != len(s) or s[-1] - s[0] + 1 != len(s):
+            raise InputError("seeds: expected consecutive seeds, e.g. range(0, 100)")
+        start, stop = s[0], s[-1] + 1
+    # a negative start is named by the library's check
+    if stop - 1 > _MAX_SEED:
+        raise InputError(f"seeds: {start}..{stop}: seeds are at most {_MAX_SEED} (2^63 − 1)")
+    return start, stop
 
 
 def seeds(

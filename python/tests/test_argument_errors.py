@@ -49,6 +49,7 @@ OUT_OF_RANGE = [
     ("budget", lambda: mvgp().add_observation_within_budget([0.1, 0.2], [0.5], [0.2, -0.4], -1),
      "= -1"),
     ("known_rows", lambda: mvgp(known_rows=[-1]), "known_rows[0] = -1"),
+    ("known_rows", lambda: mvgp(known_rows=[0, 2]), "known_rows[1] = 2"),
     ("seed", lambda: bc.run_scenario("double-integrator", seed=-1), "seed = -1"),
     ("seed", lambda: mvgp().fit(X, U, XD, seed=2**64),
      "seed = 18446744073709551616: too large (at most 2^64 − 1)"),

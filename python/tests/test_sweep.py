@@ -92,6 +92,11 @@ def test_bad_sweeps_are_input_errors():
         (lambda: sweep.calibration(quick="yes"), "quick"),
         (lambda: sweep.calibration(fallback="slow"), "max_margin, brake, hold or relax"),
         (lambda: sweep.seeds("pendulum-safe", range(-3, 2)), "start = -3"),
+        (lambda: sweep.calibration(episodes=-1), "must be ≥ 1"),
+        # neither a list of the span nor range's own len() (an OverflowError)
+        (lambda: sweep.seeds("pendulum-safe", [0, 10**10]), "consecutive"),
+        (lambda: sweep.seeds("pendulum-safe", range(0, 2**70)), "at most 9223372036854775807"),
+        (lambda: sweep.seeds("pendulum-safe", range(0, 3), num_cpus=-1), "num_cpus"),
     ]:
         with pytest.raises(bc.InputError, match=field):
             call()

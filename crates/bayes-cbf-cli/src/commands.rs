@@ -105,6 +105,7 @@ pub fn run_fit(a: &FitArgs) -> Result<()> {
     if m == 0 {
         bail!("--control-dim must be ≥ 1");
     }
+    crate::output::refuse_input_as_output(&a.out, &[("--data", &a.data)])?;
     let prior = PriorSpec::from_arg(&a.prior_mean)?;
     let input_map = match &a.input_map {
         None => InputMap::Identity,
@@ -193,6 +194,9 @@ fn rows(m: &DMatrix<f64>) -> Vec<Vec<f64>> {
 
 /// Runs `bayes-cbf predict`.
 pub fn run_predict(a: &PredictArgs) -> Result<()> {
+    if let Some(out) = &a.out {
+        crate::output::refuse_input_as_output(out, &[("--model", &a.model)])?;
+    }
     let file = ModelFile::load(&a.model)?;
     let model = file
         .to_model()

@@ -1,7 +1,7 @@
 //! JSON results on stdout, or in a file written completely or not at all
 //! (`--out -` is stdout, as usual on the command line).
 
-use anyhow::{Context, Result};
+use anyhow::{bail, Context, Result};
 use bayes_cbf_scenario::io::write_atomic;
 use serde::Serialize;
 use std::io::Write;
@@ -30,6 +30,26 @@ pub fn write_out(path: &Path, bytes: &[u8]) -> Result<()> {
         return print_stdout(&String::from_utf8_lossy(bytes));
     }
     Ok(write_atomic(path, bytes)?)
+}
+
+/// Refuses an output path that is one of the command's input files (given
+/// as `(option, path)`): the output would replace the input it was made
+/// from. An output that does not exist yet cannot be one.
+pub fn refuse_input_as_output(out: &Path, inputs: &[(&str, &Path)]) -> Result<()> {
+    let Ok(o) = out.canonicalize() else {
+        return Ok(());
+    };
+    for (option, input) in inputs {
+        if input.canonicalize().is_ok_and(|i| i == o) {
+            bail!(
+                "--out '{}' is the {option} file '{}': the output would replace it; write it \
+                 elsewhere",
+                out.display(),
+                input.display()
+            );
+        }
+    }
+    Ok(())
 }
 
 /// Writes `text` to stdout; a full disk or a closed pipe is an error, not

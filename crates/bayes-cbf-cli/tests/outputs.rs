@@ -63,6 +63,34 @@ fn a_run_that_cannot_write_one_file_writes_none() {
     assert_eq!(std::fs::read_dir(&*dir).unwrap().count(), 3, "staging left");
 }
 
+/// `fit --out` naming its own data file, or `predict --out` its model
+/// file, is refused before anything is written: the input stays.
+#[test]
+fn an_output_that_is_an_input_is_refused() {
+    let dir = scratch_dir("outputs-input");
+    std::fs::write(dir.join("d.csv"), DATA).unwrap();
+    let r = run_in(&dir, &fit_into("./d.csv"));
+    assert!(
+        r.stderr.contains("is the --data file 'd.csv'"),
+        "{}",
+        r.stderr
+    );
+    assert_eq!(std::fs::read_to_string(dir.join("d.csv")).unwrap(), DATA);
+    let r = run_in(&dir, &fit_into("m.json"));
+    assert!(r.status.success(), "{}", r.stderr);
+    let model = std::fs::read(dir.join("m.json")).unwrap();
+    let predict = [
+        "predict", "--model", "m.json", "--x", "0.1,0.2", "--out", "m.json",
+    ];
+    let r = run_in(&dir, &predict);
+    assert!(
+        r.stderr.contains("is the --model file 'm.json'"),
+        "{}",
+        r.stderr
+    );
+    assert_eq!(std::fs::read(dir.join("m.json")).unwrap(), model);
+}
+
 #[test]
 fn merge_does_not_overwrite_a_shard() {
     let dir = scratch_dir("outputs-merge");

@@ -110,7 +110,7 @@ macro_rules! counts {
 counts!(u64, usize, i64);
 
 /// Counts that must be at least 1 (the library's own checks say so too).
-const AT_LEAST_ONE: [&str; 3] = ["state_dim", "control_dim", "max_iters"];
+const AT_LEAST_ONE: [&str; 4] = ["state_dim", "control_dim", "max_iters", "episodes"];
 
 /// A non-negative integer (a count, an index, a seed) that fits `T`; at
 /// least 1 for the fields of [`AT_LEAST_ONE`].

@@ -323,6 +323,18 @@ pub fn matrix_to_numpy<'py>(py: Python<'py>, m: &DMatrix<f64>) -> PyResult<NdArr
     to_numpy(py, v, &[m.nrows(), m.ncols()])
 }
 
+/// The message of an error in reading [`json_of`]'s text: without the
+/// position in that text, which the caller never saw, and with Rust's
+/// type names in words.
+pub fn json_of_error(e: &serde_json::Error) -> String {
+    let mut msg = e.to_string();
+    let at = format!(" at line {} column {}", e.line(), e.column());
+    if let Some(cut) = msg.strip_suffix(&at).map(str::len) {
+        msg.truncate(cut);
+    }
+    bayes_cbf_scenario::parse::in_words(&msg)
+}
+
 /// Python JSON text of `obj` (a dict or list), for fields whose format is
 /// the model file's.
 pub fn json_of(obj: &Bound<'_, PyAny>, field: &str) -> PyResult<String> {

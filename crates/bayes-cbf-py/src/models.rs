@@ -3,8 +3,8 @@
 
 use crate::args;
 use crate::convert::{
-    borrow_mut, core_err, extend_rows, input_err, json_of, matrix, matrix_to_numpy, rows,
-    scenario_err, square, to_numpy, vector, with_matrix, NdArray, NumericalError,
+    borrow_mut, core_err, extend_rows, input_err, json_of, json_of_error, matrix, matrix_to_numpy,
+    rows, scenario_err, square, to_numpy, vector, with_matrix, NdArray, NumericalError,
 };
 use bayes_cbf::gp::{
     fit_cogp_until, fit_until, Cogp, CogpFitSettings, CogpHyper, FitReport, FitSettings, Mvgp,
@@ -27,7 +27,7 @@ fn prior_of(obj: Option<&Bound<'_, PyAny>>) -> PyResult<PriorSpec> {
         None => Ok(PriorSpec::default()),
         Some(o) if o.is_none() => Ok(PriorSpec::default()),
         Some(o) => serde_json::from_str(&json_of(o, "prior_mean")?)
-            .map_err(|e| input_err(format!("prior_mean: {e}"))),
+            .map_err(|e| input_err(format!("prior_mean: {}", json_of_error(&e)))),
     }
 }
 
@@ -38,7 +38,7 @@ fn input_map_of(obj: Option<&Bound<'_, PyAny>>) -> PyResult<Option<Vec<FeatureSp
         Some(o) if o.is_none() => Ok(None),
         Some(o) => serde_json::from_str(&json_of(o, "input_map")?)
             .map(Some)
-            .map_err(|e| input_err(format!("input_map: {e}"))),
+            .map_err(|e| input_err(format!("input_map: {}", json_of_error(&e)))),
     }
 }
 

@@ -436,14 +436,14 @@ pub fn run_seeds_until(
             meta.seeds.end
         );
     }
-    let owned = meta.seeds.len().div_ceil(meta.shard.count.max(1));
-    let mut seeds = bayes_cbf::error::reserve::<u64>("seeds", owned)?;
-    seeds.extend(
-        (meta.seeds.start..meta.seeds.end)
-            .enumerate()
-            .filter(|(i, _)| meta.shard.owns(*i))
-            .map(|(_, s)| s),
-    );
+    // the shard's seeds: positions index, index + count, … of the range
+    let (index, count) = (meta.shard.index, meta.shard.count);
+    let owned = meta.seeds.len().saturating_sub(index).div_ceil(count);
+    let seed_of = |j: usize| meta.seeds.start + (index + j * count) as u64;
+    // one row per seed is kept: a sweep whose rows cannot be held is
+    // refused here, not when the memory runs out (nor is a list of its
+    // seeds made)
+    drop(bayes_cbf::error::reserve::<SweepRow>("seeds", owned)?);
     // the scenario the sweep was described with (another machine may have
     // another copy of the file)
     if let Some(want) = &meta.scenario_digest {
@@ -458,16 +458,19 @@ pub fn run_seeds_until(
     }
     // check the scenario once before fanning out, at the first seed
     let mut sets = meta.sets.clone();
-    sets.push(format!(
-        "seed={}",
-        seeds.first().unwrap_or(&meta.seeds.start)
-    ));
+    let first = if owned > 0 {
+        seed_of(0)
+    } else {
+        meta.seeds.start
+    };
+    sets.push(format!("seed={first}"));
     scenario::check(&meta.scenario, &sets)?;
     let done = AtomicUsize::new(0);
-    let total = seeds.len();
-    seeds
-        .par_iter()
-        .map(|&seed| {
+    let total = owned;
+    (0..owned)
+        .into_par_iter()
+        .map(|j| {
+            let seed = seed_of(j);
             if stop.load(Ordering::Relaxed) {
                 return Err(bayes_cbf::Error::Interrupted.into());
             }
@@ -786,6 +789,26 @@ fn check_shard_seeds(m: &SweepMeta, r: &[SweepRow]) -> Result<()> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A sweep whose rows cannot be held is refused by name before it
+    /// runs (no list of its seeds is made); a shard beyond the seeds owns
+    /// none and runs none.
+    #[test]
+    fn sweeps_too_large_to_hold_are_refused_before_they_run() {
+        let seeds = SeedRange {
+            start: 0,
+            end: 100_000_000_000_000_000,
+        };
+        let meta = SweepMeta::new("double-integrator", &[], seeds, Shard::WHOLE, 0.5).unwrap();
+        let e = run_seeds(&meta, &|_, _| {}).unwrap_err().to_string();
+        assert!(e.contains("seeds") && e.contains("too large"), "{e}");
+        let few = SweepMeta {
+            seeds: SeedRange { start: 5, end: 7 },
+            shard: Shard { index: 3, count: 4 },
+            ..meta
+        };
+        assert!(run_seeds(&few, &|_, _| {}).unwrap().is_empty());
+    }
 
     #[test]
     fn seed_ranges_and_shards_parse_or_name_the_option() {

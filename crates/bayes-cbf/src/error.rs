@@ -111,6 +111,29 @@ pub fn reserve<T>(field: &str, n: usize) -> Result<Vec<T>, InputError> {
     Ok(v)
 }
 
+/// A state shown in a message: whole up to 8 entries, else its first 6,
+/// its last and its length (a state of a thousand coordinates would fill
+/// the message).
+pub struct Brief<'a>(pub &'a [f64]);
+
+impl std::fmt::Display for Brief<'_> {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self.0 {
+            x if x.len() <= 8 => write!(f, "{x:?}"),
+            x => {
+                let head: Vec<String> = x[..6].iter().map(|v| format!("{v:?}")).collect();
+                let last = x[x.len() - 1];
+                write!(
+                    f,
+                    "[{}, …, {last:?}] ({} entries)",
+                    head.join(", "),
+                    x.len()
+                )
+            }
+        }
+    }
+}
+
 /// Checks that every entry of `v` is finite, naming the first bad entry.
 pub fn check_finite(field: &str, v: &[f64]) -> Result<(), InputError> {
     match v.iter().position(|x| !x.is_finite()) {
@@ -263,6 +286,18 @@ pub enum Error {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A short state is shown as Rust shows a slice; a long one by its
+    /// first six entries, its last and its length.
+    #[test]
+    fn long_states_are_shown_briefly() {
+        assert_eq!(Brief(&[0.5, -1.0]).to_string(), "[0.5, -1.0]");
+        let x: Vec<f64> = (0..1000).map(f64::from).collect();
+        assert_eq!(
+            Brief(&x).to_string(),
+            "[0.0, 1.0, 2.0, 3.0, 4.0, 5.0, …, 999.0] (1000 entries)"
+        );
+    }
 
     /// A value of a million characters is shown cut to 300, with its
     /// length; a short one whole; a cut never splits a character.

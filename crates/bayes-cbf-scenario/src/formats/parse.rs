@@ -148,6 +148,48 @@ pub fn whole_number_error(v: &serde_json::Value) -> std::result::Result<(), Stri
     whole_number(v).map(|_| ()).map_err(|e| e.to_string())
 }
 
+/// A serde message with the Rust types it names in words: `expected usize`
+/// becomes "expected a non-negative whole number", `expected struct
+/// ControllerSpec` "expected a table (a JSON object)", and so on: the user
+/// wrote a file or an argument, not the library's types.
+pub fn in_words(msg: &str) -> String {
+    let mut out = msg.to_string();
+    for (rust, words) in [
+        ("expected usize", "expected a non-negative whole number"),
+        ("expected u64", "expected a non-negative whole number"),
+        ("expected u32", "expected a non-negative whole number"),
+        ("expected i64", "expected a whole number"),
+        ("expected f64", "expected a number"),
+        ("expected bool", "expected true or false"),
+    ] {
+        out = out.replace(rust, words);
+    }
+    // serde names a type the library defines (CamelCase) after these
+    for (prefix, words) in [
+        (
+            "internally tagged enum ",
+            "a table (a JSON object) with its \"type\"",
+        ),
+        ("struct ", "a table (a JSON object)"),
+        ("enum ", "one of the documented values"),
+    ] {
+        let mut from = 0;
+        while let Some(i) = out[from..].find(prefix).map(|i| i + from) {
+            let rest = &out[i + prefix.len()..];
+            let len = rest
+                .find(|c: char| !(c.is_ascii_alphanumeric() || c == '_'))
+                .unwrap_or(rest.len());
+            if rest.starts_with(|c: char| c.is_ascii_uppercase()) {
+                out.replace_range(i..i + prefix.len() + len, words);
+                from = i + words.len();
+            } else {
+                from = i + prefix.len();
+            }
+        }
+    }
+    out
+}
+
 /// `text` without a leading UTF-8 byte-order mark, which some editors
 /// write and JSON and TOML parsers refuse.
 pub fn strip_bom(text: &str) -> &str {
@@ -175,7 +217,7 @@ pub fn json_error_message(text: &str, e: &serde_json::Error) -> String {
             .map(|w| (start, w))
     });
     let Some((start, word)) = found else {
-        return e.to_string();
+        return in_words(&e.to_string());
     };
     let field = enclosing_key(&text[..start]);
     let place = format!("line {} column {}", e.line(), e.column() - (at - start));
@@ -290,7 +332,7 @@ pub fn json_value(text: &str) -> serde_json::Result<serde_json::Value> {
 
 #[cfg(test)]
 mod json_tests {
-    use super::{json_error_message, json_value};
+    use super::{in_words, json_error_message, json_value};
 
     #[test]
     fn json_values_refuse_a_key_given_twice_at_any_depth() {
@@ -345,6 +387,33 @@ mod json_tests {
 
     /// A byte-order mark, as some editors write it, is skipped by every
     /// reader: JSON values, barrier files and scenario files.
+    /// The library's type names and Rust's number types are told in words;
+    /// other text, and a lower-case word after "struct", stay.
+    #[test]
+    fn serde_messages_name_no_rust_types() {
+        for (msg, want) in [
+            (
+                "invalid type: integer `5`, expected internally tagged enum BarrierSpec",
+                "invalid type: integer `5`, expected a table (a JSON object) with its \"type\"",
+            ),
+            (
+                "invalid type: null, expected struct DataSpec at line 1 column 9",
+                "invalid type: null, expected a table (a JSON object) at line 1 column 9",
+            ),
+            (
+                "invalid type: floating point `1.0`, expected usize",
+                "invalid type: floating point `1.0`, expected a non-negative whole number",
+            ),
+            ("a struct field", "a struct field"),
+            (
+                "expected enum Rank or struct X",
+                "expected one of the documented values or a table (a JSON object)",
+            ),
+        ] {
+            assert_eq!(in_words(msg), want);
+        }
+    }
+
     #[test]
     fn a_byte_order_mark_is_skipped() {
         assert_eq!(json_value("\u{feff}{\"a\": 1}").unwrap()["a"], 1);

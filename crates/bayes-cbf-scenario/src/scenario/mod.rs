@@ -710,9 +710,21 @@ pub fn apply_set(table: &mut toml::Table, assignment: &str) -> Result<()> {
     let text = value.trim();
     let value: toml::Value = match format!("v = {text}").parse::<toml::Table>() {
         Ok(mut t) => t.remove("v").unwrap_or(toml::Value::String(text.into())),
+        Err(_) if is_integer(text) && text.parse::<i64>().is_ok() => {
+            bail!("override '{key}': {text}: an integer is written without leading zeros (TOML)")
+        }
         Err(_) if is_integer(text) => bail!(
             "override '{key}': {text} is outside the range of integers \
              (-9223372036854775808 to 9223372036854775807)"
+        ),
+        // a number TOML spells otherwise (.5, 5., 1E3, +.5)
+        Err(_) if text.parse::<f64>().is_ok_and(f64::is_finite) => {
+            toml::Value::Float(text.parse::<f64>().unwrap_or_default())
+        }
+        Err(e) if text.starts_with('[') => bail!(
+            "override '{key}': {text} is not a TOML array: {} (lists are written \
+             [1.0, 2.0], strings in them quoted)",
+            e.message().trim_end()
         ),
         Err(_) if text.starts_with('{') => match serde_json::from_str::<serde_json::Value>(text) {
             Ok(json) => {
@@ -801,18 +813,7 @@ pub fn scenario_text(name: &str) -> Result<(String, String)> {
 /// The message of a TOML parse error on one line, with the Rust types that
 /// serde names in it (`expected usize`) in words.
 fn message(e: &toml::de::Error) -> String {
-    let mut msg = e.message().replace('\n', " ");
-    for (rust, words) in [
-        ("expected usize", "expected a non-negative whole number"),
-        ("expected u64", "expected a non-negative whole number"),
-        ("expected u32", "expected a non-negative whole number"),
-        ("expected i64", "expected a whole number"),
-        ("expected f64", "expected a number"),
-        ("expected bool", "expected true or false"),
-    ] {
-        msg = msg.replace(rust, words);
-    }
-    msg
+    crate::parse::in_words(&e.message().replace('\n', " "))
 }
 
 /// One-line rendering of a TOML parse error, with the line it points at.
@@ -1272,6 +1273,22 @@ mod tests {
         );
         let err = format!("{:#}", load(path, &["gp.Aa.scale=2".into()]).unwrap_err());
         assert!(err.contains("unknown field `Aa`"), "{err}");
+        // a number TOML spells otherwise is read; a leading zero and a
+        // malformed list are named as such, not as strings
+        let (s, _) = load("double-integrator", &["dt=.05".into()]).unwrap();
+        assert_eq!(s.dt, 0.05);
+        for (set, want) in [
+            ("steps=05", "written without leading zeros"),
+            ("start=[1, 0", "is not a TOML array"),
+            ("start=[null, 0]", "is not a TOML array"),
+            ("controller=5", "expected a table"),
+        ] {
+            let err = format!(
+                "{:#}",
+                load("double-integrator", &[set.into()]).unwrap_err()
+            );
+            assert!(err.contains(want) && !err.contains("Spec"), "{set}: {err}");
+        }
         // a negative count and a string for a number are told in words
         for (set, want) in [
             ("trigger.samples=-5", "expected a non-negative whole number"),

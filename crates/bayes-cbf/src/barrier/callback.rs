@@ -103,11 +103,11 @@ impl CallbackBarrier {
         match (self.h)(x) {
             Ok(v) if v.is_finite() => v,
             Ok(v) => {
-                self.fail(format!("h returned {v} at x = {x:?}"));
+                self.fail(format!("h returned {v} at x = {}", crate::error::Brief(x)));
                 f64::NAN
             }
             Err(e) => {
-                self.fail(format!("h failed at x = {x:?}: {e}"));
+                self.fail(format!("h failed at x = {}: {e}", crate::error::Brief(x)));
                 f64::NAN
             }
         }
@@ -116,12 +116,13 @@ impl CallbackBarrier {
     /// Fills `out` by `f` (named `what`), recording a failure (NaN-filled).
     fn eval_array(&self, what: &str, f: &ArrayFn, x: &[f64], out: &mut [f64]) -> bool {
         let r = f(x, out);
+        let x = crate::error::Brief(x);
         let msg = match r {
-            Err(e) => Some(format!("{what} failed at x = {x:?}: {e}")),
+            Err(e) => Some(format!("{what} failed at x = {x}: {e}")),
             Ok(()) => out
                 .iter()
                 .position(|v| !v.is_finite())
-                .map(|i| format!("{what} returned {} in entry {i} at x = {x:?}", out[i])),
+                .map(|i| format!("{what} returned {} in entry {i} at x = {x}", out[i])),
         };
         match msg {
             Some(m) => {
@@ -144,7 +145,8 @@ impl CallbackBarrier {
             .find(|&(i, j)| (hess[i * n + j] - hess[j * n + i]).abs() > 1e-8 * scale.max(1e-300));
         if let Some((i, j)) = bad {
             self.fail(format!(
-                "hess returned a non-symmetric matrix at x = {x:?}: entry ({i}, {j}) = {}, ({j}, {i}) = {}",
+                "hess returned a non-symmetric matrix at x = {}: entry ({i}, {j}) = {}, ({j}, {i}) = {}",
+                crate::error::Brief(x),
                 hess[i * n + j],
                 hess[j * n + i]
             ));

@@ -120,8 +120,9 @@ impl ConditionMoments {
         match bad {
             None => Ok(()),
             Some(entry) => Err(InputError::Evaluation(format!(
-                "{label}: the condition's moments are not finite at x = {x:?} ({entry}): \
-                 the model, the function or their derivatives overflow at this state"
+                "{label}: the condition's moments are not finite at x = {} ({entry}): \
+                 the model, the function or their derivatives overflow at this state",
+                crate::error::Brief(x)
             ))),
         }
     }
@@ -451,8 +452,9 @@ pub(super) fn check_evaluation(
     for (what, v) in [("h", h), ("∇h", grad), ("∇²h", hess)] {
         if let Some(bad) = v.iter().find(|v| !v.is_finite()) {
             return Err(InputError::Evaluation(format!(
-                "{what} of barrier '{}' is {bad} at x = {x:?}",
-                barrier.name()
+                "{what} of barrier '{}' is {bad} at x = {}",
+                barrier.name(),
+                crate::error::Brief(x)
             ))
             .into());
         }
@@ -502,7 +504,7 @@ pub fn cbc_moments(
     let nrm: f64 = out.e[1..].iter().map(|v| v * v).sum::<f64>().sqrt();
     let scale = out.e[0].abs().max(1.0);
     if nrm < 1e-9 * scale && NO_INPUT_WARNED.first() {
-        log::warn!("barrier '{}': the model's mean of L_g L_f^(r-1) h is ≈ 0 at x = {:?} (|e_u| = {nrm:.2e}): the input has no mean effect on the condition there, because the prior mean gives it none (a zero prior mean, before data) or because relative degree {r} is wrong (shown once per run or filter)", barrier.name(), ws.x);
+        log::warn!("barrier '{}': the model's mean of L_g L_f^(r-1) h is ≈ 0 at x = {} (|e_u| = {nrm:.2e}): the input has no mean effect on the condition there, because the prior mean gives it none (a zero prior mean, before data) or because relative degree {r} is wrong (shown once per run or filter)", barrier.name(), crate::error::Brief(&ws.x));
     }
     Ok(())
 }
@@ -579,9 +581,9 @@ pub fn clc_moments(
     }
     let (v, dvdt) = clf.gradient(&ws.x, xd, xd_dot, &mut ws.grad, &mut ws.sd);
     let at = |what: &str, bad: f64| {
-        let x = &ws.x;
+        let (x, xd) = (crate::error::Brief(&ws.x), crate::error::Brief(xd));
         Err(InputError::Evaluation(format!(
-            "clf: {what} is {bad} at x = {x:?}, x_d = {xd:?} (V is not defined or not differentiable there)"
+            "clf: {what} is {bad} at x = {x}, x_d = {xd} (V is not defined or not differentiable there)"
         ))
         .into())
     };

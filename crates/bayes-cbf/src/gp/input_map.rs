@@ -3,10 +3,12 @@
 use crate::error::{check_index, InputError};
 
 /// Checks that `entries` (of a map's `kind`: index or feature) are
-/// distinct, at least one, and read coordinates below `n`.
+/// distinct, at least one, and read coordinates below `n`; `index` gives
+/// an entry's coordinate and the key it stands under (`.cos` of
+/// `{"cos": 2}`, empty for a bare index).
 fn check_entries<T: PartialEq>(
     entries: &[T],
-    index: impl Fn(&T) -> usize,
+    index: impl Fn(&T) -> (usize, &'static str),
     n: usize,
     kind: &str,
 ) -> Result<(), InputError> {
@@ -18,12 +20,13 @@ fn check_entries<T: PartialEq>(
         ));
     }
     for (j, e) in entries.iter().enumerate() {
-        let field = format!("input_map[{j}]");
-        check_index(&field, index(e), n)?;
+        let (i, key) = index(e);
+        let field = format!("input_map[{j}]{key}");
+        check_index(&field, i, n)?;
         if entries[..j].contains(e) {
             return Err(InputError::invalid_shown(
                 &field,
-                index(e),
+                i,
                 &format!("duplicate {kind}"),
             ));
         }
@@ -90,8 +93,20 @@ impl InputMap {
     pub fn validate(&self, n: usize) -> Result<(), InputError> {
         match self {
             InputMap::Identity => Ok(()),
-            InputMap::Select(idx) => check_entries(idx, |&i| i, n, "index"),
-            InputMap::Features(f) => check_entries(f, |f| f.index(), n, "feature"),
+            InputMap::Select(idx) => check_entries(idx, |&i| (i, ""), n, "index"),
+            InputMap::Features(f) => check_entries(
+                f,
+                |f| {
+                    let key = match f {
+                        Feature::Coord(_) => "",
+                        Feature::Cos(_) => ".cos",
+                        Feature::Sin(_) => ".sin",
+                    };
+                    (f.index(), key)
+                },
+                n,
+                "feature",
+            ),
         }
     }
 
@@ -184,7 +199,7 @@ mod tests {
             ),
             (
                 InputMap::Features(vec![Feature::Coord(0), Feature::Sin(5)]),
-                "input_map[1]",
+                "input_map[1].sin",
                 "index must be < state dimension 3",
             ),
             (
@@ -194,7 +209,7 @@ mod tests {
             ),
             (
                 InputMap::Features(vec![Feature::Cos(1), Feature::Sin(1), Feature::Cos(1)]),
-                "input_map[2]",
+                "input_map[2].cos",
                 "duplicate feature",
             ),
         ];

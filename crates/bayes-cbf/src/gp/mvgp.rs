@@ -283,10 +283,10 @@ impl<K: Kernel> Mvgp<K> {
             )
             .into());
         }
-        if let Some(&r) = known.iter().find(|&&r| r >= self.n) {
+        if let Some(j) = rows.iter().position(|&r| r >= self.n) {
             return Err(InputError::invalid_shown(
-                "known_rows",
-                r,
+                &format!("known_rows[{j}]"),
+                rows[j],
                 &format!("is not a row of F (state_dim = {})", self.n),
             )
             .into());
