@@ -81,6 +81,16 @@ pub struct ControlArgs {
     /// name it).
     #[arg(long)]
     pub latent: bool,
+    /// Monte Carlo draws of the conditions of relative degree > 2 (the
+    /// safety controller's default).
+    #[arg(long, allow_negative_numbers = true, default_value_t = 2_000)]
+    pub samples: usize,
+    /// Finite-difference step of their Monte Carlo Lie derivatives.
+    #[arg(long, default_value_t = 1e-2, allow_hyphen_values = true)]
+    pub step: f64,
+    /// Seed of their Monte Carlo draws.
+    #[arg(long, allow_negative_numbers = true, default_value_t = 0)]
+    pub seed: u64,
     /// Write the JSON here instead of stdout (`-`: stdout).
     #[arg(long)]
     pub out: Option<PathBuf>,
@@ -160,7 +170,12 @@ pub fn run_control(a: &ControlArgs) -> Result<()> {
         .map(|s| vector_of_len("--u-max", s, m, "control_dim"))
         .transpose()?;
     settings.fallback = Fallback::parse(&a.fallback).context("--fallback")?;
-    let report = control_step(&model, barriers, settings, &x, &u_ref)
+    let mc = McSettings {
+        samples: a.samples,
+        step: a.step,
+        seed: a.seed,
+    };
+    let report = control_step(&model, barriers, settings, &mc, &x, &u_ref)
         .map_err(anyhow::Error::from)
         .map_err(|e| fix_field(e, "--"))?;
     emit(&report, &a.out)
@@ -180,6 +195,8 @@ fn fix_field(e: anyhow::Error, prefix: &str) -> anyhow::Error {
         )
         .replace("invalid zeta", &format!("invalid {prefix}zeta"))
         .replace("u_min[", &format!("{prefix}u-min["))
-        .replace("invalid fallback", &format!("invalid {prefix}fallback"));
+        .replace("invalid fallback", &format!("invalid {prefix}fallback"))
+        .replace("invalid samples", &format!("invalid {prefix}samples"))
+        .replace("invalid step", &format!("invalid {prefix}step"));
     anyhow::anyhow!(fixed)
 }

@@ -211,6 +211,7 @@ pub fn control_step(
     model: &Mvgp,
     barriers: Vec<(String, Arc<dyn DynBarrier>)>,
     settings: SafetySettings,
+    mc: &McSettings,
     x: &[f64],
     u_ref: &[f64],
 ) -> Result<ControlReport> {
@@ -233,6 +234,7 @@ pub fn control_step(
     };
     let bs = barriers.into_iter().map(|(_, b)| b).collect();
     let mut ctrl = SafetyController::new(n, m, bs, None, settings)?;
+    ctrl.set_monte_carlo(mc.clone());
     let mut out = ControlOutput::new(m, labels.len());
     ctrl.step(model, x, u_ref, None, &mut out)
         .map_err(|e| match (&e, culprit) {

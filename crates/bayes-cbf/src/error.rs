@@ -209,6 +209,15 @@ pub enum GpError {
         /// Largest relative jitter tried.
         max_jitter: f64,
     },
+    /// The Gram matrix has entries beyond f64's range: its scale (kernel
+    /// variance times `u̲ᵀBu̲`, plus the noise) overflows.
+    #[error("Gram matrix (k = {size}) has a diagonal entry of {diagonal:e}: its scale (the kernel variance times u̲ᵀBu̲ of the controls, plus σ²) is beyond the range of f64; scale the kernel variance, B or the controls down")]
+    Overflow {
+        /// Size `k` of the Gram matrix.
+        size: usize,
+        /// The first non-finite diagonal entry.
+        diagonal: f64,
+    },
     /// Hyperparameter optimisation failed to produce a finite likelihood.
     #[error("hyperparameter optimisation failed: {0}")]
     Optimisation(String),

@@ -290,6 +290,12 @@ impl CholFactor {
     ) -> Result<Pivot, GpError> {
         let k = self.k;
         assert_eq!(g_new.len(), k, "g_new length");
+        if !diag.is_finite() {
+            return Err(GpError::Overflow {
+                size: k + 1,
+                diagonal: diag,
+            });
+        }
         let row = &mut scratch[..k];
         row.copy_from_slice(g_new);
         self.solve_l(MatMut::from_column_major_slice_mut(row, k, 1));
@@ -463,6 +469,12 @@ pub(crate) fn factor_in_place(
     let diag = &mut scratch.diag[..k];
     for (j, d) in diag.iter_mut().enumerate() {
         *d = a[(j, j)];
+    }
+    if let Some(&d) = diag.iter().find(|d| !d.is_finite()) {
+        return Err(GpError::Overflow {
+            size: k,
+            diagonal: d,
+        });
     }
     let mean_diag = if k == 0 {
         1.0
@@ -683,6 +695,24 @@ mod tests {
             CholFactor::factor(h.as_ref(), 3),
             Err(GpError::IllConditioned { .. })
         ));
+        // an overflowing scale is told as such, not as ill-conditioning,
+        // in a factorisation and in an append
+        let mut big = Mat::<f64>::identity(3, 3);
+        big[(1, 1)] = f64::INFINITY;
+        let e = CholFactor::factor(big.as_ref(), 3).unwrap_err();
+        assert_eq!(
+            e,
+            GpError::Overflow {
+                size: 3,
+                diagonal: f64::INFINITY
+            }
+        );
+        assert!(e.to_string().contains("beyond the range of f64"), "{e}");
+        let mut f = CholFactor::factor(Mat::<f64>::identity(2, 2).as_ref(), 4).unwrap();
+        let e = f
+            .append(&[0.0, 0.0], f64::INFINITY, &mut [0.0; 4])
+            .unwrap_err();
+        assert!(matches!(e, GpError::Overflow { size: 3, .. }), "{e:?}");
     }
 
     /// `L Lᵀ` equals `G` plus the recorded jitter on the diagonal.
