@@ -63,7 +63,7 @@ class SafetyFilterWrapper(gym.Wrapper, gym.utils.RecordConstructorArgs):
         ``"midpoint"`` or ``"start"``: where the derivative estimate of a
         transition is labelled (module docs).
     barriers_for_log:
-        Barriers whose values are logged; default: none (``info`` then has
+        Barriers whose values are logged; default (or ``None``): none (``info`` then has
         only the filter's outcome). Pass the filter's barriers to record
         violations.
     learn_if:
@@ -115,7 +115,7 @@ class SafetyFilterWrapper(gym.Wrapper, gym.utils.RecordConstructorArgs):
         max_data: int = 500,
         refit_every: int = 0,
         label_at: str = "midpoint",
-        barriers_for_log: Sequence[Any] = (),
+        barriers_for_log: Optional[Sequence[Any]] = (),
         learn_if: Optional[Callable[..., Any]] = None,
     ):
         # recorded for env.spec; not copied: a wrapper made again from the
@@ -160,8 +160,12 @@ class SafetyFilterWrapper(gym.Wrapper, gym.utils.RecordConstructorArgs):
                 raise InputError(f"dt = {dt!r}: the control period must be a finite number > 0")
         else:
             dt = getattr(env.unwrapped, "dt", None)
-            if dt is None or not np.isfinite(dt) or dt <= 0:
-                raise InputError("dt: give the control period (the environment has no positive dt)")
+            real = isinstance(dt, numbers.Real) and not isinstance(dt, bool)
+            if not real or not np.isfinite(dt) or dt <= 0:
+                raise InputError(
+                    f"dt: give the control period (the environment's dt is {dt!r}, "
+                    "not a positive number)"
+                )
         self.dt = float(dt)
         n = self.model.state_dim
         if isinstance(angle_indices, (str, bytes)) or not hasattr(angle_indices, "__iter__"):
@@ -177,6 +181,13 @@ class SafetyFilterWrapper(gym.Wrapper, gym.utils.RecordConstructorArgs):
         if label_at not in ("midpoint", "start"):
             raise InputError(f"label_at: {label_at!r}, expected 'midpoint' or 'start'")
         self.label_at = label_at
+        if barriers_for_log is None:
+            barriers_for_log = ()
+        if isinstance(barriers_for_log, (str, bytes)) or not hasattr(barriers_for_log, "__iter__"):
+            raise InputError(
+                f"barriers_for_log: {type(barriers_for_log).__name__}, expected a sequence "
+                "of bayes_cbf.Barrier"
+            )
         self.barriers_for_log = list(barriers_for_log)
         for i, b in enumerate(self.barriers_for_log):
             if not isinstance(b, Barrier):
@@ -257,6 +268,10 @@ class SafetyFilterWrapper(gym.Wrapper, gym.utils.RecordConstructorArgs):
         if kind not in "fiu":
             raise InputError(f"action: {action!r}, expected numbers (got dtype kind {kind!r})")
         u_ref = np.asarray(action, dtype=np.float64).reshape(-1)
+        if u_ref.size != self.model.control_dim:
+            raise InputError(
+                f"action: {u_ref.size} values, the model has {self.model.control_dim} controls"
+            )
         res = self.filter.filter(self._x, u_ref)
         u = np.clip(res.u, self._low, self._high)
         self._warn_clip(res.u, u)
@@ -286,7 +301,10 @@ class SafetyFilterWrapper(gym.Wrapper, gym.utils.RecordConstructorArgs):
         values = self._log_barriers(x_new)
         st = self.episode_stats
         st["steps"] += 1
-        st["return"] += float(reward)
+        try:
+            st["return"] += float(reward)
+        except (TypeError, ValueError) as e:
+            raise InputError(f"the environment's reward {reward!r} is not a number") from e
         st["infeasible_steps"] += res.status == "infeasible"
         st["unlearned_steps"] += self.learn and not learned
         violated = bool(values) and min(values) < 0

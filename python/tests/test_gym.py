@@ -78,6 +78,7 @@ def test_wrapper_rejects_bad_setups():
         ("learn", "no", "learn"),
         ("barriers_for_log", [1.0], r"barriers_for_log\[0\]: float"),
         ("barriers_for_log", [three], r"barriers_for_log\[0\]: a barrier on 3 states"),
+        ("barriers_for_log", 5, "barriers_for_log: int, expected a sequence"),
     ]:
         model = bc.MVGP(2, 1, [1.0, 1.0], np.eye(2), np.eye(2), 0.1)
         filt = bc.SafetyFilter(model, [bc.Barrier.half_space([1.0, 0.0], 0.0, alpha=1.0)])
@@ -98,6 +99,13 @@ def test_wrapper_rejects_bad_setups():
     for action in [np.array([True]), "1", np.array(["1.0"])]:
         with pytest.raises(bc.InputError, match="action"):
             w.step(action)
+    with pytest.raises(bc.InputError, match="action: 2 values, the model has 1 controls"):
+        w.step(np.zeros(2))
+    # None logs no barrier
+    model = bc.MVGP(2, 1, [1.0, 1.0], np.eye(2), np.eye(2), 0.1)
+    filt = bc.SafetyFilter(model, [bc.Barrier.half_space([1.0, 0.0], 0.0, alpha=1.0)])
+    assert SafetyFilterWrapper(gym.make("Pendulum-v1"), filt, lambda o: o[:2],
+                               barriers_for_log=None).barriers_for_log == []
     # a 0-d array is a number, as elsewhere in the package
     model = bc.MVGP(2, 1, [1.0, 1.0], np.eye(2), np.eye(2), 0.1)
     filt = bc.SafetyFilter(model, [bc.Barrier.half_space([1.0, 0.0], 0.0, alpha=1.0)])

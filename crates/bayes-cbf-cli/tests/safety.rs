@@ -271,10 +271,16 @@ fn moments_beyond_relative_degree_two_use_monte_carlo() {
     );
     // `control` takes the same options, and names them in its errors
     let control = "control --model model.json --barrier b3.json --x 0.5,0.1 --probability 0.9";
-    let v = json_out(&dir, &format!("{control} --samples 3000 --seed 4 --step 0.02"));
+    let v = json_out(
+        &dir,
+        &format!("{control} --samples 3000 --seed 4 --step 0.02"),
+    );
     assert_eq!(v["constraints"][0]["relative_degree"], 3);
     assert_eq!(
-        json_out(&dir, &format!("{control} --samples 3000 --seed 4 --step 0.02")),
+        json_out(
+            &dir,
+            &format!("{control} --samples 3000 --seed 4 --step 0.02")
+        ),
         v
     );
     let bad = run_in(&dir, &words(&format!("{control} --samples 1")));

@@ -75,6 +75,20 @@ impl InputError {
         }
     }
 
+    /// The same error with its field read inside `prefix` (`trigger.` makes
+    /// `grid` `trigger.grid`): settings checked on their own and as part
+    /// of larger ones name the field as the user wrote it.
+    pub fn within(mut self, prefix: &str) -> Self {
+        match &mut self {
+            Self::Invalid { field, .. }
+            | Self::Shape { field, .. }
+            | Self::Expression { field, .. }
+            | Self::NotPositiveDefinite { field, .. } => field.insert_str(0, prefix),
+            Self::Evaluation(_) => {}
+        }
+        self
+    }
+
     /// `Shape` error.
     pub fn shape(field: &str, expected: impl ToString, got: impl ToString) -> Self {
         Self::Shape {

@@ -433,6 +433,30 @@ fn self_triggered_controller_owns_the_rules() {
         .unwrap()
         .to_string();
     assert!(e.contains("trigger.zeta_b"), "{e}");
+    // the Lipschitz settings inside the trigger's are named inside it
+    for (bad, field) in [
+        (
+            TriggerSettings::new(vec![0.1]),
+            "wrong shape of trigger.cuboid",
+        ),
+        (
+            TriggerSettings::new(vec![0.1, -1.0]),
+            "invalid trigger.cuboid[1] = -1",
+        ),
+        (
+            TriggerSettings {
+                lipschitz: LipschitzSettings {
+                    grid: 1,
+                    ..trigger.lipschitz.clone()
+                },
+                ..trigger.clone()
+            },
+            "invalid trigger.grid = 1",
+        ),
+    ] {
+        let e = bad.validate(2).unwrap_err().to_string();
+        assert!(e.contains(field), "{e}");
+    }
     let rd1: Arc<dyn DynBarrier> =
         Arc::new(PendulumSector::new(0.785, 0.39, 1, vec![1.0]).unwrap());
     let mut no_margin = settings;

@@ -307,7 +307,11 @@ pub fn validate_gains(r: usize, gains: &[f64]) -> Result<(), InputError> {
 /// Hessian holds `n²` entries).
 pub(crate) fn check_state_dim(field: &str, n: usize) -> Result<(), InputError> {
     if n == 0 {
-        return Err(InputError::shape(field, "≥ 1 state", 0));
+        return Err(InputError::invalid(
+            field,
+            0.0,
+            "at least one state is needed",
+        ));
     }
     if n > crate::gp::MAX_DIMENSION {
         return Err(InputError::invalid_shown(

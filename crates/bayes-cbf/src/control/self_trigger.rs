@@ -159,7 +159,9 @@ impl TriggerSettings {
 
     /// Checks the settings for state dimension `n`.
     pub fn validate(&self, n: usize) -> Result<(), InputError> {
-        self.lipschitz.validate(n)?;
+        self.lipschitz
+            .validate(n)
+            .map_err(|e| e.within("trigger."))?;
         if let Some((i, &w)) = self
             .lipschitz
             .sides
