@@ -26,6 +26,7 @@ macro_rules! note_part {
 mod bench;
 mod commands;
 mod demo;
+mod interrupt;
 mod logger;
 mod output;
 mod run_cmd;
@@ -125,6 +126,10 @@ fn main() -> ExitCode {
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,
+        Err(e) if interrupt::is_interrupted(&e) => {
+            note!("interrupted: nothing was written");
+            ExitCode::from(interrupt::INTERRUPTED)
+        }
         Err(e) => {
             // `{:#}` joins the context chain with ": " on one line.
             let msg = format!("{e:#}").replace('\n', " ");

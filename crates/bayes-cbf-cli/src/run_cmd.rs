@@ -205,12 +205,21 @@ fn run_and_plot(
 ) -> Result<(RunOutput, Vec<PathBuf>)> {
     let show = progress && std::io::stderr().is_terminal();
     let name = sc.name.clone();
-    let output = scenario::run_scenario(sc, |k, steps| {
-        if show && (k % 10 == 0 || k + 1 == steps) {
-            note_part!("\r{name}: step {}/{steps}", k + 1);
-            if k + 1 == steps {
-                note!();
+    let output = scenario::run_scenario_until(
+        sc,
+        |k, steps| {
+            if show && (k % 10 == 0 || k + 1 == steps) {
+                note_part!("\r{name}: step {}/{steps}", k + 1);
+                if k + 1 == steps {
+                    note!();
+                }
             }
+        },
+        crate::interrupt::stop_flag(),
+    )
+    .inspect_err(|_| {
+        if show {
+            note!();
         }
     })?;
     // the summary last: a directory with a summary.json holds a complete run

@@ -7,8 +7,8 @@ use bayes_cbf_scenario::experiments::calibration::{self, CalibrationPart};
 use bayes_cbf_scenario::experiments::{ExperimentArgs, ExperimentResult};
 use bayes_cbf_scenario::io::{write_atomic, write_json, StagedDir};
 use bayes_cbf_scenario::sweep::{
-    merge_sweeps, parse_rows_csv, rows_csv, run_seeds, summarise, SeedRange, Shard, SweepMeta,
-    SweepRow,
+    merge_sweeps, parse_rows_csv, rows_csv, run_seeds_until, summarise, SeedRange, Shard,
+    SweepMeta, SweepRow,
 };
 use clap::Args;
 use std::path::{Path, PathBuf};
@@ -49,10 +49,15 @@ pub fn run_sweep(
     )?;
     let staged = StagedDir::new(out)?;
     let bar = progress_bar(&format!("{scenario} seeds"), "runs");
-    let rows = run_seeds(&meta, &|done, total| {
-        bar.set_length(total as u64);
-        bar.set_position(done as u64);
-    })?;
+    let rows = run_seeds_until(
+        &meta,
+        &|done, total| {
+            bar.set_length(total as u64);
+            bar.set_position(done as u64);
+        },
+        &crate::interrupt::stop_flag(),
+    )
+    .inspect_err(|_| bar.abandon())?;
     bar.finish_and_clear();
     let stage = staged.path();
     write_atomic(&stage.join("sweep.csv"), rows_csv(&rows).as_bytes())?;
@@ -180,6 +185,9 @@ pub fn run_merge(a: &MergeArgs) -> Result<()> {
             let m = d.join("shard.json");
             let meta: SweepMeta = serde_json::from_str(&read(&m)?)
                 .with_context(|| format!("'{}' is not a sweep shard", m.display()))?;
+            meta.shard
+                .validate()
+                .with_context(|| format!("merge: '{}'", m.display()))?;
             let csv = d.join("sweep.csv");
             let rows = parse_rows_csv(&read(&csv)?, &csv.display().to_string())?;
             parts.push((meta, rows));

@@ -633,3 +633,79 @@ fn weights_far_apart_are_warned_of_or_refused() {
     let r = run_with(&dir, "unicycle-obstacles", &["steps=5"], "c");
     assert!(!r.stderr.contains("apart"), "{}", r.stderr);
 }
+
+/// Starts `args` in `dir`, waits until a run's staging directory appears,
+/// sends SIGINT and returns the exit code and stderr.
+#[cfg(unix)]
+fn interrupted(dir: &std::path::Path, args: &[&str]) -> (Option<i32>, String) {
+    let mut child = Command::new(env!("CARGO_BIN_EXE_bayes-cbf"))
+        .args(args)
+        .current_dir(dir)
+        .stdout(Stdio::null())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let staged = || {
+        std::fs::read_dir(dir)
+            .unwrap()
+            .any(|e| e.unwrap().file_name().to_string_lossy().contains(".tmp-"))
+    };
+    let start = std::time::Instant::now();
+    while !staged() && start.elapsed().as_secs() < 60 {
+        std::thread::sleep(std::time::Duration::from_millis(20));
+    }
+    assert!(staged(), "no staging directory appeared");
+    std::thread::sleep(std::time::Duration::from_millis(300));
+    let pid = child.id().to_string();
+    let kill = Command::new("kill").args(["-INT", &pid]).status().unwrap();
+    assert!(kill.success());
+    let out = child.wait_with_output().unwrap();
+    (
+        out.status.code(),
+        String::from_utf8_lossy(&out.stderr).into_owned(),
+    )
+}
+
+/// Ctrl-C stops a run and a sweep before their next step: exit status 130,
+/// a message, and neither their output nor a staging directory is left.
+#[cfg(unix)]
+#[test]
+fn ctrl_c_leaves_nothing_behind() {
+    for (name, args) in [
+        (
+            "run",
+            vec![
+                "run",
+                "ackermann-learning",
+                "--set",
+                "steps=20000",
+                "--out",
+                "d",
+            ],
+        ),
+        (
+            "sweep",
+            vec![
+                "run",
+                "ackermann-learning",
+                "--seeds",
+                "0..1000",
+                "--out",
+                "d",
+            ],
+        ),
+    ] {
+        let dir = scratch_dir(&format!("outputs-ctrl-c-{name}"));
+        let (code, stderr) = interrupted(&dir, &args);
+        assert_eq!(code, Some(130), "{name}: {stderr}");
+        assert!(
+            stderr.contains("interrupted: nothing was written"),
+            "{name}: {stderr}"
+        );
+        let left: Vec<_> = std::fs::read_dir(&*dir)
+            .unwrap()
+            .map(|e| e.unwrap().file_name())
+            .collect();
+        assert!(left.is_empty(), "{name}: left {left:?}");
+    }
+}

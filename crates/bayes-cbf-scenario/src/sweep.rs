@@ -273,6 +273,7 @@ pub fn parse_rows_csv(text: &str, name: &str) -> Result<Vec<SweepRow>> {
         Some(HEADER_OUTCOMES) => 8,
         _ => bail!("{name}: expected the header '{HEADER}'"),
     };
+    let column: Vec<&str> = HEADER.split(',').collect();
     let mut rows = Vec::new();
     for (i, line) in lines.enumerate() {
         let at = || format!("{name} line {}", i + 2);
@@ -294,16 +295,24 @@ pub fn parse_rows_csv(text: &str, name: &str) -> Result<Vec<SweepRow>> {
             match f[j].parse::<f64>() {
                 Ok(v) if !v.is_nan() => Ok(v),
                 _ => Err(err!(
-                    "{}: field {} = '{}' is not a number",
+                    "{}: field {} ({}) = '{}' is not a number",
                     at(),
                     j + 1,
+                    column[j],
                     f[j]
                 )),
             }
         };
         let int = |j: usize| -> Result<u64> {
-            f[j].parse::<u64>()
-                .map_err(|_| err!("{}: field {} = '{}' is not an integer", at(), j + 1, f[j]))
+            f[j].parse::<u64>().map_err(|_| {
+                err!(
+                    "{}: field {} ({}) = '{}' is not an integer",
+                    at(),
+                    j + 1,
+                    column[j],
+                    f[j]
+                )
+            })
         };
         if let Some(error) = error {
             if let Some(j) = (1..7).find(|&j| !f[j].is_empty()) {

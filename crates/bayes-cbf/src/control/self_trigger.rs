@@ -881,7 +881,7 @@ mod tests {
                 },
                 "trigger.samples",
             ),
-            (|t| t.lipschitz.delta_l = 0.0, "delta_l"),
+            (|t| t.lipschitz.delta_l = 0.0, "trigger.delta_l"),
         ];
         for (edit, field) in cases {
             let mut t = good.clone();
