@@ -12,7 +12,7 @@ use bayes_cbf_scenario::prior_spec::PriorSpec;
 use clap::Args;
 use nalgebra::DMatrix;
 use serde::Serialize;
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 /// Options of `bayes-cbf fit`.
@@ -105,7 +105,12 @@ pub fn run_fit(a: &FitArgs) -> Result<()> {
     if m == 0 {
         bail!("--control-dim must be ≥ 1");
     }
-    crate::output::refuse_input_as_output(&a.out, &[("--data", &a.data)])?;
+    let prior_file = Path::new(&a.prior_mean);
+    let mut inputs = vec![("--data", a.data.as_path())];
+    if prior_file.is_file() {
+        inputs.push(("--prior-mean", prior_file));
+    }
+    crate::output::refuse_input_as_output(&a.out, &inputs)?;
     let prior = PriorSpec::from_arg(&a.prior_mean)?;
     let input_map = match &a.input_map {
         None => InputMap::Identity,

@@ -1,7 +1,10 @@
 //! Ctrl-C (SIGINT) and SIGTERM during a scenario run or a sweep: the first
-//! stops it before its next step, so that its staged outputs are removed
-//! and nothing of it is left; a second ends the process at once. Commands
-//! that do not ask for [`stop_flag`] keep the default: the signal ends them.
+//! stops it before its next step, or before it publishes its files
+//! ([`check`]), so that its staged outputs are removed and nothing of it is
+//! left; a second ends the process at once (which can leave the hidden
+//! staging directory, removed by the next run into the same place).
+//! Commands that do not ask for [`stop_flag`] keep the default: the signal
+//! ends them. A signal the process inherited as ignored stays ignored.
 
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, OnceLock};
@@ -31,14 +34,28 @@ pub fn stop_flag() -> Arc<AtomicBool> {
         static INSTALLED: std::sync::Once = std::sync::Once::new();
         INSTALLED.call_once(|| {
             let handler = on_signal as extern "C" fn(libc::c_int) as libc::sighandler_t;
-            // SAFETY: the handler only touches an atomic (above)
-            unsafe {
-                libc::signal(libc::SIGINT, handler);
-                libc::signal(libc::SIGTERM, handler);
+            for signal in [libc::SIGINT, libc::SIGTERM] {
+                // SAFETY: the handler only touches an atomic (above); a
+                // signal ignored by the parent (a background job) is put
+                // back to ignored
+                unsafe {
+                    if libc::signal(signal, handler) == libc::SIG_IGN {
+                        libc::signal(signal, libc::SIG_IGN);
+                    }
+                }
             }
         });
     }
     Arc::clone(flag)
+}
+
+/// [`bayes_cbf::Error::Interrupted`] if a signal came since [`stop_flag`]
+/// was first asked for: called before a run publishes what it computed.
+pub fn check() -> anyhow::Result<()> {
+    match STOP.get() {
+        Some(stop) if stop.load(Ordering::SeqCst) => Err(bayes_cbf::Error::Interrupted.into()),
+        _ => Ok(()),
+    }
 }
 
 /// Whether `e` is a run stopped by [`stop_flag`].

@@ -166,6 +166,7 @@ pub fn run(a: &RunArgs) -> Result<()> {
         .map_or_else(|| scenario::default_out_dir(&sc.name, ""), Ok)?;
     let staged = StagedDir::new(&out)?;
     let (output, figures) = run_and_plot(&sc, staged.path(), true)?;
+    crate::interrupt::check()?;
     staged.publish()?;
     let s = &output.summary;
     let opt = |v: Option<f64>| v.map_or("null".to_string(), |d| d.to_string());

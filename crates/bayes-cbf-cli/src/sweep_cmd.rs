@@ -68,6 +68,7 @@ pub fn run_sweep(
         write_json(&stage.join("sweep_summary.json"), summary)?;
         files += ", sweep_summary.json";
     }
+    crate::interrupt::check()?;
     staged.publish()?;
     if let Some(summary) = &summary {
         note!(

@@ -76,6 +76,15 @@ fn an_output_that_is_an_input_is_refused() {
         r.stderr
     );
     assert_eq!(std::fs::read_to_string(dir.join("d.csv")).unwrap(), DATA);
+    std::fs::write(dir.join("prior.json"), r#"{"type": "zero"}"#).unwrap();
+    let mut with_prior = fit_into("prior.json");
+    with_prior.extend(["--prior-mean", "prior.json"]);
+    let r = run_in(&dir, &with_prior);
+    assert!(
+        r.stderr.contains("is the --prior-mean file"),
+        "{}",
+        r.stderr
+    );
     let r = run_in(&dir, &fit_into("m.json"));
     assert!(r.status.success(), "{}", r.stderr);
     let model = std::fs::read(dir.join("m.json")).unwrap();

@@ -950,7 +950,10 @@ mod tests {
         // a tampered row: NaN is no number, 2 no flag
         let line1 = text.lines().nth(1).unwrap();
         let mut f: Vec<&str> = line1.split(',').collect();
-        for (j, bad, msg) in [(3, "NaN", "field 4 = 'NaN'"), (1, "2", "not 0 or 1")] {
+        for (j, bad, msg) in [
+            (3, "NaN", "field 4 (min_barrier) = 'NaN'"),
+            (1, "2", "not 0 or 1"),
+        ] {
             let keep = f[j];
             f[j] = bad;
             let tampered = format!("{HEADER}\n{}\n", f.join(","));

@@ -721,11 +721,18 @@ pub fn apply_set(table: &mut toml::Table, assignment: &str) -> Result<()> {
         Err(_) if text.parse::<f64>().is_ok_and(f64::is_finite) => {
             toml::Value::Float(text.parse::<f64>().unwrap_or_default())
         }
-        Err(e) if text.starts_with('[') => bail!(
-            "override '{key}': {text} is not a TOML array: {} (lists are written \
-             [1.0, 2.0], strings in them quoted)",
-            e.message().trim_end()
-        ),
+        // a JSON array (Python's json.dumps of a list of dicts), else a
+        // malformed list
+        Err(e) if text.starts_with('[') => match serde_json::from_str::<serde_json::Value>(text) {
+            Ok(json) => toml::Value::try_from(json).map_err(|_| {
+                err!("override '{key}': {text}: a null (Python's None) has no value here")
+            })?,
+            Err(_) => bail!(
+                "override '{key}': {text} is not a TOML array: {} (lists are written \
+                 [1.0, 2.0], strings in them quoted)",
+                e.message().trim_end()
+            ),
+        },
         Err(_) if text.starts_with('{') => match serde_json::from_str::<serde_json::Value>(text) {
             Ok(json) => {
                 toml::Value::try_from(json).map_err(|e| err!("override '{key}': {text}: {e}"))?
@@ -1277,10 +1284,16 @@ mod tests {
         // malformed list are named as such, not as strings
         let (s, _) = load("double-integrator", &["dt=.05".into()]).unwrap();
         assert_eq!(s.dt, 0.05);
+        // a JSON list of tables, as Python's json.dumps writes one
+        let set = r#"gp.input_map=[{"cos": 0}, {"sin": 0}, 1]"#;
+        assert!(load("pendulum-safe", &[set.into()]).is_ok());
         for (set, want) in [
             ("steps=05", "written without leading zeros"),
             ("start=[1, 0", "is not a TOML array"),
-            ("start=[null, 0]", "is not a TOML array"),
+            (
+                "start=[null, 0]",
+                "a null (Python's None) has no value here",
+            ),
             ("controller=5", "expected a table"),
         ] {
             let err = format!(

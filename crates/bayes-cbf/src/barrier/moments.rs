@@ -329,7 +329,9 @@ impl MomentWorkspace {
                 "state_dim",
                 n,
                 &format!(
-                    "relative-degree-2 moments at {n} states and {} controls need {:.1} GB of                      buffers (the joint posterior of F and its Jacobian, and the covariance of                      {r} linear functionals), more than can be allocated",
+                    "relative-degree-2 moments at {n} states and {} controls need {:.1} GB of \
+                     buffers (the joint posterior of F and its Jacobian, and the covariance of \
+                     {r} linear functionals), more than can be allocated",
                     p - 1,
                     bytes as f64 / 1e9
                 ),
@@ -910,12 +912,14 @@ mod size_tests {
     use super::*;
     use crate::gp::{InputMap, MvgpHyper, PriorMean, Rbf};
 
-    /// A model of 2000 states and 1999 controls (allowed) asks the
-    /// relative-degree-2 buffers for about 10¹⁴ bytes: an error naming
+    /// A model of 2200 states and 2199 controls (allowed) asks the
+    /// relative-degree-2 buffers for about 1.9·10¹⁴ bytes: an error naming
     /// `state_dim`, not an abort; relative degree 1 needs none of them.
     #[test]
     fn second_order_buffers_too_large_are_an_error() {
-        let (n, m) = (2000, 1999);
+        // beyond the 2⁴⁷-byte address space of x86-64 and AArch64 (1.4·10¹⁴
+        // bytes): refused whatever the kernel's overcommit setting
+        let (n, m) = (2200, 2199);
         let hyper = MvgpHyper {
             kernel: Rbf::new(vec![1.0; n], 1.0).unwrap(),
             A: DMatrix::identity(n, n),
@@ -928,6 +932,12 @@ mod size_tests {
         ws.update(&model, &x, 1).unwrap();
         assert_eq!(ws.s.nrows(), 0);
         let err = ws.update(&model, &x, 2).unwrap_err().to_string();
-        assert!(err.contains("state_dim") && err.contains("GB"), "{err}");
+        assert!(
+            err.contains(
+                "invalid state_dim = 2200: relative-degree-2 moments at 2200 states and \
+                 2199 controls need"
+            ) && err.contains("GB of buffers (the joint posterior"),
+            "{err}"
+        );
     }
 }
