@@ -647,7 +647,7 @@ fn weights_far_apart_are_warned_of_or_refused() {
 /// sends SIGINT and returns the exit code and stderr.
 #[cfg(unix)]
 fn interrupted(dir: &std::path::Path, args: &[&str]) -> (Option<i32>, String) {
-    let mut child = Command::new(env!("CARGO_BIN_EXE_bayes-cbf"))
+    let child = Command::new(env!("CARGO_BIN_EXE_bayes-cbf"))
         .args(args)
         .current_dir(dir)
         .stdout(Stdio::null())

@@ -234,7 +234,7 @@ pub fn control_step(
     };
     let bs = barriers.into_iter().map(|(_, b)| b).collect();
     let mut ctrl = SafetyController::new(n, m, bs, None, settings)?;
-    ctrl.set_monte_carlo(mc.clone());
+    ctrl.set_monte_carlo(*mc);
     let mut out = ControlOutput::new(m, labels.len());
     ctrl.step(model, x, u_ref, None, &mut out)
         .map_err(|e| match (&e, culprit) {

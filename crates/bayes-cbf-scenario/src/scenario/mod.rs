@@ -956,6 +956,11 @@ fn blame(
 mod tests {
     use super::*;
 
+    /// The error of loading `scenario` with the one override `set`.
+    fn refusal(scenario: &str, set: &str) -> String {
+        format!("{:#}", load(scenario, &[set.into()]).unwrap_err())
+    }
+
     #[test]
     fn builtins_parse_and_round_trip() {
         for (name, _) in BUILTIN {
@@ -1226,10 +1231,7 @@ mod tests {
             ),
             ("gp.A=[[1.0, \"a\"]]", "expected a number"),
         ] {
-            let err = format!(
-                "{:#}",
-                load("double-integrator", &[set.into()]).unwrap_err()
-            );
+            let err = refusal("double-integrator", set);
             assert!(err.contains(want), "{set}: {err}");
         }
     }
@@ -1296,10 +1298,7 @@ mod tests {
             ),
             ("controller=5", "expected a table"),
         ] {
-            let err = format!(
-                "{:#}",
-                load("double-integrator", &[set.into()]).unwrap_err()
-            );
+            let err = refusal("double-integrator", set);
             assert!(err.contains(want) && !err.contains("Spec"), "{set}: {err}");
         }
         // a negative count and a string for a number are told in words
@@ -1307,10 +1306,7 @@ mod tests {
             ("trigger.samples=-5", "expected a non-negative whole number"),
             ("dt='fast'", "expected a number"),
         ] {
-            let err = format!(
-                "{:#}",
-                load("ackermann-self-triggered", &[set.into()]).unwrap_err()
-            );
+            let err = refusal("ackermann-self-triggered", set);
             assert!(
                 err.contains(want) && !err.contains("usize") && !err.contains("f64"),
                 "{set}: {err}"
@@ -1351,10 +1347,7 @@ mod tests {
             ("controller.probability=high", "probability"),
             ("noequals", "key=value"),
         ] {
-            let err = format!(
-                "{:#}",
-                load("ackermann-bayes-cbf", &[set.into()]).unwrap_err()
-            );
+            let err = refusal("ackermann-bayes-cbf", set);
             assert!(err.contains(want), "{set}: {err}");
             assert!(!err.contains('\n'), "{err}");
         }

@@ -781,39 +781,23 @@ fn rd2(ws: &mut MomentWorkspace, h: f64, k0: f64, k1: f64, out: &mut ConditionMo
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::barrier::Barrier;
     use crate::gp::{InputMap, MvgpHyper, PriorMean, Rbf};
-    use num_dual::DualNum;
     use rand::{RngExt, SeedableRng};
     use rand_chacha::ChaCha8Rng;
 
-    /// `h(x) = xᵀQx + bᵀx + 1`, relative degree 2: a full Hessian.
-    struct Quadratic {
-        q: DMatrix<f64>,
-        b: Vec<f64>,
-    }
-
-    impl Barrier for Quadratic {
-        fn state_dim(&self) -> usize {
-            self.b.len()
-        }
-        fn h<D: DualNum<Primitive = f64> + Copy>(&self, x: &[D]) -> D {
-            let n = self.b.len();
-            let mut s = D::from(1.0);
-            for i in 0..n {
-                s += x[i] * self.b[i];
-                for j in 0..n {
-                    s += x[i] * x[j] * self.q[(i, j)];
-                }
+    /// `h(x) = xᵀQx + bᵀx + 1` over states `x0, x1, …` as an expression,
+    /// relative degree 2 with gains `[1, 2]`: a full Hessian.
+    fn quadratic(q: &DMatrix<f64>, b: &[f64]) -> crate::barrier::ExpressionBarrier {
+        let n = b.len();
+        let names: Vec<String> = (0..n).map(|i| format!("x{i}")).collect();
+        let mut h = "1".to_string();
+        for i in 0..n {
+            h += &format!(" + ({}) * x{i}", b[i]);
+            for j in 0..n {
+                h += &format!(" + ({}) * x{i} * x{j}", q[(i, j)]);
             }
-            s
         }
-        fn relative_degree(&self) -> usize {
-            2
-        }
-        fn gains(&self) -> &[f64] {
-            &[1.0, 2.0]
-        }
+        crate::barrier::ExpressionBarrier::new(&names, &[], &h, 2, vec![1.0, 2.0]).unwrap()
     }
 
     fn random_matrix(r: usize, c: usize, rng: &mut ChaCha8Rng) -> DMatrix<f64> {
@@ -874,10 +858,8 @@ mod tests {
             let xd: Vec<f64> = (0..k * n).map(|_| rng.random_range(-1.0..1.0)).collect();
             model.set_data(&xs, &us, &xd).unwrap();
             let q = random_matrix(n, n, &mut rng);
-            let barrier = Quadratic {
-                q: &q + q.transpose(),
-                b: (0..n).map(|_| rng.random_range(-1.0..1.0)).collect(),
-            };
+            let b: Vec<f64> = (0..n).map(|_| rng.random_range(-1.0..1.0)).collect();
+            let barrier = quadratic(&(&q + q.transpose()), &b);
             let x: Vec<f64> = (0..n).map(|_| rng.random_range(-1.0..1.0)).collect();
             let mut ws = MomentWorkspace::new(&model);
             ws.update(&model, &x, 2).unwrap();
