@@ -11,6 +11,31 @@ use clap::Args;
 use serde::Serialize;
 use std::path::PathBuf;
 
+/// The Monte Carlo moments of barriers of relative degree > 2 (no closed
+/// form exists), in `moments` and `control` alike.
+#[derive(Debug, Args)]
+pub struct McArgs {
+    /// Monte Carlo draws for relative degree > 2.
+    #[arg(long, allow_negative_numbers = true, default_value_t = 20_000)]
+    pub samples: usize,
+    /// Finite-difference step of the Monte Carlo Lie derivatives.
+    #[arg(long, default_value_t = 1e-2, allow_hyphen_values = true)]
+    pub step: f64,
+    /// Seed of the Monte Carlo draws.
+    #[arg(long, allow_negative_numbers = true, default_value_t = 0)]
+    pub seed: u64,
+}
+
+impl McArgs {
+    fn settings(&self) -> McSettings {
+        McSettings {
+            samples: self.samples,
+            step: self.step,
+            seed: self.seed,
+        }
+    }
+}
+
 /// Arguments of `bayes-cbf moments`.
 #[derive(Debug, Args)]
 pub struct MomentsArgs {
@@ -26,15 +51,8 @@ pub struct MomentsArgs {
     /// Control, comma separated.
     #[arg(long, allow_hyphen_values = true)]
     pub u: String,
-    /// Monte Carlo draws for relative degree > 2 (no closed form exists).
-    #[arg(long, allow_negative_numbers = true, default_value_t = 20_000)]
-    pub samples: usize,
-    /// Finite-difference step of the Monte Carlo Lie derivatives.
-    #[arg(long, default_value_t = 1e-2, allow_hyphen_values = true)]
-    pub step: f64,
-    /// Seed of the Monte Carlo draws.
-    #[arg(long, allow_negative_numbers = true, default_value_t = 0)]
-    pub seed: u64,
+    #[command(flatten)]
+    pub mc: McArgs,
     /// Write the JSON here instead of stdout (`-`: stdout).
     #[arg(long)]
     pub out: Option<PathBuf>,
@@ -81,16 +99,8 @@ pub struct ControlArgs {
     /// name it).
     #[arg(long)]
     pub latent: bool,
-    /// Monte Carlo draws of the conditions of relative degree > 2 (the
-    /// safety controller's default).
-    #[arg(long, allow_negative_numbers = true, default_value_t = 2_000)]
-    pub samples: usize,
-    /// Finite-difference step of their Monte Carlo Lie derivatives.
-    #[arg(long, default_value_t = 1e-2, allow_hyphen_values = true)]
-    pub step: f64,
-    /// Seed of their Monte Carlo draws.
-    #[arg(long, allow_negative_numbers = true, default_value_t = 0)]
-    pub seed: u64,
+    #[command(flatten)]
+    pub mc: McArgs,
     /// Write the JSON here instead of stdout (`-`: stdout).
     #[arg(long)]
     pub out: Option<PathBuf>,
@@ -121,11 +131,7 @@ pub fn run_moments(a: &MomentsArgs) -> Result<()> {
     check_barrier(&model, barrier.as_ref(), &label)?;
     let x = vector_of_len("--x", &a.x, model.state_dim(), "state_dim")?;
     let u = vector_of_len("--u", &a.u, model.control_dim(), "control_dim")?;
-    let mc = McSettings {
-        samples: a.samples,
-        step: a.step,
-        seed: a.seed,
-    };
+    let mc = a.mc.settings();
     let report = condition_moments(&model, barrier.as_ref(), &label, &x, &u, &mc).map_err(|e| {
         anyhow::anyhow!(
             "{}",
@@ -170,11 +176,7 @@ pub fn run_control(a: &ControlArgs) -> Result<()> {
         .map(|s| vector_of_len("--u-max", s, m, "control_dim"))
         .transpose()?;
     settings.fallback = Fallback::parse(&a.fallback).context("--fallback")?;
-    let mc = McSettings {
-        samples: a.samples,
-        step: a.step,
-        seed: a.seed,
-    };
+    let mc = a.mc.settings();
     let report = control_step(&model, barriers, settings, &mc, &x, &u_ref)
         .map_err(anyhow::Error::from)
         .map_err(|e| fix_field(e, "--"))?;

@@ -26,6 +26,7 @@
 
 use super::{DynBarrier, DynLyapunov};
 use crate::error::{ControlError, Error, InputError};
+use crate::gp::joint::Columns;
 use crate::gp::{JointPosterior, JointWorkspace, Kernel, Mvgp, Posterior, PosteriorWorkspace};
 use nalgebra::DMatrix;
 use num_dual::{Dual64, HyperDual64};
@@ -286,7 +287,7 @@ impl MomentWorkspace {
             if self.s.nrows() != n * (1 + p) + 1 {
                 self.make_second_order(model)?;
             }
-            model.drift_joint_posterior_into(x, &mut self.joint_ws, &mut self.joint)?;
+            model.joint_columns_into(x, Columns::Drift, &mut self.joint_ws, &mut self.joint)?;
             for c in 0..p {
                 for i in 0..n {
                     self.post.mean[(i, c)] = self.joint.mean[(i, c)];
@@ -634,8 +635,8 @@ fn rd1(ws: &MomentWorkspace, value: f64, gain: f64, out: &mut ConditionMoments) 
 /// column `q` of `𝕄 = [F ∂_1F … ∂_nF]`): `a_i = H_iᵀ 𝕄 e_0 + gᵀ 𝕄 e_{q_i}`
 /// with `H_i` the `i`-th row of `∇²h`, `g = ∇h`, `q_i` the drift column of
 /// `∂_iF` (column `1 + m + i` of the workspace's joint posterior, which
-/// keeps only `F` and the drift columns:
-/// [`Mvgp::drift_joint_posterior_into`]); `y_{c,l} = e_lᵀ 𝕄 e_c`;
+/// keeps only `F` and the drift columns, `Columns::Drift`);
+/// `y_{c,l} = e_lᵀ 𝕄 e_c`;
 /// `b = gᵀ 𝕄 e_0`. Under
 /// `Cov(vec 𝕄) = Ĉ ⊗ A` two such terms covary by `(vᵀAw) Ĉ_{qq'}`, so
 /// every entry of `S` follows from `AH`, `HAH`, `Ag`, `HAg` and `gᵀAg`:

@@ -43,11 +43,14 @@ impl JointPosterior {
 
 /// Which columns of `𝔽` a joint posterior keeps.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
-enum Columns {
+pub(crate) enum Columns {
     /// All `(1+m)(1+n)`: column `a(1+m) + c` is column `c` of block `a`.
     All,
-    /// `F` and the drift column of each `∂_iF` (`1 + m + n`): column `c`
-    /// of `F`, then `∂_i f` at `1 + m + (i − 1)` for block `i ≥ 1`.
+    /// `F` and the drift column of each `∂_iF` (`1 + m + n`), all that the
+    /// relative-degree-2 moments read: column `c ≤ m` of `F`, then `∂_i f`
+    /// at `1 + m + (i − 1)` for block `i ≥ 1`. Each entry equals the full
+    /// posterior's at that pair of columns, and the data part solves for
+    /// `1 + m + n` columns instead of `(1+m)(1+n)`.
     Drift,
 }
 
@@ -162,23 +165,9 @@ impl<K: Kernel> Mvgp<K> {
         self.joint_columns_into(x, Columns::All, ws, out)
     }
 
-    /// The joint posterior of `F(x)` and the drift column `∂_i f` of each
-    /// `∂_iF`, all that the relative-degree-2 moments read: `out.mean` is
-    /// `n × (1+m+n)` and `out.c` `(1+m+n)` square, column `c ≤ m` that of
-    /// `F`, column `1 + m + i` that of `∂_{i+1} f`, each entry equal to the
-    /// full posterior's ([`joint_posterior_into`](Self::joint_posterior_into))
-    /// at that pair of columns. The data part solves for `1 + m + n` columns
-    /// instead of `(1+m)(1+n)`.
-    pub(crate) fn drift_joint_posterior_into(
-        &self,
-        x: &[f64],
-        ws: &mut JointWorkspace,
-        out: &mut JointPosterior,
-    ) -> Result<(), InputError> {
-        self.joint_columns_into(x, Columns::Drift, ws, out)
-    }
-
-    fn joint_columns_into(
+    /// [`joint_posterior_into`](Self::joint_posterior_into) for the columns
+    /// `cols` of `𝔽` only: `out.mean` is `n × w`, `out.c` `w × w`.
+    pub(crate) fn joint_columns_into(
         &self,
         x: &[f64],
         cols: Columns,
@@ -388,7 +377,7 @@ mod drift_tests {
         let mut ws = model.joint_workspace();
         let mut drift = JointPosterior::zeros(0, 0);
         model
-            .drift_joint_posterior_into(&x, &mut ws, &mut drift)
+            .joint_columns_into(&x, Columns::Drift, &mut ws, &mut drift)
             .unwrap();
         assert_eq!(drift.mean.shape(), (n, p + n));
         // reduced column → full column
@@ -411,7 +400,7 @@ mod drift_tests {
         }
         let ptrs = (drift.mean.as_ptr(), drift.c.as_ptr());
         model
-            .drift_joint_posterior_into(&[0.1, 0.2], &mut ws, &mut drift)
+            .joint_columns_into(&[0.1, 0.2], Columns::Drift, &mut ws, &mut drift)
             .unwrap();
         assert_eq!((drift.mean.as_ptr(), drift.c.as_ptr()), ptrs);
     }

@@ -47,7 +47,7 @@ mod data;
 pub use data::MAX_DATA_MAGNITUDE;
 mod factor;
 mod input_map;
-mod joint;
+pub(crate) mod joint;
 mod kernel;
 pub(crate) mod lipschitz;
 pub mod metrics;
