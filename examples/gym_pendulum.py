@@ -207,6 +207,12 @@ def main() -> None:
     a = ap.parse_args()
     if not 0.0 < a.u_max <= 2.0:
         ap.error(f"--u-max {a.u_max}: must be in (0, 2], within the environment's bound")
+    if a.figure:
+        # before the episodes run, not after them
+        try:
+            import matplotlib  # noqa: F401
+        except ImportError:
+            ap.error("--figure needs matplotlib (pip install matplotlib)")
     # the CBF condition is continuous-time; the environment's integrator
     # lifts the energy by up to `rise` on its own, so the filters demand the
     # margin zeta = alpha * rise (a state where the condition binds then
@@ -236,12 +242,11 @@ def main() -> None:
             }
             table.append(row)
             print(json.dumps(row))
-    # the table first: a figure that fails (no matplotlib) does not lose it
+    if a.figure:
+        plot(a.figure, a.seed, zeta)
     if a.out:
         with open(a.out, "w") as f:
             json.dump({"integrator_energy_rise": rise, "zeta": zeta, "rows": table}, f, indent=1)
-    if a.figure:
-        plot(a.figure, a.seed, zeta)
 
 
 if __name__ == "__main__":

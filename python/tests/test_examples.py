@@ -2,11 +2,14 @@
 
 from __future__ import annotations
 
+import importlib.util
 import json
 import pathlib
 import runpy
 import subprocess
 import sys
+
+import pytest
 
 ROOT = pathlib.Path(__file__).resolve().parents[2]
 
@@ -27,6 +30,17 @@ def test_gym_pendulum_runs(tmp_path):
     assert set(rows) == {"unfiltered", "mean-cbf", "bayes-cbf", "bayes-cbf-zero-prior"}
     assert rows["unfiltered"]["episodes_with_h_below_0"] == 2
     assert 1.0 < result["integrator_energy_rise"] < 3.0
+
+
+def test_gym_pendulum_asks_for_matplotlib_before_it_runs(tmp_path):
+    if importlib.util.find_spec("matplotlib") is not None:
+        pytest.skip("matplotlib is installed: the figure can be drawn")
+    out = tmp_path / "gym.json"
+    r = subprocess.run([sys.executable, str(ROOT / "examples" / "gym_pendulum.py"), "--episodes",
+                        "100", "--figure", str(tmp_path / "f.png"), "--out", str(out)],
+                       capture_output=True, text=True, timeout=60)
+    assert r.returncode == 2 and "--figure needs matplotlib" in r.stderr, r.stderr
+    assert not out.exists()
 
 
 def test_gym_mountaincar_runs(tmp_path):
