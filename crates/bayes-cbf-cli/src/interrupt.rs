@@ -1,4 +1,5 @@
-//! Ctrl-C (SIGINT) and SIGTERM during a scenario run or a sweep: the first
+//! Ctrl-C (SIGINT) and SIGTERM during a scenario run, the default demo or a
+//! sweep: the first
 //! stops it before its next step, or before it publishes its files
 //! ([`check`]), so that its staged outputs are removed and nothing of it is
 //! left; a second ends the process at once (which can leave the hidden

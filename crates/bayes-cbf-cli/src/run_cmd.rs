@@ -164,6 +164,8 @@ pub fn run(a: &RunArgs) -> Result<()> {
         .out
         .clone()
         .map_or_else(|| scenario::default_out_dir(&sc.name, ""), Ok)?;
+    // a signal from here on stops the run and removes what it staged
+    crate::interrupt::stop_flag();
     let staged = StagedDir::new(&out)?;
     let (output, figures) = run_and_plot(&sc, staged.path(), true)?;
     crate::interrupt::check()?;
@@ -314,6 +316,8 @@ pub fn list() -> Result<()> {
 /// from the model's (1), side by side (paper, Fig. 7).
 pub fn default_job() -> Result<()> {
     let root = PathBuf::from("runs/demo");
+    // a signal from here on stops the runs and removes what they staged
+    crate::interrupt::stop_flag();
     let staged = StagedDir::new(&root)?;
     let mut outputs = Vec::new();
     for (name, dir) in [
@@ -328,6 +332,7 @@ pub fn default_job() -> Result<()> {
         &outputs[1],
         &staged.path().join("comparison.png"),
     )?;
+    crate::interrupt::check()?;
     staged.publish()?;
     let comparison = root.join("comparison.png");
     note!("Ackermann vehicle, true wheelbase 12, model wheelbase 1 (paper, Fig. 7):");

@@ -47,6 +47,8 @@ pub fn run_sweep(
         shard,
         GOAL_TOLERANCE,
     )?;
+    // a signal from here on stops the sweep and removes what it staged
+    let stop = crate::interrupt::stop_flag();
     let staged = StagedDir::new(out)?;
     let bar = progress_bar(&format!("{scenario} seeds"), "runs");
     let rows = run_seeds_until(
@@ -55,7 +57,7 @@ pub fn run_sweep(
             bar.set_length(total as u64);
             bar.set_position(done as u64);
         },
-        &crate::interrupt::stop_flag(),
+        &stop,
     )
     .inspect_err(|_| bar.abandon())?;
     bar.finish_and_clear();
