@@ -160,6 +160,8 @@ class SafetyFilterWrapper(gym.Wrapper, gym.utils.RecordConstructorArgs):
                 raise InputError(f"dt = {dt!r}: the control period must be a finite number > 0")
         else:
             dt = getattr(env.unwrapped, "dt", None)
+            if isinstance(dt, np.ndarray) and dt.shape == ():
+                dt = dt.item()
             real = isinstance(dt, numbers.Real) and not isinstance(dt, bool)
             if not real or not np.isfinite(dt) or dt <= 0:
                 raise InputError(

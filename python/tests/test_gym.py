@@ -111,6 +111,15 @@ def test_wrapper_rejects_bad_setups():
     filt = bc.SafetyFilter(model, [bc.Barrier.half_space([1.0, 0.0], 0.0, alpha=1.0)])
     assert SafetyFilterWrapper(gym.make("Pendulum-v1"), filt, lambda o: o[:2],
                                dt=np.array(0.05)).dt == 0.05
+    # so is the environment's own; a string there is named, not a numpy error
+    for env_dt, want in [(np.array(0.04), 0.04), ("0.1", "the environment's dt is '0.1'")]:
+        env = gym.make("Pendulum-v1")
+        env.unwrapped.dt = env_dt
+        if isinstance(want, float):
+            assert SafetyFilterWrapper(env, filt, lambda o: o[:2]).dt == want
+        else:
+            with pytest.raises(bc.InputError, match=want):
+                SafetyFilterWrapper(env, filt, lambda o: o[:2])
     model = bc.MVGP(2, 2, [1.0, 1.0], np.eye(2), np.eye(3), 0.1)
     filt = bc.SafetyFilter(model, [bc.Barrier.half_space([1.0, 0.0], 0.0, alpha=1.0)])
     with pytest.raises(bc.InputError, match="action shape"):
