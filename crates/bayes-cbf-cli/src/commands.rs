@@ -47,10 +47,20 @@ pub struct FitArgs {
     #[arg(long, value_name = "I,J", allow_hyphen_values = true)]
     pub angle_index: Option<String>,
     /// Structure of A: full, diag or an integer rank.
-    #[arg(long, value_name = "RANK", default_value = "full")]
+    #[arg(
+        long,
+        value_name = "RANK",
+        default_value = "full",
+        allow_hyphen_values = true
+    )]
     pub rank_a: String,
     /// Structure of B: full, diag or an integer rank.
-    #[arg(long, value_name = "RANK", default_value = "full")]
+    #[arg(
+        long,
+        value_name = "RANK",
+        default_value = "full",
+        allow_hyphen_values = true
+    )]
     pub rank_b: String,
     /// Random restarts of the optimiser besides the data-driven start.
     #[arg(long, allow_negative_numbers = true, default_value_t = 0)]

@@ -402,6 +402,12 @@ fn bad_fit_options_are_rejected() {
             &["--prior-mean", "nope.json"],
         ),
         (&data, "--rank-a 0", &["--rank-a"]),
+        // a negative rank reaches the rule, not clap's "unexpected argument"
+        (
+            &data,
+            "--rank-a -1",
+            &["--rank-a = '-1'", "positive integer rank"],
+        ),
         (&data, "--rank-b lots", &["--rank-b", "lots"]),
         (&data, "--input-map 5", &["--input-map[0]", "out of range"]),
         (&data, "--input-map tan:0", &["--input-map[0]", "tan"]),
