@@ -412,6 +412,14 @@ fn succeeded_without(r: &Run, absent: &str) {
     assert!(!r.stderr.contains(absent), "{absent}: {}", r.stderr);
 }
 
+/// `r` succeeded, and its stderr says each of `present`.
+fn succeeded_with(r: &Run, present: &[&str]) {
+    assert!(r.status.success(), "{}", r.stderr);
+    for text in present {
+        assert!(r.stderr.contains(text), "{text}: {}", r.stderr);
+    }
+}
+
 /// The `summary.json` a run wrote to `dir/out`.
 fn summary_in(dir: &std::path::Path, out: &str) -> String {
     std::fs::read_to_string(dir.join(out).join("summary.json")).unwrap()
@@ -437,9 +445,10 @@ fn a_bare_scenario_is_told_what_its_model_lacks() {
     let run_set =
         |sets: &[&str], out| run_with(&dir, "cart.toml", &[&["steps=150"], sets].concat(), out);
     let r = run_set(&[], "a");
-    assert!(r.status.success(), "{}", r.stderr);
-    let want = "gp.prior_mean is zero and barriers[0] has relative degree 2";
-    assert!(r.stderr.contains(want), "{}", r.stderr);
+    succeeded_with(
+        &r,
+        &["gp.prior_mean is zero and barriers[0] has relative degree 2"],
+    );
     let summary = summary_in(&dir, "a");
     assert!(summary.contains("\"fallback\": \"relax\""), "{summary}");
     // without learning it never learns how the input acts: every step
@@ -544,13 +553,13 @@ fn every_barrier_that_crossed_in_a_met_step_is_named() {
     let args = "run msd.toml --seed 960007 --set barriers.1.alpha=50.0 \
                 --set barriers.0.k_alpha=[100.0,20.0] --out r";
     let r = run_in(&dir, &args.split_whitespace().collect::<Vec<_>>());
-    assert!(r.status.success(), "{}", r.stderr);
-    for crossed in [
-        "barriers[1] (seed 960007): h crossed zero at t = 1.240",
-        "barriers[0] (seed 960007): h crossed zero at t = 3.760",
-    ] {
-        assert!(r.stderr.contains(crossed), "{crossed}: {}", r.stderr);
-    }
+    succeeded_with(
+        &r,
+        &[
+            "barriers[1] (seed 960007): h crossed zero at t = 1.240",
+            "barriers[0] (seed 960007): h crossed zero at t = 3.760",
+        ],
+    );
 }
 
 /// The pendulum of docs/interfaces.md hangs still at its defaults, and
@@ -566,14 +575,16 @@ fn infeasible_steps_blocked_by_the_model_noise_name_it() {
     let toml = include_str!("data/pendulum-expression.toml");
     std::fs::write(dir.join("pendulum.toml"), toml).unwrap();
     let r = run_with(&dir, "pendulum.toml", &["steps=200"], "a");
-    assert!(r.status.success(), "{}", r.stderr);
-    let want = "200 of 200 steps were infeasible";
-    assert!(r.stderr.contains(want), "{}", r.stderr);
-    let want = "or gp.noise_sigma too large for controller.predictive, whose conditions carry \
-                the model's noise: σ·√A_ii = 0.100 on row 1, where the labels carry no process \
-                noise; with the run's final model, 20 of 20 infeasible steps are feasible \
-                without it";
-    assert!(r.stderr.contains(want), "{}", r.stderr);
+    succeeded_with(
+        &r,
+        &[
+            "200 of 200 steps were infeasible",
+            "or gp.noise_sigma too large for controller.predictive, whose conditions carry \
+             the model's noise: σ·√A_ii = 0.100 on row 1, where the labels carry no process \
+             noise; with the run's final model, 20 of 20 infeasible steps are feasible \
+             without it",
+        ],
+    );
     let r = run_with(
         &dir,
         "pendulum.toml",
@@ -603,13 +614,14 @@ fn a_crossing_under_max_margin_names_relax() {
         &["--set", "controller.fallback=max_margin", "--out", "mm"],
     ]
     .concat();
-    let r = run_in(&dir, &mm);
-    assert!(r.status.success(), "{}", r.stderr);
-    let want = "(p* = 0.953; fallback max_margin), 264 of 477 steps were infeasible";
-    assert!(r.stderr.contains(want), "{}", r.stderr);
-    let want = "max_margin, at the c(p) of controller.probability, applies the control of least \
-                spread, which can brake too little: relax would have met the conditions at p*";
-    assert!(r.stderr.contains(want), "{}", r.stderr);
+    succeeded_with(
+        &run_in(&dir, &mm),
+        &[
+            "(p* = 0.953; fallback max_margin), 264 of 477 steps were infeasible",
+            "max_margin, at the c(p) of controller.probability, applies the control of least \
+             spread, which can brake too little: relax would have met the conditions at p*",
+        ],
+    );
     let r = run_in(&dir, &[&args[..], &["--out", "relax"]].concat());
     succeeded_without(&r, "crossed zero");
     let summary = summary_in(&dir, "relax");
@@ -627,9 +639,7 @@ fn weights_far_apart_are_warned_of_or_refused() {
         &["steps=5", "controller.r=[1.0,1000.0]"],
         "a",
     );
-    assert!(r.status.success(), "{}", r.stderr);
-    let want = "warning: R: its weights are 1.0e3 apart";
-    assert!(r.stderr.contains(want), "{}", r.stderr);
+    succeeded_with(&r, &["warning: R: its weights are 1.0e3 apart"]);
     let r = run_with(
         &dir,
         "unicycle-obstacles",
