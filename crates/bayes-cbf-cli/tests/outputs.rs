@@ -425,6 +425,12 @@ fn summary_in(dir: &std::path::Path, out: &str) -> String {
     std::fs::read_to_string(dir.join(out).join("summary.json")).unwrap()
 }
 
+/// The `summary.json` a run wrote to `dir/out` holds `text`.
+fn summary_has(dir: &std::path::Path, out: &str, text: &str) {
+    let summary = summary_in(dir, out);
+    assert!(summary.contains(text), "{text}: {summary}");
+}
+
 /// `bayes-cbf run SCENARIO --out OUT --set S ...` in `dir`.
 fn run_with(dir: &std::path::Path, scenario: &str, sets: &[&str], out: &str) -> Run {
     let mut args = vec!["run", scenario, "--out", out];
@@ -449,8 +455,7 @@ fn a_bare_scenario_is_told_what_its_model_lacks() {
         &r,
         &["gp.prior_mean is zero and barriers[0] has relative degree 2"],
     );
-    let summary = summary_in(&dir, "a");
-    assert!(summary.contains("\"fallback\": \"relax\""), "{summary}");
+    summary_has(&dir, "a", "\"fallback\": \"relax\"");
     // without learning it never learns how the input acts: every step
     // falls back
     let r = run_set(&["learning.update_every=0"], "n");
@@ -592,8 +597,7 @@ fn infeasible_steps_blocked_by_the_model_noise_name_it() {
         "b",
     );
     succeeded_without(&r, "steps were infeasible");
-    let summary = summary_in(&dir, "b");
-    assert!(summary.contains("\"infeasible_steps\": 1,"), "{summary}");
+    summary_has(&dir, "b", "\"infeasible_steps\": 1,");
 }
 
 /// The self-triggered double integrator under max-margin drives into its
@@ -624,8 +628,7 @@ fn a_crossing_under_max_margin_names_relax() {
     );
     let r = run_in(&dir, &[&args[..], &["--out", "relax"]].concat());
     succeeded_without(&r, "crossed zero");
-    let summary = summary_in(&dir, "relax");
-    assert!(summary.contains("\"safe\": true"), "{summary}");
+    summary_has(&dir, "relax", "\"safe\": true");
 }
 
 /// Objective weights 10³ apart run, with a warning of how roughly the
