@@ -317,7 +317,7 @@ impl MomentWorkspace {
         // (4 each), AH, HAH, Ag, HAg, S and μ
         let entries = [
             n * (p + n) + (p + n) * (p + n),
-            model.joint_workspace_len(),
+            model.joint_workspace_len(Columns::Drift),
             n * n + 4 * n,
             2 * n * n + 2 * n,
             r * r + r,
@@ -342,7 +342,7 @@ impl MomentWorkspace {
             mean: DMatrix::zeros(n, p + n),
             c: DMatrix::zeros(p + n, p + n),
         };
-        self.joint_ws = model.joint_workspace();
+        self.joint_ws = model.joint_workspace_for(Columns::Drift);
         self.hess = vec![0.0; n * n];
         self.sh = vec![HyperDual64::from(0.0); n];
         self.ah = DMatrix::zeros(n, n);

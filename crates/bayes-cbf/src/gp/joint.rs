@@ -115,43 +115,58 @@ impl Default for JointWorkspace {
 impl<K: Kernel> Mvgp<K> {
     /// A workspace for [`joint_posterior_into`](Self::joint_posterior_into).
     pub fn joint_workspace(&self) -> JointWorkspace {
+        self.joint_workspace_for(Columns::All)
+    }
+
+    /// A workspace for the columns `cols` (its `Ω` has their width only).
+    pub(crate) fn joint_workspace_for(&self, cols: Columns) -> JointWorkspace {
+        let [z, dz, gk, hk, gx, _, m0, jac0, sx, so] = self.joint_sizes(cols);
         let (n, p) = (self.state_dim(), self.control_dim() + 1);
-        let d = self.input_map().output_dim(n);
         JointWorkspace {
-            z: vec![0.0; d],
-            dz: vec![0.0; d],
-            gk: vec![0.0; d],
-            hk: vec![0.0; d * d],
-            gx: vec![0.0; n],
-            omega: Mat::zeros(self.capacity(), p * (1 + n)),
-            m0: vec![0.0; n * p],
-            jac0: vec![0.0; n * p * n],
-            sx: vec![Dual64::from(0.0); n],
-            so: vec![Dual64::from(0.0); n * p],
+            z: vec![0.0; z],
+            dz: vec![0.0; dz],
+            gk: vec![0.0; gk],
+            hk: vec![0.0; hk],
+            gx: vec![0.0; gx],
+            omega: Mat::zeros(self.capacity(), cols.width(n, p)),
+            m0: vec![0.0; m0],
+            jac0: vec![0.0; jac0],
+            sx: vec![Dual64::from(0.0); sx],
+            so: vec![Dual64::from(0.0); so],
         }
     }
 
-    /// How many `f64`-sized entries [`joint_workspace`](Self::joint_workspace)
-    /// holds: what a caller checks before it asks for one of a large model.
-    pub(crate) fn joint_workspace_len(&self) -> usize {
+    /// The entries of each buffer of a workspace for `cols`
+    /// ([`joint_workspace_for`](Self::joint_workspace_for)): `z`, `dz`, `gk`, `hk`, `gx`,
+    /// `Ω` (capacity × width), `m0`, `jac0`, `sx` and `so`. Saturating, so
+    /// that a caller can check their memory before it asks for them.
+    fn joint_sizes(&self, cols: Columns) -> [usize; 10] {
         let (n, p) = (self.state_dim(), self.control_dim() + 1);
         let d = self.input_map().output_dim(n);
-        // z, dz, gk, hk, gx, omega, m0, jac0, sx and so (duals: 2 each)
-        let pp = p.saturating_mul(1 + n);
+        let np = n.saturating_mul(p);
         [
-            4 * d,
+            d,
+            d,
+            d,
             d.saturating_mul(d),
             n,
-            self.capacity().saturating_mul(pp),
+            self.capacity().saturating_mul(cols.width(n, p)),
+            np,
+            np.saturating_mul(n),
+            n,
+            np,
         ]
-        .into_iter()
-        .chain([
-            n * p,
-            n.saturating_mul(n).saturating_mul(p),
-            2 * n,
-            2 * n * p,
-        ])
-        .fold(0usize, usize::saturating_add)
+    }
+
+    /// How many `f64`-sized entries a workspace for `cols` holds (a dual
+    /// number is two): what a caller checks before it asks for one.
+    pub(crate) fn joint_workspace_len(&self, cols: Columns) -> usize {
+        let sizes = self.joint_sizes(cols);
+        // sx and so hold duals
+        sizes
+            .into_iter()
+            .chain([sizes[8], sizes[9]])
+            .fold(0usize, usize::saturating_add)
     }
 
     /// Joint posterior of `F(x)` and `∂F/∂x_i` (module docs), written into
@@ -176,7 +191,6 @@ impl<K: Kernel> Mvgp<K> {
     ) -> Result<(), InputError> {
         let (n, m) = (self.state_dim(), self.control_dim());
         let p = m + 1;
-        let pp = p * (1 + n);
         let width = cols.width(n, p);
         self.check_x(x)?;
         if out.mean.shape() != (n, width) || out.c.shape() != (width, width) {
@@ -184,10 +198,11 @@ impl<K: Kernel> Mvgp<K> {
             out.c = DMatrix::zeros(width, width);
         }
         let k = self.len();
-        // a workspace of a model of another shape is remade
+        // a workspace of a model of another shape, or one too narrow for
+        // `cols`, is remade
         let d = self.input_map().output_dim(n);
         if ws.omega.nrows() < k
-            || ws.omega.ncols() != pp
+            || ws.omega.ncols() < width
             || ws.z.len() != d
             || ws.gx.len() != n
             || ws.m0.len() != n * p
@@ -374,7 +389,13 @@ mod drift_tests {
         let (n, p) = (2, 2);
         let x = [0.4, -0.7];
         let full = model.joint_posterior(&x).unwrap();
-        let mut ws = model.joint_workspace();
+        // the drift workspace holds their `p + n` columns of Ω, not all
+        let mut ws = model.joint_workspace_for(Columns::Drift);
+        assert_eq!(ws.omega.ncols(), p + n);
+        assert_eq!(
+            model.joint_workspace_len(Columns::All) - model.joint_workspace_len(Columns::Drift),
+            model.capacity() * (p * (1 + n) - (p + n))
+        );
         let mut drift = JointPosterior::zeros(0, 0);
         model
             .joint_columns_into(&x, Columns::Drift, &mut ws, &mut drift)
@@ -398,10 +419,13 @@ mod drift_tests {
                 );
             }
         }
-        let ptrs = (drift.mean.as_ptr(), drift.c.as_ptr());
+        let ptrs = (drift.mean.as_ptr(), drift.c.as_ptr(), ws.omega.as_ptr());
         model
             .joint_columns_into(&[0.1, 0.2], Columns::Drift, &mut ws, &mut drift)
             .unwrap();
-        assert_eq!((drift.mean.as_ptr(), drift.c.as_ptr()), ptrs);
+        assert_eq!(
+            (drift.mean.as_ptr(), drift.c.as_ptr(), ws.omega.as_ptr()),
+            ptrs
+        );
     }
 }
