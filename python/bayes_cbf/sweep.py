@@ -26,6 +26,7 @@ from __future__ import annotations
 import json
 import numbers
 import os
+import socket
 from typing import Any, Iterable, Optional, Union
 
 from . import _core
@@ -47,15 +48,43 @@ def _init(address: Optional[str], num_cpus: Optional[int]):
         not isinstance(num_cpus, numbers.Integral) or isinstance(num_cpus, bool) or num_cpus < 1
     ):
         raise InputError(f"num_cpus: {num_cpus!r}, must be an integer >= 1")
+    if address is not None and not isinstance(address, str):
+        raise InputError(f"address: {address!r}, must be a string such as 'auto' or 'HOST:PORT'")
     ray = _ray()
     if not ray.is_initialized():
         kw: dict[str, Any] = {"ignore_reinit_error": True, "log_to_driver": False}
         if address is not None:
+            _reachable(address)
             kw["address"] = address
         elif num_cpus is not None:
             kw["num_cpus"] = num_cpus
         ray.init(**kw)
     return ray
+
+
+# how long a cluster's address may take to accept a connection
+_CONNECT_TIMEOUT_S = 10.0
+
+
+def _reachable(address: str) -> None:
+    """Raises ``ConnectionError`` naming ``address`` when its ``HOST:PORT``
+    (after ``ray://``) does not accept a connection within
+    ``_CONNECT_TIMEOUT_S``: Ray itself retries an unreachable address for
+    minutes. Addresses without a port (``"auto"``, ``"local"``) are Ray's."""
+    target = address[len("ray://"):] if address.startswith("ray://") else address
+    host, sep, port = target.rpartition(":")
+    if not sep:
+        return
+    if not port.isdigit() or not 0 < int(port) < 65536:
+        raise InputError(f"address: {address!r}, its port {port!r} is not a port number")
+    try:
+        with socket.create_connection((host.strip("[]"), int(port)), _CONNECT_TIMEOUT_S):
+            pass
+    except OSError as e:
+        raise ConnectionError(
+            f"address: no Ray cluster answers at {address!r} ({e}); start one there "
+            "(ray start --head) or pass address=None for a local Ray"
+        ) from e
 
 
 def _shard_count(ray, shards: Optional[int], items: int) -> int:

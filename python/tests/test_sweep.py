@@ -107,6 +107,32 @@ def test_bad_sweeps_are_input_errors():
     assert sweep._seed_range(np.arange(3, 6)) == (3, 6)
 
 
+def test_unreachable_addresses_are_refused_at_once():
+    """An address where nothing listens is a ConnectionError naming it within
+    the connect timeout (Ray retries it for minutes); one that listens, and
+    Ray's own 'auto', pass."""
+    import socket
+    import time
+
+    with socket.socket() as closed:
+        closed.bind(("127.0.0.1", 0))
+        free = closed.getsockname()[1]
+    t0 = time.monotonic()
+    for address in (f"127.0.0.1:{free}", f"ray://127.0.0.1:{free}", "nowhere.invalid:6379"):
+        with pytest.raises(ConnectionError, match="address: no Ray cluster answers at"):
+            sweep._reachable(address)
+    assert time.monotonic() - t0 < 3 * sweep._CONNECT_TIMEOUT_S
+    with socket.socket() as listening:
+        listening.bind(("127.0.0.1", 0))
+        listening.listen()
+        sweep._reachable(f"127.0.0.1:{listening.getsockname()[1]}")
+    sweep._reachable("auto")
+    for bad, field in [("HEAD:http", "port number"), ("HEAD:0", "port number"),
+                       (6379, "must be a string")]:
+        with pytest.raises(bc.InputError, match=field):
+            sweep._init(bad, None) if not isinstance(bad, str) else sweep._reachable(bad)
+
+
 def test_numpy_integers_are_shard_counts():
     """A shard count from numpy is an integer, as a seed is."""
     class Cluster:
