@@ -61,18 +61,14 @@ fn default_alpha(
 /// becomes the message the library carries, and is kept
 /// ([`crate::convert::keep_callback_error`]) to be raised again, as the
 /// cause of the library's error or as itself, when the error reaches Python.
-/// The message quotes the exception's first 300 characters (a callback that
-/// calls itself would nest every level's message); the cause is whole.
+/// The message quotes the exception's first 300 characters
+/// ([`bayes_cbf::error::shortened`]: a callback that calls itself would nest
+/// every level's message); the cause is whole.
 fn call_py<'py>(py: Python<'py>, f: &Py<PyAny>, x: &[f64]) -> Result<Bound<'py, PyAny>, String> {
-    const QUOTED: usize = 300;
     f.bind(py)
         .call1((PyArray1::from_slice(py, x),))
         .map_err(|e| {
-            let mut text = e.to_string();
-            if let Some((cut, _)) = text.char_indices().nth(QUOTED) {
-                text.truncate(cut);
-                text.push_str(" …");
-            }
+            let text = bayes_cbf::error::shortened(e.to_string());
             crate::convert::keep_callback_error(text.clone(), e);
             text
         })

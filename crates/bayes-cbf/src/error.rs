@@ -61,16 +61,9 @@ impl InputError {
     /// `Invalid` with a value shown as `value` (a list, a pair of settings);
     /// a value longer than 300 characters is cut there, with its length.
     pub fn invalid_shown(field: &str, value: impl std::fmt::Display, reason: &str) -> Self {
-        const SHOWN: usize = 300;
-        let mut value = value.to_string();
-        if let Some((cut, _)) = value.char_indices().nth(SHOWN) {
-            let total = value.chars().count();
-            value.truncate(cut);
-            value.push_str(&format!(" … ({total} characters)"));
-        }
         Self::Invalid {
             field: field.to_string(),
-            value,
+            value: shortened(value.to_string()),
             reason: reason.to_string(),
         }
     }
@@ -97,6 +90,21 @@ impl InputError {
             got: got.to_string(),
         }
     }
+}
+
+/// How many characters of a value or a quoted message an error shows.
+pub const SHOWN_CHARS: usize = 300;
+
+/// `text` as an error shows it: whole up to [`SHOWN_CHARS`] characters,
+/// else cut there and followed by its length (a relative degree of 10⁶
+/// would otherwise be a message of megabytes).
+pub fn shortened(mut text: String) -> String {
+    if let Some((cut, _)) = text.char_indices().nth(SHOWN_CHARS) {
+        let total = text.chars().count();
+        text.truncate(cut);
+        text.push_str(&format!(" … ({total} characters)"));
+    }
+    text
 }
 
 /// `value` as a message shows it: plain decimals for everyday magnitudes,
