@@ -128,6 +128,67 @@ def test_ctrl_c_stops_a_fit_and_leaves_the_hyperparameters():
     assert len(m) == k
 
 
+def test_other_threads_read_a_model_while_it_is_fitted():
+    """A fit runs on a copy: meanwhile another thread predicts and filters
+    with the model as it was, and a change (add_observation) is refused
+    with a message saying why, not pyo3's "Already mutably borrowed". The
+    long fit runs on the main thread, so that the reader can end it with
+    SIGINT when it is done."""
+    import os
+    import signal
+    import time
+
+    rng = np.random.default_rng(7)
+    k = 1500
+    X = rng.uniform(-3, 3, (k, 2))
+    U = rng.uniform(-2, 2, (k, 1))
+    Xd = np.c_[X[:, 1], -10 * np.sin(X[:, 0]) + U[:, 0]] + 0.05 * rng.normal(size=(k, 2))
+    m = bc.MVGP(2, 1, [1.0, 1.0], np.eye(2), np.eye(2), 0.1, prior_mean=PENDULUM,
+                known_rows=[0])
+    m.add_observation([0.1, 0.2], [0.3], [0.2, -1.0])
+    b = bc.Barrier.from_json('{"type": "pendulum_sector", "theta_c": 0.7854, '
+                             '"delta": 0.3927, "relative_degree": 2, "k_alpha": [1.0, 3.0]}')
+    f = bc.SafetyFilter(m, [b])
+    xq, x, u_ref = np.array([[0.3, -0.2]]), [0.0, 0.1], [2.0]
+    want_mean, want_b = m.predict(xq)
+    want_u = f.filter(x, u_ref).u
+    seen: dict = {}
+
+    def reader():
+        try:
+            time.sleep(0.5)
+            seen["mean"], seen["B"] = m.predict(xq)
+            seen["u"] = f.filter(x, u_ref).u
+            seen["len"], seen["A"] = len(m), m.A
+            for change in (lambda: m.add_observation([0.0, 0.0], [0.0], [0.0, 0.0]),
+                           lambda: m.fit(X[:5], U[:5], Xd[:5])):
+                try:
+                    change()
+                except RuntimeError as e:
+                    seen.setdefault("refused", []).append(str(e))
+        finally:
+            os.kill(os.getpid(), signal.SIGINT)
+
+    t = threading.Thread(target=reader)
+    t.start()
+    with pytest.raises(KeyboardInterrupt):
+        m.fit(X, U, Xd, max_iters=40, restarts=20)
+    t.join()
+    np.testing.assert_array_equal(seen["mean"], want_mean)
+    np.testing.assert_array_equal(seen["B"], want_b)
+    np.testing.assert_array_equal(seen["u"], want_u)
+    np.testing.assert_array_equal(seen["A"], np.eye(2))
+    assert not np.array_equal(want_u, u_ref)
+    assert seen["len"] == 1
+    assert len(seen["refused"]) == 2, seen["refused"]
+    assert "this MVGP is being fitted by another thread's call" in seen["refused"][0]
+    assert "this model is being fitted by another thread's call" in seen["refused"][1]
+    # the interrupted fit left its data, and the model takes changes again
+    assert len(m) == k
+    m.add_observation([0.0, 0.0], [0.0], [0.0, 0.0])
+    assert len(m) == k + 1
+
+
 def test_ctrl_c_stops_a_run():
     """SIGINT during a long run raises KeyboardInterrupt before its next
     step, not when the run ends."""

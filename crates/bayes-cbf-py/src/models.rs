@@ -135,6 +135,70 @@ impl FitWarning for Cogp {
     }
 }
 
+/// A model's flag of a fit in progress, which [`borrow_idle`] reads.
+type FitFlag = std::sync::Arc<std::sync::atomic::AtomicBool>;
+
+/// A fit in progress: its model's flag set from [`start`](Self::start)
+/// until the fitted copy is back in the object (or the fit is dropped, by
+/// an error or a signal).
+struct Fitting(FitFlag);
+
+impl Fitting {
+    fn start(flag: &FitFlag) -> Self {
+        flag.store(true, std::sync::atomic::Ordering::Release);
+        Self(flag.clone())
+    }
+
+    /// Borrows `obj` mutably to put the fitted copy back, waiting (the GIL
+    /// released) while another thread holds it: a filter step whose
+    /// Python barrier has yielded the GIL. Ctrl-C while waiting drops the
+    /// fit.
+    fn finish<'py, T: pyo3::PyClass<Frozen = pyo3::pyclass::boolean_struct::False>>(
+        self,
+        obj: &Bound<'py, T>,
+    ) -> PyResult<PyRefMut<'py, T>> {
+        loop {
+            if let Ok(slf) = obj.try_borrow_mut() {
+                return Ok(slf);
+            }
+            obj.py().check_signals()?;
+            obj.py()
+                .detach(|| std::thread::sleep(std::time::Duration::from_millis(1)));
+        }
+    }
+}
+
+impl Drop for Fitting {
+    fn drop(&mut self) {
+        self.0.store(false, std::sync::atomic::Ordering::Release);
+    }
+}
+
+/// A model of `MVGP` or `CoGP`, with its flag of a fit in progress.
+trait Fitted: pyo3::PyClass<Frozen = pyo3::pyclass::boolean_struct::False> {
+    fn fit_flag(&self) -> &FitFlag;
+}
+
+/// Raises `RuntimeError` when another thread's `fit` of `model` has not
+/// returned: its result would replace a change made meanwhile.
+fn idle<T: Fitted>(model: &T, what: &str) -> PyResult<()> {
+    if model.fit_flag().load(std::sync::atomic::Ordering::Acquire) {
+        return Err(pyo3::exceptions::PyRuntimeError::new_err(format!(
+            "{what} is being fitted by another thread's call, whose result would replace \
+             this change; change it after that fit returns"
+        )));
+    }
+    Ok(())
+}
+
+/// Borrows a model mutably to add or drop an observation, or raises
+/// `RuntimeError` when a call holds it or a fit of it runs ([`idle`]).
+fn borrow_idle<'py, T: Fitted>(obj: &Bound<'py, T>, what: &str) -> PyResult<PyRefMut<'py, T>> {
+    let slf = borrow_mut(obj, what)?;
+    idle(&*slf, what)?;
+    Ok(slf)
+}
+
 /// The `#[pymethods]` that `MVGP` and `CoGP` share: `fit` (named rank
 /// settings, then `max_iters`, `seed`, `restarts` and the model's extra
 /// settings, with their defaults), `fit_report`, `log_marginal_likelihood`,
@@ -169,7 +233,11 @@ macro_rules! gp_methods {
                 $(#[pyo3(from_py_with = args::$extra)] $extra: $ty,)*
             ) -> PyResult<Bound<'py, Self>> {
                 let py = X.py();
-                let mut slf = crate::convert::borrow_mut(obj, "this model")?;
+                // a copy needs the model read only: a fit starts while
+                // another thread's filter step reads it
+                let slf = crate::convert::borrow(obj, "this model")?;
+                idle(&*slf, "this model")?;
+                let fitting = Fitting::start(&slf.fitting);
                 let (n, m) = (slf.model.state_dim(), slf.model.control_dim());
                 let (xs, us, xd) = data_of(X, U, Xdot, n, m)?;
                 let settings = $settings {
@@ -182,13 +250,19 @@ macro_rules! gp_methods {
                     ..$settings::default()
                 };
                 settings.validate().map_err(core_err)?;
-                let model = &mut slf.model;
+                // the fit runs on a copy, the GIL released and the object
+                // not borrowed: other threads read (predict, filter) the
+                // model as it was, and changes wait for the fit (Fitting)
+                let mut model = slf.model.clone();
+                drop(slf);
                 // Ctrl-C stops the fit (KeyboardInterrupt): the model then
                 // holds the new data with its hyperparameters as before
                 let (report, signal) = crate::interrupt::interruptible(py, |stop| {
                     model.set_data(&xs, &us, &xd)?;
-                    $fit(model, &settings, stop)
+                    $fit(&mut model, &settings, stop)
                 });
+                let mut slf = fitting.finish(obj)?;
+                slf.model = model;
                 // a fit that finished as the signal came keeps its result:
                 // the report says so
                 if let Ok(r) = &report {
@@ -260,6 +334,14 @@ pub struct PyMvgp {
     prior: PriorSpec,
     /// Report of the last fit.
     last_fit: Option<FitReport>,
+    /// Set while a `fit` runs on a copy of `model`.
+    fitting: FitFlag,
+}
+
+impl Fitted for PyMvgp {
+    fn fit_flag(&self) -> &FitFlag {
+        &self.fitting
+    }
 }
 
 impl PyMvgp {
@@ -269,6 +351,7 @@ impl PyMvgp {
             model,
             prior: file.prior_mean.clone(),
             last_fit: None,
+            fitting: FitFlag::default(),
         })
     }
 
@@ -384,7 +467,7 @@ impl PyMvgp {
         u: &Bound<'_, PyAny>,
         xdot: &Bound<'_, PyAny>,
     ) -> PyResult<()> {
-        let mut this = borrow_mut(slf, "this MVGP")?;
+        let mut this = borrow_idle(slf, "this MVGP")?;
         let (n, m) = (this.model.state_dim(), this.model.control_dim());
         let x = vector(x, "x", Some(n))?;
         let u = vector(u, "u", Some(m))?;
@@ -405,7 +488,7 @@ impl PyMvgp {
         xdot: &Bound<'_, PyAny>,
         #[pyo3(from_py_with = args::budget)] budget: usize,
     ) -> PyResult<Option<usize>> {
-        let mut this = borrow_mut(slf, "this MVGP")?;
+        let mut this = borrow_idle(slf, "this MVGP")?;
         let (n, m) = (this.model.state_dim(), this.model.control_dim());
         let x = vector(x, "x", Some(n))?;
         let u = vector(u, "u", Some(m))?;
@@ -419,7 +502,7 @@ impl PyMvgp {
 
     /// Drops the oldest observation (sliding window), O(k²).
     fn remove_oldest(slf: &Bound<'_, Self>) -> PyResult<()> {
-        let mut this = borrow_mut(slf, "this MVGP")?;
+        let mut this = borrow_idle(slf, "this MVGP")?;
         if this.model.is_empty() {
             return Err(input_err("remove_oldest: the model has no observations"));
         }
@@ -537,6 +620,13 @@ impl PyMvgp {
 pub struct PyCogp {
     model: Cogp,
     last_fit: Option<FitReport>,
+    fitting: FitFlag,
+}
+
+impl Fitted for PyCogp {
+    fn fit_flag(&self) -> &FitFlag {
+        &self.fitting
+    }
 }
 
 gp_methods! {
@@ -587,6 +677,7 @@ impl PyCogp {
             model.map(|model| Self {
                 model,
                 last_fit: None,
+                fitting: FitFlag::default(),
             }),
         )
     }
