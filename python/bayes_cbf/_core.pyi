@@ -124,6 +124,12 @@ class CoGP:
     """Kernel lengthscales."""
     variance: Final[float]
     """Kernel output scale."""
+    X: Final[F64]
+    """The training states (k, n)."""
+    U: Final[F64]
+    """The training controls (k, m)."""
+    Xdot: Final[F64]
+    """The training derivatives (k, n)."""
 
 class Barrier:
     """A control barrier function; the safe set is {x : h(x) >= 0}.

@@ -107,6 +107,29 @@ def test_bad_sweeps_are_input_errors():
     assert sweep._seed_range(np.arange(3, 6)) == (3, 6)
 
 
+def test_a_filter_and_its_model_go_to_ray_tasks():
+    """A fitted model and a filter with a barrier written as lambdas are
+    arguments of Ray tasks (cloudpickle): each task filters as the driver."""
+    rng = np.random.default_rng(5)
+    X = rng.uniform(-2, 2, (30, 2))
+    U = rng.uniform(-1, 1, (30, 1))
+    Xd = np.c_[X[:, 1], -10 * np.sin(X[:, 0]) + U[:, 0]]
+    prior = {"type": "pendulum", "mass": 1.0, "length": 1.0, "gravity": 10.0}
+    m = bc.MVGP(2, 1, [1.0, 1.0], np.eye(2), np.eye(2), 0.1, prior_mean=prior,
+                known_rows=[0]).fit(X, U, Xd, max_iters=5)
+    limit = bc.Barrier.callback(lambda x: 4.0 - x[1] ** 2, lambda x: np.array([0.0, -2.0 * x[1]]))
+    f = bc.SafetyFilter(m, [limit], u_min=[-5.0], u_max=[5.0], fallback="relax")
+    xs = [[0.1, 1.9], [0.5, -1.95], [-0.3, 0.2]]
+
+    @ray.remote
+    def step(filt, x):
+        return filt.filter(x, [5.0]).u
+
+    got = ray.get([step.remote(f, x) for x in xs])
+    for x, u in zip(xs, got):
+        np.testing.assert_allclose(u, f.filter(x, [5.0]).u, rtol=1e-9, atol=1e-12)
+
+
 def test_unreachable_addresses_are_refused_at_once():
     """An address where nothing listens is a ConnectionError naming it within
     the connect timeout (Ray retries it for minutes); one that listens, and

@@ -15,7 +15,7 @@ use bayes_cbf_scenario::io::write_atomic;
 use bayes_cbf_scenario::model_file::ModelFile;
 use bayes_cbf_scenario::prior_spec::PriorSpec;
 use pyo3::prelude::*;
-use pyo3::types::PyDict;
+use pyo3::types::{PyDict, PyTuple};
 use std::path::PathBuf;
 
 /// Two numpy arrays (the posterior means and covariances of `predict`).
@@ -316,8 +316,70 @@ macro_rules! gp_methods {
             fn __len__(&self) -> usize {
                 self.model.len()
             }
+
+            /// The training states `(k, n)`.
+            #[getter(X)]
+            fn x<'py>(&self, py: Python<'py>) -> PyResult<NdArray<'py>> {
+                let (k, n) = (self.model.len(), self.model.state_dim());
+                to_numpy(py, self.model.xs().to_vec(), &[k, n])
+            }
+            /// The training controls `(k, m)`.
+            #[getter(U)]
+            fn u<'py>(&self, py: Python<'py>) -> PyResult<NdArray<'py>> {
+                let (k, m) = (self.model.len(), self.model.control_dim());
+                to_numpy(py, self.model.controls(), &[k, m])
+            }
+            /// The training derivatives `(k, n)`.
+            #[getter(Xdot)]
+            fn xdot<'py>(&self, py: Python<'py>) -> PyResult<NdArray<'py>> {
+                let (k, n) = (self.model.len(), self.model.state_dim());
+                to_numpy(py, self.model.xdot().to_vec(), &[k, n])
+            }
+
+            /// Restores what a pickled model carries besides its
+            /// constructor's arguments (`__reduce__`): the last fit's
+            /// report and, for a CoGP, its data.
+            fn __setstate__(&mut self, state: &Bound<'_, PyDict>) -> PyResult<()> {
+                self.restore_data(state)?;
+                self.last_fit = match state.get_item("fit_report")? {
+                    Some(d) if !d.is_none() => Some(report_of(d.cast::<PyDict>()?)?),
+                    _ => None,
+                };
+                Ok(())
+            }
         }
     };
+}
+
+/// The fit report of a pickled model, from [`report_dict`]'s dict.
+fn report_of(d: &Bound<'_, PyDict>) -> PyResult<FitReport> {
+    let item = |key: &str| {
+        d.get_item(key)?
+            .ok_or_else(|| input_err(format!("fit_report.{key}: missing")))
+    };
+    Ok(FitReport {
+        initial_log_likelihood: item("initial_log_likelihood")?.extract()?,
+        log_likelihood: item("log_likelihood")?.extract()?,
+        evaluations: item("evaluations")?.extract()?,
+        starts: item("starts")?.extract()?,
+    })
+}
+
+/// The state a pickled model carries: the last fit's report, and `extra`.
+fn pickled_state<'py>(
+    py: Python<'py>,
+    report: &Option<FitReport>,
+    extra: &[(&str, Bound<'py, PyAny>)],
+) -> PyResult<Bound<'py, PyDict>> {
+    let state = PyDict::new(py);
+    state.set_item(
+        "fit_report",
+        report.as_ref().map(|r| report_dict(py, r)).transpose()?,
+    )?;
+    for (k, v) in extra {
+        state.set_item(*k, v)?;
+    }
+    Ok(state)
 }
 
 /// Matrix-variate GP model of `F(x) = [f(x) g(x)]` (paper, Sec. IV):
@@ -345,6 +407,11 @@ impl Fitted for PyMvgp {
 }
 
 impl PyMvgp {
+    /// An MVGP's data is in its model file.
+    fn restore_data(&mut self, _state: &Bound<'_, PyDict>) -> PyResult<()> {
+        Ok(())
+    }
+
     fn from_file(file: &ModelFile) -> PyResult<Self> {
         let model = file.to_model().map_err(scenario_err)?;
         Ok(Self {
@@ -542,6 +609,22 @@ impl PyMvgp {
         self.file().to_json().map_err(scenario_err)
     }
 
+    /// Pickling (`pickle`, `copy.deepcopy`, Ray tasks): the model file
+    /// (hyperparameters, prior, input map, known rows, data) and the last
+    /// fit's report. The copy's posterior equals this one's to rounding.
+    #[allow(clippy::type_complexity)]
+    fn __reduce__<'py>(
+        slf: &Bound<'py, Self>,
+    ) -> PyResult<(Bound<'py, PyAny>, (String,), Bound<'py, PyDict>)> {
+        let this = crate::convert::borrow(slf, "this MVGP")?;
+        let state = pickled_state(slf.py(), &this.last_fit, &[])?;
+        Ok((
+            slf.get_type().getattr("from_json")?,
+            (this.to_json()?,),
+            state,
+        ))
+    }
+
     /// Row covariance `A` (`n × n`).
     #[getter(A)]
     fn a<'py>(&self, py: Python<'py>) -> PyResult<NdArray<'py>> {
@@ -580,24 +663,6 @@ impl PyMvgp {
     fn noise_sigma(&self) -> f64 {
         self.model.hyper().sigma
     }
-    /// The training states `(k, n)`.
-    #[getter(X)]
-    fn x<'py>(&self, py: Python<'py>) -> PyResult<NdArray<'py>> {
-        let (k, n) = (self.model.len(), self.model.state_dim());
-        to_numpy(py, self.model.xs().to_vec(), &[k, n])
-    }
-    /// The training controls `(k, m)`.
-    #[getter(U)]
-    fn u<'py>(&self, py: Python<'py>) -> PyResult<NdArray<'py>> {
-        let (k, m) = (self.model.len(), self.model.control_dim());
-        to_numpy(py, self.model.controls(), &[k, m])
-    }
-    /// The training derivatives `(k, n)`.
-    #[getter(Xdot)]
-    fn xdot<'py>(&self, py: Python<'py>) -> PyResult<NdArray<'py>> {
-        let (k, n) = (self.model.len(), self.model.state_dim());
-        to_numpy(py, self.model.xdot().to_vec(), &[k, n])
-    }
     fn __repr__(&self) -> String {
         format!(
             "MVGP(state_dim={}, control_dim={}, k={}, noise_sigma={:.4e})",
@@ -619,8 +684,25 @@ impl PyMvgp {
 #[pyclass(name = "CoGP", module = "bayes_cbf")]
 pub struct PyCogp {
     model: Cogp,
+    /// The prior mean and the input map as given (for pickling).
+    prior: PriorSpec,
+    input_map: Option<Vec<FeatureSpec>>,
     last_fit: Option<FitReport>,
     fitting: FitFlag,
+}
+
+impl PyCogp {
+    /// Sets the data `X`, `U`, `Xdot` of a pickled CoGP's state.
+    fn restore_data(&mut self, state: &Bound<'_, PyDict>) -> PyResult<()> {
+        let item = |key: &str| {
+            state
+                .get_item(key)?
+                .ok_or_else(|| input_err(format!("state.{key}: missing")))
+        };
+        let (n, m) = (self.model.state_dim(), self.model.control_dim());
+        let (xs, us, xd) = data_of(&item("X")?, &item("U")?, &item("Xdot")?, n, m)?;
+        self.model.set_data(&xs, &us, &xd).map_err(core_err)
+    }
 }
 
 impl Fitted for PyCogp {
@@ -669,17 +751,56 @@ impl PyCogp {
             Sigma: sq(Sigma, "Sigma", big, 1.0)?,
             S: sq(S, "S", n, 0.01)?,
         };
-        let map = to_input_map(input_map_of(input_map)?.as_deref());
-        let prior = prior_of(prior_mean)?.to_prior().map_err(scenario_err)?;
-        let model = Cogp::new(n, m, hyper, prior, map).map_err(core_err);
+        let input_map = input_map_of(input_map)?;
+        let map = to_input_map(input_map.as_deref());
+        let prior = prior_of(prior_mean)?;
+        let model =
+            Cogp::new(n, m, hyper, prior.to_prior().map_err(scenario_err)?, map).map_err(core_err);
         crate::warnings::after(
             lengthscales.py(),
             model.map(|model| Self {
                 model,
+                prior,
+                input_map,
                 last_fit: None,
                 fitting: FitFlag::default(),
             }),
         )
+    }
+
+    /// Pickling (`pickle`, `copy.deepcopy`, Ray tasks): the constructor's
+    /// arguments at the current hyperparameters, then the data and the
+    /// last fit's report. The copy's posterior equals this one's to
+    /// rounding.
+    #[allow(clippy::type_complexity)]
+    fn __reduce__<'py>(
+        slf: &Bound<'py, Self>,
+    ) -> PyResult<(Bound<'py, PyAny>, Bound<'py, PyTuple>, Bound<'py, PyDict>)> {
+        let py = slf.py();
+        let this = crate::convert::borrow(slf, "this CoGP")?;
+        let json = |v: Result<String, serde_json::Error>| -> PyResult<Bound<'py, PyAny>> {
+            let text = v.map_err(|e| input_err(format!("not JSON: {e}")))?;
+            py.import("json")?.call_method1("loads", (text,))
+        };
+        let args = (
+            this.model.state_dim(),
+            this.model.control_dim(),
+            this.lengthscales(py)?,
+            this.sigma(py)?,
+            this.s(py)?,
+            json(serde_json::to_string(&this.prior))?,
+            json(serde_json::to_string(&this.input_map))?,
+            this.variance(),
+        )
+            .into_pyobject(py)?;
+        let data = [
+            ("X", this.x(py)?),
+            ("U", this.u(py)?),
+            ("Xdot", this.xdot(py)?),
+        ];
+        let data = data.map(|(k, v)| (k, v.into_any()));
+        let state = pickled_state(py, &this.last_fit, &data)?;
+        Ok((slf.get_type().into_any(), args, state))
     }
 
     /// Posterior at the rows of `Xq (q, n)`: the means `(q, n, 1+m)` and the

@@ -15,7 +15,7 @@ use bayes_cbf_scenario::queries::{check_barrier, condition_moments, status_parts
 use bayes_cbf_scenario::scenario::ClfSpec;
 use numpy::{PyArray1, PyUntypedArrayMethods};
 use pyo3::prelude::*;
-use pyo3::types::PyDict;
+use pyo3::types::{PyDict, PyTuple};
 use std::collections::BTreeMap;
 use std::path::PathBuf;
 use std::sync::Arc;
@@ -30,6 +30,9 @@ pub struct PyBarrier {
     pub(crate) barrier: Arc<dyn DynBarrier>,
     /// The barrier-file description, for barriers built from one.
     spec: Option<BarrierSpec>,
+    /// The arguments of `Barrier.callback` that built a callback barrier
+    /// (what pickling rebuilds it from).
+    callback_args: Option<Py<PyTuple>>,
     /// Name in reports.
     #[pyo3(get, name = "name")]
     pub(crate) label: String,
@@ -135,7 +138,7 @@ impl PyBarrier {
         #[pyo3(from_py_with = args::k_alpha)] k_alpha: Option<Vec<f64>>,
         #[pyo3(from_py_with = args::name)] name: &str,
     ) -> PyResult<Self> {
-        Python::attach(|py| -> PyResult<()> {
+        let args = Python::attach(|py| -> PyResult<Py<PyTuple>> {
             for (field, f) in [
                 ("h", Some(&h)),
                 ("grad", Some(&grad)),
@@ -147,7 +150,18 @@ impl PyBarrier {
                     }
                 }
             }
-            Ok(())
+            let hess = hess.as_ref().map(|f| f.clone_ref(py));
+            let given = (
+                &h,
+                &grad,
+                hess,
+                state_dim,
+                relative_degree,
+                alpha,
+                &k_alpha,
+                name,
+            );
+            Ok(given.into_pyobject(py)?.unbind())
         })?;
         let alpha = default_alpha(relative_degree, alpha, &k_alpha);
         let gains = bayes_cbf_scenario::barrier_file::gains(relative_degree, &alpha, &k_alpha)
@@ -196,7 +210,36 @@ impl PyBarrier {
         let hsf = hess.map(|f| array_fn(f, "hess", n * n));
         let b =
             CallbackBarrier::new(name, n, relative_degree, gains, hf, gf, hsf).map_err(core_err)?;
-        Ok(Self::new(Arc::new(b), None, name.to_string()))
+        let mut barrier = Self::new(Arc::new(b), None, name.to_string());
+        barrier.callback_args = Some(args);
+        Ok(barrier)
+    }
+
+    /// Pickling (`pickle`, `copy.deepcopy`, Ray tasks): a barrier-file
+    /// barrier as its JSON and name, a callback barrier as its callbacks
+    /// and arguments (callbacks that `pickle` cannot write, such as
+    /// lambdas, need `cloudpickle`, which Ray uses).
+    fn __reduce__<'py>(
+        slf: &Bound<'py, Self>,
+    ) -> PyResult<(Bound<'py, PyAny>, Bound<'py, PyTuple>)> {
+        let (py, this) = (slf.py(), slf.get());
+        let cls = slf.get_type();
+        match (&this.callback_args, this.to_json()?) {
+            (Some(args), _) => Ok((cls.getattr("callback")?, args.bind(py).clone())),
+            (None, Some(text)) => Ok((
+                cls.getattr("_restore")?,
+                (text, &this.label).into_pyobject(py)?,
+            )),
+            (None, None) => Err(input_err("this barrier has no description to pickle")),
+        }
+    }
+
+    /// The barrier of barrier-file JSON `text` named `name` (unpickling).
+    #[staticmethod]
+    fn _restore(text: &str, name: String) -> PyResult<Self> {
+        let mut barrier = Self::from_json(text)?;
+        barrier.label = name;
+        Ok(barrier)
     }
 
     /// `h(x)`.
@@ -308,6 +351,7 @@ impl PyBarrier {
             gains: barrier.gains().to_vec(),
             barrier,
             spec,
+            callback_args: None,
             label,
         }
     }
@@ -462,6 +506,13 @@ impl PyClf {
     fn __repr__(&self) -> String {
         format!("CLF({})", self.to_json().unwrap_or_else(|_| "?".into()))
     }
+    /// Pickling (`pickle`, `copy.deepcopy`, Ray tasks): its JSON.
+    fn __reduce__<'py>(slf: &Bound<'py, Self>) -> PyResult<(Bound<'py, PyAny>, (String,))> {
+        Ok((
+            slf.get_type().getattr("from_json")?,
+            (slf.get().to_json()?,),
+        ))
+    }
 }
 
 /// Moments of the barrier condition `CBC(x, u)` under the model's
@@ -590,6 +641,9 @@ impl PyFilterResult {
 #[pyclass(name = "SafetyFilter", module = "bayes_cbf")]
 pub struct PySafetyFilter {
     model: Py<PyMvgp>,
+    /// The constructor's arguments, validated (what pickling rebuilds the
+    /// filter from).
+    args: Py<PyTuple>,
     ctrl: SafetyController,
     out: ControlOutput,
     labels: Vec<String>,
@@ -643,6 +697,7 @@ impl PySafetyFilter {
                     labels.push(b.label.clone());
                 }
             }
+            let clf_arg = clf.clone();
             let clf: Option<Arc<dyn DynLyapunov>> = match clf {
                 None => None,
                 Some(c) => {
@@ -671,12 +726,28 @@ impl PySafetyFilter {
                 settings.r = square(r, "R", m)?;
             }
             settings.fallback = Fallback::parse(fallback).map_err(core_err)?;
+            let args = (
+                &model,
+                pyo3::types::PyList::new(py, &barriers)?,
+                clf_arg,
+                probability,
+                zeta,
+                settings.u_min.clone(),
+                settings.u_max.clone(),
+                R,
+                fallback,
+                clf_weight,
+                predictive,
+            )
+                .into_pyobject(py)?
+                .unbind();
             let degrees = bs.iter().map(|b| b.relative_degree()).collect();
             let nb = bs.len();
             let ctrl = SafetyController::new(n, m, bs, clf, settings)
                 .map_err(|e| core_err(argument_names(e)))?;
             Ok(Self {
                 model: model.unbind(),
+                args,
                 ctrl,
                 out: ControlOutput::new(m, nb),
                 labels,
@@ -688,6 +759,16 @@ impl PySafetyFilter {
             })
         };
         crate::warnings::after(py, built())
+    }
+
+    /// Pickling (`pickle`, `copy.deepcopy`, Ray tasks): the constructor's
+    /// arguments, the model and the barriers among them. The copy starts
+    /// as a new filter (no warm start, warnings anew).
+    fn __reduce__<'py>(
+        slf: &Bound<'py, Self>,
+    ) -> PyResult<(Bound<'py, PyAny>, Bound<'py, PyTuple>)> {
+        let this = borrow(slf, "this SafetyFilter")?;
+        Ok((slf.get_type().into_any(), this.args.bind(slf.py()).clone()))
     }
 
     /// One filter step at state `x` around the reference control `u_ref`;

@@ -38,6 +38,16 @@ macro_rules! shared_model_accessors {
         pub fn xdot(&self) -> &[f64] {
             &self.data.xdot
         }
+        /// Training controls without the leading 1 (`k × m`), freshly
+        /// collected.
+        pub fn controls(&self) -> Vec<f64> {
+            let p = self.m + 1;
+            self.data
+                .us
+                .chunks(p)
+                .flat_map(|u| u[1..].to_vec())
+                .collect()
+        }
     };
 }
 

@@ -476,16 +476,6 @@ impl<K: Kernel> Mvgp<K> {
     pub fn factor(&self) -> &CholFactor {
         &self.factor
     }
-    /// Training controls without the leading 1 (`k × m`), freshly collected.
-    pub fn controls(&self) -> Vec<f64> {
-        let p = self.m + 1;
-        self.data
-            .us
-            .chunks(p)
-            .flat_map(|u| u[1..].to_vec())
-            .collect()
-    }
-
     fn push_point(&mut self, x: &[f64], u: &[f64], xdot: &[f64]) {
         let (n, p) = (self.n, self.m + 1);
         let uoff = self.data.us.len();
