@@ -287,6 +287,29 @@ impl<'s, O: Objective> Harness<'s, O> {
         Some(Point { theta, value })
     }
 
+    /// The better of `start` and `own` (a model's own hyperparameters, when
+    /// the fit is not warm-started) to start from, with its value: a fit
+    /// that starts from the model it was given when that is the better
+    /// point never ends below it. `None` when neither evaluates. An `own`
+    /// within 10⁻⁶ of `start` (a model made at the data-driven
+    /// start) costs no evaluation.
+    pub fn better_start(
+        &mut self,
+        start: Vec<f64>,
+        own: Option<Vec<f64>>,
+    ) -> (Vec<f64>, Option<f64>) {
+        let at_start = self.point(start.clone()).map(|p| p.value);
+        let same = |own: &Vec<f64>| {
+            own.iter()
+                .zip(&start)
+                .all(|(a, b)| (a - b).abs() <= 1e-6 * (1.0 + b.abs()))
+        };
+        match own.filter(|own| !same(own)).and_then(|own| self.point(own)) {
+            Some(p) if at_start.is_none_or(|v| p.value < v) => (p.theta, Some(p.value)),
+            _ => (start, at_start),
+        }
+    }
+
     /// One start of projected L-BFGS from `theta` (projected into the box;
     /// module docs). Returns the best point of this start, `None` if no
     /// evaluation succeeded (e.g. the start point itself fails).

@@ -102,7 +102,8 @@ pub struct FitSettings {
     pub rank_b: Rank,
     /// L-BFGS iterations per start.
     pub max_iters: u64,
-    /// Extra random restarts besides the data-driven start.
+    /// Extra random restarts besides the first start (the data-driven one,
+    /// or the model's own hyperparameters where they are better: [`fit`]).
     pub restarts: usize,
     /// Seed of the random initialisation of the off-diagonal factors and of
     /// the restarts.
@@ -501,6 +502,48 @@ impl<'a, K: Kernel> MvgpLikelihood<'a, K> {
         self.start.len()
     }
 
+    /// `hyper` (a model's own hyperparameters) as a point `θ` of this
+    /// parameterisation, clamped into the bounds: the equivalent model with
+    /// the kernel's output scale of the parameterisation (`B` absorbs the
+    /// rest), `A_00 = 1` when `A` is learned, and `σ_f² = σ² − ε·signal`.
+    /// Exact, inside the bounds, for full and diagonal ranks; a low-rank
+    /// factor starts small and random (`seed`), as at [`start`](Self::start).
+    #[allow(non_snake_case)]
+    pub fn point_of(&self, hyper: &MvgpHyper<K>, seed: u64) -> Result<Vec<f64>, Error> {
+        let l = &self.layout;
+        let mut th = vec![0.0; self.dim()];
+        let kh = hyper.kernel.log_hyper();
+        pack_free(&kh, l.scale_idx, &mut th);
+        let scale = l
+            .scale_idx
+            .map_or(1.0, |i| (kh[i] - self.kernel.log_hyper()[i]).exp());
+        let rows = &self.rows;
+        let A = DMatrix::from_fn(self.n, self.n, |i, j| hyper.A[(rows[i], rows[j])]);
+        let c = if l.a.is_some() { A[(0, 0)] } else { 1.0 };
+        let B = &hyper.B * (scale * c);
+        let (p, d) = (self.p, self.d);
+        let kernel = kernel_from_free(&self.kernel, &th, l.scale_idx)?;
+        let signal = (0..self.k)
+            .map(|j| {
+                let (u, z) = (&self.us[j * p..(j + 1) * p], &self.zs[j * d..(j + 1) * d]);
+                quad(u, &B) * kernel.value(z, z)
+            })
+            .sum::<f64>()
+            / self.k as f64;
+        let sigma2 = hyper.sigma * hyper.sigma * c;
+        th[l.off_sigma()] = 0.5 * (sigma2 - NOISE_TO_SIGNAL * signal).max(1e-300).ln();
+        let mut rng = ChaCha8Rng::seed_from_u64(seed);
+        let (ob, oa) = (l.off_b(), l.off_a());
+        l.b.init(&B, &mut rng, &mut th[ob..oa]);
+        if let Some(a) = &l.a {
+            a.init(&(A / c), &mut rng, &mut th[oa..]);
+        }
+        for ((t, lo), hi) in th.iter_mut().zip(&self.lower).zip(&self.upper) {
+            *t = t.clamp(*lo, *hi);
+        }
+        Ok(th)
+    }
+
     /// The start point of [`fit`] (inside the bounds).
     pub fn start(&self) -> &[f64] {
         &self.start
@@ -780,6 +823,12 @@ impl<K: Kernel> Objective for MvgpLikelihood<'_, K> {
 /// by maximising the exact marginal likelihood ([`MvgpLikelihood`], module
 /// docs) with projected L-BFGS over the bounds, and refactorises the model.
 ///
+/// A cold fit (not `warm_start`) starts from the data-driven point or, when
+/// its likelihood is higher, from the model's own hyperparameters
+/// ([`MvgpLikelihood::point_of`]): a fit then never ends below the model it
+/// was given, where the parameterisation holds that model exactly (full or
+/// diagonal ranks, inside the bounds). Restarts perturb that start.
+///
 /// Deterministic for a given `settings.seed`.
 ///
 /// ## Reference
@@ -800,15 +849,23 @@ pub fn fit_until<K: Kernel>(
     let initial_ll = model.log_marginal_likelihood();
     let likelihood = MvgpLikelihood::new(model, settings)?;
     let spreads = likelihood.spreads.clone();
-    let mut th0 = likelihood.start.clone();
+    let th0 = likelihood.start.clone();
+    // a cold fit starts from the model's own hyperparameters when they are
+    // the better point: it then never ends below the model it was given
+    // (where the parameterisation holds that model exactly)
+    let own = (!settings.warm_start)
+        .then(|| likelihood.point_of(model.hyper(), settings.seed))
+        .transpose()?;
     let off_sigma = likelihood.layout.off_sigma();
     let sigma_max = likelihood.upper[off_sigma];
     let mut harness = Harness::new(likelihood).with_stop(stop);
+    let (mut th0, mut at_start) = harness.better_start(th0, own);
     // a start whose Gram matrix does not factorise without jitter (the
     // fit evaluates exactly; e.g. the model's own σ on redundant online
     // data) starts again with ten times the noise, up to σ's bound
-    while harness.point(th0.clone()).is_none() && th0[off_sigma] < sigma_max {
+    while at_start.is_none() && th0[off_sigma] < sigma_max {
         th0[off_sigma] = (th0[off_sigma] + std::f64::consts::LN_10).min(sigma_max);
+        at_start = harness.point(th0.clone()).map(|p| p.value);
     }
     // one run per start, ending when an iteration improves −log p by less
     // than 1e-9 relative, or at a stall. The CoGP fit resumes after stalls
@@ -1050,6 +1107,95 @@ mod tests {
         let f2 = lik.evaluate(&th, &mut g2).unwrap();
         assert_eq!(f1, f2);
         assert_eq!(g1, g2);
+    }
+
+    /// A model's own hyperparameters, as a point of the parameterisation,
+    /// give the model's own likelihood: with a kernel scale, `A_00` and `σ`
+    /// far from the parameterisation's, for full and diagonal ranks, known
+    /// rows, and `A` held.
+    #[test]
+    fn a_models_own_hyperparameters_are_a_point_of_the_fit() {
+        let mut rng = ChaCha8Rng::seed_from_u64(11);
+        for (n, m, ra, rb, learn_a, known) in [
+            (2, 1, Rank::Full, Rank::Full, true, vec![]),
+            (3, 2, Rank::Diagonal, Rank::Full, true, vec![]),
+            (3, 1, Rank::Full, Rank::Diagonal, true, vec![0]),
+            (2, 2, Rank::Full, Rank::Full, false, vec![]),
+        ] {
+            let mut model = model(n, m, 25, &mut rng);
+            if !known.is_empty() {
+                model = model.with_known_rows(&known).unwrap();
+            }
+            let spd = |d: usize, diag: bool, rng: &mut ChaCha8Rng| {
+                let c = DMatrix::from_fn(d, d, |i, j| {
+                    if diag && i != j {
+                        0.0
+                    } else {
+                        rng.random_range(-1.0..1.0) + if i == j { 1.5 } else { 0.0 }
+                    }
+                });
+                &c * c.transpose()
+            };
+            let hyper = MvgpHyper {
+                kernel: Rbf::new((0..n).map(|i| 0.5 + 0.3 * i as f64).collect(), 2.7).unwrap(),
+                A: spd(n, ra == Rank::Diagonal, &mut rng),
+                B: spd(m + 1, rb == Rank::Diagonal, &mut rng),
+                sigma: 0.45,
+            };
+            model.set_hyper(hyper).unwrap();
+            let settings = FitSettings {
+                rank_a: ra,
+                rank_b: rb,
+                learn_a,
+                ..FitSettings::default()
+            };
+            let mut lik = MvgpLikelihood::new(&model, &settings).unwrap();
+            let th = lik.point_of(model.hyper(), 0).unwrap();
+            let mut g = vec![0.0; th.len()];
+            let f = lik.evaluate(&th, &mut g).unwrap();
+            let want = model.log_marginal_likelihood();
+            assert!(
+                (f + want).abs() < 1e-9 * want.abs().max(1.0),
+                "n={n} m={m} {ra:?} {rb:?} learn_a={learn_a}: {} against {want}",
+                -f
+            );
+        }
+    }
+
+    /// A fit never ends below the likelihood of the model it was given: a
+    /// refit of a well-fitted model with one iteration or the defaults,
+    /// and a fit of the hyperparameters that made the data.
+    #[test]
+    fn a_fit_never_ends_below_the_model_it_was_given() {
+        for seed in 0..6 {
+            let mut rng = ChaCha8Rng::seed_from_u64(100 + seed);
+            let mut model = model(2, 1, 40, &mut rng);
+            let good = FitSettings {
+                restarts: 4,
+                seed,
+                ..FitSettings::default()
+            };
+            fit(&mut model, &good).unwrap();
+            for max_iters in [1, 3, 100] {
+                let mut refit = model.clone();
+                let report = fit(
+                    &mut refit,
+                    &FitSettings {
+                        max_iters,
+                        seed: seed + 7,
+                        ..FitSettings::default()
+                    },
+                )
+                .unwrap();
+                let before = model.log_marginal_likelihood();
+                assert_eq!(report.initial_log_likelihood, before);
+                assert!(
+                    report.log_likelihood >= before - 1e-9 * before.abs().max(1.0),
+                    "seed {seed}, max_iters {max_iters}: {} after {before}",
+                    report.log_likelihood
+                );
+            }
+        }
     }
 
     #[test]
