@@ -263,7 +263,7 @@ pub enum ControlError {
     /// control. A kernel variance far above the data's spread does this:
     /// 10¹⁶ for one step of `bayes-cbf control`, 10¹¹ within the double
     /// integrator's learning run, whose Gram matrix it also ill-conditions.
-    #[error("barrier {barrier}: the solver's control misses the condition by {slack:.3e} (mean {mean:.3e}, std {std:.3e}); the condition's covariance (largest entry {scale:.1e}) is beyond what double precision resolves: check the model's kernel variance and noise")]
+    #[error("barrier {barrier}: the solver's control misses the condition by {slack:.3e} (mean {mean:.3e}, std {std:.3e}), also when solved again with a margin; the condition's covariance (largest entry {scale:.1e}) is beyond what double precision resolves: check the model's kernel variance and noise")]
     Unresolved {
         /// Index of the barrier.
         barrier: usize,

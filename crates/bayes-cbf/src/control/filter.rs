@@ -264,7 +264,9 @@ pub struct InfeasibleInfo {
     /// relative-degree-1 barrier is present, else `(0, p]`); `None` if not
     /// feasible even at the lower end.
     pub p_star: Option<f64>,
-    /// The fallback that produced `u`.
+    /// The fallback that produced `u`: the declared one, or the one it
+    /// falls back to itself (`relax` where no control attains `p*` gives
+    /// the max-margin control; `max_margin` whose program fails brakes).
     pub fallback: Fallback,
     /// Raw solver status of the control SOCP.
     pub solver: SolveStatus,
@@ -408,6 +410,9 @@ pub struct SafetyFilter {
     u_mm: Vec<f64>,
     u_p: Vec<f64>,
     violated: Vec<usize>,
+    /// The margins added to the barriers' `ζ` in a second solve (see
+    /// [`solve`](Self::solve)).
+    backoff: Vec<f64>,
 }
 
 impl std::fmt::Debug for SafetyFilter {
@@ -462,9 +467,10 @@ impl SafetyFilter {
                 log::warn!(
                     "fallback relax without input bounds (u_min, u_max): where the conditions \
                      are met only as the control grows, the largest feasible probability p* \
-                     is reached only by an unbounded control, and relax applies it \
-                     (docs/calibration.md, \"Which fallback\"); give u_min and u_max, or use \
-                     max_margin (shown once per run or filter)"
+                     is approached only by ever larger controls: relax applies a very large \
+                     one, or the max-margin control where none attains p* (reported as \
+                     fallback max_margin; docs/calibration.md, \"Which fallback\"); give \
+                     u_min and u_max, or use max_margin (shown once per run or filter)"
                 );
             }
         }
@@ -502,6 +508,7 @@ impl SafetyFilter {
             u_mm: vec![0.0; m],
             u_p: vec![0.0; m],
             violated: Vec::with_capacity(barriers),
+            backoff: vec![0.0; barriers],
         })
     }
 
@@ -596,47 +603,73 @@ impl SafetyFilter {
             p,
             clc.is_some() || cbcs.iter().any(|c| c.relative_degree <= 1),
         )?;
-        for (k, mom) in cbcs.iter().enumerate() {
-            let c = quantile_factor(p, mom.relative_degree)?;
-            self.program.set_barrier(k, mom, c, zeta);
-        }
         let c1 = quantile_factor(p, 1)?;
         if let Some(mom) = clc {
             self.program.set_clf(mom, c1);
         }
         self.program
             .set_objective(&self.settings.r, u_ref, self.settings.lambda);
-        let status = self.program.solve();
-        if status.is_solved() {
-            let x = self.program.x();
-            out.u.copy_from_slice(&x[..m]);
-            self.clamp_to_bounds(&mut out.u);
-            out.delta = if self.shape.clf { x[m] } else { 0.0 };
-            let solved = if status == SolveStatus::Optimal {
-                ControlStatus::Optimal
-            } else {
-                ControlStatus::AlmostOptimal
-            };
-            // an earlier infeasible step's list is kept for the next one
-            if let ControlStatus::Infeasible(info) = std::mem::replace(&mut out.status, solved) {
-                self.violated = info.violated;
+        // one solve, and one more where the control misses a condition by
+        // the solver's own accuracy (a tolerance relative to the whole
+        // program's data, such as a CLF term far larger than the barrier
+        // conditions): that barrier's margin is raised by twice the miss.
+        // The second can be infeasible (the condition held only to that
+        // accuracy), which is then the step's outcome
+        self.backoff.fill(0.0);
+        for attempt in 0..2 {
+            for (k, mom) in cbcs.iter().enumerate() {
+                let c = quantile_factor(p, mom.relative_degree)?;
+                self.program.set_barrier(k, mom, c, zeta + self.backoff[k]);
             }
-        } else {
-            out.delta = 0.0;
-            let info = self.infeasible(cbcs, clc, status, out)?;
-            out.status = ControlStatus::Infeasible(info);
-        }
-        for (k, mom) in cbcs.iter().enumerate() {
-            let c = quantile_factor(p, mom.relative_degree)?;
-            out.constraints[k] = report(mom, c, &out.u, zeta);
-        }
-        if !out.is_infeasible() {
-            if let Err(e) = check_solution(cbcs, &out.constraints, status) {
-                // no control to apply: a caller that ignores the error
-                // gets NaN, not the rejected control
-                out.u.fill(f64::NAN);
-                out.delta = f64::NAN;
-                return Err(e.into());
+            let status = self.program.solve();
+            if status.is_solved() {
+                let x = self.program.x();
+                out.u.copy_from_slice(&x[..m]);
+                self.clamp_to_bounds(&mut out.u);
+                out.delta = if self.shape.clf { x[m] } else { 0.0 };
+                let solved = if status == SolveStatus::Optimal {
+                    ControlStatus::Optimal
+                } else {
+                    ControlStatus::AlmostOptimal
+                };
+                // an earlier infeasible step's list is kept for the next one
+                if let ControlStatus::Infeasible(info) = std::mem::replace(&mut out.status, solved)
+                {
+                    self.violated = info.violated;
+                }
+            } else {
+                out.delta = 0.0;
+                let info = self.infeasible(cbcs, clc, status, out)?;
+                out.status = ControlStatus::Infeasible(info);
+            }
+            for (k, mom) in cbcs.iter().enumerate() {
+                let c = quantile_factor(p, mom.relative_degree)?;
+                out.constraints[k] = report(mom, c, &out.u, zeta);
+            }
+            if out.is_infeasible() {
+                break;
+            }
+            match check_solution(cbcs, &out.constraints, status) {
+                Ok(()) => break,
+                // not where the covariance itself is beyond double
+                // precision at this control: no margin makes that exact
+                Err(_)
+                    if attempt == 0
+                        && cbcs.iter().all(|mom| mom.variance_resolved(&out.u).is_ok()) =>
+                {
+                    for (b, r) in self.backoff.iter_mut().zip(&out.constraints) {
+                        if r.slack < 0.0 && r.slack.is_finite() {
+                            *b = -2.0 * r.slack;
+                        }
+                    }
+                }
+                Err(e) => {
+                    // no control to apply: a caller that ignores the error
+                    // gets NaN, not the rejected control
+                    out.u.fill(f64::NAN);
+                    out.delta = f64::NAN;
+                    return Err(e.into());
+                }
             }
         }
         let (u, delta) = (&out.u, out.delta);
@@ -916,22 +949,37 @@ impl SafetyFilter {
                 out.u.copy_from_slice(&x[..m]);
                 out.delta = if self.shape.clf { x[m] } else { 0.0 };
                 relaxed = true;
+            } else if self.afforded_probability(cbcs, &self.u_p) >= ps - self.settings.p_star_tol {
+                // at p* the conditions just hold, and their feasible set
+                // can be one point the solver does not resolve: the p*
+                // iteration's own control affords p*
+                out.u.copy_from_slice(&self.u_p);
+                out.delta = 0.0;
+                relaxed = true;
             }
         }
-        match fallback {
-            _ if relaxed => {}
-            Fallback::MaxMargin | Fallback::Relax if margin.is_some() => {
-                out.u.copy_from_slice(u_mm)
-            }
+        // the fallback that acts: relax where no control attains p* (it is
+        // then approached only as the control grows) is the max-margin
+        // control, and max_margin without a margin (its program unsolved)
+        // brakes
+        let applied = match fallback {
+            _ if relaxed => Fallback::Relax,
+            Fallback::MaxMargin | Fallback::Relax if margin.is_some() => Fallback::MaxMargin,
+            Fallback::Hold => Fallback::Hold,
+            _ => Fallback::Brake,
+        };
+        match applied {
+            Fallback::Relax => {}
+            Fallback::MaxMargin => out.u.copy_from_slice(u_mm),
             // brake: zero, within the bounds; hold: the last control, within
             // the bounds (zero before the first step, which holds nothing)
-            _ => {
+            Fallback::Brake | Fallback::Hold => {
                 for j in 0..m {
                     let (lo, hi) = match (&self.settings.u_min, &self.settings.u_max) {
                         (Some(l), Some(h)) => (l[j], h[j]),
                         _ => (f64::NEG_INFINITY, f64::INFINITY),
                     };
-                    let held = if fallback == Fallback::Hold {
+                    let held = if applied == Fallback::Hold {
                         self.last_u[j]
                     } else {
                         0.0
@@ -959,7 +1007,7 @@ impl SafetyFilter {
         Ok(InfeasibleInfo {
             violated,
             p_star,
-            fallback,
+            fallback: applied,
             solver: status,
         })
     }
@@ -1321,6 +1369,111 @@ mod tests {
     //! the control program feasible), and the check of a solved program.
     use super::*;
 
+    /// A program whose CLF term is four orders of magnitude above its
+    /// barrier conditions (a unicycle step, moments as recorded) is solved
+    /// to an accuracy relative to the CLF's scale: its control missed
+    /// barrier 0 by 1.2e-6, beyond the check's 1e-6 on that condition's
+    /// scale, and stopped the run. The second solve, with that barrier's
+    /// margin raised by twice the miss, finds the step infeasible: p* is
+    /// 2·10⁻⁵ below the requested 0.99. At 0.98 the conditions hold.
+    #[test]
+    fn a_miss_at_the_solvers_accuracy_is_solved_again_with_a_margin() {
+        let mom = |e: [f64; 3], cov: [f64; 9]| {
+            ConditionMoments::from_parts(e.to_vec(), DMatrix::from_row_slice(3, 3, &cov), 1)
+                .unwrap()
+        };
+        let cbcs = [
+            mom(
+                [
+                    0.002607354483486818,
+                    -1.3920448574085187,
+                    -0.033023995910753584,
+                ],
+                [
+                    1.3277135439070477e-6,
+                    -7.705506190750196e-6,
+                    6.679965950504242e-5,
+                    -7.705506190750196e-6,
+                    0.09819244019667119,
+                    0.0001597668036168877,
+                    6.679965950504242e-5,
+                    0.0001597668036168877,
+                    0.09687767252667533,
+                ],
+            ),
+            mom(
+                [10.444908477488362, -4.549721636146223, 0.29138521971150677],
+                [
+                    1.5487620932816424e-5,
+                    -8.988381531955224e-5,
+                    0.0007792101011569811,
+                    -8.988381531955224e-5,
+                    1.145403162612279,
+                    0.0018636608050142118,
+                    0.0007792101011569811,
+                    0.0018636608050142118,
+                    1.1300665537623782,
+                ],
+            ),
+            mom(
+                [26.411116504826065, -7.365585566350277, -0.14427073676880475],
+                [
+                    3.7006213243399295e-5,
+                    -0.0002147689210159917,
+                    0.0018618492336500015,
+                    -0.0002147689210159917,
+                    2.7368331049141883,
+                    0.004453042172383507,
+                    0.0018618492336500015,
+                    0.004453042172383507,
+                    2.7001877208366722,
+                ],
+            ),
+        ];
+        let clc = mom(
+            [56.962613838451, -4.617417186254453, -0.009076178544572207],
+            [
+                1.4408291619389588e-5,
+                -8.36198295790777e-5,
+                0.0007249070996085,
+                -8.36198295790777e-5,
+                1.06558023729263,
+                0.0017337826432318325,
+                0.0007249070996085,
+                0.0017337826432318325,
+                1.0513124337532456,
+            ],
+        );
+        let mut settings = SafetySettings::new(2);
+        settings.u_min = Some(vec![0.0, -2.0]);
+        settings.u_max = Some(vec![1.0, 2.0]);
+        settings.lambda = 100.0;
+        for (probability, feasible) in [(0.99, false), (0.98, true)] {
+            settings.probability = probability;
+            let mut filter = SafetyFilter::new(2, 3, true, settings.clone()).unwrap();
+            let mut out = ControlOutput::new(2, 3);
+            filter
+                .solve(&cbcs, Some(&clc), &[0.0, 0.0], &mut out)
+                .unwrap();
+            if feasible {
+                assert_eq!(out.status, ControlStatus::Optimal);
+                for (k, r) in out.constraints.iter().enumerate() {
+                    let tol = 1e-6 * (1.0 + r.mean.abs() + r.c * r.std);
+                    assert!(r.slack >= -tol, "barrier {k}: slack {}", r.slack);
+                }
+                continue;
+            }
+            // p = 0.99 held to the solver's accuracy only: p* is 2·10⁻⁵
+            // below it, and the step falls back, naming barrier 0
+            let ControlStatus::Infeasible(info) = &out.status else {
+                panic!("{out:?}");
+            };
+            assert_eq!(info.violated, [0]);
+            let p_star = info.p_star.unwrap();
+            assert!((0.9899..0.99).contains(&p_star), "p* {p_star}");
+        }
+    }
+
     /// A solved program's control passes within the check's tolerance of
     /// its status and fails beyond it, naming the barrier.
     #[test]
@@ -1443,6 +1596,7 @@ mod tests {
     /// the bisection stops at neighbouring numbers.
     #[test]
     fn p_star_lies_beyond_an_unbounded_margin() {
+        let mut fell_back = 0;
         for (e0, c_star) in [(2.0, 5f64.sqrt()), (-1.0, 1.0)] {
             for (degree, tol) in [(1, 1e-5), (2, 1e-5), (1, 1e-17), (2, 1e-17)] {
                 let p_star = factor_probability(c_star, degree);
@@ -1467,10 +1621,16 @@ mod tests {
                     "{e0} {degree}: p* {got} ≠ {p_star}"
                 );
                 assert!(got <= p_star + 1e-9, "{e0} {degree}: p* {got} > {p_star}");
-                if tol < 1e-9 {
-                    // p* that near the asymptote asks for a control near
-                    // 1/tol, beyond the solver: relax falls back
-                    continue;
+                match info.fallback {
+                    Fallback::Relax => {}
+                    // p* that near the asymptote can ask for a control
+                    // near 1/tol, beyond the solver: relax then falls back
+                    // to the max-margin control, and says so
+                    Fallback::MaxMargin if tol < 1e-9 => {
+                        fell_back += 1;
+                        continue;
+                    }
+                    other => panic!("{e0} {degree} {tol}: fallback {other:?}"),
                 }
                 // relax meets the condition at p* (its own factor)
                 let c = quantile_factor(got, degree).unwrap();
@@ -1482,6 +1642,7 @@ mod tests {
                 );
             }
         }
+        assert!(fell_back > 0, "no case fell back to the max-margin control");
     }
 
     /// With no maximiser (here an unbounded margin: no bounds and a
@@ -1504,7 +1665,7 @@ mod tests {
                 .fall_back(&cbcs, None, SolveStatus::Failed, &mut out, &mut u_mm)
                 .unwrap();
             assert_eq!(out.u, [0.0, 0.0], "{fallback:?}");
-            assert_eq!(info.fallback, fallback);
+            assert_eq!(info.fallback, Fallback::Brake, "{fallback:?}");
             assert_eq!(info.p_star, None);
             assert_eq!(info.violated, Vec::<usize>::new());
         }
