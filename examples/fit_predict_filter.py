@@ -55,8 +55,10 @@ print("moments (callback):", bc.moments(model, mine, x, u))
 
 # %% The safety filter: the reference control would drive theta into the
 # sector; the filter returns the closest control whose condition holds with
-# probability 0.99
-filt = bc.SafetyFilter(model, [sector], probability=0.99, u_min=[-20.0], u_max=[20.0])
+# probability 0.99 (an infeasible step, with these bounds, takes the control
+# of the largest feasible probability: fallback "relax")
+filt = bc.SafetyFilter(model, [sector], probability=0.99, u_min=[-20.0], u_max=[20.0],
+                       fallback="relax")
 res = filt.filter(x, u_ref=[15.0])
 print(res, res.constraints)
 
