@@ -264,15 +264,18 @@ fn sweep_rows_do_not_depend_on_the_thread_count() {
 /// The double integrator with a kernel variance of `kernel_variance`, 60
 /// steps of seeds `seeds` (and the model noise 0.05 it had when the
 /// variances below were found).
-fn stopping_meta(kernel_variance: f64, seeds: &str, shard: Shard) -> SweepMeta {
-    let sets = [
-        format!("gp.kernel_variance={kernel_variance}"),
-        "gp.noise_sigma=0.05".into(),
-        "steps=60".into(),
-    ];
+fn stopping_meta(edge: &str, seeds: &str, shard: Shard) -> SweepMeta {
+    let (_, text) = bayes_cbf_scenario::scenario::scenario_text("double-integrator").unwrap();
+    let barrier = "h = \"p_max - p\"";
+    assert!(text.contains(barrier));
+    let text = text.replace(barrier, &format!("h = \"p_max - p + 0*sqrt({edge})\""));
+    let dir = std::env::temp_dir().join(format!("sharding-stop-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let file = dir.join(format!("cart-{}.toml", edge.len()));
+    std::fs::write(&file, text).unwrap();
     SweepMeta::new(
-        "double-integrator",
-        &sets,
+        file.to_str().unwrap(),
+        &["steps=300".to_string()],
         seeds.parse().unwrap(),
         shard,
         1.0,
@@ -281,13 +284,13 @@ fn stopping_meta(kernel_variance: f64, seeds: &str, shard: Shard) -> SweepMeta {
 }
 
 /// A seed whose run stops with an error is a row of the sweep, not its
-/// end. A kernel variance of 1e11 puts the double integrator's condition
-/// beyond double precision (`ControlError::Unresolved`) within the first
-/// steps of some seeds and not of others; at 1e13 on every seed, which
-/// makes the sweep an error.
+/// end. The double integrator's barrier with a term `0·√(e)` is NaN, an
+/// error, where `e < 0`: at `e = 0.5 − p` on the seeds whose cart passes
+/// p = 0.5 within 3 s and not on the others; at `e = −p` on every seed (each
+/// crosses p = 0), which makes the sweep an error.
 #[test]
 fn a_seed_that_stops_is_a_row_and_every_seed_stopping_is_an_error() {
-    let whole_meta = stopping_meta(1e11, "73000..73010", Shard::WHOLE);
+    let whole_meta = stopping_meta("0.5 - p", "73000..73010", Shard::WHOLE);
     let whole = run_seeds(&whole_meta, &|_, _| {}).unwrap();
     assert_eq!(whole.len(), 10);
     let (stopped, completed): (Vec<&SweepRow>, Vec<&SweepRow>) =
@@ -296,7 +299,7 @@ fn a_seed_that_stops_is_a_row_and_every_seed_stopping_is_an_error() {
     for r in &stopped {
         let e = r.error.as_deref().unwrap();
         assert!(
-            e.starts_with("stopped at step ") && e.contains("misses the condition"),
+            e.starts_with("stopped at step ") && e.contains("NaN at state"),
             "{e}"
         );
         assert!(!r.safe && r.min_barrier.is_nan() && r.wall_time_s >= 0.0);
@@ -324,7 +327,7 @@ fn a_seed_that_stops_is_a_row_and_every_seed_stopping_is_an_error() {
     // through shards and sweep.csv, the same rows and summary
     let parts: Vec<(SweepMeta, Vec<SweepRow>)> = (0..2)
         .map(|i| {
-            let m = stopping_meta(1e11, "73000..73010", Shard { index: i, count: 2 });
+            let m = stopping_meta("0.5 - p", "73000..73010", Shard { index: i, count: 2 });
             let rows = run_seeds(&m, &|_, _| {}).unwrap();
             (m, parse_rows_csv(&rows_csv(&rows), "shard").unwrap())
         })
@@ -341,7 +344,7 @@ fn a_seed_that_stops_is_a_row_and_every_seed_stopping_is_an_error() {
     );
 
     // every seed stopped: the scenario is at fault, whole or merged
-    let all = stopping_meta(1e13, "73000..73004", Shard::WHOLE);
+    let all = stopping_meta("-p", "73000..73004", Shard::WHOLE);
     let e = run_seeds(&all, &|_, _| {}).unwrap_err().to_string();
     assert!(
         e.contains("every one of the 4 seeds stopped") && e.contains("seed 73000"),
@@ -349,7 +352,7 @@ fn a_seed_that_stops_is_a_row_and_every_seed_stopping_is_an_error() {
     );
     let parts: Vec<(SweepMeta, Vec<SweepRow>)> = (0..2)
         .map(|i| {
-            let m = stopping_meta(1e13, "73000..73004", Shard { index: i, count: 2 });
+            let m = stopping_meta("-p", "73000..73004", Shard { index: i, count: 2 });
             let rows = run_seeds(&m, &|_, _| {}).unwrap();
             (m, rows)
         })

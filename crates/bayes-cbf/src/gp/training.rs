@@ -521,15 +521,8 @@ impl<'a, K: Kernel> MvgpLikelihood<'a, K> {
         let A = DMatrix::from_fn(self.n, self.n, |i, j| hyper.A[(rows[i], rows[j])]);
         let c = if l.a.is_some() { A[(0, 0)] } else { 1.0 };
         let B = &hyper.B * (scale * c);
-        let (p, d) = (self.p, self.d);
         let kernel = kernel_from_free(&self.kernel, &th, l.scale_idx)?;
-        let signal = (0..self.k)
-            .map(|j| {
-                let (u, z) = (&self.us[j * p..(j + 1) * p], &self.zs[j * d..(j + 1) * d]);
-                quad(u, &B) * kernel.value(z, z)
-            })
-            .sum::<f64>()
-            / self.k as f64;
+        let signal = self.mean_signal(&kernel, &B);
         let sigma2 = hyper.sigma * hyper.sigma * c;
         th[l.off_sigma()] = 0.5 * (sigma2 - NOISE_TO_SIGNAL * signal).max(1e-300).ln();
         let mut rng = ChaCha8Rng::seed_from_u64(seed);
@@ -602,19 +595,26 @@ impl<'a, K: Kernel> MvgpLikelihood<'a, K> {
         Ok((kern, A, B, sigma))
     }
 
+    /// The mean signal variance `(1/k) Σ_j u̲_jᵀ B u̲_j k0(z_j, z_j)` of the
+    /// data under `kernel` and `B`, which scales the noise floor `ε`.
+    #[allow(non_snake_case)]
+    fn mean_signal(&self, kernel: &K, B: &DMatrix<f64>) -> f64 {
+        let (p, d) = (self.p, self.d);
+        (0..self.k)
+            .map(|j| {
+                let (u, z) = (&self.us[j * p..(j + 1) * p], &self.zs[j * d..(j + 1) * d]);
+                quad(u, B) * kernel.value(z, z)
+            })
+            .sum::<f64>()
+            / self.k as f64
+    }
+
     /// The hyperparameters at `θ`, as the equivalent model with `tr A = n`
     /// over the learned rows (known rows keep a zero coupling).
     #[allow(non_snake_case)]
     pub fn hyper(&self, theta: &[f64]) -> Result<MvgpHyper<K>, Error> {
         let (kernel, A, B, sigma_f) = self.unpack(theta)?;
-        let (p, d) = (self.p, self.d);
-        let signal = (0..self.k)
-            .map(|j| {
-                let (u, z) = (&self.us[j * p..(j + 1) * p], &self.zs[j * d..(j + 1) * d]);
-                quad(u, &B) * kernel.value(z, z)
-            })
-            .sum::<f64>()
-            / self.k as f64;
+        let signal = self.mean_signal(&kernel, &B);
         let sigma = (sigma_f * sigma_f + NOISE_TO_SIGNAL * signal).sqrt();
         let n = self.n;
         let c = if n > 0 { A.trace() / n as f64 } else { 1.0 };
