@@ -38,25 +38,30 @@ def test_seed_sweep_on_ray_equals_the_cli(cli, tmp_path):
 
 
 def test_seeds_that_stop_are_rows_on_ray_as_in_the_cli(cli, tmp_path):
-    # a kernel variance of 1e11 stops some of the double integrator's runs
-    # (the condition is beyond double precision), not others (at the model
-    # noise 0.05 it had when the variances were found)
-    overrides = {"gp.kernel_variance": 1e11, "gp.noise_sigma": 0.05, "steps": 60}
-    sets = [a for k, v in overrides.items() for a in ("--set", f"{k}={v}")]
-    run_cli(cli, "run", "double-integrator", "--seeds", "73000..73010", *sets,
-            "--out", str(tmp_path))
-    theirs = json.loads((tmp_path / "sweep_summary.json").read_text())
-    ours = sweep.seeds("double-integrator", range(73000, 73010), overrides=overrides, shards=2)
+    # the double integrator's barrier with a term 0·sqrt(e) is NaN, an
+    # error, where e < 0: at e = 0.5 - p on the seeds whose cart passes
+    # p = 0.5 within 3 s, not on the others; at e = -p on every seed
+    text = run_cli(cli, "run", "double-integrator", "--print-config")
+    assert 'h = "p_max - p"' in text
+
+    def edged(edge: str):
+        path = tmp_path / f"cart{len(edge)}.toml"
+        path.write_text(text.replace('h = "p_max - p"', f'h = "p_max - p + 0*sqrt({edge})"'))
+        return path
+
+    overrides = {"steps": 300}
+    run_cli(cli, "run", str(edged("0.5 - p")), "--seeds", "73000..73010", "--set", "steps=300",
+            "--out", str(tmp_path / "out"))
+    theirs = json.loads((tmp_path / "out" / "sweep_summary.json").read_text())
+    ours = sweep.seeds(edged("0.5 - p"), range(73000, 73010), overrides=overrides, shards=2)
     assert drop(ours, "timing") == drop(theirs, "timing")
     assert 0 < ours["stopped"]["count"] < 10
     assert ours["safe"]["count"] + len(ours["unsafe_seeds"]) + ours["stopped"]["count"] == 10
     for s in ours["stopped_seeds"]:
-        assert s["error"].startswith("stopped at step") and "misses the condition" in s["error"]
+        assert s["error"].startswith("stopped at step") and "NaN at state" in s["error"]
     # every seed stopped: the scenario is at fault
     with pytest.raises(bc.InputError, match="every one of the 4 seeds stopped"):
-        sweep.seeds("double-integrator", range(73000, 73004),
-                    overrides={"gp.kernel_variance": 1e13, "gp.noise_sigma": 0.05, "steps": 60},
-                    shards=2)
+        sweep.seeds(edged("-p"), range(73000, 73004), overrides=overrides, shards=2)
 
 
 def test_calibration_on_ray_equals_the_cli(cli, tmp_path):

@@ -135,8 +135,15 @@ impl FitWarning for Cogp {
     }
 }
 
-/// A model's flag of a fit in progress, which [`borrow_idle`] reads.
-type FitFlag = std::sync::Arc<std::sync::atomic::AtomicBool>;
+/// A model's state of fitting ([`IDLE`], [`FITTING`], [`INSTALLING`]),
+/// which [`idle`] and [`read`] check.
+type FitFlag = std::sync::Arc<std::sync::atomic::AtomicU8>;
+/// No fit runs.
+const IDLE: u8 = 0;
+/// A fit runs on a copy of the model.
+const FITTING: u8 = 1;
+/// A fit waits to put its result in place: readers wait ([`read`]).
+const INSTALLING: u8 = 2;
 
 /// A fit in progress: its model's flag set from [`start`](Self::start)
 /// until the fitted copy is back in the object (or the fit is dropped, by
@@ -145,44 +152,66 @@ struct Fitting(FitFlag);
 
 impl Fitting {
     fn start(flag: &FitFlag) -> Self {
-        flag.store(true, std::sync::atomic::Ordering::Release);
+        flag.store(FITTING, std::sync::atomic::Ordering::Release);
         Self(flag.clone())
     }
 
     /// Borrows `obj` mutably to put the fitted copy back, waiting (the GIL
-    /// released) while another thread holds it: a filter step whose
-    /// Python barrier has yielded the GIL. Ctrl-C while waiting drops the
-    /// fit.
+    /// released) while another thread's call reads it; new reads wait
+    /// meanwhile ([`read`]), so that a loop of filter steps on another
+    /// thread cannot hold the fit off. Ctrl-C while waiting drops the fit.
     fn finish<'py, T: pyo3::PyClass<Frozen = pyo3::pyclass::boolean_struct::False>>(
         self,
         obj: &Bound<'py, T>,
     ) -> PyResult<PyRefMut<'py, T>> {
+        self.0
+            .store(INSTALLING, std::sync::atomic::Ordering::Release);
         loop {
             if let Ok(slf) = obj.try_borrow_mut() {
                 return Ok(slf);
             }
-            obj.py().check_signals()?;
-            obj.py()
-                .detach(|| std::thread::sleep(std::time::Duration::from_millis(1)));
+            pause(obj.py())?;
         }
     }
 }
 
+/// Releases the GIL for a millisecond, after checking for signals.
+fn pause(py: Python<'_>) -> PyResult<()> {
+    py.check_signals()?;
+    py.detach(|| std::thread::sleep(std::time::Duration::from_millis(1)));
+    Ok(())
+}
+
 impl Drop for Fitting {
     fn drop(&mut self) {
-        self.0.store(false, std::sync::atomic::Ordering::Release);
+        self.0.store(IDLE, std::sync::atomic::Ordering::Release);
+    }
+}
+
+/// Borrows a model to read it (a prediction, a filter step, moments),
+/// waiting while a fit puts its result in place.
+pub(crate) fn read<'py, T: Fitted>(obj: &Bound<'py, T>, what: &str) -> PyResult<PyRef<'py, T>> {
+    loop {
+        let slf = crate::convert::borrow(obj, what)?;
+        if slf.fit_flag().load(std::sync::atomic::Ordering::Acquire) != INSTALLING {
+            return Ok(slf);
+        }
+        drop(slf);
+        pause(obj.py())?;
     }
 }
 
 /// A model of `MVGP` or `CoGP`, with its flag of a fit in progress.
-trait Fitted: pyo3::PyClass<Frozen = pyo3::pyclass::boolean_struct::False> {
+pub(crate) trait Fitted:
+    pyo3::PyClass<Frozen = pyo3::pyclass::boolean_struct::False>
+{
     fn fit_flag(&self) -> &FitFlag;
 }
 
 /// Raises `RuntimeError` when another thread's `fit` of `model` has not
 /// returned: its result would replace a change made meanwhile.
 fn idle<T: Fitted>(model: &T, what: &str) -> PyResult<()> {
-    if model.fit_flag().load(std::sync::atomic::Ordering::Acquire) {
+    if model.fit_flag().load(std::sync::atomic::Ordering::Acquire) != IDLE {
         return Err(pyo3::exceptions::PyRuntimeError::new_err(format!(
             "{what} is being fitted by another thread's call, whose result would replace \
              this change; change it after that fit returns"
@@ -481,8 +510,9 @@ impl PyMvgp {
     /// `Cov(vec F(x)) = B_k(x, x) ⊗ row_cov` (paper, Prop. 1; `row_cov` is
     /// `A` with the known rows' rows and columns zero).
     #[allow(non_snake_case)]
-    fn predict<'py>(&self, Xq: &Bound<'py, PyAny>) -> PyResult<ArrayPair<'py>> {
-        let model = &self.model;
+    fn predict<'py>(slf: &Bound<'py, Self>, Xq: &Bound<'py, PyAny>) -> PyResult<ArrayPair<'py>> {
+        let this = read(slf, "this MVGP")?;
+        let model = &this.model;
         let p = model.control_dim() + 1;
         let (mut ws, mut post) = posterior_buffers(model);
         let rows = predict_rows(Xq, (model.state_dim(), p, p), |x, means, bs| {
@@ -806,8 +836,9 @@ impl PyCogp {
     /// Posterior at the rows of `Xq (q, n)`: the means `(q, n, 1+m)` and the
     /// full covariances of `vec F(x)` (column-major vec), `(q, n(1+m), n(1+m))`.
     #[allow(non_snake_case)]
-    fn predict<'py>(&self, Xq: &Bound<'py, PyAny>) -> PyResult<ArrayPair<'py>> {
-        let model = &self.model;
+    fn predict<'py>(slf: &Bound<'py, Self>, Xq: &Bound<'py, PyAny>) -> PyResult<ArrayPair<'py>> {
+        let this = read(slf, "this CoGP")?;
+        let model = &this.model;
         let (n, p) = (model.state_dim(), model.control_dim() + 1);
         let rows = predict_rows(Xq, (n, p, n * p), |x, means, covs| {
             let post = model.posterior(x)?;

@@ -531,7 +531,7 @@ pub fn moments<'py>(
     #[pyo3(from_py_with = args::step)] step: f64,
     #[pyo3(from_py_with = args::seed)] seed: u64,
 ) -> PyResult<(f64, f64)> {
-    let model = borrow(&model, "the model")?;
+    let model = crate::models::read(&model, "the model")?;
     let b = barrier.get();
     let x = vector(x, "x", Some(model.model.state_dim()))?;
     let u = vector(u, "u", Some(model.model.control_dim()))?;
@@ -678,13 +678,13 @@ impl PySafetyFilter {
         let py = model.py();
         let built = move || -> PyResult<Self> {
             let (n, m) = {
-                let mm = borrow(&model, "the model")?;
+                let mm = crate::models::read(&model, "the model")?;
                 (mm.model.state_dim(), mm.model.control_dim())
             };
             let mut bs: Vec<Arc<dyn DynBarrier>> = Vec::new();
             let mut labels = Vec::new();
             {
-                let mm = borrow(&model, "the model")?;
+                let mm = crate::models::read(&model, "the model")?;
                 for (i, b) in barriers.iter().enumerate() {
                     let b = b.get();
                     check_barrier(
@@ -956,7 +956,7 @@ impl PySafetyFilter {
                 None => buf.fill(0.0),
             }
         }
-        let model = borrow(self.model.bind(py), "the filter's model")?;
+        let model = crate::models::read(self.model.bind(py), "the filter's model")?;
         let m = &model.model;
         let Self {
             ctrl,

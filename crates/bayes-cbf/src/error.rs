@@ -258,11 +258,13 @@ pub enum GpError {
 #[non_exhaustive]
 pub enum ControlError {
     /// The SOCP reported a solution that misses a barrier's condition by
-    /// well beyond the solver's tolerance: the condition's covariance is too
-    /// large for double precision to resolve its standard deviation at the
-    /// control. A kernel variance far above the data's spread does this:
-    /// 10¹⁶ for one step of `bayes-cbf control`, 10¹¹ within the double
-    /// integrator's learning run, whose Gram matrix it also ill-conditions.
+    /// well beyond the solver's tolerance, also when solved again with that
+    /// barrier's margin raised by twice the miss: the condition's covariance
+    /// is too large for double precision to resolve its standard deviation
+    /// at the control. A kernel variance far above the data's spread does
+    /// this: 10¹⁶ for one step of `bayes-cbf control`; 10¹² stops 2 of 10
+    /// seeds of the double integrator's learning run, whose Gram matrix it
+    /// also ill-conditions (the others' steps end infeasible).
     #[error("barrier {barrier}: the solver's control misses the condition by {slack:.3e} (mean {mean:.3e}, std {std:.3e}), also when solved again with a margin; the condition's covariance (largest entry {scale:.1e}) is beyond what double precision resolves: check the model's kernel variance and noise")]
     Unresolved {
         /// Index of the barrier.
