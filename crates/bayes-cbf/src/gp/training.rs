@@ -1035,6 +1035,16 @@ mod tests {
         model
     }
 
+    /// Default settings with these ranks of `A` and `B`, `A` learned or not.
+    fn shaped(rank_a: Rank, rank_b: Rank, learn_a: bool) -> FitSettings {
+        FitSettings {
+            rank_a,
+            rank_b,
+            learn_a,
+            ..FitSettings::default()
+        }
+    }
+
     /// The analytic gradient of −log p against central finite differences,
     /// and the value against the model's own likelihood at the decoded
     /// hyperparameters (an independent computation through its factor).
@@ -1052,12 +1062,7 @@ mod tests {
             if !known.is_empty() {
                 model = model.with_known_rows(&known).unwrap();
             }
-            let settings = FitSettings {
-                rank_a: ra,
-                rank_b: rb,
-                learn_a,
-                ..FitSettings::default()
-            };
+            let settings = shaped(ra, rb, learn_a);
             let mut lik = MvgpLikelihood::new(&model, &settings).unwrap();
             let th: Vec<f64> = (0..lik.dim())
                 .map(|_| rng.random_range(-0.5..0.5))
@@ -1143,12 +1148,7 @@ mod tests {
                 sigma: 0.45,
             };
             model.set_hyper(hyper).unwrap();
-            let settings = FitSettings {
-                rank_a: ra,
-                rank_b: rb,
-                learn_a,
-                ..FitSettings::default()
-            };
+            let settings = shaped(ra, rb, learn_a);
             let mut lik = MvgpLikelihood::new(&model, &settings).unwrap();
             let th = lik.point_of(model.hyper(), 0).unwrap();
             let mut g = vec![0.0; th.len()];
