@@ -293,8 +293,9 @@ def test_a_filter_constructor_issues_its_own_warnings():
 def test_a_callback_that_changes_the_model_it_serves_is_told_so():
     """A barrier callback that adds data to the model its filter is
     stepping gets an error saying the model is in use, not pyo3's bare
-    "Already borrowed"; a callback that calls itself gets a message of
-    bounded length, the whole exception as its cause."""
+    "Already borrowed"; a callback that calls itself is stopped 32 calls
+    deep with a message of bounded length, the whole exception as its
+    cause."""
     model = bc.MVGP(2, 1, [1.0, 1.0], np.eye(2), np.eye(2), 0.1, prior_mean=PENDULUM)
 
     def h(x):
@@ -314,6 +315,16 @@ def test_a_callback_that_changes_the_model_it_serves_is_told_so():
     with pytest.raises(bc.InputError) as e:
         selfish.value([0.3, 0.0])
     assert len(str(e.value)) < 1000, len(str(e.value))
+    # it stops 32 callbacks deep (the 33rd call's refusal is the last
+    # cause), not at Python's recursion limit
+    chain = [e.value]
+    while chain[-1].__cause__ is not None:
+        chain.append(chain[-1].__cause__)
+    assert len(chain) == 33, len(chain)
+    assert "callbacks nest 32 deep on this thread" in str(chain[-1])
+    # the count unwinds: the barrier serves again at depth one
+    holder["b"] = bc.Barrier.callback(lambda x: 0.5, lambda x: np.zeros(2))
+    assert selfish.value([0.3, 0.0]) == 0.5
 
 
 def test_known_rows_under_a_zero_prior_mean_are_warned_of():

@@ -66,8 +66,12 @@ fn default_alpha(
 /// cause of the library's error or as itself, when the error reaches Python.
 /// The message quotes the exception's first 300 characters
 /// ([`bayes_cbf::error::shortened`]: a callback that calls itself would nest
-/// every level's message); the cause is whole.
+/// every level's message); the cause is whole. Callbacks nest at most
+/// [`MAX_NESTING`] deep on one thread: one that calls the barrier it serves
+/// fails there, rather than recursing through Rust to Python's recursion
+/// limit.
 fn call_py<'py>(py: Python<'py>, f: &Py<PyAny>, x: &[f64]) -> Result<Bound<'py, PyAny>, String> {
+    let _nested = Nested::enter()?;
     f.bind(py)
         .call1((PyArray1::from_slice(py, x),))
         .map_err(|e| {
@@ -75,6 +79,38 @@ fn call_py<'py>(py: Python<'py>, f: &Py<PyAny>, x: &[f64]) -> Result<Bound<'py, 
             crate::convert::keep_callback_error(text.clone(), e);
             text
         })
+}
+
+/// How deep Python callbacks may nest on one thread ([`call_py`]).
+const MAX_NESTING: usize = 32;
+
+thread_local! {
+    /// The Python callbacks under way on this thread, outermost first.
+    static NESTING: std::cell::Cell<usize> = const { std::cell::Cell::new(0) };
+}
+
+/// One callback under way on this thread, counted in [`NESTING`] until
+/// dropped (on return, error or panic).
+struct Nested;
+
+impl Nested {
+    fn enter() -> Result<Self, String> {
+        let depth = NESTING.with(std::cell::Cell::get);
+        if depth >= MAX_NESTING {
+            return Err(format!(
+                "callbacks nest {MAX_NESTING} deep on this thread: a callback calls the \
+                 barrier or filter it serves, without end"
+            ));
+        }
+        NESTING.with(|d| d.set(depth + 1));
+        Ok(Self)
+    }
+}
+
+impl Drop for Nested {
+    fn drop(&mut self) {
+        NESTING.with(|d| d.set(d.get() - 1));
+    }
 }
 
 #[pymethods]
@@ -124,7 +160,9 @@ impl PyBarrier {
     /// those of a built-in barrier with the same derivatives. `alpha` is the
     /// class-K gain for relative degree 1 (1 by default), `k_alpha` the gains
     /// for relative degree ≥ 2 (one or the other, as for the built-ins).
-    /// Check the derivatives with `bayes_cbf.check_derivatives`.
+    /// Check the derivatives with `bayes_cbf.check_derivatives`. A callback
+    /// may call other barriers; callbacks nest at most 32 deep on a thread,
+    /// so one that calls the barrier it serves fails with `InputError`.
     #[staticmethod]
     #[pyo3(signature = (h, grad, hess=None, state_dim=2, relative_degree=1, alpha=None, k_alpha=None, name="callback"))]
     #[allow(clippy::too_many_arguments)]
