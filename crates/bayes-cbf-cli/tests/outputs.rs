@@ -621,7 +621,7 @@ fn a_crossing_under_max_margin_names_relax() {
     succeeded_with(
         &run_in(&dir, &mm),
         &[
-            "(p* = 0.953; fallback max_margin), 264 of 477 steps were infeasible",
+            "(p* = 0.953; fallback max_margin), 264 of 499 steps were infeasible",
             "max_margin, at the c(p) of controller.probability, applies the control of least \
              spread, which can brake too little: relax would have met the conditions at p*",
         ],

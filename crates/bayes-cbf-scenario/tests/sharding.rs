@@ -261,9 +261,8 @@ fn sweep_rows_do_not_depend_on_the_thread_count() {
     assert_eq!(strip(&one), strip(&two));
 }
 
-/// The double integrator with a kernel variance of `kernel_variance`, 60
-/// steps of seeds `seeds` (and the model noise 0.05 it had when the
-/// variances below were found).
+/// The double integrator with the term `0·√(edge)` added to its barrier
+/// (NaN, an error, where `edge < 0`), 300 steps of seeds `seeds`.
 fn stopping_meta(edge: &str, seeds: &str, shard: Shard) -> SweepMeta {
     let (_, text) = bayes_cbf_scenario::scenario::scenario_text("double-integrator").unwrap();
     let barrier = "h = \"p_max - p\"";

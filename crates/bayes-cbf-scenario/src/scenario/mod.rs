@@ -1318,7 +1318,11 @@ mod tests {
                 "gp.lengthscales=[1.0, 2.0]",
                 "gp.lengthscales has 2 entries, expected 1, one per kernel input (the entries of gp.input_map)",
             ),
-            ("learning.window=1", "invalid learning.window = 1: must be ≥ 2"),
+            ("learning.budget=1", "invalid learning.budget = 1: must be ≥ 2"),
+            (
+                "learning.window=300",
+                "learning.window = 300 and learning.budget = 300: give either a window or a budget",
+            ),
         ] {
             let (s, _) = load("double-integrator", &[set.into()]).unwrap();
             let err = format!("{:#}", validate(&s).unwrap_err());
