@@ -4,7 +4,7 @@
 
 mod common;
 
-use common::{run_in, scratch_dir, Run, BARE_CART};
+use common::{run_in, scratch_dir, words, Run, BARE_CART};
 use std::process::{Command, Stdio};
 
 /// A short run of the double integrator, extra arguments appended.
@@ -629,6 +629,30 @@ fn a_crossing_under_max_margin_names_relax() {
     let r = run_in(&dir, &[&args[..], &["--out", "relax"]].concat());
     succeeded_without(&r, "crossed zero");
     summary_has(&dir, "relax", "\"safe\": true");
+}
+
+/// The double integrator under an eighth of its input bound with a window
+/// of 300 observations in place of its budget crosses its wall once the
+/// window drops the few observations at other controls (docs/robots.md);
+/// the warning says so and names the budget. With the file's budget the
+/// same seed stays clear.
+#[test]
+fn a_crossing_after_the_window_forgot_names_the_budget() {
+    let dir = scratch_dir("outputs-window-forgot");
+    let run = "run double-integrator --seed 67118 --set controller.u_min=[-0.5] \
+               --set controller.u_max=[0.5]";
+    let window = format!("{run} --set learning.budget=0 --set learning.window=300 --out w");
+    succeeded_with(
+        &run_in(&dir, &words(&window)),
+        &[
+            "the data window was full (learning.window = 300) and the model's spread had grown \
+             back",
+            "learning.budget = 300 keeps the most informative instead",
+        ],
+    );
+    let r = run_in(&dir, &words(&format!("{run} --out b")));
+    succeeded_without(&r, "crossed zero");
+    summary_has(&dir, "b", "\"safe\": true");
 }
 
 /// Objective weights 10³ apart run, with a warning of how roughly the

@@ -750,14 +750,22 @@ pub(crate) fn crossing_in_infeasible_step(
 ///
 /// Under max-margin with input bounds, the warning adds that relax would
 /// have met the conditions at `p*` (without bounds relax is no better: its
-/// `p*` can take an unbounded control).
+/// `p*` can take an unbounded control); with a data window, that the
+/// window may have dropped what the model knew ([`window_forgot`]).
 pub(crate) fn warn_crossing_in_infeasible_step(
     barriers: usize,
     records: &[StepRecord],
-    (fallback, bounded): (&str, bool),
+    (fallback, bounded, data): (&str, bool, DataPolicy),
     seed: u64,
 ) {
     if let Some((i, r)) = crossing_in_infeasible_step(barriers, records) {
+        let window = window_forgot(data, records, r);
+        let budget_section = if window.is_some() {
+            ", \"For a robot whose dynamics do not change\""
+        } else {
+            ""
+        };
+        let window = window.unwrap_or_default();
         let infeasible = records
             .iter()
             .filter(|r| r.status == StepStatus::Infeasible)
@@ -782,13 +790,49 @@ pub(crate) fn warn_crossing_in_infeasible_step(
                 "barriers[{i}] (seed {seed}): h crossed zero at t = {:.3} in an infeasible step \
                  (p* = {p_star}; fallback {fallback}), {infeasible} of {} steps were \
                  infeasible: the model's spread at controller.probability, the input bounds \
-                 or the gains left no control that meets the conditions{max_margin}\
-                 \"Infeasible steps\")",
+                 or the gains left no control that meets the conditions{window}{max_margin}\
+                 \"Infeasible steps\"{budget_section})",
                 r.t,
                 records.len()
             ),
         );
     }
+}
+
+/// How many times its smallest over the run before a step the model's
+/// spread `tr Σ` at the step must be for [`window_forgot`].
+const SPREAD_REGROWN: f64 = 3.0;
+
+/// The clause of [`warn_crossing_in_infeasible_step`] for a run with a data
+/// window (`data = Window(k)`) that was full at the crossing step `r`, where
+/// the model's spread `tr Σ` was more than [`SPREAD_REGROWN`] times its
+/// smallest over the steps before: the window drops its oldest
+/// observations, which can be the only ones at other controls (where the
+/// input saturates) and the only ones that told the input gain from the
+/// drift; a budget keeps the most informative.
+pub(crate) fn window_forgot(
+    data: DataPolicy,
+    records: &[StepRecord],
+    r: &StepRecord,
+) -> Option<String> {
+    let DataPolicy::Window(k) = data else {
+        return None;
+    };
+    let least = records
+        .iter()
+        .take_while(|q| !std::ptr::eq(*q, r))
+        .map(|q| q.trace_cov)
+        .fold(f64::INFINITY, f64::min);
+    (r.data_size >= k && r.trace_cov > SPREAD_REGROWN * least).then(|| {
+        format!(
+            "; the data window was full (learning.window = {k}) and the model's spread had \
+             grown back from tr Σ = {} to {}: a window drops its oldest observations, which \
+             can be the only ones at other controls, and learning.budget = {k} keeps the most \
+             informative instead",
+            short(least),
+            short(r.trace_cov)
+        )
+    })
 }
 
 /// The model's noise on each learned row `i`, `σ·√A_ii`.

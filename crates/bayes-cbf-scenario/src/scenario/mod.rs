@@ -1001,7 +1001,7 @@ mod tests {
     /// chance, or by noise).
     #[test]
     fn a_feasible_crossing_from_outside_the_kept_set_is_found() {
-        use bayes_cbf::sim::{StepRecord, StepStatus};
+        use bayes_cbf::sim::{DataPolicy, StepRecord, StepStatus};
         let (sc, _) = load("double-integrator", &[]).unwrap();
         let built = build::build(&sc).unwrap();
         // h = 1 − p, gains [1, 2]: λ = 1, ψ₁ = −v + (1 − p) for the true drift
@@ -1081,6 +1081,33 @@ mod tests {
         let found = build::crossings_outside(&barriers, built.truth.as_ref(), &records);
         let which: Vec<(usize, f64)> = found.iter().map(|f| (f.0, f.1)).collect();
         assert_eq!(which, [(0, 0.01), (1, 0.01)]);
+        // a crossing in an infeasible step with the data window full and
+        // the model's spread grown back names the window; with a budget, a
+        // window not yet full or a spread as low as before it does not
+        let crossing = step(0.01, [0.999, 2.0], -0.01, StepStatus::Infeasible);
+        let at = |data_size: usize, trace_cov: f64, r: &StepRecord| StepRecord {
+            data_size,
+            trace_cov,
+            ..r.clone()
+        };
+        let forgot = |data, records: &[StepRecord]| {
+            build::window_forgot(data, records, &records[records.len() - 1])
+        };
+        let window = DataPolicy::Window(300);
+        let grown = [at(299, 0.05, &infeasible), at(300, 0.5, &crossing)];
+        let clause = forgot(window, &grown).unwrap();
+        assert!(
+            clause.contains("(learning.window = 300)")
+                && clause.contains("tr Σ = 0.050 to 0.500")
+                && clause.contains("learning.budget = 300"),
+            "{clause}"
+        );
+        assert_eq!(forgot(DataPolicy::Budget(300), &grown), None);
+        assert_eq!(forgot(DataPolicy::All, &grown), None);
+        let filling = [at(298, 0.05, &infeasible), at(299, 0.5, &crossing)];
+        assert_eq!(forgot(window, &filling), None);
+        let steady = [at(299, 0.05, &infeasible), at(300, 0.1, &crossing)];
+        assert_eq!(forgot(window, &steady), None);
     }
 
     /// Only `[system]` is required: the name is the file's stem, and the

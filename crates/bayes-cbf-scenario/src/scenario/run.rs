@@ -246,6 +246,7 @@ pub fn run_scenario_until(
         (
             scenario.controller.fallback_name(),
             built.controller.settings().u_min.is_some(),
+            built.loop_settings.data,
         ),
         scenario.seed,
     );
