@@ -55,7 +55,16 @@ class SafetyFilterWrapper(gym.Wrapper, gym.utils.RecordConstructorArgs):
         State indices that are angles: their differences are wrapped to
         ``[-pi, pi)`` when estimating derivatives.
     max_data:
-        Keep at most this many observations (oldest dropped first).
+        Keep at most this many observations.
+    keep:
+        Which ``max_data`` observations: ``"latest"`` (a sliding window,
+        oldest dropped first) or ``"informative"`` (a budget: each new
+        observation replaces the stored one of least leave-one-out variance,
+        or is dropped; ``MVGP.add_observation_within_budget``). A window
+        suits dynamics that drift; where the input saturates, it drops the
+        few observations at other controls that told the input gain from the
+        drift, which a budget keeps (docs/robots.md, "For a robot whose
+        dynamics do not change").
     refit_every:
         Refit the hyperparameters on the model's data every this many steps
         (0: never).
@@ -113,6 +122,7 @@ class SafetyFilterWrapper(gym.Wrapper, gym.utils.RecordConstructorArgs):
         dt: Optional[float] = None,
         angle_indices: Sequence[int] = (),
         max_data: int = 500,
+        keep: str = "latest",
         refit_every: int = 0,
         label_at: str = "midpoint",
         barriers_for_log: Optional[Sequence[Any]] = (),
@@ -129,6 +139,7 @@ class SafetyFilterWrapper(gym.Wrapper, gym.utils.RecordConstructorArgs):
             dt=dt,
             angle_indices=angle_indices,
             max_data=max_data,
+            keep=keep,
             refit_every=refit_every,
             label_at=label_at,
             barriers_for_log=barriers_for_log,
@@ -179,6 +190,11 @@ class SafetyFilterWrapper(gym.Wrapper, gym.utils.RecordConstructorArgs):
             if i >= n:
                 raise InputError(f"angle_indices: {i} is not a state index (state_dim = {n})")
         self.max_data = count("max_data", max_data, 1)
+        if keep not in ("latest", "informative"):
+            raise InputError(f"keep: {keep!r}, expected 'latest' or 'informative'")
+        if keep == "informative" and self.max_data < 2:
+            raise InputError("max_data: 1 with keep='informative', expected at least 2")
+        self.keep = keep
         self.refit_every = count("refit_every", refit_every, 0)
         if label_at not in ("midpoint", "start"):
             raise InputError(f"label_at: {label_at!r}, expected 'midpoint' or 'start'")
@@ -352,9 +368,12 @@ class SafetyFilterWrapper(gym.Wrapper, gym.utils.RecordConstructorArgs):
         for i in self.angle_indices:
             dx[i] = (dx[i] + np.pi) % (2 * np.pi) - np.pi
         at = x + 0.5 * dx if self.label_at == "midpoint" else x
-        self.model.add_observation(at, u, dx / self.dt)
-        while len(self.model) > self.max_data:
-            self.model.remove_oldest()
+        if self.keep == "informative":
+            self.model.add_observation_within_budget(at, u, dx / self.dt, self.max_data)
+        else:
+            self.model.add_observation(at, u, dx / self.dt)
+            while len(self.model) > self.max_data:
+                self.model.remove_oldest()
         self._steps += 1
         if self.refit_every and self._steps % self.refit_every == 0 and len(self.model) >= 10:
             self.model.fit(self.model.X, self.model.U, self.model.Xdot, max_iters=30)

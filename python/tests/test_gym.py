@@ -79,6 +79,8 @@ def test_wrapper_rejects_bad_setups():
         ("barriers_for_log", [1.0], r"barriers_for_log\[0\]: float"),
         ("barriers_for_log", [three], r"barriers_for_log\[0\]: a barrier on 3 states"),
         ("barriers_for_log", 5, "barriers_for_log: int, expected a sequence"),
+        ("keep", "oldest", "keep: 'oldest', expected 'latest' or 'informative'"),
+        ("keep", 5, "keep: 5"),
     ]:
         model = bc.MVGP(2, 1, [1.0, 1.0], np.eye(2), np.eye(2), 0.1)
         filt = bc.SafetyFilter(model, [bc.Barrier.half_space([1.0, 0.0], 0.0, alpha=1.0)])
@@ -219,6 +221,32 @@ def test_learn_if_skips_the_transitions_it_refuses():
                            [bc.Barrier.half_space([1.0, 0.0], 0.0, alpha=1.0)])
     with pytest.raises(bc.InputError, match="learn_if: bool, expected a function"):
         SafetyFilterWrapper(gym.make("Pendulum-v1"), filt, lambda o: o[:2], learn_if=True)
+
+
+def test_keep_chooses_the_latest_or_the_most_informative_observations():
+    """keep="latest" holds the last max_data transitions; keep="informative"
+    holds max_data of them chosen by the budget, earlier ones among them
+    where they tell more (the model's add_observation_within_budget)."""
+    kept = {}
+    for keep in ["latest", "informative"]:
+        w, model = make()
+        w.max_data, w.keep, w.label_at = 10, keep, "start"
+        states = []
+        w.learn_if = lambda x, u, x_next, info: states.append(x.copy()) or True
+        run(w, seed=4, steps=60)
+        assert len(model) == 10 and len(states) == 60
+        rows = {tuple(x) for x in model.X}
+        assert rows <= {tuple(x) for x in states}
+        kept[keep] = (rows, {tuple(x) for x in states[-10:]})
+    latest, last = kept["latest"]
+    assert latest == last
+    informative, last = kept["informative"]
+    assert informative != last, "the budget kept some earlier transitions"
+    model = bc.MVGP(2, 1, [1.0, 1.0], np.eye(2), np.eye(2), 0.1)
+    filt = bc.SafetyFilter(model, [bc.Barrier.half_space([1.0, 0.0], 0.0, alpha=1.0)])
+    with pytest.raises(bc.InputError, match="max_data: 1 with keep='informative'"):
+        SafetyFilterWrapper(gym.make("Pendulum-v1"), filt, lambda o: o[:2], max_data=1,
+                            keep="informative")
 
 
 def test_a_control_outside_the_action_space_is_warned_of_once():
