@@ -28,7 +28,11 @@ pub enum DataPolicy {
     /// Every observation (the cost of a step grows with the data).
     #[default]
     All,
-    /// Sliding window: the last `k` observations (O(k²) per removal).
+    /// Sliding window: the last `k` observations (O(k²) per removal). For
+    /// dynamics that drift. It forgets: where the input saturates, the last
+    /// `k` observations can hold one control, and the input gain is then
+    /// told from the drift by the prior alone; [`Budget`](Self::Budget)
+    /// keeps the observations that told them apart (docs/robots.md).
     Window(usize),
     /// Budget: at most `k` observations, the most informative ones. At the
     /// budget each new observation either replaces the stored point of
