@@ -128,23 +128,10 @@ class SafetyFilterWrapper(gym.Wrapper, gym.utils.RecordConstructorArgs):
         barriers_for_log: Optional[Sequence[Any]] = (),
         learn_if: Optional[Callable[..., Any]] = None,
     ):
-        # recorded for env.spec; not copied: a wrapper made again from the
-        # spec shares this filter and its model
-        gym.utils.RecordConstructorArgs.__init__(
-            self,
-            _disable_deepcopy=True,
-            filter=filter,
-            state_from_obs=state_from_obs,
-            learn=learn,
-            dt=dt,
-            angle_indices=angle_indices,
-            max_data=max_data,
-            keep=keep,
-            refit_every=refit_every,
-            label_at=label_at,
-            barriers_for_log=barriers_for_log,
-            learn_if=learn_if,
-        )
+        # the arguments after env, recorded for env.spec; not copied: a
+        # wrapper made again from the spec shares this filter and its model
+        recorded = {k: v for k, v in locals().items() if k not in ("self", "env", "__class__")}
+        gym.utils.RecordConstructorArgs.__init__(self, _disable_deepcopy=True, **recorded)
         super().__init__(env)
         if not isinstance(filter, SafetyFilter):
             raise InputError(
