@@ -645,8 +645,7 @@ fn a_crossing_after_the_window_forgot_names_the_budget() {
     succeeded_with(
         &run_in(&dir, &words(&window)),
         &[
-            "the data window was full (learning.window = 300) and the model's spread had grown \
-             back",
+            "the data window was full (learning.window = 300) and the model's spread rose",
             "learning.budget = 300 keeps the most informative instead",
         ],
     );

@@ -1081,9 +1081,10 @@ mod tests {
         let found = build::crossings_outside(&barriers, built.truth.as_ref(), &records);
         let which: Vec<(usize, f64)> = found.iter().map(|f| (f.0, f.1)).collect();
         assert_eq!(which, [(0, 0.01), (1, 0.01)]);
-        // a crossing in an infeasible step with the data window full and
-        // the model's spread grown back names the window; with a budget, a
-        // window not yet full or a spread as low as before it does not
+        // a crossing in an infeasible step after the data window filled,
+        // with the model's spread risen threefold within 10 steps, names the
+        // window; with a budget, a window not yet full, a spread as low as
+        // before or one that rose as gradually as a moving state's does not
         let crossing = step(0.01, [0.999, 2.0], -0.01, StepStatus::Infeasible);
         let at = |data_size: usize, trace_cov: f64, r: &StepRecord| StepRecord {
             data_size,
@@ -1108,6 +1109,16 @@ mod tests {
         assert_eq!(forgot(window, &filling), None);
         let steady = [at(299, 0.05, &infeasible), at(300, 0.1, &crossing)];
         assert_eq!(forgot(window, &steady), None);
+        // 10 % a step for 30 steps: 17-fold in all, 2.6-fold over any 10
+        let mut gradual: Vec<StepRecord> = (0..30)
+            .map(|i| at(300, 0.05 * 1.1f64.powi(i), &infeasible))
+            .collect();
+        gradual.push(at(300, 0.05 * 1.1f64.powi(30), &crossing));
+        assert_eq!(forgot(window, &gradual), None);
+        // the same with one step's jump in it is found, with that jump
+        gradual[20].trace_cov = 0.05 * 1.1f64.powi(11) * 4.0;
+        let clause = forgot(window, &gradual).unwrap();
+        assert!(clause.contains("within 10 steps"), "{clause}");
     }
 
     /// Only `[system]` is required: the name is the file's stem, and the
