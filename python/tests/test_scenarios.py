@@ -60,6 +60,20 @@ def test_the_librarys_warnings_reach_python():
                         overrides={"steps": 60, "gp.prior_mean": {"type": "zero"}})
 
 
+def test_a_run_records_its_warnings_in_its_summary():
+    """The summary lists each kind of warning the run issued, with the text
+    the UserWarning showed; a run that issued none lists none."""
+    over = {"steps": 60, "gp.prior_mean": {"type": "zero"}}
+    with pytest.warns(UserWarning, match="row 0 of F is declared known") as shown:
+        first = bc.run_scenario("pendulum-safe", seed=1, overrides=over)
+    kinds = [w["kind"] for w in first["warnings"]]
+    assert "known_row_not_true" in kinds, kinds
+    text = next(w["message"] for w in first["warnings"] if w["kind"] == "known_row_not_true")
+    assert any(text == str(w.message) for w in shown), text
+    quiet = bc.run_scenario("pendulum-safe", seed=1, overrides={"steps": 60})
+    assert quiet["warnings"] == []
+
+
 def test_an_oracle_run_learns_nothing_and_starts_where_the_learning_run_does():
     """`gp.oracle`: the true dynamics in place of the model (docs/robots.md,
     "Check the design with the true dynamics")."""

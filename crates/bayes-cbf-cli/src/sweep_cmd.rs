@@ -88,8 +88,36 @@ pub fn run_sweep(
         );
     }
     note_stopped(&rows);
+    note_warnings(&rows);
     note!("wrote {}: {files}", out.display());
     Ok(())
+}
+
+/// Counts the seeds that issued each kind of warning: the sweep showed
+/// each kind once, for the first seed to issue it.
+fn note_warnings(rows: &[SweepRow]) {
+    let by_kind = bayes_cbf_scenario::sweep::warned_seeds(rows);
+    if by_kind.is_empty() {
+        return;
+    }
+    let kinds: Vec<String> = by_kind
+        .iter()
+        .map(|(kind, seeds)| {
+            let listed: Vec<String> = seeds.iter().take(5).map(u64::to_string).collect();
+            let more = if seeds.len() > 5 { ", …" } else { "" };
+            format!(
+                "{kind} on {} of {} ({}{more})",
+                seeds.len(),
+                rows.len(),
+                listed.join(", ")
+            )
+        })
+        .collect();
+    note!(
+        "warnings by seed: {}; each kind was shown once, above, for the first seed to issue it; \
+         sweep.csv lists each seed's",
+        kinds.join("; ")
+    );
 }
 
 /// Warns of the seeds whose runs stopped with an error, naming the first.

@@ -567,6 +567,99 @@ fn every_barrier_that_crossed_in_a_met_step_is_named() {
     );
 }
 
+/// A sweep shows each kind of warning once, for the first seed to issue
+/// it, then counts the seeds that issued each kind; `sweep.csv`, the
+/// sweep summary and each run's `summary.json` record them, and shards
+/// merge to the same record. The bare cart without learning warns of its
+/// zero prior, of an input it cannot see and of falling back on every step,
+/// at every seed; with learning and a prior it warns of nothing.
+#[test]
+fn a_sweep_counts_the_seeds_that_issued_each_warning() {
+    let dir = scratch_dir("outputs-warned-seeds");
+    std::fs::write(dir.join("cart.toml"), BARE_CART).unwrap();
+    let sweep = |extra: &[&str], out: &str| {
+        let mut args = vec!["run", "cart.toml", "--seeds", "0..3", "--set", "steps=60"];
+        for set in extra {
+            args.extend(["--set", *set]);
+        }
+        args.extend(["--out", out]);
+        run_in(&dir, &args)
+    };
+    let r = sweep(&["learning.update_every=0"], "s");
+    succeeded_with(
+        &r,
+        &[
+            "warnings by seed: mostly_infeasible on 3 of 3 (0, 1, 2); no_input_effect on 3 of \
+           3 (0, 1, 2); unmodelled_lgh on 3 of 3 (0, 1, 2); zero_prior on 3 of 3 (0, 1, 2); \
+           each kind was shown once, above, for the first seed to issue it",
+        ],
+    );
+    for shown in ["steps were infeasible", "gp.prior_mean is zero", "≈ 0 at x"] {
+        assert_eq!(r.stderr.matches(shown).count(), 1, "{shown}: {}", r.stderr);
+    }
+    let csv = std::fs::read_to_string(dir.join("s/sweep.csv")).unwrap();
+    assert!(csv.starts_with("seed,safe,collided,min_barrier,infeasible_steps,goal_distance,control_step_us,wall_time_s,warnings,error\n"), "{csv}");
+    let kinds = [
+        "mostly_infeasible",
+        "no_input_effect",
+        "unmodelled_lgh",
+        "zero_prior",
+    ];
+    for line in csv.lines().skip(1) {
+        let mut row: Vec<&str> = line.split(',').nth(8).unwrap().split(';').collect();
+        row.sort_unstable();
+        assert_eq!(row, kinds, "{csv}");
+    }
+    let summary = std::fs::read_to_string(dir.join("s/sweep_summary.json")).unwrap();
+    let json: serde_json::Value = serde_json::from_str(&summary).unwrap();
+    assert_eq!(
+        json["warnings"],
+        serde_json::json!(kinds
+            .map(|k| (k, [0, 1, 2]))
+            .into_iter()
+            .collect::<std::collections::BTreeMap<_, _>>()),
+        "{summary}"
+    );
+    // the shards' records merge to the unsharded one
+    for i in 0..2 {
+        let shard = format!("{i}/2");
+        let mut args = vec!["run", "cart.toml", "--seeds", "0..3", "--shard", &shard];
+        args.extend(["--set", "steps=60", "--set", "learning.update_every=0"]);
+        let out = format!("p{i}");
+        args.extend(["--out", &out]);
+        let r = run_in(&dir, &args);
+        assert!(r.status.success(), "{}", r.stderr);
+    }
+    let r = run_in(&dir, &["merge", "p0", "p1", "--out", "m"]);
+    assert!(r.status.success(), "{}", r.stderr);
+    let merged = std::fs::read_to_string(dir.join("m/sweep_summary.json")).unwrap();
+    let merged: serde_json::Value = serde_json::from_str(&merged).unwrap();
+    assert_eq!(merged["warnings"], json["warnings"]);
+    // one run records its warning, with the text it showed
+    let r = run_with(
+        &dir,
+        "cart.toml",
+        &["steps=60", "learning.update_every=0"],
+        "one",
+    );
+    assert!(r.status.success(), "{}", r.stderr);
+    let one: serde_json::Value = serde_json::from_str(&summary_in(&dir, "one")).unwrap();
+    let last = &one["warnings"][3];
+    assert_eq!(last["kind"], "mostly_infeasible", "{one}");
+    let message = last["message"].as_str().unwrap();
+    assert!(
+        message.starts_with("seed 0: 60 of 60 steps were infeasible") && r.stderr.contains(message),
+        "{message}: {}",
+        r.stderr
+    );
+    // learning, with the prior's kinematic row and gain: nothing to count
+    let prior = r#"gp.prior_mean={"type":"expression","f":["v","0"],"g":[["0"],["1"]]}"#;
+    let r = sweep(&[prior, "gp.known_rows=[0]"], "q");
+    succeeded_without(&r, "warnings by seed");
+    let summary = std::fs::read_to_string(dir.join("q/sweep_summary.json")).unwrap();
+    assert!(summary.contains("\"warnings\": {}"), "{summary}");
+}
+
 /// The pendulum of docs/interfaces.md hangs still at its defaults, and
 /// every step is infeasible: after the first, the spread that blocks the
 /// steps is the model's noise (`noise_sigma = 0.1`), which the predictive

@@ -35,13 +35,12 @@ mod fuzz_tests;
 
 pub use error::{Context, Error, Result};
 
-/// Logs `message` as a warning the first time `flag` is seen in the
-/// current scope ([`bayes_cbf::warnings`]: a run, a sweep, an experiment;
-/// a sweep builds its scenario once per seed).
+/// Issues `message` at `flag` ([`bayes_cbf::warnings`]): shown the first
+/// time `flag` is seen in the current scope (a run, a sweep, an
+/// experiment; a sweep builds its scenario once per seed), and kept in the
+/// run's record.
 pub(crate) fn warn_once(flag: &bayes_cbf::warnings::WarnOnce, message: String) {
-    if flag.first() {
-        log::warn!("{message}");
-    }
+    flag.issue(|| message);
 }
 pub use formats::{barrier_file, csv_data, input_map_spec, model_file, params, parse, prior_spec};
 

@@ -27,6 +27,7 @@ use crate::stats::wilson;
 use crate::{bail, err};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
+use std::collections::BTreeMap;
 use std::str::FromStr;
 use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
 use std::sync::Arc;
@@ -175,6 +176,10 @@ pub struct SweepRow {
     /// outcome, and the summary counts it as failing each one.
     #[serde(default)]
     pub error: Option<String>,
+    /// The kinds of warning the run issued ([`scenario::RunWarning::kind`]),
+    /// in order; none for a run that stopped.
+    #[serde(default)]
+    pub warnings: Vec<String>,
 }
 
 impl SweepRow {
@@ -193,6 +198,7 @@ impl SweepRow {
             control_step_us: f64::NAN,
             wall_time_s,
             error: Some(error),
+            warnings: Vec::new(),
         }
     }
 
@@ -202,15 +208,37 @@ impl SweepRow {
     }
 }
 
-/// The columns before `error`, with which `sweep.csv` files written before
-/// it existed end.
+/// The columns before `warnings` and `error`, with which `sweep.csv` files
+/// written before those existed end.
 macro_rules! outcome_columns {
     () => {
         "seed,safe,collided,min_barrier,infeasible_steps,goal_distance,control_step_us,wall_time_s"
     };
 }
 const HEADER_OUTCOMES: &str = outcome_columns!();
-const HEADER: &str = concat!(outcome_columns!(), ",error");
+/// The header of files written before the `warnings` column existed.
+const HEADER_ERROR: &str = concat!(outcome_columns!(), ",error");
+const HEADER: &str = concat!(outcome_columns!(), ",warnings,error");
+
+/// The `warnings` cell: the kinds, separated by `;`.
+fn warnings_cell(kinds: &[String]) -> String {
+    kinds.join(";")
+}
+
+/// The kinds of a `warnings` cell (`None`: not kinds, which are lower-case
+/// words joined by `_`).
+fn parse_warnings(cell: &str) -> Option<Vec<String>> {
+    if cell.is_empty() {
+        return Some(Vec::new());
+    }
+    let word = |k: &str| {
+        !k.is_empty()
+            && k.bytes()
+                .all(|b| b.is_ascii_lowercase() || b.is_ascii_digit() || b == b'_')
+    };
+    let kinds: Vec<String> = cell.split(';').map(str::to_string).collect();
+    kinds.iter().all(|k| word(k)).then_some(kinds)
+}
 
 /// An error message as one CSV cell: quoted, quotes doubled, line breaks
 /// as spaces.
@@ -236,12 +264,13 @@ fn unquote(cell: &str) -> Option<Option<String>> {
 /// `sweep.csv`: a header and one line per row; a scenario without a goal
 /// leaves `goal_distance` empty, as `trajectory.csv` leaves a missing value.
 /// A run that stopped has only its seed, wall time and quoted error.
+/// `warnings` lists the kinds of warning a run issued, separated by `;`.
 pub fn rows_csv(rows: &[SweepRow]) -> String {
     let mut s = String::from(HEADER);
     s.push('\n');
     for r in rows {
         if let Some(e) = &r.error {
-            s += &format!("{},,,,,,,{},{}\n", r.seed, r.wall_time_s, quote(e));
+            s += &format!("{},,,,,,,{},,{}\n", r.seed, r.wall_time_s, quote(e));
             continue;
         }
         let goal = if r.goal_distance.is_nan() {
@@ -250,7 +279,7 @@ pub fn rows_csv(rows: &[SweepRow]) -> String {
             r.goal_distance.to_string()
         };
         s += &format!(
-            "{},{},{},{},{},{},{},{},\n",
+            "{},{},{},{},{},{},{},{},{},\n",
             r.seed,
             u8::from(r.safe),
             u8::from(r.collided),
@@ -258,19 +287,22 @@ pub fn rows_csv(rows: &[SweepRow]) -> String {
             r.infeasible_steps,
             goal,
             r.control_step_us,
-            r.wall_time_s
+            r.wall_time_s,
+            warnings_cell(&r.warnings)
         );
     }
     s
 }
 
 /// Parses `sweep.csv` (`name` labels errors); also reads the files written
-/// before the `error` column existed.
+/// before the `warnings` or `error` column existed.
 pub fn parse_rows_csv(text: &str, name: &str) -> Result<Vec<SweepRow>> {
     let mut lines = text.lines();
-    let fields = match lines.next().map(str::trim) {
-        Some(HEADER) => 9,
-        Some(HEADER_OUTCOMES) => 8,
+    // fields, and the columns of warnings and error
+    let (fields, warnings_at, error_at) = match lines.next().map(str::trim) {
+        Some(HEADER) => (10, Some(8), Some(9)),
+        Some(HEADER_ERROR) => (9, None, Some(8)),
+        Some(HEADER_OUTCOMES) => (8, None, None),
         _ => bail!("{name}: expected the header '{HEADER}'"),
     };
     let column: Vec<&str> = HEADER.split(',').collect();
@@ -286,10 +318,27 @@ pub fn parse_rows_csv(text: &str, name: &str) -> Result<Vec<SweepRow>> {
                 line.split(',').count()
             );
         }
-        let error = match f.get(8) {
+        let error = match error_at {
             None => None,
-            Some(cell) => unquote(cell)
-                .ok_or_else(|| err!("{}: field 9 (error) is not a quoted message: {cell}", at()))?,
+            Some(j) => unquote(f[j]).ok_or_else(|| {
+                err!(
+                    "{}: field {} (error) is not a quoted message: {}",
+                    at(),
+                    j + 1,
+                    f[j]
+                )
+            })?,
+        };
+        let warnings = match warnings_at {
+            None => Vec::new(),
+            Some(j) => parse_warnings(f[j]).ok_or_else(|| {
+                err!(
+                    "{}: field {} (warnings) = '{}' is not kinds of warning separated by ';'",
+                    at(),
+                    j + 1,
+                    f[j]
+                )
+            })?,
         };
         let num = |j: usize| -> Result<f64> {
             match f[j].parse::<f64>() {
@@ -315,7 +364,8 @@ pub fn parse_rows_csv(text: &str, name: &str) -> Result<Vec<SweepRow>> {
             })
         };
         if let Some(error) = error {
-            if let Some(j) = (1..7).find(|&j| !f[j].is_empty()) {
+            let filled = (1..7).chain(warnings_at).find(|&j| !f[j].is_empty());
+            if let Some(j) = filled {
                 bail!(
                     "{}: field {} = '{}': a run that stopped with an error has only its seed, wall time and error",
                     at(),
@@ -353,6 +403,7 @@ pub fn parse_rows_csv(text: &str, name: &str) -> Result<Vec<SweepRow>> {
             control_step_us: num(6)?,
             wall_time_s: num(7)?,
             error: None,
+            warnings,
         });
     }
     Ok(rows)
@@ -485,6 +536,8 @@ pub fn run_seeds_until(
             }
             let mut sets = meta.sets.clone();
             sets.push(format!("seed={seed}"));
+            // the seed's warnings: those of loading it and of its run
+            let record = bayes_cbf::warnings::Record::start();
             let (sc, _) =
                 scenario::load(&meta.scenario, &sets).with_context(|| format!("seed {seed}"))?;
             let started = Instant::now();
@@ -493,6 +546,14 @@ pub fn run_seeds_until(
             let row = match run_scenario_until(&sc, |k, _| completed = k + 1, Arc::clone(stop)) {
                 Ok(out) => {
                     let s = &out.summary;
+                    let mut warnings: Vec<String> = scenario::RunWarning::of(record)
+                        .into_iter()
+                        .chain(s.warnings.iter().cloned())
+                        .map(|w| w.kind)
+                        .collect();
+                    // a kind once, where it first came
+                    let mut seen = std::collections::BTreeSet::new();
+                    warnings.retain(|k| seen.insert(k.clone()));
                     SweepRow {
                         seed,
                         safe: s.safe,
@@ -503,6 +564,7 @@ pub fn run_seeds_until(
                         control_step_us: s.control_step_us.p50,
                         wall_time_s: s.wall_time_s,
                         error: None,
+                        warnings,
                     }
                 }
                 Err(e) if matches!(e.root(), Error::Core(bayes_cbf::Error::Interrupted)) => {
@@ -600,6 +662,10 @@ pub struct SweepSummary {
     pub stopped: Count,
     /// Their seeds and errors.
     pub stopped_seeds: Vec<StoppedSeed>,
+    /// Each kind of warning the runs issued, with the seeds that issued it
+    /// (a sweep shows each kind once, for the first seed to issue it).
+    #[serde(default)]
+    pub warnings: BTreeMap<String, Vec<u64>>,
     /// Timing (not part of the bit-for-bit comparison of merged shards).
     pub timing: SweepTiming,
 }
@@ -622,6 +688,21 @@ pub struct SweepTiming {
     pub episodes_per_core_second: f64,
     /// Median of the episodes' median control steps (µs).
     pub control_step_us_median: f64,
+}
+
+/// Each kind of warning that `rows` issued, with the seeds of the rows
+/// that issued it, in the rows' order.
+pub fn warned_seeds(rows: &[SweepRow]) -> BTreeMap<String, Vec<u64>> {
+    let mut by_kind = BTreeMap::new();
+    for r in rows {
+        for k in &r.warnings {
+            by_kind
+                .entry(k.clone())
+                .or_insert_with(Vec::new)
+                .push(r.seed);
+        }
+    }
+    by_kind
 }
 
 /// The summary of `rows` (sorted by seed).
@@ -669,6 +750,7 @@ pub fn summarise(meta: &SweepMeta, rows: &[SweepRow]) -> SweepSummary {
                 })
             })
             .collect(),
+        warnings: warned_seeds(rows),
         timing: SweepTiming {
             episode_seconds: secs,
             episodes_per_core_second: n as f64 / secs.max(f64::MIN_POSITIVE),
@@ -879,6 +961,7 @@ mod tests {
                 control_step_us: 1.0 / 3.0,
                 wall_time_s: 1e-300,
                 error: None,
+                warnings: vec!["clamped_holds".into(), "mostly_infeasible".into()],
             },
             SweepRow {
                 seed: 9,
@@ -890,6 +973,7 @@ mod tests {
                 control_step_us: 7.0,
                 wall_time_s: 0.0,
                 error: None,
+                warnings: Vec::new(),
             },
             SweepRow::stopped(12, "stopped at step 3: barrier 0: \"x\", y\nz".into(), 0.25),
         ];
@@ -905,7 +989,12 @@ mod tests {
             assert_eq!(a.control_step_us.to_bits(), b.control_step_us.to_bits());
             assert_eq!(a.wall_time_s.to_bits(), b.wall_time_s.to_bits());
             assert_eq!((a.seed, a.safe, a.collided), (b.seed, b.safe, b.collided));
+            assert_eq!(a.warnings, b.warnings);
         }
+        assert_eq!(
+            text.lines().nth(1).unwrap().split(',').nth(8),
+            Some("clamped_holds;mostly_infeasible")
+        );
         // the error keeps its commas and quotes; its line break became a
         // space in the row already, so the rows are equal through the file
         assert_eq!(
@@ -915,17 +1004,25 @@ mod tests {
         assert_eq!(back[2].error, rows[2].error);
         assert_eq!(text.lines().count(), 4);
         assert!(parse_rows_csv("seed\n", "x").is_err());
+        // files written before the warnings column read as runs that
+        // warned of nothing, and with it the same otherwise
+        let drop_column = |l: &str, j: usize| {
+            let mut f: Vec<&str> = l.splitn(10, ',').collect();
+            f.remove(j);
+            f.join(",") + "\n"
+        };
+        let before_warnings: String = text.lines().map(|l| drop_column(l, 8)).collect();
+        assert!(before_warnings.starts_with(&format!("{HEADER_ERROR}\n")));
+        let old = parse_rows_csv(&before_warnings, "x").unwrap();
+        assert_eq!(old.len(), 3);
+        assert!(old.iter().all(|r| r.warnings.is_empty()));
+        assert_eq!(old[2].error, rows[2].error);
+        assert_eq!(old[0].min_barrier.to_bits(), rows[0].min_barrier.to_bits());
         // files written before the error column read as runs that completed
-        let legacy: String = text
+        let legacy: String = before_warnings
             .lines()
             .take(3)
-            .map(|l| {
-                l.strip_suffix(",error")
-                    .or(l.strip_suffix(','))
-                    .unwrap()
-                    .to_string()
-                    + "\n"
-            })
+            .map(|l| drop_column(l, 8))
             .collect();
         assert!(legacy.starts_with(HEADER_OUTCOMES));
         let old = parse_rows_csv(&legacy, "x").unwrap();
@@ -940,7 +1037,11 @@ mod tests {
                 stopped.replace("\"stopped", "stopped"),
                 "not a quoted message",
             ),
-            (format!("{},,,,,,,1.0,\"a\"b\"", 3), "not a quoted message"),
+            (format!("{},,,,,,,1.0,,\"a\"b\"", 3), "not a quoted message"),
+            (
+                format!("{},,,,,,,1.0,clamped_holds,\"a\"", 3),
+                "field 9 = 'clamped_holds'",
+            ),
         ] {
             let e = parse_rows_csv(&format!("{HEADER}\n{tampered}\n"), "x")
                 .unwrap_err()
@@ -953,6 +1054,8 @@ mod tests {
         for (j, bad, msg) in [
             (3, "NaN", "field 4 (min_barrier) = 'NaN'"),
             (1, "2", "not 0 or 1"),
+            (8, "Clamped holds", "field 9 (warnings) = 'Clamped holds'"),
+            (8, "a;;b", "field 9 (warnings) = 'a;;b'"),
         ] {
             let keep = f[j];
             f[j] = bad;

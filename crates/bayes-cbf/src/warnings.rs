@@ -1,7 +1,7 @@
-//! Warnings issued once per scope.
+//! Warnings issued once per scope, and recorded for each run.
 //!
 //! A warning that a run would repeat at every step, or a sweep at every
-//! seed, is issued once: by the first [`WarnOnce::first`] of its site in the
+//! seed, is issued once: by the first [`WarnOnce::issue`] of its site in the
 //! current scope. The process is one scope until a [`Scope`] is entered: the
 //! scenario crate enters one for each run, sweep and experiment it is asked
 //! for, and the Python package for each filter it builds, so that a second
@@ -11,7 +11,14 @@
 //! filter after its constructor returned warn in the scope it opened, or in
 //! a later one (a program that builds a filter at every step is warned at
 //! every step).
+//!
+//! A [`Record`] open on a thread keeps, besides, the first warning of each
+//! site issued on that thread while it is open, whether or not the scope had
+//! already shown it: a sweep shows a warning once, for its first seed, and
+//! the record of each run says which of them warned. Warnings issued on
+//! other threads (a refit in the background) are shown, not recorded.
 
+use std::cell::RefCell;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::Mutex;
 
@@ -54,30 +61,126 @@ impl Drop for Scope {
 
 /// A warning site that warns once per scope ([module docs](self)).
 #[derive(Debug)]
-pub struct WarnOnce(AtomicU64);
+pub struct WarnOnce {
+    /// The scope the site last warned in.
+    scope: AtomicU64,
+    /// Its name in [`Record`]s.
+    name: &'static str,
+}
 
 impl WarnOnce {
-    /// A site that has not warned yet.
-    pub const fn new() -> Self {
-        Self(AtomicU64::new(0))
+    /// A site that has not warned yet, named `name` in [`Record`]s (one
+    /// word in snake case, unique among the sites).
+    pub const fn new(name: &'static str) -> Self {
+        Self {
+            scope: AtomicU64::new(0),
+            name,
+        }
+    }
+
+    /// The site's name.
+    pub fn name(&self) -> &'static str {
+        self.name
+    }
+
+    /// Issues the warning `message()`: shown (`log::warn!`) if this is the
+    /// site's first in the current scope, and kept by the [`Record`] open
+    /// on this thread if it has none of the site yet. `message` is called
+    /// only then, so a warning checked at every step costs no allocation
+    /// after its first.
+    pub fn issue(&self, message: impl FnOnce() -> String) {
+        let show = self.first();
+        let record = self.unrecorded();
+        if show || record {
+            let message = message();
+            if record {
+                RECORD.with_borrow_mut(|r| {
+                    if let Some(r) = r {
+                        r.push(Issued {
+                            site: self.name,
+                            message: message.clone(),
+                        });
+                    }
+                });
+            }
+            if show {
+                log::warn!("{message}");
+            }
+        }
+    }
+
+    /// Whether [`issue`](Self::issue) would show or record a warning now:
+    /// checks that only feed a warning can be skipped when not.
+    pub fn pending(&self) -> bool {
+        !self.warned() || self.unrecorded()
     }
 
     /// Whether this is the site's first warning in the current scope (the
     /// site counts as having warned from now on).
-    pub fn first(&self) -> bool {
+    fn first(&self) -> bool {
         let scope = SCOPE.load(Ordering::Relaxed);
-        self.0.swap(scope, Ordering::Relaxed) != scope
+        self.scope.swap(scope, Ordering::Relaxed) != scope
     }
 
     /// Whether the site has warned in the current scope.
-    pub fn warned(&self) -> bool {
-        self.0.load(Ordering::Relaxed) == SCOPE.load(Ordering::Relaxed)
+    fn warned(&self) -> bool {
+        self.scope.load(Ordering::Relaxed) == SCOPE.load(Ordering::Relaxed)
+    }
+
+    /// A record is open on this thread and holds nothing of this site.
+    fn unrecorded(&self) -> bool {
+        RECORD.with_borrow(|r| {
+            r.as_ref()
+                .is_some_and(|r| r.iter().all(|i| i.site != self.name))
+        })
     }
 }
 
-impl Default for WarnOnce {
-    fn default() -> Self {
-        Self::new()
+/// A warning kept by a [`Record`].
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Issued {
+    /// The site's [name](WarnOnce::name).
+    pub site: &'static str,
+    /// The warning.
+    pub message: String,
+}
+
+thread_local! {
+    /// The warnings of the record open on this thread, if one is.
+    static RECORD: RefCell<Option<Vec<Issued>>> = const { RefCell::new(None) };
+}
+
+/// The warnings issued on this thread from [`start`](Self::start) to
+/// [`finish`](Self::finish), the first of each site ([module
+/// docs](self)). A record started while another is open on the thread
+/// replaces it until finished or dropped; the outer one then goes on.
+#[derive(Debug)]
+#[must_use = "finish the record to read it"]
+pub struct Record {
+    /// The record this one replaced.
+    outer: Option<Vec<Issued>>,
+}
+
+impl Record {
+    /// Starts recording on this thread.
+    pub fn start() -> Self {
+        Record {
+            outer: RECORD.replace(Some(Vec::new())),
+        }
+    }
+
+    /// The warnings recorded, in the order they were issued.
+    pub fn finish(mut self) -> Vec<Issued> {
+        let outer = self.outer.take();
+        let issued = RECORD.replace(outer).unwrap_or_default();
+        std::mem::forget(self);
+        issued
+    }
+}
+
+impl Drop for Record {
+    fn drop(&mut self) {
+        RECORD.set(self.outer.take());
     }
 }
 
@@ -87,7 +190,7 @@ mod tests {
 
     #[test]
     fn a_site_warns_once_per_scope_and_a_nested_scope_is_the_outer_one() {
-        static SITE: WarnOnce = WarnOnce::new();
+        static SITE: WarnOnce = WarnOnce::new("test_scope_site");
         new_scope();
         assert!(!SITE.warned());
         assert!(SITE.first());
@@ -105,5 +208,50 @@ mod tests {
         }
         let _next = Scope::enter();
         assert!(SITE.first(), "a scope entered after is new");
+        a_record_keeps_the_first_warning_of_each_site_whether_or_not_it_was_shown();
+    }
+
+    fn a_record_keeps_the_first_warning_of_each_site_whether_or_not_it_was_shown() {
+        static A: WarnOnce = WarnOnce::new("test_record_a");
+        static B: WarnOnce = WarnOnce::new("test_record_b");
+        let calls = std::cell::Cell::new(0);
+        let message = |text: &str| {
+            calls.set(calls.get() + 1);
+            text.to_string()
+        };
+        // shown in the scope before the record starts
+        A.issue(|| message("a0"));
+        assert!(A.warned());
+        assert!(!A.pending(), "shown, and no record open");
+        let record = Record::start();
+        assert!(A.pending(), "the record has nothing of A yet");
+        A.issue(|| message("a1"));
+        A.issue(|| message("a2"));
+        B.issue(|| message("b1"));
+        assert!(!A.pending() && !B.pending());
+        let inner = Record::start();
+        B.issue(|| message("b2"));
+        assert_eq!(
+            inner.finish(),
+            vec![Issued {
+                site: "test_record_b",
+                message: "b2".into()
+            }]
+        );
+        B.issue(|| message("b3"));
+        // a dropped record leaves the outer one as it was
+        drop(Record::start());
+        assert!(!A.pending());
+        let got = record.finish();
+        let want = [("test_record_a", "a1"), ("test_record_b", "b1")];
+        assert_eq!(got.len(), 2, "{got:?}");
+        for (g, (site, message)) in got.iter().zip(want) {
+            assert_eq!((g.site, g.message.as_str()), (site, message));
+        }
+        // a message is built only when shown or recorded: a0, a1, b1, b2
+        assert_eq!(calls.get(), 4);
+        A.issue(|| message("a3"));
+        assert_eq!(calls.get(), 4, "shown in this scope, and no record open");
+        assert!(RECORD.with_borrow(Option::is_none));
     }
 }

@@ -378,7 +378,7 @@ impl BarrierSpec {
     }
 }
 
-static KINKS: WarnOnce = WarnOnce::new();
+static KINKS: WarnOnce = WarnOnce::new("barrier_kinks");
 
 /// Warns, once per scope, of an expression barrier with a kink
 /// ([`ExpressionBarrier::kinks`]).

@@ -428,10 +428,10 @@ pub fn build(s: &Scenario) -> Result<Built> {
     })
 }
 
-static CLF_WITHOUT_PLANNER: WarnOnce = WarnOnce::new();
-static START_OUTSIDE: WarnOnce = WarnOnce::new();
-static START_UNSAFE: WarnOnce = WarnOnce::new();
-static FAST_GAINS: WarnOnce = WarnOnce::new();
+static CLF_WITHOUT_PLANNER: WarnOnce = WarnOnce::new("clf_without_planner");
+static START_OUTSIDE: WarnOnce = WarnOnce::new("start_outside");
+static START_UNSAFE: WarnOnce = WarnOnce::new("start_unsafe");
+static FAST_GAINS: WarnOnce = WarnOnce::new("fast_gains");
 
 /// Warns, once per scope, when a barrier's fastest pole `λ` exceeds
 /// `1/dt`: the condition holds at each step, but the control is held over
@@ -458,7 +458,7 @@ fn warn_fast_gains(barriers: &[Arc<dyn DynBarrier>], dt: f64) {
         }
     }
 }
-static KNOWN_ROW_MISFIT: WarnOnce = WarnOnce::new();
+static KNOWN_ROW_MISFIT: WarnOnce = WarnOnce::new("known_row_misfit");
 
 /// Warns, once per scope, when a run's data contradict a row declared
 /// known (`gp.known_rows`): a misfit that follows the state and exceeds
@@ -501,7 +501,7 @@ pub(crate) fn warn_known_row_misfit(
     }
 }
 
-static LEFT_INVARIANT: WarnOnce = WarnOnce::new();
+static LEFT_INVARIANT: WarnOnce = WarnOnce::new("left_invariant");
 
 /// Where each relative-degree-2 barrier's `h` first crossed zero in a step
 /// that met its condition, from a state outside the set its gains keep safe
@@ -575,7 +575,7 @@ pub(crate) fn warn_crossing_outside(
     }
 }
 
-static KNOWN_ROW_NOT_TRUE: WarnOnce = WarnOnce::new();
+static KNOWN_ROW_NOT_TRUE: WarnOnce = WarnOnce::new("known_row_not_true");
 
 /// Warns, once per scope, when a row of `F` declared known differs from
 /// the system's at the start state or a unit step from it along a
@@ -642,7 +642,7 @@ fn known_rows_agree(model: &Mvgp, known: &[usize], truth: &dyn DynSystem, x: &[f
     true
 }
 
-static ZERO_PRIOR: WarnOnce = WarnOnce::new();
+static ZERO_PRIOR: WarnOnce = WarnOnce::new("zero_prior");
 
 /// Warns, once per scope, of a zero prior mean where it defeats the
 /// conditions: under a barrier of relative degree ≥ 2 (the model knows
@@ -679,7 +679,7 @@ fn warn_zero_prior(barriers: &[Arc<dyn DynBarrier>], update_every: usize) {
     );
 }
 
-static MOSTLY_INFEASIBLE: WarnOnce = WarnOnce::new();
+static MOSTLY_INFEASIBLE: WarnOnce = WarnOnce::new("mostly_infeasible");
 
 /// Warns, once per scope, when the infeasible steps of a run held more
 /// than half its time: the fallback acted on most of it, safe or not (a
@@ -707,7 +707,7 @@ pub(crate) fn warn_mostly_infeasible(
         .map(|r| r.hold)
         .sum();
     // the probes of `noise` cost solves: none once the warning was given
-    if 2.0 * fallen > total && !MOSTLY_INFEASIBLE.warned() {
+    if 2.0 * fallen > total && MOSTLY_INFEASIBLE.pending() {
         let noise = noise();
         warn_once(
             &MOSTLY_INFEASIBLE,
@@ -727,7 +727,7 @@ pub(crate) fn warn_mostly_infeasible(
     }
 }
 
-static CROSSED_IN_INFEASIBLE_STEP: WarnOnce = WarnOnce::new();
+static CROSSED_IN_INFEASIBLE_STEP: WarnOnce = WarnOnce::new("crossed_in_infeasible_step");
 
 /// The first step in which a barrier's `h` crossed zero (from `h ≥ 0` at
 /// the step's start) while its SOCP was infeasible: the barrier's index
@@ -928,7 +928,7 @@ pub(crate) fn noise_above_labels(
     ))
 }
 
-static NOISE_BELOW_LABELS: WarnOnce = WarnOnce::new();
+static NOISE_BELOW_LABELS: WarnOnce = WarnOnce::new("noise_below_labels");
 
 /// Warns, once per scope, when the model's noise on a learned row,
 /// `σ·√A_ii`, is below the noise that process noise `σ_w` puts on the
@@ -979,7 +979,7 @@ pub(crate) fn median_hold(records: &[StepRecord]) -> Option<f64> {
     holds.get(holds.len() / 2).copied()
 }
 
-static CLAMPED_HOLDS: WarnOnce = WarnOnce::new();
+static CLAMPED_HOLDS: WarnOnce = WarnOnce::new("clamped_holds");
 
 /// Warns, once per scope, when self-triggered holds were clamped up to
 /// `tau_min`: there the hold that keeps the conditions (Props. 3, 5) was
@@ -1016,7 +1016,7 @@ pub(crate) fn warn_clamped_holds(records: &[StepRecord], tau_min: f64, seed: u64
     );
 }
 
-static CROSSED_IN_MET_STEP: WarnOnce = WarnOnce::new();
+static CROSSED_IN_MET_STEP: WarnOnce = WarnOnce::new("crossed_in_met_step");
 
 /// Warns, once per scope, when a barrier's `h` crossed zero within a held
 /// step that met its condition: one warning naming each barrier's first

@@ -15,7 +15,7 @@ mod run;
 pub use build::{build, Built};
 pub use run::{
     run_scenario, run_scenario_until, trajectory_csv, Column, Percentiles, RunOutput, RunSummary,
-    Stats, TraceCov, Trajectory, TriggerSummary,
+    RunWarning, Stats, TraceCov, Trajectory, TriggerSummary,
 };
 
 use crate::barrier_file::BarrierSpec;

@@ -114,6 +114,36 @@ pub struct RunSummary {
     pub trace_cov: TraceCov,
     /// Wall time of the run (s).
     pub wall_time_s: f64,
+    /// The warnings the run issued, the first of each kind, in order
+    /// (shown once per run or sweep; recorded for each run): those of the
+    /// run's own thread ([`bayes_cbf::warnings::Record`]), not of a refit
+    /// in the background.
+    #[serde(default)]
+    pub warnings: Vec<RunWarning>,
+}
+
+/// A warning a run issued.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct RunWarning {
+    /// Its kind: the name of the place that issues it
+    /// ([`bayes_cbf::warnings::WarnOnce::name`]), as `clamped_holds`.
+    pub kind: String,
+    /// The warning.
+    pub message: String,
+}
+
+impl RunWarning {
+    /// The warnings of `record`.
+    pub fn of(record: bayes_cbf::warnings::Record) -> Vec<RunWarning> {
+        record
+            .finish()
+            .into_iter()
+            .map(|i| RunWarning {
+                kind: i.site.to_string(),
+                message: i.message,
+            })
+            .collect()
+    }
 }
 
 /// Holds, `τ_k` and `L_f` (both estimates) over a run, and how often the
@@ -180,6 +210,7 @@ pub fn run_scenario_until(
     stop: Arc<AtomicBool>,
 ) -> Result<RunOutput> {
     let _warnings = bayes_cbf::warnings::Scope::enter();
+    let record = bayes_cbf::warnings::Record::start();
     let mut built = build(scenario)?;
     let monitors: Vec<Monitor> = built
         .obstacles
@@ -267,7 +298,8 @@ pub fn run_scenario_until(
             );
         }
     }
-    let summary = summarise(scenario, &built, &result, wall);
+    let mut summary = summarise(scenario, &built, &result, wall);
+    summary.warnings = RunWarning::of(record);
     Ok(RunOutput {
         scenario: scenario.clone(),
         built,
@@ -341,6 +373,7 @@ fn summarise(s: &Scenario, built: &Built, r: &LoopResult, wall: f64) -> RunSumma
             end: r.records.last().map(|x| x.trace_cov),
         },
         wall_time_s: wall,
+        warnings: Vec::new(),
     }
 }
 

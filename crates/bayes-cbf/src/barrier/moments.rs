@@ -423,18 +423,18 @@ pub fn unmodelled_lgh_std(ws: &MomentWorkspace) -> f64 {
 /// `L_g h · u` whose spread is more than a tenth of the condition's own
 /// (per unit control): the guarantee of the condition does not cover it.
 fn warn_unmodelled_lgh(ws: &MomentWorkspace, barrier: &dyn DynBarrier, out: &ConditionMoments) {
-    static WARNED: crate::warnings::WarnOnce = crate::warnings::WarnOnce::new();
-    if WARNED.warned() {
+    static WARNED: crate::warnings::WarnOnce = crate::warnings::WarnOnce::new("unmodelled_lgh");
+    if !WARNED.pending() {
         return;
     }
     let s = unmodelled_lgh_std(ws);
     let p = out.cov.nrows();
     let own = (0..p).map(|c| out.cov[(c, c)]).fold(0.0, f64::max).sqrt();
-    if s > 0.1 * own.max(1e-12) && WARNED.first() {
-        log::warn!(
+    if s > 0.1 * own.max(1e-12) {
+        WARNED.issue(|| format!(
             "barrier '{}' has relative degree 2, but the model leaves L_g h · u uncertain (std {s:.3e} per unit u, where the condition's own std is {own:.3e}): the condition assumes L_g h = 0 and does not cover it; declare the rows of F that ∇h weighs known (gp.known_rows), with a prior mean that has them exactly (a known row is the prior mean's), or use relative degree 1",
             barrier.name()
-        );
+        ));
     }
 }
 
@@ -503,11 +503,12 @@ pub fn cbc_moments(
         }
     }
     // once per scope: a run would repeat it at every step
-    static NO_INPUT_WARNED: crate::warnings::WarnOnce = crate::warnings::WarnOnce::new();
+    static NO_INPUT_WARNED: crate::warnings::WarnOnce =
+        crate::warnings::WarnOnce::new("no_input_effect");
     let nrm: f64 = out.e[1..].iter().map(|v| v * v).sum::<f64>().sqrt();
     let scale = out.e[0].abs().max(1.0);
-    if nrm < 1e-9 * scale && NO_INPUT_WARNED.first() {
-        log::warn!("barrier '{}': the model's mean of L_g L_f^(r-1) h is ≈ 0 at x = {} (|e_u| = {nrm:.2e}): the input has no mean effect on the condition there, because the prior mean gives it none (a zero prior mean, before data) or because relative degree {r} is wrong (shown once per run or filter)", barrier.name(), crate::error::Brief(&ws.x));
+    if nrm < 1e-9 * scale {
+        NO_INPUT_WARNED.issue(|| format!("barrier '{}': the model's mean of L_g L_f^(r-1) h is ≈ 0 at x = {} (|e_u| = {nrm:.2e}): the input has no mean effect on the condition there, because the prior mean gives it none (a zero prior mean, before data) or because relative degree {r} is wrong (shown once per run or filter)", barrier.name(), crate::error::Brief(&ws.x)));
     }
     Ok(())
 }

@@ -462,32 +462,33 @@ impl SafetyFilter {
         }
         settings.validate(m)?;
         if settings.fallback == Fallback::Relax && settings.u_min.is_none() {
-            static UNBOUNDED_RELAX: crate::warnings::WarnOnce = crate::warnings::WarnOnce::new();
-            if UNBOUNDED_RELAX.first() {
-                log::warn!(
-                    "fallback relax without input bounds (u_min, u_max): where the conditions \
-                     are met only as the control grows, the largest feasible probability p* \
-                     is approached only by ever larger controls: relax applies a very large \
-                     one, or the max-margin control where none attains p* (reported as \
-                     fallback max_margin; docs/calibration.md, \"Which fallback\"); give \
-                     u_min and u_max, or use max_margin (shown once per run or filter)"
-                );
-            }
+            static UNBOUNDED_RELAX: crate::warnings::WarnOnce =
+                crate::warnings::WarnOnce::new("relax_without_bounds");
+            UNBOUNDED_RELAX.issue(|| {
+                "fallback relax without input bounds (u_min, u_max): where the conditions \
+                 are met only as the control grows, the largest feasible probability p* \
+                 is approached only by ever larger controls: relax applies a very large \
+                 one, or the max-margin control where none attains p* (reported as \
+                 fallback max_margin; docs/calibration.md, \"Which fallback\"); give \
+                 u_min and u_max, or use max_margin (shown once per run or filter)"
+                    .to_string()
+            });
         }
         if let Some(spread) = weight_spread(&settings.r).filter(|s| *s > WARN_WEIGHT_SPREAD) {
-            static SPREAD_WEIGHTS: crate::warnings::WarnOnce = crate::warnings::WarnOnce::new();
-            if SPREAD_WEIGHTS.first() {
-                log::warn!(
+            static SPREAD_WEIGHTS: crate::warnings::WarnOnce =
+                crate::warnings::WarnOnce::new("spread_weights");
+            SPREAD_WEIGHTS.issue(|| {
+                format!(
                     "R: its weights are {spread:.1e} apart (the square root of RᵀR's largest \
-                     diagonal entry over its smallest squared Cholesky pivot): the solver's 1e-8 \
-                     relative accuracy \
-                     resolves the minimiser along the lightly weighted controls only roughly, \
-                     and the control can lie further from u_ref than the closest safe one (it \
-                     still meets every condition; on random programs 0.55% of the distance at \
-                     weights 1 and 1e3, 38% at 1 and 3e3); scale the controls so that their \
-                     weights are within 100 of each other (shown once per run or filter)"
-                );
-            }
+                     diagonal entry over its smallest squared Cholesky pivot): the solver's \
+                     1e-8 relative accuracy resolves the minimiser along the lightly weighted \
+                     controls only roughly, and the control can lie further from u_ref than \
+                     the closest safe one (it still meets every condition; on random programs \
+                     0.55% of the distance at weights 1 and 1e3, 38% at 1 and 3e3); scale the \
+                     controls so that their weights are within 100 of each other (shown once \
+                     per run or filter)"
+                )
+            });
         }
         let shape = SocpShape {
             m,

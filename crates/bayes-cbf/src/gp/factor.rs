@@ -306,13 +306,17 @@ impl CholFactor {
             if square > 0.0 && square.is_finite() && square > MIN_PIVOT * (diag + jitter).abs() {
                 // once per scope ([`crate::warnings`]): a run would repeat it
                 // at every update
-                static JITTER: crate::warnings::WarnOnce = crate::warnings::WarnOnce::new();
-                if level > 0.0 && JITTER.first() {
-                    log::warn!(
-                        "online update (k = {}) needed jitter {jitter:.3e} on the new diagonal \
-                         entry (later online updates that need jitter are not shown)",
-                        k + 1
-                    );
+                static JITTER: crate::warnings::WarnOnce =
+                    crate::warnings::WarnOnce::new("online_update_jitter");
+                if level > 0.0 {
+                    JITTER.issue(|| {
+                        format!(
+                            "online update (k = {}) needed jitter {jitter:.3e} on the new \
+                             diagonal entry (later online updates that need jitter are not \
+                             shown)",
+                            k + 1
+                        )
+                    });
                 }
                 return Ok(Pivot { square, jitter });
             }

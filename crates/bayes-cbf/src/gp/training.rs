@@ -954,7 +954,8 @@ pub fn fit_until<K: Kernel>(
     })
 }
 
-static LENGTHSCALE_UNFIT: crate::warnings::WarnOnce = crate::warnings::WarnOnce::new();
+static LENGTHSCALE_UNFIT: crate::warnings::WarnOnce =
+    crate::warnings::WarnOnce::new("lengthscale_unfit");
 
 /// Warns, once per scope, when the fit could not set a lengthscale from the
 /// data: its input takes one value in every row (the likelihood does not
@@ -1000,12 +1001,14 @@ fn warn_collapsed_lengthscales<K: Kernel>(model: &Mvgp<K>, spreads: &[f64]) {
                 None
             }
         });
-    if let (Some((i, why)), true) = (why, LENGTHSCALE_UNFIT.first()) {
-        log::warn!(
-            "fit: kernel input {i} {why}; the model's prediction away from the {k} training \
+    if let Some((i, why)) = why {
+        LENGTHSCALE_UNFIT.issue(|| {
+            format!(
+                "fit: kernel input {i} {why}; the model's prediction away from the {k} training \
              inputs falls back to the prior mean (a constant input, repeated rows or too few \
              rows)"
-        );
+            )
+        });
     }
 }
 
