@@ -9,7 +9,10 @@ use crate::input_map_spec::to_input_map;
 use crate::parse::parse_rank;
 use crate::prior_spec::{PriorSpec, SystemNames};
 use crate::warn_once;
-use bayes_cbf::barrier::{fastest_pole, start_margin, DynBarrier};
+use bayes_cbf::barrier::{
+    add_observation_noise, cbc_moments, fastest_pole, quantile_factor, start_margin,
+    ConditionMoments, DynBarrier, MomentWorkspace,
+};
 use bayes_cbf::control::{
     ControlOutput, ControlStatus, Fallback, RecalibrationSettings, SafetyController,
     SafetySettings, SelfTriggered, TauSource, TriggerSettings,
@@ -910,14 +913,7 @@ pub(crate) fn noise_above_labels(
     if 2 * blocked <= probes.len() {
         return None;
     }
-    let labels = if label_noise > 0.0 {
-        format!(
-            "sim.process_noise puts {} on the labels",
-            short(label_noise)
-        )
-    } else {
-        "the labels carry no process noise".to_string()
-    };
+    let labels = labels_noise(label_noise);
     Some(format!(
         "gp.noise_sigma too large for controller.predictive, whose conditions carry the \
          model's noise: σ·√A_ii = {} on row {i}, where {labels}; with the run's final model, \
@@ -926,6 +922,124 @@ pub(crate) fn noise_above_labels(
         short(noise),
         probes.len()
     ))
+}
+
+static PREDICTIVE_STANDOFF: WarnOnce = WarnOnce::new("predictive_standoff");
+
+/// A condition's slack `|scbc|` at most this is active: it set the control.
+const ACTIVE_SCBC: f64 = 1e-5;
+
+/// [`warn_predictive_standoff`] names a standoff above this share of `h`
+/// at the start: one that takes a good part of the robot's room.
+const STANDOFF_SHARE: f64 = 0.25;
+
+/// Warns, once per scope, when a predictive controller's barrier condition
+/// held the control back from the reference on more than half of the
+/// run's steps, the model's noise on a learned row, `σ·√A_ii`, is more
+/// than twice the labels' own (`label_noise`, `σ_w/√τ`; 0 without process
+/// noise), and the standoff that noise makes is more than a quarter of `h`
+/// at the start. The predictive condition carries the noise: at rest it
+/// reads `k₀h ≥ c(p)·σ_c`, `σ_c` the noise's std in the condition, so the
+/// robot stops about `c(p)·σ_c/k₀` from its limit (docs/robots.md, "The
+/// predictive condition keeps a standoff"), a standoff here made by a noise
+/// the labels do not have. The standoff is evaluated with the final model
+/// at the last state whose control the condition held back.
+pub(crate) fn warn_predictive_standoff(
+    barriers: &[Arc<dyn DynBarrier>],
+    model: &Mvgp,
+    records: &[StepRecord],
+    (probability, label_noise): (f64, f64),
+    seed: u64,
+) {
+    if !PREDICTIVE_STANDOFF.pending() {
+        return;
+    }
+    let Some((row, noise)) = row_noise(model).find(|(_, n)| *n > 2.0 * label_noise) else {
+        return;
+    };
+    for (i, b) in barriers.iter().enumerate() {
+        let r = b.relative_degree();
+        let k0 = b.gains().first().copied().unwrap_or(0.0);
+        if r > 2 || k0 <= 0.0 {
+            continue;
+        }
+        // steps whose control this condition moved off the reference
+        let held = |rec: &&StepRecord| {
+            let off: f64 = rec
+                .u
+                .iter()
+                .zip(&rec.u_ref)
+                .map(|(u, v)| (u - v).powi(2))
+                .sum();
+            let scale: f64 = rec.u_ref.iter().map(|v| v * v).sum();
+            rec.status != StepStatus::Infeasible
+                && rec.scbc.get(i).is_some_and(|s| s.abs() <= ACTIVE_SCBC)
+                && off.sqrt() > 1e-6 * (1.0 + scale.sqrt())
+        };
+        let held: Vec<&StepRecord> = records.iter().filter(held).collect();
+        let Some(last) = held.last().filter(|_| 2 * held.len() > records.len()) else {
+            continue;
+        };
+        let start = records[0].h[i];
+        let Some(standoff) = standoff(b.as_ref(), model, &last.x, probability)
+            .filter(|s| *s > STANDOFF_SHARE * start)
+        else {
+            continue;
+        };
+        let labels = labels_noise(label_noise);
+        warn_once(
+            &PREDICTIVE_STANDOFF,
+            format!(
+                "barriers[{i}] (seed {seed}): its condition held the control back from the \
+                 reference on {} of {} steps, and controller.predictive puts the model's noise \
+                 in it, σ·√A_ii = {} on row {row}, where {labels}: at rest the condition keeps \
+                 h ≥ c(p)·σ_c/k₀ = {} (c({probability}) = {}, k₀ = {}, σ_c the noise's std \
+                 in the condition; h = {} at the start), a standoff the labels do not call \
+                 for; lower gp.noise_sigma towards the labels' noise (or let refits learn \
+                 it), or set controller.predictive = false for the paper's condition on the \
+                 latent dynamics (docs/robots.md, \"The predictive condition keeps a \
+                 standoff\")",
+                held.len(),
+                records.len(),
+                short(noise),
+                short(standoff),
+                short(quantile_factor(probability, r).unwrap_or(f64::NAN)),
+                short(k0),
+                short(start)
+            ),
+        );
+        return;
+    }
+}
+
+/// What process noise puts on the labels, `label_noise`, as a warning
+/// says it.
+fn labels_noise(label_noise: f64) -> String {
+    if label_noise > 0.0 {
+        format!(
+            "sim.process_noise puts {} on the labels",
+            short(label_noise)
+        )
+    } else {
+        "the labels carry no process noise".to_string()
+    }
+}
+
+/// `c(p)·σ_c/k₀` of barrier `b` at `x` under `model`: the value of `h` a
+/// predictive condition keeps at rest, `σ_c` the model's noise in the
+/// condition ([`add_observation_noise`]); `None` where it cannot be
+/// evaluated.
+fn standoff(b: &dyn DynBarrier, model: &Mvgp, x: &[f64], probability: f64) -> Option<f64> {
+    let r = b.relative_degree();
+    let mut ws = MomentWorkspace::new(model);
+    ws.update(model, x, r).ok()?;
+    let mut mom = ConditionMoments::zeros(model.control_dim());
+    cbc_moments(&mut ws, b, &mut mom).ok()?;
+    let latent = mom.cov[(0, 0)];
+    add_observation_noise(&ws, &mut mom).ok()?;
+    let sd = (mom.cov[(0, 0)] - latent).max(0.0).sqrt();
+    let c = quantile_factor(probability, r).ok()?;
+    Some(c * sd / b.gains()[0]).filter(|s| s.is_finite())
 }
 
 static NOISE_BELOW_LABELS: WarnOnce = WarnOnce::new("noise_below_labels");

@@ -288,6 +288,15 @@ pub fn run_scenario_until(
         (predictive, scenario.sim.process_noise),
         scenario.seed,
     );
+    if predictive && !scenario.gp.oracle {
+        super::build::warn_predictive_standoff(
+            &built.barriers,
+            &result.model,
+            &result.records,
+            (built.controller.settings().probability, label_noise),
+            scenario.seed,
+        );
+    }
     if let Some(t) = built.loop_settings.trigger.as_ref().filter(|t| t.hold) {
         super::build::warn_clamped_holds(&result.records, t.tau_min, scenario.seed);
         if !scenario.gp.oracle && scenario.learning.update_every > 0 {
