@@ -1028,8 +1028,10 @@ fn labels_noise(label_noise: f64) -> String {
 /// `c(p)·σ_c/k₀` of barrier `b` at `x` under `model`: the value of `h` a
 /// predictive condition keeps at rest, `σ_c` the model's noise in the
 /// condition ([`add_observation_noise`]); `None` where it cannot be
-/// evaluated.
+/// evaluated. A probe after the run: what its moments warn of is not the
+/// run's, and stays out of the run's record.
 fn standoff(b: &dyn DynBarrier, model: &Mvgp, x: &[f64], probability: f64) -> Option<f64> {
+    let _probe = bayes_cbf::warnings::Record::start();
     let r = b.relative_degree();
     let mut ws = MomentWorkspace::new(model);
     ws.update(model, x, r).ok()?;
