@@ -248,6 +248,13 @@ fn warnings_of_a_wild_start_are_few_and_short() {
         r.stderr
     );
     assert!(r.stderr.lines().count() < 12, "{}", r.stderr);
+    // the run's summary records the kind once
+    let summary = std::fs::read_to_string(dir.join("out").join("summary.json")).unwrap();
+    assert_eq!(
+        summary.matches("\"observation_skipped\"").count(),
+        1,
+        "{summary}"
+    );
 }
 
 /// Gains refused or warned of: complex roots are an error naming

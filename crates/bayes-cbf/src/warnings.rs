@@ -15,8 +15,9 @@
 //! A [`Record`] open on a thread keeps, besides, the first warning of each
 //! site issued on that thread while it is open, whether or not the scope had
 //! already shown it: a sweep shows a warning once, for its first seed, and
-//! the record of each run says which of them warned. Warnings issued on
-//! other threads (a refit in the background) are shown, not recorded.
+//! the record of each run says which of them warned. A thread working for
+//! another (a refit in the background) keeps a record of its own and hands
+//! it over ([`adopt`]) when its work is taken up.
 
 use std::cell::RefCell;
 use std::sync::atomic::{AtomicU64, Ordering};
@@ -94,18 +95,27 @@ impl WarnOnce {
         if show || record {
             let message = message();
             if record {
-                RECORD.with_borrow_mut(|r| {
-                    if let Some(r) = r {
-                        r.push(Issued {
-                            site: self.name,
-                            message: message.clone(),
-                        });
-                    }
+                hold(Issued {
+                    site: self.name,
+                    message: message.clone(),
                 });
             }
             if show {
                 log::warn!("{message}");
             }
+        }
+    }
+
+    /// Keeps the warning `message()` in the [`Record`] open on this thread,
+    /// if it has none of the site yet, without showing it: for a site that
+    /// shows its warnings by a rule of its own. `message` is called only
+    /// then.
+    pub fn keep(&self, message: impl FnOnce() -> String) {
+        if self.unrecorded() {
+            hold(Issued {
+                site: self.name,
+                message: message(),
+            });
         }
     }
 
@@ -148,6 +158,26 @@ pub struct Issued {
 thread_local! {
     /// The warnings of the record open on this thread, if one is.
     static RECORD: RefCell<Option<Vec<Issued>>> = const { RefCell::new(None) };
+}
+
+/// Adds to the [`Record`] open on this thread the warnings `issued`
+/// elsewhere (a [`Record`] finished on another thread), those of sites it
+/// holds none of, in order; they are not shown again. Nothing happens when
+/// no record is open.
+pub fn adopt(issued: Vec<Issued>) {
+    issued.into_iter().for_each(hold);
+}
+
+/// Adds `issued` to the record open on this thread, if one is and it holds
+/// none of its site.
+fn hold(issued: Issued) {
+    RECORD.with_borrow_mut(|r| {
+        if let Some(r) = r {
+            if r.iter().all(|held| held.site != issued.site) {
+                r.push(issued);
+            }
+        }
+    });
 }
 
 /// The warnings issued on this thread from [`start`](Self::start) to
@@ -252,6 +282,40 @@ mod tests {
         assert_eq!(calls.get(), 4);
         A.issue(|| message("a3"));
         assert_eq!(calls.get(), 4, "shown in this scope, and no record open");
+        assert!(RECORD.with_borrow(Option::is_none));
+        a_record_adopts_another_thread_s_and_keeps_without_showing();
+    }
+
+    fn a_record_adopts_another_thread_s_and_keeps_without_showing() {
+        static C: WarnOnce = WarnOnce::new("test_record_c");
+        static D: WarnOnce = WarnOnce::new("test_record_d");
+        let record = Record::start();
+        C.issue(|| "c1".into());
+        let elsewhere = std::thread::spawn(|| {
+            let record = Record::start();
+            C.issue(|| "c2".into());
+            D.issue(|| "d1".into());
+            record.finish()
+        })
+        .join()
+        .unwrap();
+        assert_eq!(elsewhere.len(), 2);
+        adopt(elsewhere);
+        D.keep(|| unreachable!("D is held already"));
+        let got: Vec<_> = record.finish().into_iter().map(|i| i.message).collect();
+        assert_eq!(got, ["c1", "d1"], "the first of each site, in order");
+        // kept, not shown: the new scope's first showing is still to come
+        new_scope();
+        let record = Record::start();
+        D.keep(|| "d2".into());
+        assert!(!D.warned());
+        assert_eq!(record.finish()[0].message, "d2");
+        // with no record open, nothing is kept or adopted
+        D.keep(|| unreachable!("no record is open"));
+        adopt(vec![Issued {
+            site: "test_record_d",
+            message: "d3".into(),
+        }]);
         assert!(RECORD.with_borrow(Option::is_none));
     }
 }

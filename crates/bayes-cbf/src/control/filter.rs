@@ -1076,6 +1076,9 @@ pub struct KktData {
 /// Joint posterior draws per step for the moments of a barrier of relative
 /// degree > 2 in the closed loop.
 const MC_SAMPLES: usize = 2_000;
+/// A barrier of relative degree above 2: its moments are sampled.
+static MONTE_CARLO_MOMENTS: crate::warnings::WarnOnce =
+    crate::warnings::WarnOnce::new("monte_carlo_moments");
 
 /// A complete safety controller: posterior at `x`, moments of every barrier
 /// (and the CLF), and the SOCP.
@@ -1139,13 +1142,15 @@ impl SafetyController {
             }
             super::super::barrier::validate_gains(b.relative_degree(), b.gains())?;
             if b.relative_degree() > 2 {
-                log::warn!(
-                    "barrier[{i}] '{}' has relative degree {}: exact moments exist for relative \
-                     degree 1 and 2, so its condition's moments are estimated from {MC_SAMPLES} \
-                     joint posterior draws at every step (seconds per step)",
-                    b.name(),
-                    b.relative_degree()
-                );
+                MONTE_CARLO_MOMENTS.issue(|| {
+                    format!(
+                        "barrier[{i}] '{}' has relative degree {}: exact moments exist for \
+                         relative degree 1 and 2, so its condition's moments are estimated from \
+                         {MC_SAMPLES} joint posterior draws at every step (seconds per step)",
+                        b.name(),
+                        b.relative_degree()
+                    )
+                });
             }
         }
         if let Some(c) = &clf {

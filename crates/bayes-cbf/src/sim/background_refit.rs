@@ -29,9 +29,14 @@
 //! hyperparameters (a factorisation that needs more than the bounded
 //! jitter), the swap falls back to refactorising the loop's data with the
 //! new hyperparameters (O(k³), on the loop's thread).
+//!
+//! The fit's warnings are shown when issued, on its thread, and join the
+//! [record](crate::warnings::Record) of the loop's thread at the swap, as a
+//! synchronous refit's would; those of a discarded refit are not kept.
 
 use crate::error::Error;
 use crate::gp::{fit_until, FitReport, FitSettings, Mvgp};
+use crate::warnings::{self, Issued, Record, WarnOnce};
 use std::sync::atomic::AtomicBool;
 use std::sync::Arc;
 use std::thread::JoinHandle;
@@ -43,10 +48,21 @@ enum DataOp {
     Remove(usize),
 }
 
+/// A refit that failed, in the loop or in the background: the model keeps
+/// its hyperparameters.
+pub(crate) static REFIT_FAILED: WarnOnce = WarnOnce::new("refit_failed");
+/// The data added and removed since a background refit's launch could not
+/// be replayed on the refitted model.
+static REFIT_REPLAY_FAILED: WarnOnce = WarnOnce::new("refit_replay_failed");
+
+/// What the fit's thread hands back: the refitted model, or why not, and
+/// the warnings it issued.
+type Fitted = (Result<(Mvgp, FitReport), Error>, Vec<Issued>);
+
 /// A refit running on another thread.
 #[derive(Debug)]
 pub(crate) struct BackgroundRefit {
-    handle: JoinHandle<Result<(Mvgp, FitReport), Error>>,
+    handle: JoinHandle<Fitted>,
     launched: usize,
     apply_after: usize,
     log: Vec<DataOp>,
@@ -65,8 +81,9 @@ impl BackgroundRefit {
     ) -> Self {
         let mut copy = model.clone();
         let handle = std::thread::spawn(move || {
-            let report = fit_until(&mut copy, &settings, &stop)?;
-            Ok((copy, report))
+            let record = Record::start();
+            let fitted = fit_until(&mut copy, &settings, &stop).map(|report| (copy, report));
+            (fitted, record.finish())
         });
         Self {
             handle,
@@ -92,19 +109,26 @@ impl BackgroundRefit {
     }
 
     /// Joins the thread and swaps the refitted hyperparameters into `model`
-    /// (module docs). A failed fit keeps the previous hyperparameters, as
-    /// the synchronous refit does; a panic in the fit is re-raised.
+    /// (module docs); the fit's warnings join this thread's record. A
+    /// failed fit keeps the previous hyperparameters, as the synchronous
+    /// refit does; a panic in the fit is re-raised.
     pub(crate) fn finish(self, model: &mut Mvgp) {
         let launched = self.launched;
-        let (mut fitted, _report) = match self.handle.join() {
-            Ok(Ok(r)) => r,
+        let (fitted, issued) = self
+            .handle
+            .join()
+            .unwrap_or_else(|panic| std::panic::resume_unwind(panic));
+        warnings::adopt(issued);
+        let mut fitted = match fitted {
+            Ok((fitted, _report)) => fitted,
             // the loop's stop flag is set: it ends at its next step
-            Ok(Err(Error::Interrupted)) => return,
-            Ok(Err(e)) => {
-                log::warn!("refit launched at step {launched} failed ({e}); keeping the previous hyperparameters");
+            Err(Error::Interrupted) => return,
+            Err(e) => {
+                REFIT_FAILED.issue(|| {
+                    format!("refit launched at step {launched} failed ({e}); keeping the previous hyperparameters")
+                });
                 return;
             }
-            Err(panic) => std::panic::resume_unwind(panic),
         };
         for op in &self.log {
             let replayed = match op {
@@ -115,20 +139,77 @@ impl BackgroundRefit {
                 }
             };
             if let Err(e) = replayed {
-                log::warn!("refit launched at step {launched}: replaying the data since the launch failed ({e}); refactorising with the new hyperparameters");
-                if let Err(e) = model.set_hyper(fitted.hyper().clone()) {
-                    log::warn!("refit launched at step {launched}: the new hyperparameters do not factorise the current data ({e}); keeping the previous ones");
-                }
+                let outcome = match model.set_hyper(fitted.hyper().clone()) {
+                    Ok(()) => "refactorised the current data with the new hyperparameters".into(),
+                    Err(e) => format!(
+                        "the new hyperparameters do not factorise the current data ({e}); keeping the previous ones"
+                    ),
+                };
+                REFIT_REPLAY_FAILED.issue(|| {
+                    format!("refit launched at step {launched}: replaying the data since the launch failed ({e}); {outcome}")
+                });
                 return;
             }
         }
         *model = fitted;
     }
 
-    /// Joins the thread and drops its result (the run ended first).
+    /// Joins the thread and drops its result and warnings (the run ended
+    /// first).
     pub(crate) fn abandon(self) {
         if let Err(panic) = self.handle.join() {
             std::panic::resume_unwind(panic);
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::gp::{InputMap, MvgpHyper, PriorMean, Rbf};
+    use nalgebra::DMatrix;
+
+    /// A model of `ẋ = (x₀ + u, 0)` on data whose second state is 0.5 in
+    /// every row: a fit cannot learn that input's lengthscale and warns.
+    fn model() -> Mvgp {
+        let hyper = MvgpHyper {
+            kernel: Rbf::new(vec![1.0; 2], 1.0).unwrap(),
+            A: DMatrix::identity(2, 2),
+            B: DMatrix::identity(2, 2),
+            sigma: 0.1,
+        };
+        let mut m = Mvgp::new(2, 1, hyper, PriorMean::Zero, InputMap::Identity).unwrap();
+        for j in 0..20 {
+            let (x0, u) = ((j as f64 * 0.7).sin(), (j as f64 * 1.3).cos());
+            m.add_observation(&[x0, 0.5], &[u], &[x0 + u, 0.0]).unwrap();
+        }
+        m
+    }
+
+    /// The warnings of a background refit join the loop thread's record at
+    /// the swap, the same as the synchronous refit's; a discarded refit's
+    /// do not.
+    #[test]
+    fn a_background_refit_s_warnings_join_the_loop_s_record_at_the_swap() {
+        let settings = FitSettings {
+            max_iters: 20,
+            ..FitSettings::default()
+        };
+        let stop = Arc::new(AtomicBool::new(false));
+        let sites = |issued: Vec<Issued>| issued.into_iter().map(|i| i.site).collect::<Vec<_>>();
+        let record = Record::start();
+        fit_until(&mut model(), &settings, &stop).unwrap();
+        let sync = sites(record.finish());
+        assert_eq!(sync, ["lengthscale_unfit"]);
+
+        let mut m = model();
+        let record = Record::start();
+        let bg = BackgroundRefit::launch(&m, settings.clone(), 0, 1, Arc::clone(&stop));
+        bg.finish(&mut m);
+        assert_eq!(sites(record.finish()), sync);
+
+        let record = Record::start();
+        BackgroundRefit::launch(&m, settings, 0, 1, stop).abandon();
+        assert!(record.finish().is_empty());
     }
 }

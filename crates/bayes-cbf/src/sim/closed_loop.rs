@@ -3,7 +3,7 @@
 //! model on schedule; one [`ClosedLoop::step`] at a time or
 //! [`ClosedLoop::run`] to the horizon with an [`Observer`].
 
-use super::background_refit::BackgroundRefit;
+use super::background_refit::{BackgroundRefit, REFIT_FAILED};
 use super::reference::{Reference, ReferenceOut};
 use super::{SimSettings, Simulator};
 use crate::barrier::DynBarrier;
@@ -14,6 +14,7 @@ use crate::control::{
 use crate::error::{check_len, check_nonnegative, check_positive, Error, InputError};
 use crate::gp::{fit_until, FitSettings, Mvgp};
 use crate::systems::{wrap_angle, DynSystem};
+use crate::warnings::WarnOnce;
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use rand_distr::{Distribution, StandardNormal};
@@ -309,6 +310,9 @@ impl<F: FnMut(usize, &StepRecord)> Observer for F {
 
 /// Skipped observations warned of, one by one, in a run.
 const SKIPS_SHOWN: usize = 3;
+/// A run skipped an observation: recorded once, shown as [`SKIPS_SHOWN`]
+/// says.
+static OBSERVATION_SKIPPED: WarnOnce = WarnOnce::new("observation_skipped");
 
 /// The closed loop of a true system, a learned model and a safety
 /// controller, stepped one control period (or one self-triggered hold) at a
@@ -719,6 +723,7 @@ impl<'a> ClosedLoop<'a> {
             // jitter duplicates information already in the model
             if let Err(e) = self.model.add_observation(&xo, &uo, &xd) {
                 self.skipped += 1;
+                OBSERVATION_SKIPPED.keep(|| format!("step {k}: observation skipped ({e})"));
                 match self.skipped {
                     ..SKIPS_SHOWN => log::warn!("step {k}: observation skipped ({e})"),
                     SKIPS_SHOWN => log::warn!(
@@ -802,9 +807,9 @@ impl<'a> ClosedLoop<'a> {
                     match fit_until(&mut self.model, &fs, &self.stop) {
                         // an interrupted refit ends the run at the next step
                         Ok(_) | Err(Error::Interrupted) => {}
-                        Err(e) => log::warn!(
-                            "refit at step {k} failed ({e}); keeping the previous hyperparameters"
-                        ),
+                        Err(e) => REFIT_FAILED.issue(|| {
+                            format!("refit at step {k} failed ({e}); keeping the previous hyperparameters")
+                        }),
                     }
                 }
                 Some(_) if self.background.is_some() => {
