@@ -894,7 +894,6 @@ mod tests {
 #[cfg(test)]
 mod size_tests {
     use super::*;
-    use crate::gp::{InputMap, MvgpHyper, PriorMean, Rbf};
 
     /// A model of 2200 states and 2199 controls (allowed) asks the
     /// relative-degree-2 buffers for about 1.9·10¹⁴ bytes: an error naming
@@ -904,13 +903,7 @@ mod size_tests {
         // beyond the 2⁴⁷-byte address space of x86-64 and AArch64 (1.4·10¹⁴
         // bytes): refused whatever the kernel's overcommit setting
         let (n, m) = (2200, 2199);
-        let hyper = MvgpHyper {
-            kernel: Rbf::new(vec![1.0; n], 1.0).unwrap(),
-            A: DMatrix::identity(n, n),
-            B: DMatrix::identity(m + 1, m + 1),
-            sigma: 0.1,
-        };
-        let model = Mvgp::new(n, m, hyper, PriorMean::Zero, InputMap::Identity).unwrap();
+        let model = crate::gp::plain_model(n, m, 1.0, 1.0, 0.1);
         let x = vec![0.0; n];
         let mut ws = MomentWorkspace::new(&model);
         ws.update(&model, &x, 1).unwrap();

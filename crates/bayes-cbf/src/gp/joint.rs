@@ -309,7 +309,6 @@ impl<K: Kernel> Mvgp<K> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::gp::{InputMap, MvgpHyper, PriorMean, Rbf};
 
     /// Fitting buffers are used in place (no reallocation), also when the
     /// data fill the capacity exactly (32 observations); a workspace made
@@ -317,13 +316,7 @@ mod tests {
     /// the wrong shape is resized. Every case gives the fresh posterior.
     #[test]
     fn buffers_are_kept_when_they_fit_and_regrown_when_not() {
-        let hyper = MvgpHyper {
-            kernel: Rbf::new(vec![1.0, 1.0], 1.0).unwrap(),
-            A: DMatrix::identity(2, 2),
-            B: DMatrix::identity(2, 2),
-            sigma: 0.1,
-        };
-        let mut model = Mvgp::new(2, 1, hyper, PriorMean::Zero, InputMap::Identity).unwrap();
+        let mut model = crate::gp::plain_model(2, 1, 1.0, 1.0, 0.1);
         let mut stale = model.joint_workspace();
         for j in 0..32 {
             let t = 0.2 * j as f64 - 3.0;

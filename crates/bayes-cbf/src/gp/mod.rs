@@ -81,6 +81,8 @@ pub use lipschitz::{
 };
 pub use metrics::{held_out_errors, variance_weighted_error, HeldOutErrors};
 pub use model::{DynamicsModel, ModelFitSettings};
+#[cfg(test)]
+pub(crate) use mvgp::plain_model;
 pub use mvgp::{
     check_spd, KnownRowMisfit, Mvgp, MvgpHyper, Posterior, PosteriorWorkspace,
     KNOWN_ROW_MIN_OBSERVATIONS,

@@ -966,6 +966,21 @@ pub(crate) fn add_data_part(
     });
 }
 
+/// An `n`-state, `m`-control model with no data, a zero prior mean, the
+/// identity input map, `A = I`, `B = I`, noise scale `sigma` and an RBF
+/// kernel of lengthscale `lengthscale` in every input and output scale
+/// `variance`: the plain model of unit tests.
+#[cfg(test)]
+pub(crate) fn plain_model(n: usize, m: usize, lengthscale: f64, variance: f64, sigma: f64) -> Mvgp {
+    let hyper = MvgpHyper {
+        kernel: Rbf::new(vec![lengthscale; n], variance).unwrap(),
+        A: DMatrix::identity(n, n),
+        B: DMatrix::identity(m + 1, m + 1),
+        sigma,
+    };
+    Mvgp::new(n, m, hyper, PriorMean::Zero, InputMap::Identity).unwrap()
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -1020,19 +1020,13 @@ fn symmetrise(m: &DMatrix<f64>) -> DMatrix<f64> {
 mod tests {
     use super::*;
     use crate::gp::theta::random_training_rows;
-    use crate::gp::{InputMap, PriorMean, Rbf};
+    use crate::gp::Rbf;
     use rand::RngExt;
 
     fn model(n: usize, m: usize, k: usize, rng: &mut ChaCha8Rng) -> Mvgp {
         let (zs, us, resid) = random_training_rows(rng, k, n, m);
         let p = m + 1;
-        let hyper = MvgpHyper {
-            kernel: Rbf::new(vec![0.8; n], 1.3).unwrap(),
-            A: DMatrix::identity(n, n),
-            B: DMatrix::identity(p, p),
-            sigma: 0.3,
-        };
-        let mut model = Mvgp::new(n, m, hyper, PriorMean::Zero, InputMap::Identity).unwrap();
+        let mut model = crate::gp::plain_model(n, m, 0.8, 1.3, 0.3);
         let u_only: Vec<f64> = us.chunks(p).flat_map(|u| u[1..].to_vec()).collect();
         model.set_data(&zs, &u_only, &resid).unwrap();
         model

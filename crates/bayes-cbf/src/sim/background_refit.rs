@@ -166,19 +166,11 @@ impl BackgroundRefit {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::gp::{InputMap, MvgpHyper, PriorMean, Rbf};
-    use nalgebra::DMatrix;
 
     /// A model of `ẋ = (x₀ + u, 0)` on data whose second state is 0.5 in
     /// every row: a fit cannot learn that input's lengthscale and warns.
     fn model() -> Mvgp {
-        let hyper = MvgpHyper {
-            kernel: Rbf::new(vec![1.0; 2], 1.0).unwrap(),
-            A: DMatrix::identity(2, 2),
-            B: DMatrix::identity(2, 2),
-            sigma: 0.1,
-        };
-        let mut m = Mvgp::new(2, 1, hyper, PriorMean::Zero, InputMap::Identity).unwrap();
+        let mut m = crate::gp::plain_model(2, 1, 1.0, 1.0, 0.1);
         for j in 0..20 {
             let (x0, u) = ((j as f64 * 0.7).sin(), (j as f64 * 1.3).cos());
             m.add_observation(&[x0, 0.5], &[u], &[x0 + u, 0.0]).unwrap();
