@@ -361,7 +361,8 @@ animation = false
 /// barrier that crosses in steps that met their condition is warned of
 /// with its curvature over the hold and the margin `zeta` that covers it
 /// (with which the run is safe); holds clamped up to `tau_min` are
-/// counted.
+/// counted, with what would lengthen them, and the margin raised for them
+/// keeps the disc self-triggered at 10 ms safe.
 #[test]
 fn kinks_curvature_and_clamped_holds_are_warned_of() {
     let dir = scratch_dir("outputs-kinks");
@@ -397,19 +398,50 @@ fn kinks_curvature_and_clamped_holds_are_warned_of() {
     assert!(!r.stderr.contains("crossed zero"), "{}", r.stderr);
     let e = summary_in(&dir, "e");
     assert!(e.contains("\"safe\": true"), "{e}");
+    // the vehicle's holds at the paper's margin are clamped, and the
+    // warning names the setting that raises it; raised (the default), its
+    // seed 0 has none left among the steps that met their conditions
+    let r = run_set(
+        "ackermann-self-triggered",
+        &[
+            "outputs.animation=false",
+            "trigger.margin_for_tau_min=false",
+        ],
+        "c",
+    );
+    succeeded_with(
+        &r,
+        &[
+            "holds of steps that met their conditions were clamped up to tau_min = 0.001 s",
+            "the margins were too small (set trigger.margin_for_tau_min = true",
+        ],
+    );
     let r = run_set(
         "ackermann-self-triggered",
         &["outputs.animation=false"],
-        "c",
+        "c2",
+    );
+    succeeded_without(&r, "were clamped");
+    // the disc self-triggered with 10 ms holds: crossed at the margin ζ,
+    // safe with it raised, whose holds still clamped are those where the
+    // state could leave the cuboid
+    let trigger = [
+        "controller.zeta=0.01",
+        "trigger.cuboid=[0.2, 0.2]",
+        "trigger.tau_min=0.01",
+    ];
+    let r = run_set(
+        "disc.toml",
+        &[&trigger[..], &["trigger.margin_for_tau_min=false"]].concat(),
+        "f",
     );
     assert!(r.status.success(), "{}", r.stderr);
-    assert!(
-        r.stderr.contains(
-            "holds of steps that met their conditions were clamped up to tau_min = 0.001 s"
-        ),
-        "{}",
-        r.stderr
-    );
+    summary_has(&dir, "f", "\"safe\": false");
+    let r = run_set("disc.toml", &trigger, "g");
+    succeeded_with(&r, &["the state could leave trigger.cuboid before tau_min"]);
+    succeeded_without(&r, "margins were too small");
+    summary_has(&dir, "g", "\"safe\": true");
+    assert!(!summary_in(&dir, "g").contains("\"raised_margins\": 0,"));
 }
 
 /// Asserts that the run succeeded and that its stderr does not mention

@@ -172,6 +172,11 @@ fn core_settings_round_trip_through_serde() {
     let text = serde_json::to_string(&loop_settings).unwrap();
     let back: LoopSettings = serde_json::from_str(&text).unwrap();
     assert_eq!(back, loop_settings);
+    // settings written before margin_for_tau_min existed read with its default
+    let older = text.replace(",\"margin_for_tau_min\":true", "");
+    assert_ne!(older, text);
+    let back: LoopSettings = serde_json::from_str(&older).unwrap();
+    assert_eq!(back, loop_settings);
     let (sc, _) = scenario::load("ackermann-bayes-cbf", &[]).unwrap();
     let built = scenario::build(&sc).unwrap();
     let hyper = built.model.hyper().clone();

@@ -258,6 +258,7 @@ pub fn build(s: &Scenario) -> Result<Built> {
                 tau_max: t.tau_max,
                 tau_from: TauSource::parse(&t.tau_from)?,
                 hold: t.self_triggered,
+                margin_for_tau_min: t.margin_for_tau_min,
             })
         }
     };
@@ -1099,8 +1100,12 @@ static CLAMPED_HOLDS: WarnOnce = WarnOnce::new("clamped_holds");
 
 /// Warns, once per scope, when self-triggered holds were clamped up to
 /// `tau_min`: there the hold that keeps the conditions (Props. 3, 5) was
-/// shorter than the one applied, which lies outside the guarantee.
-pub(crate) fn warn_clamped_holds(records: &[StepRecord], tau_min: f64, seed: u64) {
+/// shorter than the one applied, which lies outside the guarantee. The
+/// warning says what would lengthen them: a larger cuboid where the state
+/// may leave it before `tau_min`, else the margin raised for the hold
+/// (`trigger.margin_for_tau_min`), or, where that was infeasible, a lower
+/// `tau_min` or probability.
+pub(crate) fn warn_clamped_holds(records: &[StepRecord], ts: &TriggerSettings, seed: u64) {
     // an infeasible step has no margin (τ_k = 0) and holds its fallback:
     // not a hold the guarantee sized
     let reports: Vec<_> = records
@@ -1108,26 +1113,48 @@ pub(crate) fn warn_clamped_holds(records: &[StepRecord], tau_min: f64, seed: u64
         .filter(|r| r.status != StepStatus::Infeasible)
         .filter_map(|r| r.trigger.as_ref())
         .collect();
-    let clamped: Vec<f64> = reports
-        .iter()
-        .filter(|t| t.clamped_low)
-        .map(|t| t.tau_analytic)
-        .collect();
+    let clamped: Vec<_> = reports.iter().filter(|t| t.clamped_low).collect();
     if clamped.is_empty() {
         return;
+    }
+    let tau_min = ts.tau_min;
+    let shortest = clamped
+        .iter()
+        .map(|t| t.tau_analytic)
+        .fold(f64::INFINITY, f64::min);
+    let leaving = clamped.iter().filter(|t| t.tau_cuboid < tau_min).count();
+    let mut why = Vec::new();
+    if leaving > 0 {
+        why.push(format!(
+            "on {leaving} the state could leave trigger.cuboid before tau_min (enlarge it)"
+        ));
+    }
+    let by_margin = clamped.len() - leaving;
+    if by_margin > 0 {
+        why.push(if ts.margin_for_tau_min {
+            format!(
+                "on {by_margin} the margin that holds for tau_min was infeasible or out of \
+                 reach (lower trigger.tau_min or controller.probability)"
+            )
+        } else {
+            format!(
+                "on {by_margin} the margins were too small (set trigger.margin_for_tau_min = \
+                 true to raise them, or lower trigger.tau_min)"
+            )
+        });
     }
     warn_once(
         &CLAMPED_HOLDS,
         format!(
             "trigger (seed {seed}): {} of {} holds of steps that met their conditions were \
              clamped up to tau_min = {} s, where the hold that keeps the conditions was \
-             shorter (analytic τ_k down to {} s): those \
-             holds lie outside the guarantee; lower trigger.tau_min towards the τ_k the \
-             run needs, or lower the gains (docs/robots.md, \"Holds clamped to tau_min\")",
+             shorter (analytic τ_k down to {} s): those holds lie outside the guarantee; {} \
+             (docs/robots.md, \"Holds clamped to tau_min\")",
             clamped.len(),
             reports.len(),
             short(tau_min),
-            short(clamped.iter().copied().fold(f64::INFINITY, f64::min))
+            short(shortest),
+            why.join("; ")
         ),
     );
 }

@@ -171,7 +171,7 @@ pub struct ObstacleSpec {
 /// Relative-degree-1 barriers use the controller's margin `controller.zeta`
 /// as ζ (it must be > 0); barriers of relative degree ≥ 2 are shifted to
 /// `h − zeta_b` in the SOCP. The SOCP probability becomes
-/// `p / (1 − delta_l)` so that the interval guarantee is `controller.probability`.
+/// `p + 2 delta_l` so that the interval guarantee is `controller.probability`.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct TriggerSpec {
@@ -202,6 +202,12 @@ pub struct TriggerSpec {
     /// only evaluate τ_k (false).
     #[serde(default = "yes")]
     pub self_triggered: bool,
+    /// Solve a step whose τ_k falls below `tau_min` again with the margin
+    /// that holds for `tau_min`
+    /// ([`TriggerSettings::margin_for_tau_min`](bayes_cbf::control::TriggerSettings::margin_for_tau_min));
+    /// false keeps `controller.zeta` at every step, as the paper does.
+    #[serde(default = "yes")]
+    pub margin_for_tau_min: bool,
 }
 
 fn default_delta_l() -> f64 {

@@ -194,6 +194,12 @@ pub struct TriggerSummary {
     pub clamped_to_tau_min: usize,
     /// Holds clamped to `tau_max`.
     pub clamped_to_tau_max: usize,
+    /// Solve the steps whose `τ_k` fell below `tau_min` again with a raised
+    /// margin.
+    pub margin_for_tau_min: bool,
+    /// Steps solved with a raised margin (their hold reached `tau_min`, or
+    /// came closer to it).
+    pub raised_margins: usize,
 }
 
 /// Runs `scenario`; `progress(k, steps)` is called after each step.
@@ -298,7 +304,7 @@ pub fn run_scenario_until(
         );
     }
     if let Some(t) = built.loop_settings.trigger.as_ref().filter(|t| t.hold) {
-        super::build::warn_clamped_holds(&result.records, t.tau_min, scenario.seed);
+        super::build::warn_clamped_holds(&result.records, t, scenario.seed);
         if !scenario.gp.oracle && scenario.learning.update_every > 0 {
             super::build::warn_noise_below_held_labels(
                 &built.model,
@@ -444,6 +450,8 @@ fn trigger_summary(ts: &TriggerSettings, r: &LoopResult) -> TriggerSummary {
             .iter()
             .filter(|t| !t.clamped_low && t.hold >= ts.tau_max)
             .count(),
+        margin_for_tau_min: ts.margin_for_tau_min,
+        raised_margins: reps.iter().filter(|t| t.raised_zeta.is_some()).count(),
     }
 }
 
@@ -602,6 +610,15 @@ fn trajectory_columns(built: &Built, r: &LoopResult) -> Trajectory {
                     rec.trigger
                         .as_ref()
                         .map_or(absent, |t| f64::from(u8::from(t.clamped_low)))
+                }),
+            ),
+            (
+                "raised_zeta",
+                col(&|rec| {
+                    rec.trigger
+                        .as_ref()
+                        .and_then(|t| t.raised_zeta)
+                        .unwrap_or(absent)
                 }),
             ),
         ]);

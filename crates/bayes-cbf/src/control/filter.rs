@@ -525,6 +525,13 @@ impl SafetyFilter {
         Ok(())
     }
 
+    /// Changes the margin `ζ` of the barrier conditions (finite, `≥ 0`).
+    pub fn set_zeta(&mut self, zeta: f64) -> Result<(), InputError> {
+        check_nonnegative("zeta", zeta)?;
+        self.settings.zeta = zeta;
+        Ok(())
+    }
+
     /// Solves the SOCP for reference `u_ref` and writes the outcome.
     ///
     /// `cbcs` has one entry per barrier (each with its relative degree),
@@ -1098,6 +1105,8 @@ pub struct SafetyController {
     mc: McSettings,
     steps: u64,
     recal: Option<Recalibration>,
+    /// The moments in place are a whole step's ([`resolve`](Self::resolve)).
+    solved: bool,
 }
 
 /// The recalibration state: the inflations, and the last step's state,
@@ -1186,6 +1195,7 @@ impl SafetyController {
             },
             steps: 0,
             recal: None,
+            solved: false,
         })
     }
 
@@ -1299,6 +1309,7 @@ impl SafetyController {
             )
             .into());
         }
+        self.solved = false;
         let ws = self.ws.get_or_insert_with(|| MomentWorkspace::new(model));
         ws.update(model, x, self.max_degree)?;
         let cbcs = self.cbcs.iter_mut().zip(self.noise.iter_mut());
@@ -1333,25 +1344,56 @@ impl SafetyController {
                 }
             }
         }
-        let clc = match &self.clf {
-            Some(c) => {
-                let zeros = self.zero_reference.as_slice();
-                let (xd, xdd) = reference.unwrap_or((zeros, zeros));
-                clc_moments(ws, c.as_ref(), xd, xdd, &mut self.clc)?;
-                self.clc.check_finite("clf", x)?;
-                Some(&self.clc)
-            }
-            None => None,
-        };
+        if let Some(c) = &self.clf {
+            let zeros = self.zero_reference.as_slice();
+            let (xd, xdd) = reference.unwrap_or((zeros, zeros));
+            clc_moments(ws, c.as_ref(), xd, xdd, &mut self.clc)?;
+            self.clc.check_finite("clf", x)?;
+        }
         for (i, mom) in self.cbcs.iter().enumerate() {
             if mom.check_finite("", x).is_err() {
                 mom.check_finite(&format!("barriers[{i}]"), x)?;
             }
         }
+        self.solve(Some(x), u_ref, out)?;
+        self.solved = true;
+        Ok(())
+    }
+
+    /// Solves the last [`step`](Self::step)'s program again, from the same
+    /// moments, with the filter's settings as they are now (after
+    /// [`SafetyFilter::set_zeta`] or [`SafetyFilter::set_probability`]
+    /// through [`filter_mut`](Self::filter_mut)): the state and reference
+    /// are the step's, `u_ref` its reference control. An error before the
+    /// first step and after a step that failed.
+    pub fn resolve(&mut self, u_ref: &[f64], out: &mut ControlOutput) -> Result<(), Error> {
+        if !self.solved {
+            return Err(InputError::invalid_shown(
+                "resolve",
+                "without a solved step",
+                "solves the last step's program again: call step first (a step that failed leaves none)",
+            )
+            .into());
+        }
+        self.solve(None, u_ref, out)
+    }
+
+    /// Solves the program of the moments in place and keeps the
+    /// recalibration's record of the state `x` (`None`: the step's, kept)
+    /// and the control.
+    fn solve(
+        &mut self,
+        x: Option<&[f64]>,
+        u_ref: &[f64],
+        out: &mut ControlOutput,
+    ) -> Result<(), Error> {
+        let clc = self.clf.is_some().then_some(&self.clc);
         self.filter.solve(&self.cbcs, clc, u_ref, out)?;
         if let Some(rc) = self.recal.as_mut() {
-            rc.x.clear();
-            rc.x.extend_from_slice(x);
+            if let Some(x) = x {
+                rc.x.clear();
+                rc.x.extend_from_slice(x);
+            }
             rc.u.clear();
             rc.u.extend_from_slice(&out.u);
             // the latent condition's moments: the innovation of a model

@@ -72,6 +72,22 @@
 //!
 //! The applied hold is `τ_k` clamped to `[τ_min, τ_max]`; a clamp from below
 //! is reported, since the guarantee then no longer covers the whole hold.
+//!
+//! ## Holds shorter than `τ_min`
+//!
+//! A controller cannot trigger sooner than `τ_min`, so a `τ_k < τ_min`
+//! leaves the end of the hold unguaranteed. Where the margins of
+//! relative-degree-1 barriers are what keeps `τ_k` short, a larger margin
+//! fixes it: the corrected Prop. 3 hold is `τ_min` at
+//! `ζ = (e^{L_f τ_min} − 1)/L_f · (L_h (L_f + L_α) + L_∇h X) X`
+//! ([`zeta_for_tau`]). With [`TriggerSettings::margin_for_tau_min`] the
+//! closed loop solves such a step again with that margin (the largest over
+//! the barriers), evaluates the trigger at the new control (its `L_f` and
+//! `X` depend on the control) and repeats a few times while the hold is
+//! still short. A program infeasible at the raised margin keeps the step's
+//! first solution, and its clamped hold. The margin cannot help where the
+//! state may leave the cuboid before `τ_min` or a relative-degree-≥2
+//! barrier's `h(x_k)` is too small ([`TriggerReport::margin_for_hold`]).
 //! `L_h` and `L_∇h` are grid estimates (the grid maximum plus the covering
 //! radius times the largest slope between neighbouring nodes), like the
 //! mean term of Lemma 3.
@@ -139,12 +155,30 @@ pub struct TriggerSettings {
     /// Hold the control for `τ_k` (self-triggered). When false the run is
     /// time-triggered and `τ_k` is only evaluated and recorded.
     pub hold: bool,
+    /// At a feasible step whose `τ_k` falls below `τ_min` because of the
+    /// margins of relative-degree-1 barriers, solve the step again with
+    /// the SOCP's margin raised to the one whose corrected Prop. 3 hold is
+    /// `τ_min` ([`TriggerReport::margin_for_hold`]), so that the guarantee
+    /// covers the whole hold; kept only when that program is feasible
+    /// (module docs, "Holds shorter than τ_min"). Settings written before
+    /// the field existed read as `true`.
+    #[cfg_attr(feature = "serde", serde(default = "raise_margins"))]
+    pub margin_for_tau_min: bool,
+}
+
+/// The default of [`TriggerSettings::margin_for_tau_min`] when read.
+#[cfg(feature = "serde")]
+fn raise_margins() -> bool {
+    true
 }
 
 impl TriggerSettings {
     /// The paper's evaluation (Sec. VII-B) for the cuboid `sides`:
     /// `δ_L = 1e-4`, `ζ = ζ_b = 1e-2`, 10 nodes per side, holds in
-    /// `[1 ms, 0.1 s]`, self-triggered, analytic.
+    /// `[1 ms, 0.1 s]`, self-triggered, analytic; and, beyond the paper,
+    /// the margin raised where a hold would fall short of `τ_min`
+    /// ([`margin_for_tau_min`](Self::margin_for_tau_min); `false` keeps
+    /// the paper's `ζ` at every step).
     pub fn new(sides: Vec<f64>) -> Self {
         Self {
             lipschitz: LipschitzSettings::new(sides),
@@ -154,6 +188,7 @@ impl TriggerSettings {
             tau_max: 0.1,
             tau_from: TauSource::Analytic,
             hold: true,
+            margin_for_tau_min: true,
         }
     }
 
@@ -249,6 +284,19 @@ pub fn tau_relative_degree_one(
     let den = (l_h * (l_f + l_alpha) + l_grad_h * xdot) * xdot;
     let a = if den > 0.0 { zeta / den } else { f64::INFINITY };
     log1p_over(l_f, a)
+}
+
+/// The margin at which [`tau_relative_degree_one`] is `tau`, its inverse in
+/// `ζ`: `ζ = (e^{L_f τ} − 1)/L_f · (L_h (L_f + L_α) + L_∇h X) X` (the limit
+/// `τ (…) X` at `L_f = 0`).
+pub fn zeta_for_tau(l_f: f64, tau: f64, l_alpha: f64, l_h: f64, l_grad_h: f64, xdot: f64) -> f64 {
+    let den = (l_h * (l_f + l_alpha) + l_grad_h * xdot) * xdot;
+    let growth = if l_f * tau < 1e-12 {
+        tau
+    } else {
+        (l_f * tau).exp_m1() / l_f
+    };
+    growth * den
 }
 
 /// Prop. 5 with margin `m`: `τ = ln(1 + L_f m / (L_h X)) / L_f` (`+∞` when
@@ -352,6 +400,10 @@ pub struct TriggerReport {
     /// The chosen `τ_k` was below `τ_min` (the guarantee does not cover the
     /// whole hold).
     pub clamped_low: bool,
+    /// The SOCP margin the step was solved with when it was raised for the
+    /// hold ([`TriggerSettings::margin_for_tau_min`]); `None` when the step
+    /// used `ζ`.
+    pub raised_zeta: Option<f64>,
     /// Wall time of this evaluation (µs).
     pub eval_us: f64,
 }
@@ -388,6 +440,46 @@ impl TriggerReport {
         let upper = by_barriers.max(tau_max);
         let cube = tau_in_cuboid(l_f, half_sides, &self.xdot_bound, x, upper);
         (by_barriers.min(cube), cube)
+    }
+
+    /// The `L_f` that set this report's hold: the numerical estimate when
+    /// `source` asks for it and it was estimated, the analytic bound
+    /// otherwise.
+    pub fn l_f(&self, source: TauSource) -> f64 {
+        match (source, self.lipschitz.numerical) {
+            (TauSource::Numerical, Some(l)) => l,
+            _ => self.lipschitz.analytic,
+        }
+    }
+
+    /// The smallest margin of the relative-degree-1 conditions at which the
+    /// hold would be `tau` with this report's `L_f` (`source`), `L_h`,
+    /// `L_∇h` and velocity bound: the largest [`zeta_for_tau`] over those
+    /// barriers. `None` when a margin cannot give that hold: the state may
+    /// leave the cuboid before `tau`, or a barrier of relative degree ≥ 2
+    /// (whose margin is `h(x_k)`) holds for less; or no barrier has
+    /// relative degree 1.
+    pub fn margin_for_hold(
+        &self,
+        source: TauSource,
+        barriers: &[Arc<dyn DynBarrier>],
+        tau: f64,
+    ) -> Option<f64> {
+        let (l_f, x) = (self.l_f(source), self.xdot_norm);
+        if self.tau_cuboid < tau {
+            return None;
+        }
+        let mut need: Option<f64> = None;
+        for (i, b) in barriers.iter().enumerate() {
+            if b.relative_degree() == 1 {
+                let l_alpha = b.gains().first().map_or(0.0, |a| a.abs());
+                let z = zeta_for_tau(l_f, tau, l_alpha, self.l_h[i], self.l_grad_h[i], x);
+                need = Some(need.map_or(z, |n| n.max(z)));
+            } else if tau_relative_degree_r(l_f, self.margin[i], self.l_h[i], x) < tau {
+                return None;
+            }
+        }
+        need
     }
 }
 
@@ -541,6 +633,7 @@ pub fn evaluate_trigger<R: Rng>(
         tau_cuboid: f64::NAN,
         hold: f64::NAN,
         clamped_low: false,
+        raised_zeta: None,
         eval_us: 0.0,
     };
     let tau =
@@ -734,6 +827,25 @@ mod tests {
         assert_eq!(log1p_over(0.0, 0.25), 0.25);
         assert_eq!(log1p_over(1e-14, 0.25), 0.25);
         assert_eq!(log1p_over(3.0, f64::INFINITY), f64::INFINITY);
+    }
+
+    /// `zeta_for_tau` inverts `tau_relative_degree_one`, on both branches
+    /// of its `L_f → 0` limit.
+    #[test]
+    fn the_margin_for_a_hold_gives_that_hold() {
+        for (l_f, tau) in [
+            (2.0, 1e-3),
+            (41.0, 1e-3),
+            (0.5, 0.1),
+            (1e-14, 1e-3),
+            (0.0, 0.02),
+        ] {
+            for (l_alpha, l_h, l_gh, x) in [(1.0, 0.5, 0.3, 0.2), (3.0, 2.9, 2.1, 6.3)] {
+                let z = zeta_for_tau(l_f, tau, l_alpha, l_h, l_gh, x);
+                let back = tau_relative_degree_one(l_f, z, l_alpha, l_h, l_gh, x);
+                assert!((back - tau).abs() <= 1e-9 * tau, "{l_f} {tau}: {back}");
+            }
+        }
     }
 
     #[test]

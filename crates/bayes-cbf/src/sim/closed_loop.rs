@@ -310,6 +310,11 @@ impl<F: FnMut(usize, &StepRecord)> Observer for F {
 
 /// Skipped observations warned of, one by one, in a run.
 const SKIPS_SHOWN: usize = 3;
+/// Solves of a step again with a raised margin, at most
+/// ([`TriggerSettings::margin_for_tau_min`]).
+const MARGIN_ROUNDS: usize = 4;
+/// The raised margin over the one the last evaluation asks for.
+const MARGIN_ABOVE_NEED: f64 = 1.01;
 /// A run skipped an observation: recorded once, shown as [`SKIPS_SHOWN`]
 /// says.
 static OBSERVATION_SKIPPED: WarnOnce = WarnOnce::new("observation_skipped");
@@ -598,18 +603,7 @@ impl<'a> ClosedLoop<'a> {
             .recalibrator()
             .map(|r| (0..r.barriers()).map(|i| r.inflation(i)).collect())
             .unwrap_or_default();
-        let trigger = match &self.settings.trigger {
-            Some(ts) => Some(evaluate_trigger(
-                &self.model,
-                &self.x,
-                &self.out.u,
-                self.barriers,
-                Some(&self.out.constraints),
-                ts,
-                &mut self.trigger_rng,
-            )?),
-            None => None,
-        };
+        let trigger = self.evaluate_trigger()?;
         // an infeasible step did not enforce the condition the hold's
         // guarantee starts from: hold for the shortest time only
         let infeasible = matches!(self.out.status, ControlStatus::Infeasible(_));
@@ -708,6 +702,94 @@ impl<'a> ClosedLoop<'a> {
         self.k += 1;
         self.t_now += hold;
         Ok(rec)
+    }
+
+    /// The trigger at the state and the step's control, if the run has one
+    /// ([`LoopSettings::trigger`]); with
+    /// [`TriggerSettings::margin_for_tau_min`], a feasible step whose hold
+    /// falls short of `τ_min` is solved again with the margin that gives
+    /// `τ_min` ([`crate::control::self_trigger`], "Holds shorter than
+    /// τ_min"), up to [`MARGIN_ROUNDS`] times while it is still short; a
+    /// program infeasible at the raised margin keeps the first solution.
+    fn evaluate_trigger(&mut self) -> Result<Option<TriggerReport>, Error> {
+        let Some(ts) = &self.settings.trigger else {
+            return Ok(None);
+        };
+        let (model, x, barriers) = (&self.model, &self.x, self.barriers);
+        let at = |out: &ControlOutput, rng: &mut ChaCha8Rng| {
+            evaluate_trigger(model, x, &out.u, barriers, Some(&out.constraints), ts, rng)
+        };
+        let mut report = at(&self.out, &mut self.trigger_rng)?;
+        if !(ts.hold && ts.margin_for_tau_min) || self.out.is_infeasible() || !report.clamped_low {
+            return Ok(Some(report));
+        }
+        let zeta = self.controller.settings().zeta;
+        let first = report.clone();
+        let mut raised = zeta;
+        // the margin of the last feasible round, whose solution is in out
+        let mut kept = None;
+        let mut resolved = false;
+        let mut failure = None;
+        for _ in 0..MARGIN_ROUNDS {
+            let Some(need) = report.margin_for_hold(ts.tau_from, self.barriers, ts.tau_min) else {
+                break;
+            };
+            // 1 % above the need: the new control's L_f and velocity bound
+            // are larger where a margin asks more of the input, and the
+            // solver meets the margin to its accuracy
+            raised = raised.max(need * MARGIN_ABOVE_NEED);
+            if !raised.is_finite() {
+                break;
+            }
+            if let Err(e) = self.controller.filter_mut().set_zeta(raised) {
+                failure = Some(e.into());
+                break;
+            }
+            resolved = true;
+            if let Err(e) = self.controller.resolve(&self.r.u_ref, &mut self.out) {
+                failure = Some(e);
+                break;
+            }
+            if self.out.is_infeasible() {
+                kept = None;
+                break;
+            }
+            match at(&self.out, &mut self.trigger_rng) {
+                Ok(r) => report = r,
+                Err(e) => {
+                    failure = Some(e);
+                    break;
+                }
+            }
+            report.raised_zeta = Some(raised);
+            kept = Some(raised);
+            if !report.clamped_low {
+                break;
+            }
+        }
+        self.controller.filter_mut().set_zeta(zeta)?;
+        if let Some(e) = failure {
+            return Err(e);
+        }
+        match kept {
+            Some(raised) => {
+                // the record's conditions are E − ζ − c·std with the run's ζ
+                for c in &mut self.out.constraints {
+                    c.slack += raised - zeta;
+                }
+            }
+            None => {
+                // the first solution again, solved at ζ as it was (the
+                // solver's result does not depend on earlier solves), so
+                // that the controller's state (the control a hold falls
+                // back to, the recalibration's record) is the applied one
+                if resolved {
+                    self.controller.resolve(&self.r.u_ref, &mut self.out)?;
+                }
+                report = first;
+            }
+        }
+        Ok(Some(report))
     }
 
     /// Adds the buffered observations when an update is due after step `k`
