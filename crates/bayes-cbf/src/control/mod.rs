@@ -14,7 +14,7 @@ pub use filter::{
 pub use recalibration::{RecalibrationSettings, Recalibrator};
 pub use self_trigger::{
     barrier_gradient_and_hessian_bounds, barrier_gradient_bound, evaluate_trigger, tau_in_cuboid,
-    tau_relative_degree_one, tau_relative_degree_r, velocity_bound, SelfTriggered, ShiftedBarrier,
-    TauSource, TriggerReport, TriggerSettings,
+    tau_relative_degree_one, tau_relative_degree_r, velocity_bound, zeta_for_tau, SelfTriggered,
+    ShiftedBarrier, TauSource, TriggerReport, TriggerSettings,
 };
 pub use socp::{SocpShape, SolveStatus};
