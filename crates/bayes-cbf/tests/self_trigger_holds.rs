@@ -583,20 +583,21 @@ fn unit_disc() -> Quadratic {
 /// that margin, and the true system keeps `CBC ≥ 0` over each of them in
 /// simulation, where it does not over some clamped holds (62 of 97
 /// clamped and 17 outlasted without the raise, 61 raised and none clamped
-/// with it, when written).
+/// with it, when written). Where the raised margin is infeasible, the step
+/// keeps the solution at ζ.
 #[test]
 fn a_raised_margin_makes_short_holds_reach_tau_min() {
     use bayes_cbf::sim::{ClosedLoop, LinearFeedback, LoopResult, LoopSettings};
     let truth: Arc<dyn DynSystem> = Arc::new(PlanarIntegrator(0.8));
     let disc = unit_disc();
     let barriers: [Arc<dyn DynBarrier>; 1] = [Arc::new(disc.clone())];
-    let run = |raise: bool| -> (LoopResult, TriggerSettings) {
+    let run = |raise: bool, bound: f64, tau_min: f64, side: f64| -> (LoopResult, TriggerSettings) {
         let mut safety = SafetySettings::new(2);
         safety.zeta = 0.01;
-        safety.u_min = Some(vec![-10.0; 2]);
-        safety.u_max = Some(vec![10.0; 2]);
-        let mut trigger = settings(vec![0.2, 0.2]);
-        trigger.tau_min = 0.01;
+        safety.u_min = Some(vec![-bound; 2]);
+        safety.u_max = Some(vec![bound; 2]);
+        let mut trigger = settings(vec![side; 2]);
+        trigger.tau_min = tau_min;
         trigger.tau_max = 0.1;
         trigger.margin_for_tau_min = raise;
         let mut st = SelfTriggered::new(2, 2, &barriers, None, safety, trigger).unwrap();
@@ -629,7 +630,7 @@ fn a_raised_margin_makes_short_holds_reach_tau_min() {
     };
     let clamped = |r: &LoopResult| r.trigger_reports().filter(|t| t.clamped_low).count();
 
-    let (paper, _) = run(false);
+    let (paper, _) = run(false, 10.0, 0.01, 0.2);
     let triggers = paper.records.len();
     assert!(
         clamped(&paper) > triggers / 2,
@@ -645,7 +646,7 @@ fn a_raised_margin_makes_short_holds_reach_tau_min() {
     };
     assert!(paper.records.iter().filter(outlasted).count() > 0);
 
-    let (raised, ts) = run(true);
+    let (raised, ts) = run(true, 10.0, 0.01, 0.2);
     assert_eq!(raised.infeasible_steps, 0);
     let mut checked = 0;
     for rec in &raised.records {
@@ -679,6 +680,19 @@ fn a_raised_margin_makes_short_holds_reach_tau_min() {
         raised.records.len()
     );
     assert!(raised.min_barrier[0] >= 0.0);
+    // holds of 70 ms in a 3 m cuboid: the margin they need is infeasible,
+    // and each such step keeps its first solution, so the run is the one
+    // at ζ, step for step
+    let (off, _) = run(false, 10.0, 0.07, 3.0);
+    let (on, _) = run(true, 10.0, 0.07, 3.0);
+    assert!(on
+        .trigger_reports()
+        .any(|t| t.clamped_low && t.tau_cuboid >= 0.07));
+    assert!(on.trigger_reports().all(|t| t.raised_zeta.is_none()));
+    assert_eq!(off.records.len(), on.records.len());
+    for (a, c) in off.records.iter().zip(&on.records) {
+        assert_eq!((&a.x, &a.u, a.hold), (&c.x, &c.u, c.hold));
+    }
 }
 
 /// `resolve` solves the last step's program again with the settings as
